@@ -1,0 +1,293 @@
+"""LIBERO task environment wrapper: one control tick per ``step``, exact EE pose, arm torques.
+
+The wrapper is transport-agnostic: the ROS sim node and the in-process runner both drive it, so a
+trajectory depends only on the commands it is given.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lq_ros.suites import (
+    CONTROL_DT_S,
+    DUMMY_ACTION,
+    NUM_WAIT_STEPS,
+    PHYSICS_DT_S,
+    SUBSTEPS_PER_TICK,
+    step_budget,
+)
+
+# Headless rendering; a user with a display may override it.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+ARM_JOINTS = 7
+
+
+@dataclass(frozen=True)
+class TaskInfo:
+    """What a policy may know about the task before the first observation."""
+
+    suite: str
+    task_id: int
+    name: str
+    instruction: str
+    #: Parsed BDDL goal, e.g. [["on", "akita_black_bowl_1", "plate_1"]].
+    goal: list[list[str]]
+    step_budget: int
+    num_init_states: int
+
+    def to_dict(self) -> dict:
+        return {
+            "suite": self.suite,
+            "task_id": self.task_id,
+            "name": self.name,
+            "instruction": self.instruction,
+            "goal": self.goal,
+            "step_budget": self.step_budget,
+            "num_init_states": self.num_init_states,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TaskInfo:
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__})
+
+
+@dataclass
+class PhysicsSamples:
+    """Per-physics-substep samples of one control tick (SUBSTEPS_PER_TICK rows, PHYSICS_DT_S apart)."""
+
+    eef_pos: np.ndarray  # (S, 3) m
+    joint_vel: np.ndarray  # (S, 7) rad/s
+    joint_torque: np.ndarray  # (S, 7) N m
+
+
+@dataclass
+class TickState:
+    """Robot state at the start of control tick ``tick`` (after the previous command was applied)."""
+
+    tick: int
+    sim_time_s: float
+    eef_pos: np.ndarray  # (3,) m, exact forward kinematics of the current joint positions
+    eef_quat_xyzw: np.ndarray  # (4,)
+    joint_pos: np.ndarray  # (7,) rad
+    joint_vel: np.ndarray  # (7,) rad/s
+    joint_torque: np.ndarray  # (7,) N m, arm actuator torque during the last physics substep
+    gripper_qpos: np.ndarray  # (2,) m
+    success: bool
+    physics: PhysicsSamples | None = None
+
+
+@dataclass
+class Observation:
+    """What a policy sees at one tick: proprioception, privileged object poses, optional images."""
+
+    tick: int
+    sim_time_s: float
+    eef_pos: np.ndarray
+    eef_quat_xyzw: np.ndarray
+    gripper_qpos: np.ndarray
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray
+    #: name -> (position (3,), quaternion xyzw (4,))
+    objects: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    #: camera name -> upright HxWx3 uint8 image (row 0 is the top of the picture)
+    images: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def sim_time_of_tick(tick: int) -> float:
+    """Sim time in seconds at the start of policy tick ``tick`` (the wait steps come first)."""
+    return (NUM_WAIT_STEPS + tick) * CONTROL_DT_S
+
+
+def tick_of_sim_time(sim_time_s: float) -> int:
+    return int(round(sim_time_s / CONTROL_DT_S)) - NUM_WAIT_STEPS
+
+
+def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:
+    """TaskInfo, BDDL path and init states of ``suite`` task ``task_id`` (no simulator created)."""
+    from libero.libero import benchmark, get_libero_path
+
+    suites = benchmark.get_benchmark_dict()
+    if suite not in suites:
+        raise ValueError(f"unknown LIBERO suite {suite!r}")
+    bench = suites[suite]()
+    if not 0 <= task_id < bench.n_tasks:
+        raise ValueError(f"{suite} has tasks 0..{bench.n_tasks - 1}, got {task_id}")
+    task = bench.get_task(task_id)
+    bddl = Path(get_libero_path("bddl_files")) / task.problem_folder / task.bddl_file
+    init_states = np.asarray(bench.get_task_init_states(task_id))
+    from libero.libero.envs.bddl_utils import robosuite_parse_problem
+
+    goal = [list(map(str, g)) for g in robosuite_parse_problem(str(bddl))["goal_state"]]
+    info = TaskInfo(
+        suite=suite,
+        task_id=task_id,
+        name=task.name,
+        instruction=task.language,
+        goal=goal,
+        step_budget=step_budget(suite),
+        num_init_states=len(init_states),
+    )
+    return info, bddl, init_states
+
+
+class LiberoEnv:
+    """One LIBERO task. ``reset`` runs the wait steps; ``step`` applies one command for one tick."""
+
+    def __init__(
+        self,
+        suite: str,
+        task_id: int,
+        *,
+        camera_names: tuple[str, ...] = (),
+        camera_size: int = 224,
+        record_physics: bool = False,
+    ) -> None:
+        import mujoco
+        from libero.libero.envs.env_wrapper import ControlEnv
+
+        self.task, bddl, self._init_states = load_task(suite, task_id)
+        self.camera_names = tuple(camera_names)
+        self.camera_size = camera_size
+        self.record_physics = record_physics
+        self._env = ControlEnv(
+            bddl_file_name=str(bddl),
+            has_offscreen_renderer=bool(self.camera_names),
+            use_camera_obs=False,
+        )
+        self._mujoco = mujoco
+        self._substeps: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._bind_sim()
+        self._obs: dict | None = None
+        self._tick = 0
+        self._success = False
+
+    # -- stepping ---------------------------------------------------------------------------
+    def reset(self, init_index: int, seed: int) -> TickState:
+        """Reset to init state ``init_index`` and run the wait steps; returns the state at tick 0."""
+        if not 0 <= init_index < len(self._init_states):
+            raise ValueError(f"init state {init_index} out of range 0..{len(self._init_states) - 1}")
+        self._env.seed(seed)
+        np.random.seed(seed)
+        self._env.reset()  # robosuite may build a new MjSim here (hard reset)
+        self._bind_sim()
+        self._env.set_init_state(self._init_states[init_index])
+        for _ in range(NUM_WAIT_STEPS):
+            self._substeps.clear()
+            self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
+        self._tick = 0
+        self._success = False
+        return self._tick_state()
+
+    def step(self, action: np.ndarray) -> TickState:
+        """Apply ``action`` for one control tick; returns the state at the next tick."""
+        self._substeps.clear()
+        self._obs, _, done, _ = self._env.step(np.asarray(action, dtype=np.float64))
+        self._tick += 1
+        self._success = bool(done)
+        return self._tick_state()
+
+    @property
+    def tick(self) -> int:
+        return self._tick
+
+    @property
+    def init_states(self) -> np.ndarray:
+        return self._init_states
+
+    def close(self) -> None:
+        self._env.close()
+
+    # -- observations -----------------------------------------------------------------------
+    def observe(self, with_images: bool = True) -> Observation:
+        """Observation at the current tick; renders the configured cameras only if asked."""
+        obs = self._obs
+        assert obs is not None, "reset() first"
+        objects = {}
+        for key in obs:
+            if key.endswith("_pos") and not key.startswith("robot0_") and "_to_" not in key:
+                name = key[: -len("_pos")]
+                objects[name] = (np.array(obs[key], dtype=np.float64), np.array(obs[name + "_quat"], dtype=np.float64))
+        images = {}
+        if with_images:
+            for cam in self.camera_names:
+                frame = self._sim.render(camera_name=cam, width=self.camera_size, height=self.camera_size)
+                images[cam] = np.ascontiguousarray(frame[::-1])  # MuJoCo renders bottom row first
+        return Observation(
+            tick=self._tick,
+            sim_time_s=sim_time_of_tick(self._tick),
+            eef_pos=np.array(obs["robot0_eef_pos"], dtype=np.float64),
+            eef_quat_xyzw=np.array(obs["robot0_eef_quat"], dtype=np.float64),
+            gripper_qpos=np.array(obs["robot0_gripper_qpos"], dtype=np.float64),
+            joint_pos=np.array(obs["robot0_joint_pos"], dtype=np.float64),
+            joint_vel=np.array(obs["robot0_joint_vel"], dtype=np.float64),
+            objects=objects,
+            images=images,
+        )
+
+    # -- internals --------------------------------------------------------------------------
+    def _eef_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Exact EE position and xyzw quaternion of the current joint positions."""
+        mj = self._mujoco
+        self._scratch.qpos[:] = self._data.qpos
+        mj.mj_kinematics(self._model, self._scratch)
+        pos = self._scratch.site_xpos[self._eef_site].copy()
+        wxyz = np.empty(4)
+        mj.mju_mat2Quat(wxyz, self._scratch.site_xmat[self._eef_site])
+        return pos, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]])
+
+    def _tick_state(self) -> TickState:
+        pos, quat = self._eef_pose()
+        physics = None
+        if self.record_physics and self._substeps:
+            eef, vel, tau = (np.array(col) for col in zip(*self._substeps))
+            physics = PhysicsSamples(eef_pos=eef, joint_vel=vel, joint_torque=tau)
+        return TickState(
+            tick=self._tick,
+            sim_time_s=sim_time_of_tick(self._tick),
+            eef_pos=pos,
+            eef_quat_xyzw=quat,
+            joint_pos=self._data.qpos[self._qpos_idx].copy(),
+            joint_vel=self._data.qvel[self._qvel_idx].copy(),
+            joint_torque=self._data.actuator_force[self._torque_idx].copy(),
+            gripper_qpos=np.array(self._obs["robot0_gripper_qpos"], dtype=np.float64),
+            success=self._success,
+            physics=physics,
+        )
+
+    def _bind_sim(self) -> None:
+        """Cache handles to the current MjSim (robosuite replaces it on a hard reset)."""
+        inner = self._env.env
+        self._sim = inner.sim
+        self._robot = inner.robots[0]
+        self._model = self._sim.model._model
+        self._data = self._sim.data._data
+        # Scratch data for exact forward kinematics without touching the simulation state.
+        self._scratch = self._mujoco.MjData(self._model)
+        self._eef_site = self._robot.eef_site_id
+        self._torque_idx = np.asarray(self._robot._ref_joint_actuator_indexes)
+        self._qpos_idx = np.asarray(self._robot._ref_joint_pos_indexes)
+        self._qvel_idx = np.asarray(self._robot._ref_joint_vel_indexes)
+        if self.record_physics and not getattr(self._sim, "_lq_recording", False):
+            self._wrap_sim_step()
+
+    def _wrap_sim_step(self) -> None:
+        """Record EE position, arm velocity and torque after every physics substep."""
+        sim_step = self._sim.step
+
+        def step_and_record() -> None:
+            sim_step()
+            pos, _ = self._eef_pose()
+            self._substeps.append(
+                (pos, self._data.qvel[self._qvel_idx].copy(), self._data.actuator_force[self._torque_idx].copy())
+            )
+
+        self._sim.step = step_and_record
+        self._sim._lq_recording = True
+
+
+assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12

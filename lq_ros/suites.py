@@ -1,0 +1,46 @@
+"""LIBERO suite constants: the single source for step budgets, wait steps and control timing."""
+
+from __future__ import annotations
+
+#: Control period of the LIBERO OSC controller (20 Hz), seconds.
+CONTROL_DT_S = 0.05
+#: MuJoCo physics timestep, seconds (25 substeps per control tick).
+PHYSICS_DT_S = 0.002
+SUBSTEPS_PER_TICK = round(CONTROL_DT_S / PHYSICS_DT_S)
+
+#: Steps run with DUMMY_ACTION after ``set_init_state`` so objects settle; excluded from the step
+#: budget and from every metric (openpi / OpenVLA-OFT LIBERO convention).
+NUM_WAIT_STEPS = 10
+#: Zero arm delta, gripper open.
+DUMMY_ACTION = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0)
+ACTION_DIM = 7
+#: Every action component is clipped by the controller to this range; chunks outside it are rejected.
+ACTION_LOW = -1.0
+ACTION_HIGH = 1.0
+
+#: Maximum policy-controlled ticks per episode (after the wait steps).
+STEP_BUDGETS: dict[str, int] = {
+    "libero_spatial": 220,
+    "libero_object": 280,
+    "libero_goal": 300,
+    "libero_10": 520,
+    "libero_90": 400,
+}
+
+#: Init states shipped per task.
+NUM_INIT_STATES = 50
+
+
+def step_budget(suite: str) -> int:
+    """Policy-controlled tick budget of ``suite``; raises ValueError naming the known suites."""
+    try:
+        return STEP_BUDGETS[suite]
+    except KeyError:
+        raise ValueError(f"unknown suite {suite!r}; known: {', '.join(STEP_BUDGETS)}") from None
+
+
+def latency_ticks(latency_s: float, control_dt_s: float = CONTROL_DT_S) -> int:
+    """N = round(dt_sim / dt_c): control ticks an inference occupies in sim time."""
+    if latency_s < 0:
+        raise ValueError(f"injected latency must be >= 0 s, got {latency_s}")
+    return int(round(latency_s / control_dt_s))
