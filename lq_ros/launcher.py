@@ -1,0 +1,219 @@
+"""Launch the four nodes as OS processes for one episode, and stop every one of them afterwards.
+
+No ros2 launch exists for the PyPI wheels, so this is ours: parameters go in a ROS params YAML
+file per run, each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the run's
+ROS_DOMAIN_ID and, unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import fcntl
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import yaml
+
+from lq_ros.config import RunConfig
+from lq_ros.runner import EpisodeOutcome
+from lq_ros.scoring import score_bag, to_json
+
+NODES = ("sim", "policy", "executor", "metrics")
+#: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
+DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
+DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Runs in the child before exec: SIGTERM it when the launcher dies, even by kill -9."""
+    ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+@contextmanager
+def reserved_domain(domain_id: int | None = None):
+    """Hold an exclusive lock on a ROS domain id for the duration of a run."""
+    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
+    candidates = [domain_id] if domain_id is not None else list(DOMAIN_IDS)
+    for did in candidates:
+        handle = open(DOMAIN_LOCK_DIR / f"{did}.lock", "w")  # noqa: SIM115 - held while the run lasts
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        try:
+            yield did
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+            handle.close()
+        return
+    raise RuntimeError(f"no free ROS domain id among {candidates} (another run holds each)")
+
+
+def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_LOG_DIR"] = str(log_dir)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def node_parameters(cfg: RunConfig, bag_path: Path, cameras: tuple[str, ...], policy_params: dict) -> dict:
+    """ROS parameters of each node, from the one run configuration."""
+    cams = list(cameras) or [""]  # ROS string arrays cannot be empty in YAML
+    return {
+        "lq_sim": {
+            "suite": cfg.suite,
+            "task": cfg.task,
+            "init": cfg.init,
+            "seed": cfg.seed,
+            "cameras": list(cams),
+            "camera_size": cfg.camera_size,
+            "physics_rate": cfg.physics_rate,
+            "max_steps": cfg.max_steps,
+        },
+        "lq_policy": {
+            "policy": cfg.policy,
+            "policy_args_json": json.dumps(cfg.policy_args),
+            "latency_s": float(cfg.latency_s),
+        },
+        "lq_executor": {
+            "mode": cfg.mode,
+            "latency_s": float(cfg.latency_s),
+            "replan_steps": cfg.replan_steps,
+            "hold": cfg.hold,
+            "request_threshold": cfg.request_threshold,
+            "merge": cfg.merge,
+        },
+        "lq_metrics": {
+            "bag_path": str(bag_path),
+            "cameras": list(cams),
+            "run_config_json": json.dumps(cfg.to_dict()),
+            "policy_params_json": json.dumps(policy_params),
+        },
+    }
+
+
+def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
+    """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL whatever is left."""
+    for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        alive = [p for p in procs.values() if p.poll() is None]
+        if not alive:
+            return
+        for p in alive:
+            p.send_signal(sig)
+        deadline = time.monotonic() + wait_s
+        for p in alive:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+    if any(p.poll() is None for p in procs.values()):
+        raise RuntimeError("child processes survived SIGKILL")
+
+
+def _clean_shm_if_killed(procs: dict[str, subprocess.Popen], env: dict[str, str]) -> None:
+    """A SIGKILLed Fast DDS participant leaves files in /dev/shm; remove the unused ones."""
+    if any(p.returncode == -signal.SIGKILL for p in procs.values()):
+        tool = Path(sys.executable).parent / "fastdds"
+        if tool.exists():
+            subprocess.run([str(tool), "shm", "clean"], env=env, capture_output=True, timeout=30, check=False)
+
+
+def launch_episode(
+    cfg: RunConfig,
+    out_dir: Path,
+    *,
+    domain_id: int | None = None,
+    timeout_s: float | None = None,
+) -> tuple[EpisodeOutcome, dict]:
+    """Run one episode through the four-node stack; returns the outcome and the scored row.
+
+    The run (not the task) is an error when a node crashes, the episode does not end within
+    ``timeout_s`` wall seconds, or the bag has no terminal event.
+    """
+    from lq_ros.policies import make_policy
+
+    out_dir = Path(out_dir)
+    bag_path = out_dir / cfg.episode_name()
+    # The policy node builds its own instance; this one only tells cameras and parameters.
+    probe = make_policy(cfg.policy, **cfg.policy_args)
+    cameras, policy_params = probe.camera_names, probe.params()
+    probe.close()
+    timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
+    work = Path(tempfile.mkdtemp(prefix="lq_run_"))
+    params_file = work / "params.yaml"
+    params = node_parameters(cfg, bag_path, cameras, policy_params)
+    params_file.write_text(yaml.safe_dump({n: {"ros__parameters": p} for n, p in params.items()}))
+    procs: dict[str, subprocess.Popen] = {}
+    reason = ""
+    with reserved_domain(domain_id) as did:
+        env = child_environment(did, work / "ros_logs")
+        try:
+            for name in NODES:
+                log = open(work / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
+                procs[name] = subprocess.Popen(
+                    [sys.executable, "-m", f"nodes.{name}_node", "--ros-args", "--params-file", str(params_file)],
+                    env=env,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    stdin=subprocess.DEVNULL,
+                    preexec_fn=_die_with_parent,
+                )
+                log.close()
+            deadline = time.monotonic() + timeout_s
+            while True:
+                if procs["metrics"].poll() is not None:
+                    if procs["metrics"].returncode != 0:
+                        reason = f"metrics node exited with code {procs['metrics'].returncode}"
+                    break
+                crashed = [n for n, p in procs.items() if p.poll() is not None]
+                if crashed:
+                    reason = ", ".join(f"{n} node exited with code {procs[n].returncode}" for n in crashed)
+                    break
+                if time.monotonic() > deadline:
+                    reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"
+                    break
+                time.sleep(0.05)
+        finally:
+            _stop(procs)
+            _clean_shm_if_killed(procs, env)
+            _collect_logs(work, bag_path)
+    return _outcome(bag_path, reason)
+
+
+def _collect_logs(work: Path, bag_path: Path) -> None:
+    """Keep the node logs inside the bag folder (or beside it when no bag was written)."""
+    dest = bag_path / "logs" if bag_path.exists() else bag_path.with_name(bag_path.name + ".logs")
+    dest.mkdir(parents=True, exist_ok=True)
+    for log in work.glob("*.log"):
+        shutil.copy(log, dest / log.name)
+    shutil.rmtree(work, ignore_errors=True)
+
+
+def _outcome(bag_path: Path, launch_error: str) -> tuple[EpisodeOutcome, dict]:
+    score_file = bag_path / "score.json"
+    if score_file.exists():
+        row = json.loads(score_file.read_text())
+    elif (bag_path / "metadata.yaml").exists():
+        row = json.loads(to_json(score_bag(bag_path)))
+    else:
+        row = {"episode": bag_path.name, "status": "error", "success": None}
+    if launch_error:
+        row["status"], row["success"] = "error", None
+        row["error_reason"] = launch_error
+    status = row.get("status") or "error"
+    if status == "unknown":
+        status = "error"
+    reason = row.get("error_reason") or ""
+    return EpisodeOutcome(status, row.get("completion_steps") or 0, reason, bag_path), row

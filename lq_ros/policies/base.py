@@ -1,0 +1,37 @@
+"""The Policy interface: an observation in, an H x 7 action chunk out."""
+
+from __future__ import annotations
+
+import abc
+
+import numpy as np
+
+from lq_ros.env import Observation, TaskInfo
+
+
+class PolicyError(RuntimeError):
+    """The policy could not produce a chunk (server down, timeout, garbage): the episode is an error."""
+
+
+class Policy(abc.ABC):
+    """A chunking policy. Implementations must be deterministic given (task, seed, observations)."""
+
+    #: Registry name, recorded with every result.
+    name: str = "policy"
+    #: Cameras the policy needs rendered at inference ticks (none: no rendering at all).
+    camera_names: tuple[str, ...] = ()
+
+    @abc.abstractmethod
+    def reset(self, task: TaskInfo, seed: int) -> None:
+        """Start an episode of ``task``."""
+
+    @abc.abstractmethod
+    def infer(self, obs: Observation) -> np.ndarray:
+        """Action chunk (H, 7) computed from ``obs``; row 0 is meant for tick ``obs.tick``."""
+
+    def params(self) -> dict:
+        """Parameters recorded in the run metadata."""
+        return {}
+
+    def close(self) -> None:
+        """Release resources (connections, threads)."""

@@ -1,0 +1,159 @@
+"""The in-process transport: env, policy and executor core called directly, one process, no ROS.
+
+Paper Figure 3 exactly: while an inference occupies N ticks of sim time, the simulator advances by
+N ``env.step`` calls driven by the protocol. It writes the same bag (topics, types, metadata) as the
+four-node stack, so one scorer serves both; it is also the performance baseline.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+from lq_ros import messages as m
+from lq_ros.bag import EpisodeBagWriter, log_time_ns
+from lq_ros.config import RunConfig, versions
+from lq_ros.env import LiberoEnv, sim_time_of_tick
+from lq_ros.executor import ExecutorCore
+from lq_ros.policies import Policy, make_policy
+
+
+@dataclass
+class EpisodeOutcome:
+    status: str  # "success" | "failure" | "error"
+    ticks: int
+    reason: str
+    bag_path: Path
+
+
+def episode_topics(cfg: RunConfig, camera_names: tuple[str, ...]) -> list[m.Topic]:
+    topics = list(m.CORE_TOPICS)
+    if cfg.physics_rate:
+        topics += [m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS]
+    topics += [m.camera_topic(c) for c in camera_names]
+    return topics
+
+
+def run_metadata(cfg: RunConfig, policy_params: dict, transport: str, env_versions: dict) -> dict:
+    return {
+        "config": cfg.to_dict(),
+        "config_key": cfg.key(),
+        "policy_params": policy_params,
+        "transport": transport,
+        "lockstep": True,
+        "latency_ticks": cfg.latency_ticks,
+        "versions": env_versions,
+    }
+
+
+class _Recorder:
+    """Writes messages with their deterministic sim-time log stamps."""
+
+    def __init__(self, writer: EpisodeBagWriter) -> None:
+        self.writer = writer
+
+    def put(self, topic: m.Topic, data: bytes) -> None:
+        self.writer.write(topic, log_time_ns(topic, m.deserialize(data, topic.msgtype)), data)
+
+    def put_at(self, topic: m.Topic, t_ns: int, data: bytes) -> None:
+        self.writer.write(topic, t_ns, data)
+
+    def event(self, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:
+        t_ns = m.to_ns(sim_time_of_tick(tick))
+        self.writer.write(m.EPISODE_EVENTS, t_ns, m.event_msg(t_ns, kind, tick, reason, detail))
+
+
+def run_inprocess(
+    cfg: RunConfig,
+    out_dir: Path,
+    *,
+    env: LiberoEnv | None = None,
+    policy: Policy | None = None,
+) -> EpisodeOutcome:
+    """Run one lockstep episode and write its bag to ``out_dir / cfg.episode_name()``.
+
+    ``env`` and ``policy`` may be passed in to reuse them across episodes (sweeps, benchmarks).
+    A crash anywhere is recorded as an ERROR event: the episode is an error, never a failure.
+    """
+    policy = policy or make_policy(cfg.policy, **cfg.policy_args)
+    own_env = env is None
+    if env is None:
+        env = LiberoEnv(
+            cfg.suite,
+            cfg.task,
+            camera_names=policy.camera_names,
+            camera_size=cfg.camera_size,
+            record_physics=cfg.physics_rate,
+        )
+    bag_path = Path(out_dir) / cfg.episode_name()
+    writer = EpisodeBagWriter(bag_path, episode_topics(cfg, policy.camera_names))
+    rec = _Recorder(writer)
+    env_versions = versions()
+    writer.set_run_metadata(run_metadata(cfg, policy.params(), "inprocess", env_versions))
+    tick = 0
+    try:
+        state = env.reset(cfg.init, cfg.seed)
+        policy.reset(env.task, cfg.seed)
+        rec.event(m.EventKind.STARTED, 0, "", m.started_detail(env.task, cfg.init, cfg.seed, env_versions))
+        for topic, t_ns, data in m.tick_state_msgs(state, cfg.physics_rate):
+            rec.put_at(topic, t_ns, data)
+        core = ExecutorCore(cfg.executor_config())
+        chunks: dict[int, object] = {}
+
+        def infer(req) -> object:
+            """Observe tick req.tick, run the policy, record all of it; returns the chunk as sent."""
+            t_ns = m.to_ns(sim_time_of_tick(req.tick))
+            rec.put_at(m.OBSERVATION_REQUEST, t_ns, m.request_msg(t_ns, req))
+            obs = env.observe(with_images=bool(policy.camera_names))
+            for cam, image in obs.images.items():
+                rec.put_at(m.camera_topic(cam), t_ns, m.image_msg(t_ns, cam, image))
+            rec.put_at(m.OBSERVATION, t_ns, m.observation_msg(obs, req.request_id))
+            started = time.perf_counter()
+            actions = policy.infer(obs)
+            inference_s = time.perf_counter() - started
+            chunk_bytes = m.chunk_msg(t_ns, req.request_id, req.tick, cfg.latency_s, inference_s, actions, policy.name)
+            rec.put(m.ACTION_CHUNK, chunk_bytes)
+            # The executor gets what crossed the wire, exactly as in the ROS transport.
+            return m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
+
+        def deliver_due(tick: int) -> str | None:
+            """Apply the chunk due at ``tick``, if any; returns the reason the episode must end."""
+            due = core.awaiting(tick)
+            if due is not None:
+                reason = core.deliver(due.request_id, chunks.pop(due.request_id))
+                if reason is not None:
+                    rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": due.request_id})
+            return core.error
+
+        budget = cfg.budget
+        while tick < budget:
+            t_ns = m.to_ns(sim_time_of_tick(tick))
+            error = deliver_due(tick)
+            req = core.begin_tick(tick) if error is None else None
+            if req is not None:
+                chunks[req.request_id] = infer(req)
+                error = deliver_due(tick)  # N = 0: the chunk is due at once
+            if error is not None:
+                rec.event(m.EventKind.ERROR, tick, error)
+                return EpisodeOutcome("error", tick, error, bag_path)
+            cmd = core.command(tick)
+            rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, cmd))
+            state = env.step(cmd.action)
+            tick += 1
+            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate):
+                rec.put_at(topic, ts, data)
+            if state.success:
+                rec.event(m.EventKind.SUCCESS, tick)
+                return EpisodeOutcome("success", tick, "", bag_path)
+        rec.event(m.EventKind.TIMEOUT, tick, f"step budget {budget} reached")
+        return EpisodeOutcome("failure", tick, "timeout", bag_path)
+    except Exception as exc:  # noqa: BLE001 - any crash is an *error*, recorded with its traceback
+        reason = f"{type(exc).__name__}: {exc}"
+        rec.event(m.EventKind.ERROR, tick, reason, {"traceback": traceback.format_exc()})
+        return EpisodeOutcome("error", tick, reason, bag_path)
+    finally:
+        writer.close()
+        if own_env:
+            env.close()

@@ -1,0 +1,148 @@
+"""Executor node: the sync hold / async buffer protocol at the control rate (lockstep on /clock).
+
+Each /clock message starts a control tick. Per tick (see lq_ros.executor): apply the chunk due now
+(waiting for it if needed), maybe request an observation (and wait until the sim has captured it,
+so the observation is of this tick), then publish the one command for the tick. Malformed chunks
+are rejected with a CHUNK_REJECTED event and never published as commands.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from rclpy.node import Node
+
+from lq_ros import messages as m
+from lq_ros.env import tick_of_sim_time
+from lq_ros.executor import ExecutorConfig, ExecutorCore
+from lq_ros.ros_util import publisher, raw_subscription, run
+from lq_ros.suites import latency_ticks
+
+
+class ExecutorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_executor")
+        self.declare_parameter("mode", "sync")
+        self.declare_parameter("latency_s", 0.0)
+        self.declare_parameter("replan_steps", 5)
+        self.declare_parameter("hold", "stop")
+        self.declare_parameter("request_threshold", -1)
+        self.declare_parameter("merge", "replace")
+        # Wall-clock seconds to wait for a due chunk before ending the episode as an error.
+        self.declare_parameter("chunk_timeout_s", 60.0)
+        param = lambda name: self.get_parameter(name).value  # noqa: E731
+        threshold = param("request_threshold")
+        self.core = ExecutorCore(
+            ExecutorConfig(
+                mode=param("mode"),
+                latency_ticks=latency_ticks(param("latency_s")),
+                replan_steps=param("replan_steps"),
+                hold=param("hold"),
+                request_threshold=None if threshold < 0 else threshold,
+                merge=param("merge"),
+            )
+        )
+        self.chunk_timeout_s = param("chunk_timeout_s")
+
+        self.command_pub = publisher(self, m.COMMAND)
+        self.request_pub = publisher(self, m.OBSERVATION_REQUEST)
+        self.event_pub = publisher(self, m.EPISODE_EVENTS)
+        raw_subscription(self, m.CLOCK, self.on_clock)
+        raw_subscription(self, m.ACTION_CHUNK, self.on_chunk)
+        raw_subscription(self, m.OBSERVATION, self.on_observation)
+        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
+        self.create_timer(1.0, self.check_chunk_timeout)
+
+        self.finished = False
+        self.tick: int | None = None  # tick waiting for its command
+        self.tick_ns = 0
+        self.requested_this_tick = False
+        self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
+        self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
+        self.waiting_since: float | None = None
+
+    # -- callbacks --------------------------------------------------------------------------
+    def on_clock(self, msg) -> None:
+        if self.finished:
+            return
+        self.tick_ns = m.stamp_ns(msg)
+        self.tick = tick_of_sim_time(self.tick_ns / 1e9)
+        self.requested_this_tick = False
+        self.advance()
+
+    def on_chunk(self, msg) -> None:
+        self.chunks[msg.request_id] = msg
+        self.advance()
+
+    def on_observation(self, msg) -> None:
+        if msg.request_id == self.awaiting_observation:
+            self.awaiting_observation = None
+            self.advance()
+
+    def on_event(self, event) -> None:
+        if event.kind in m.EventKind.TERMINAL:
+            self.finished = True
+
+    # -- the tick state machine -------------------------------------------------------------
+    def advance(self) -> None:
+        """Do as much of the current tick as the messages in hand allow."""
+        if self.finished or self.tick is None or self.awaiting_observation is not None:
+            return
+        if not self.deliver_due():
+            return
+        if not self.requested_this_tick:
+            self.requested_this_tick = True
+            req = self.core.begin_tick(self.tick)
+            if req is not None:
+                self.awaiting_observation = req.request_id
+                self.request_pub.publish(m.request_msg(self.tick_ns, req))
+                return  # continue once the sim has captured the observation of this tick
+        if not self.deliver_due():  # N = 0: the chunk just requested is due now
+            return
+        cmd = self.core.command(self.tick)
+        self.command_pub.publish(m.command_msg(self.tick_ns, cmd))
+        self.tick = None
+
+    def deliver_due(self) -> bool:
+        """Apply the chunk due at this tick; False while it has not arrived (or the episode ended)."""
+        due = self.core.awaiting(self.tick)
+        if due is None:
+            return True
+        msg = self.chunks.pop(due.request_id, None)
+        if msg is None:
+            self.waiting_since = self.waiting_since or time.monotonic()
+            return False
+        self.waiting_since = None
+        if msg.error:
+            self.end_with_error(f"policy failed on request {due.request_id}: {msg.error}")
+            return False
+        reason = self.core.deliver(due.request_id, m.chunk_actions(msg))
+        if reason is not None:
+            self.get_logger().error(f"chunk of request {due.request_id} rejected: {reason}")
+            self.event(m.EventKind.CHUNK_REJECTED, reason, {"request_id": due.request_id})
+        if self.core.error is not None:
+            self.end_with_error(self.core.error)
+            return False
+        return True
+
+    def check_chunk_timeout(self) -> None:
+        if self.waiting_since is not None and time.monotonic() - self.waiting_since > self.chunk_timeout_s:
+            self.end_with_error(f"no chunk from the policy within {self.chunk_timeout_s} s (wall clock)")
+
+    def event(self, kind: int, reason: str, detail: dict | None = None) -> None:
+        self.event_pub.publish(m.event_msg(self.tick_ns, kind, self.tick or 0, reason, detail))
+
+    def end_with_error(self, reason: str) -> None:
+        self.get_logger().error(reason)
+        self.event(m.EventKind.ERROR, reason, {"node": "executor"})
+        self.finished = True
+        self.waiting_since = None
+
+
+def main() -> None:
+    sys.exit(run(ExecutorNode, stay_alive=True))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,107 @@
+"""Metrics node: records the episode topics to a rosbag2 MCAP bag, then scores it offline.
+
+Messages are written exactly as received (serialized CDR) with their sim-time log stamps. Once a
+terminal event (success, timeout, error) has arrived and the topics have been quiet for a moment,
+the bag is closed, scored with lq_ros.scoring and the score written next to it (score.json).
+Stopped early (Ctrl-C), it records a STOPPED event so the episode scores as an error, not a failure.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from rclpy.node import Node
+
+from lq_ros import messages as m
+from lq_ros.bag import EpisodeBagWriter, log_time_ns
+from lq_ros.config import RunConfig, versions
+from lq_ros.env import sim_time_of_tick
+from lq_ros.ros_util import json_param, msg_class, run
+from lq_ros.ros_util import LOSSLESS_QOS
+from lq_ros.runner import episode_topics, run_metadata
+from lq_ros.scoring import score_bag, to_json
+
+SCORE_FILE = "score.json"
+
+
+class MetricsNode(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_metrics")
+        self.declare_parameter("bag_path", "")
+        self.declare_parameter("cameras", [""])
+        # Wall seconds without messages, after the terminal event, before the bag is closed.
+        self.declare_parameter("quiet_period_s", 0.3)
+        config = json_param(self, "run_config_json")
+        self.policy_params = json_param(self, "policy_params_json")
+        self.cfg = RunConfig(**config)
+        self.quiet_period_s = self.get_parameter("quiet_period_s").value
+        cameras = tuple(c for c in self.get_parameter("cameras").value if c)
+        self.bag_path = Path(self.get_parameter("bag_path").value)
+
+        self.topics = episode_topics(self.cfg, cameras)
+        self.writer = EpisodeBagWriter(self.bag_path, self.topics)
+        for topic in self.topics:
+            self.create_subscription(
+                msg_class(topic.msgtype), topic.name, self._recorder(topic), LOSSLESS_QOS, raw=True
+            )
+        self.versions = versions()
+        self.started_detail: dict = {}
+        self.last_message = time.monotonic()
+        self.terminal_seen = False
+        self.last_tick = 0
+        self.finished = False
+        self.exit_code = 0
+        self.create_timer(0.1, self.finish_when_quiet)
+
+    def _recorder(self, topic: m.Topic):
+        def record(data: bytes) -> None:
+            if self.finished:
+                return
+            msg = m.deserialize(data, topic.msgtype)
+            self.writer.write(topic, log_time_ns(topic, msg), data)
+            self.last_message = time.monotonic()
+            if topic.name == m.EPISODE_EVENTS.name:
+                self.on_event(msg)
+            elif topic.name == m.COMMAND.name:
+                self.last_tick = msg.tick
+
+        return record
+
+    def on_event(self, event) -> None:
+        if event.kind == m.EventKind.STARTED:
+            self.started_detail = json.loads(event.detail_json)
+        elif event.kind in m.EventKind.TERMINAL:
+            self.terminal_seen = True
+
+    def finish_when_quiet(self) -> None:
+        if self.terminal_seen and not self.finished and time.monotonic() - self.last_message > self.quiet_period_s:
+            self.finish()
+
+    def finish(self) -> None:
+        self.finished = True
+        env_versions = dict(self.started_detail.get("versions") or self.versions)
+        env_versions["rclpy"] = self.versions["rclpy"]
+        self.writer.set_run_metadata(run_metadata(self.cfg, self.policy_params, "ros", env_versions))
+        self.writer.close()
+        row = score_bag(self.bag_path)
+        (self.bag_path / SCORE_FILE).write_text(to_json(row) + "\n")
+        self.get_logger().info(f"episode {row['status']}; bag {self.bag_path}")
+
+    def close(self) -> None:
+        if not self.finished:
+            # Interrupted before the episode ended: say so in the bag, so it scores as an error.
+            t_ns = m.to_ns(sim_time_of_tick(self.last_tick))
+            data = m.event_msg(t_ns, m.EventKind.STOPPED, self.last_tick, "recording stopped before the episode ended")
+            self.writer.write(m.EPISODE_EVENTS, t_ns, data)
+            self.finish()
+
+
+def main() -> None:
+    sys.exit(run(MetricsNode))
+
+
+if __name__ == "__main__":
+    main()

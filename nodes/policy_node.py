@@ -1,0 +1,112 @@
+"""Policy node: answers observations with action chunks after the injected latency.
+
+A chunk computed from the observation at sim time t is published once /clock reaches
+t + N * dt_c (N = round(dt_sim / dt_c)), stamped with t, the request id, the injected latency
+dt_sim and the measured wall-clock inference latency dt_real. A policy that raises publishes a
+chunk carrying the error, which ends the episode as an error.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import traceback
+
+import numpy as np
+from rclpy.node import Node
+
+from lq_ros import messages as m
+from lq_ros.env import TaskInfo
+from lq_ros.policies import make_policy
+from lq_ros.ros_util import json_param, publisher, raw_subscription, run
+from lq_ros.suites import CONTROL_DT_S, latency_ticks
+
+
+class PolicyNode(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_policy")
+        self.declare_parameter("policy", "scripted")
+        self.declare_parameter("latency_s", 0.0)
+        policy_args = json_param(self, "policy_args_json")
+        self.latency_s = self.get_parameter("latency_s").value
+        self.delay_ns = m.to_ns(latency_ticks(self.latency_s) * CONTROL_DT_S)
+        self.policy = make_policy(self.get_parameter("policy").value, **policy_args)
+
+        self.chunk_pub = publisher(self, m.ACTION_CHUNK)
+        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
+        raw_subscription(self, m.OBSERVATION, self.on_observation)
+        raw_subscription(self, m.CLOCK, self.on_clock)
+        for cam in self.policy.camera_names:
+            raw_subscription(self, m.camera_topic(cam), self.on_image)
+
+        self.ready = False  # policy reset for the episode
+        self.now_ns = 0
+        self.pending_obs: list = []  # observations waiting for the task or their images
+        self.images: dict[int, dict[str, np.ndarray]] = {}  # stamp ns -> camera -> image
+        self.outbox: list[tuple[int, bytes]] = []  # (due sim time ns, chunk bytes)
+
+    def on_event(self, event) -> None:
+        if event.kind == m.EventKind.STARTED:
+            detail = json.loads(event.detail_json)
+            self.policy.reset(TaskInfo.from_dict(detail["task"]), int(detail["seed"]))
+            self.ready = True
+            self.try_infer()
+
+    def on_image(self, msg) -> None:
+        self.images.setdefault(m.stamp_ns(msg), {})[msg.header.frame_id] = m.image_from_msg(msg)
+        self.try_infer()
+
+    def on_observation(self, msg) -> None:
+        self.pending_obs.append(msg)
+        self.try_infer()
+
+    def on_clock(self, msg) -> None:
+        self.now_ns = m.stamp_ns(msg)
+        self.flush()
+
+    def try_infer(self) -> None:
+        while self.ready and self.pending_obs:
+            msg = self.pending_obs[0]
+            stamp = m.stamp_ns(msg)
+            images = self.images.get(stamp, {})
+            if any(cam not in images for cam in msg.camera_names):
+                return  # images still in flight
+            self.pending_obs.pop(0)
+            self.images.pop(stamp, None)
+            self.infer(msg, images)
+
+    def infer(self, msg, images: dict[str, np.ndarray]) -> None:
+        obs = m.observation_from_msg(msg, images)
+        started = time.perf_counter()
+        actions, error = None, ""
+        try:
+            actions = self.policy.infer(obs)
+        except Exception as exc:  # noqa: BLE001 - reported to the executor, which ends the episode
+            error = f"{type(exc).__name__}: {exc}"
+            self.get_logger().error(f"inference failed: {error}\n{traceback.format_exc()}")
+        inference_s = time.perf_counter() - started
+        stamp = m.stamp_ns(msg)
+        data = m.chunk_msg(
+            stamp, msg.request_id, msg.tick, self.latency_s, inference_s, actions, self.policy.name, error
+        )
+        self.outbox.append((stamp + self.delay_ns, data))
+        self.flush()
+
+    def flush(self) -> None:
+        """Publish the chunks whose injected latency has elapsed in sim time."""
+        due = [item for item in self.outbox if item[0] <= self.now_ns]
+        self.outbox = [item for item in self.outbox if item[0] > self.now_ns]
+        for _, data in due:
+            self.chunk_pub.publish(data)
+
+    def close(self) -> None:
+        self.policy.close()
+
+
+def main() -> None:
+    sys.exit(run(PolicyNode, stay_alive=True))
+
+
+if __name__ == "__main__":
+    main()

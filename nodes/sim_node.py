@@ -1,0 +1,145 @@
+"""Sim node: owns the LIBERO env and applies exactly one command per control tick (lockstep).
+
+Publishes /clock, /joint_states (effort = arm torque), /ee_pose every tick (and per physics substep
+on /joint_states_physics, /ee_pose_physics when enabled), the observation and camera images only
+when asked (/lq/observation_request), and episode events. Tick m is stepped only once the command
+for tick m has arrived, so sim time never depends on wall-clock timing.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+
+from rclpy.node import Node
+
+from lq_ros import messages as m
+from lq_ros.config import versions
+from lq_ros.env import LiberoEnv, sim_time_of_tick
+from lq_ros.ros_util import publisher, raw_subscription, run
+from lq_ros.suites import step_budget
+
+
+class SimNode(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_sim")
+        self.declare_parameter("suite", "libero_spatial")
+        self.declare_parameter("task", 0)
+        self.declare_parameter("init", 0)
+        self.declare_parameter("seed", 7)
+        self.declare_parameter("cameras", [""])
+        self.declare_parameter("camera_size", 224)
+        self.declare_parameter("physics_rate", False)
+        self.declare_parameter("max_steps", 0)
+        # Subscribers each topic needs before the episode starts (so no node misses tick 0).
+        self.declare_parameter("min_subscribers", 1)
+        self.declare_parameter("min_clock_subscribers", 3)
+        names = ("suite", "task", "init", "seed", "cameras", "camera_size", "physics_rate", "max_steps")
+        p = {name: self.get_parameter(name).value for name in names + ("min_subscribers", "min_clock_subscribers")}
+        self.init_index, self.seed = p["init"], p["seed"]
+        self.physics_rate = p["physics_rate"]
+        self.budget = p["max_steps"] or step_budget(p["suite"])
+        self.min_subscribers, self.min_clock_subscribers = p["min_subscribers"], p["min_clock_subscribers"]
+        cameras = tuple(c for c in p["cameras"] if c)
+
+        self.pubs = {
+            t.name: publisher(self, t)
+            for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.OBSERVATION, m.EPISODE_EVENTS)
+            + ((m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ())
+            + tuple(m.camera_topic(c) for c in cameras)
+        }
+        self.command_sub = raw_subscription(self, m.COMMAND, self.on_command)
+        self.request_sub = raw_subscription(self, m.OBSERVATION_REQUEST, self.on_request)
+        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
+
+        self.finished = False
+        self.started = False
+        self.versions = versions()
+        self.get_logger().info(f"creating {p['suite']} task {p['task']} (cameras: {cameras or 'none'})")
+        self.env = LiberoEnv(
+            p["suite"], p["task"], camera_names=cameras, camera_size=p["camera_size"], record_physics=self.physics_rate
+        )
+        self.state = self.env.reset(self.init_index, self.seed)
+        self.start_timer = self.create_timer(0.05, self.start_when_ready)
+
+    # -- episode start ----------------------------------------------------------------------
+    def start_when_ready(self) -> None:
+        """Publish STARTED and tick 0 once every peer is connected."""
+        clock_ok = self.pubs[m.CLOCK.name].get_subscription_count() >= self.min_clock_subscribers
+        subs_ok = all(pub.get_subscription_count() >= self.min_subscribers for pub in self.pubs.values())
+        peers_ok = self.command_sub.get_publisher_count() > 0 and self.request_sub.get_publisher_count() > 0
+        if not (clock_ok and subs_ok and peers_ok):
+            return
+        self.start_timer.cancel()
+        self.started = True
+        detail = m.started_detail(self.env.task, self.init_index, self.seed, self.versions)
+        self.event(m.EventKind.STARTED, 0, "", detail)
+        self.publish_state()
+
+    # -- callbacks --------------------------------------------------------------------------
+    def on_request(self, req) -> None:
+        if self.finished or not self._expect_tick(req.tick, "observation request"):
+            return
+        try:
+            obs = self.env.observe(with_images=True)
+        except Exception as exc:  # noqa: BLE001 - any env failure ends the episode as an error
+            return self.fail(f"observation failed: {exc}", traceback.format_exc())
+        t_ns = m.to_ns(obs.sim_time_s)
+        for cam, image in obs.images.items():
+            self.pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))
+        self.pubs[m.OBSERVATION.name].publish(m.observation_msg(obs, req.request_id))
+
+    def on_command(self, cmd) -> None:
+        if self.finished or not self._expect_tick(cmd.tick, "command"):
+            return
+        try:
+            self.state = self.env.step(cmd.action)
+        except Exception as exc:  # noqa: BLE001
+            return self.fail(f"env.step failed at tick {cmd.tick}: {exc}", traceback.format_exc())
+        self.publish_state()
+        if self.state.success:
+            self.end(m.EventKind.SUCCESS, "")
+        elif self.state.tick >= self.budget:
+            self.end(m.EventKind.TIMEOUT, f"step budget {self.budget} reached")
+
+    def on_event(self, event) -> None:
+        # Another node (executor, policy) ended the episode: stop stepping.
+        if event.kind in m.EventKind.TERMINAL and not self.finished:
+            self.get_logger().info(f"episode ended by a peer: {m.EventKind.NAMES[event.kind]} {event.reason}")
+            self.finished = True
+
+    # -- helpers ----------------------------------------------------------------------------
+    def _expect_tick(self, tick: int, what: str) -> bool:
+        if self.started and tick == self.state.tick:
+            return True
+        self.get_logger().error(f"{what} for tick {tick} ignored: the sim is at tick {self.state.tick}")
+        return False
+
+    def publish_state(self) -> None:
+        for topic, _t, data in m.tick_state_msgs(self.state, self.physics_rate):
+            self.pubs[topic.name].publish(data)
+
+    def event(self, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:
+        t_ns = m.to_ns(sim_time_of_tick(tick))
+        self.pubs[m.EPISODE_EVENTS.name].publish(m.event_msg(t_ns, kind, tick, reason, detail))
+
+    def end(self, kind: int, reason: str, detail: dict | None = None) -> None:
+        self.event(kind, self.state.tick, reason, detail)
+        self.finished = True
+
+    def fail(self, reason: str, trace: str) -> None:
+        self.get_logger().error(reason)
+        self.end(m.EventKind.ERROR, reason, {"traceback": trace, "node": "sim"})
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def main() -> None:
+    # Stay alive after the episode ends so late subscribers still get the transient-local history;
+    # the launcher stops this node once the metrics node has written the bag.
+    sys.exit(run(SimNode, stay_alive=True))
+
+
+if __name__ == "__main__":
+    main()
