@@ -180,6 +180,7 @@ class LiberoEnv:
         for _ in range(NUM_WAIT_STEPS):
             self._substeps.clear()
             self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
+        self._substeps.clear()  # the wait steps are not part of the episode
         self._tick = 0
         self._success = False
         return self._tick_state()

@@ -144,8 +144,14 @@ def ee_pose_msg(t_ns: int, pos, quat_xyzw) -> bytes:
     return serialize(msg, EE_POSE.msgtype)
 
 
-def tick_state_msgs(state: TickState, physics_rate: bool = False) -> list[tuple[Topic, int, bytes]]:
-    """(topic, log time ns, bytes) for one tick: physics-rate samples first, then joints, pose, clock."""
+def tick_state_msgs(
+    state: TickState, physics_rate: bool = False, clock: bool = True
+) -> list[tuple[Topic, int, bytes]]:
+    """(topic, log time ns, bytes) for one tick: physics-rate samples first, then joints, pose, clock.
+
+    /clock starts a control tick; the sim leaves it out at the tick that ends the episode, so no
+    node acts on a tick that will never be stepped.
+    """
     t_ns = to_ns(state.sim_time_s)
     out: list[tuple[Topic, int, bytes]] = []
     if physics_rate and state.physics is not None:
@@ -158,7 +164,8 @@ def tick_state_msgs(state: TickState, physics_rate: bool = False) -> list[tuple[
             out.append((EE_POSE_PHYSICS, ts, ee_pose_msg(ts, ph.eef_pos[i], ph.eef_quat_xyzw[i])))
     out.append((JOINT_STATES, t_ns, joint_state_msg(t_ns, state.joint_pos, state.joint_vel, state.joint_torque)))
     out.append((EE_POSE, t_ns, ee_pose_msg(t_ns, state.eef_pos, state.eef_quat_xyzw)))
-    out.append((CLOCK, t_ns, clock_msg(t_ns)))
+    if clock:
+        out.append((CLOCK, t_ns, clock_msg(t_ns)))
     return out
 
 

@@ -100,10 +100,10 @@ def run_inprocess(
         for topic, t_ns, data in m.tick_state_msgs(state, cfg.physics_rate):
             rec.put_at(topic, t_ns, data)
         core = ExecutorCore(cfg.executor_config())
-        chunks: dict[int, object] = {}
+        chunks: dict[int, bytes] = {}
 
-        def infer(req) -> object:
-            """Observe tick req.tick, run the policy, record all of it; returns the chunk as sent."""
+        def infer(req) -> bytes:
+            """Observe tick req.tick and run the policy; returns the serialized chunk."""
             t_ns = m.to_ns(sim_time_of_tick(req.tick))
             rec.put_at(m.OBSERVATION_REQUEST, t_ns, m.request_msg(t_ns, req))
             obs = env.observe(with_images=bool(policy.camera_names))
@@ -114,15 +114,18 @@ def run_inprocess(
             actions = policy.infer(obs)
             inference_s = time.perf_counter() - started
             chunk_bytes = m.chunk_msg(t_ns, req.request_id, req.tick, cfg.latency_s, inference_s, actions, policy.name)
-            rec.put(m.ACTION_CHUNK, chunk_bytes)
-            # The executor gets what crossed the wire, exactly as in the ROS transport.
-            return m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
+            return chunk_bytes
 
         def deliver_due(tick: int) -> str | None:
             """Apply the chunk due at ``tick``, if any; returns the reason the episode must end."""
             due = core.awaiting(tick)
             if due is not None:
-                reason = core.deliver(due.request_id, chunks.pop(due.request_id))
+                # Recorded when it takes effect (unapplied chunks are never published), and the
+                # executor gets what crossed the wire, exactly as in the ROS transport.
+                chunk_bytes = chunks.pop(due.request_id)
+                rec.put(m.ACTION_CHUNK, chunk_bytes)
+                chunk = m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
+                reason = core.deliver(due.request_id, chunk)
                 if reason is not None:
                     rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": due.request_id})
             return core.error
@@ -142,7 +145,8 @@ def run_inprocess(
             rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, cmd))
             state = env.step(cmd.action)
             tick += 1
-            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate):
+            ended = state.success or tick >= budget
+            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate, clock=not ended):
                 rec.put_at(topic, ts, data)
             if state.success:
                 rec.event(m.EventKind.SUCCESS, tick)

@@ -53,6 +53,7 @@ class EpisodeData:
     events: list = field(default_factory=list)  # (kind, tick, t_ns, reason)
     chunks: list = field(default_factory=list)  # (injected s, real s, error)
     command_sources: list[int] = field(default_factory=list)
+    requests: int = 0
     metadata: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
@@ -81,6 +82,7 @@ def read_episode(bag: Path, ee_topic: str = m.EE_POSE.name, joint_topic: str = m
         m.EPISODE_EVENTS.name: "events",
         m.ACTION_CHUNK.name: "chunks",
         m.COMMAND.name: "commands",
+        m.OBSERVATION_REQUEST.name: "requests",
     }
     try:
         reader = AnyReader([bag])
@@ -118,6 +120,8 @@ def _collect(data: EpisodeData, kind: str, msg) -> None:
         data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
     elif kind == "commands":
         data.command_sources.append(msg.source)
+    elif kind == "requests":
+        data.requests += 1
 
 
 def _null(row: dict, keys: list[str], reason: str) -> None:
@@ -162,7 +166,8 @@ def score_episode(
 
     # -- latency and protocol -------------------------------------------------------------------
     real = np.array([c[1] for c in data.chunks if not c[2]], dtype=np.float64)
-    row["num_inferences"] = len(data.chunks)
+    # Inferences started (a last one may still be in flight when the episode ends).
+    row["num_inferences"] = data.requests or len(data.chunks)
     row["latency_sim_s"] = data.chunks[0][0] if data.chunks else cfg.get("latency_s")
     if real.size:
         row.update(

@@ -96,10 +96,11 @@ class SimNode(Node):
             self.state = self.env.step(cmd.action)
         except Exception as exc:  # noqa: BLE001
             return self.fail(f"env.step failed at tick {cmd.tick}: {exc}", traceback.format_exc())
-        self.publish_state()
+        ended = self.state.success or self.state.tick >= self.budget
+        self.publish_state(clock=not ended)
         if self.state.success:
             self.end(m.EventKind.SUCCESS, "")
-        elif self.state.tick >= self.budget:
+        elif ended:
             self.end(m.EventKind.TIMEOUT, f"step budget {self.budget} reached")
 
     def on_event(self, event) -> None:
@@ -115,8 +116,8 @@ class SimNode(Node):
         self.get_logger().error(f"{what} for tick {tick} ignored: the sim is at tick {self.state.tick}")
         return False
 
-    def publish_state(self) -> None:
-        for topic, _t, data in m.tick_state_msgs(self.state, self.physics_rate):
+    def publish_state(self, clock: bool = True) -> None:
+        for topic, _t, data in m.tick_state_msgs(self.state, self.physics_rate, clock):
             self.pubs[topic.name].publish(data)
 
     def event(self, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:

@@ -1,0 +1,165 @@
+"""The protocol core: holds, stale-prefix drops, underruns, rejections (no ROS, no MuJoCo)."""
+
+import numpy as np
+import pytest
+
+from lq_ros.executor import ExecutorConfig, ExecutorCore, Source, validate_chunk
+
+
+def chunk_for(tick: int, horizon: int = 8) -> np.ndarray:
+    """Row i encodes 'meant for tick + i' in dx so tests can see which actions ran."""
+    c = np.zeros((horizon, 7))
+    c[:, 0] = (tick + np.arange(horizon)) / 1000.0
+    c[:, 6] = 1.0
+    return c
+
+
+def drive(core: ExecutorCore, ticks: int, make_chunk=chunk_for):
+    """The transport loop of lq_ros.executor's docstring; returns the commands and requests."""
+    pending, commands, requests = {}, [], []
+    for t in range(ticks):
+        due = core.awaiting(t)
+        if due:
+            core.deliver(due.request_id, pending.pop(due.request_id))
+        req = core.begin_tick(t)
+        if req:
+            requests.append(req)
+            pending[req.request_id] = make_chunk(req.tick)
+            due = core.awaiting(t)
+            if due:
+                core.deliver(due.request_id, pending.pop(due.request_id))
+        commands.append(core.command(t))
+    return commands, requests
+
+
+@pytest.mark.parametrize("n", [0, 1, 3, 6])
+def test_sync_holds_exactly_n_ticks_per_inference(n):
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=n, replan_steps=4))
+    commands, requests = drive(core, 60)
+    sources = [c.source for c in commands]
+    # Each cycle: N holds then replan_steps chunk actions, starting at the chunk's first row.
+    cycle = [Source.HOLD_INFERENCE] * n + [Source.CHUNK] * 4
+    assert sources == (cycle * 60)[:60]
+    assert core.stats.hold_ticks == sources.count(Source.HOLD_INFERENCE)
+    for req in requests[:-1]:
+        first = commands[req.tick + n]
+        assert first.source is Source.CHUNK and first.chunk_index == 0
+        assert first.action[0] == pytest.approx(req.tick / 1000.0)  # from the observation at req.tick
+    # Stop hold: zero arm delta, last gripper command (open before any chunk, then the chunk's).
+    holds = [c for c in commands if c.source is Source.HOLD_INFERENCE]
+    if n:
+        assert all(np.all(h.action[:6] == 0) for h in holds)
+        assert holds[0].action[6] == -1.0 and holds[-1].action[6] == 1.0
+
+
+def test_sync_repeat_hold_repeats_last_action():
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=2, replan_steps=3, hold="repeat"))
+    commands, _ = drive(core, 12)
+    for prev, cur in zip(commands, commands[1:]):
+        if cur.source is Source.HOLD_INFERENCE and prev.tick > 1:
+            assert np.array_equal(cur.action, prev.action)
+
+
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_async_drops_exactly_the_stale_prefix(n):
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=n))
+    commands, requests = drive(core, 50)
+    for c in commands:
+        if c.source is Source.CHUNK:
+            # Every executed action was meant for exactly the tick it ran at: rows 0..N-1 dropped.
+            assert c.action[0] == pytest.approx(c.tick / 1000.0)
+            assert c.chunk_index >= n
+    assert core.stats.stale_actions_dropped == n * core.stats.chunks_applied
+    # Only the first N ticks wait for the very first chunk. With threshold N the next chunk lands
+    # as the buffer empties, unless a chunk has fewer than N fresh actions (8 - N < N).
+    assert [c.source for c in commands[:n]] == [Source.HOLD_STARTUP] * n
+    if 8 - n >= n:
+        assert core.stats.underrun_ticks == 0
+    else:
+        assert core.stats.underrun_ticks > 0
+
+
+def test_async_underrun_counted_when_chunk_shorter_than_latency():
+    # Chunks of 4 with N = 3: each arrival leaves 1 fresh action, so the buffer runs dry.
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=3, request_threshold=0))
+    commands, _ = drive(core, 40, make_chunk=lambda t: chunk_for(t, horizon=4))
+    underruns = [c for c in commands if c.source is Source.HOLD_UNDERRUN]
+    assert core.stats.underrun_ticks == len(underruns) > 0
+    # Request when empty at tick t -> due t+3 -> 1 action -> empty: cycle of 4 with 1 chunk action.
+    assert [c.source for c in commands[3:11]] == [Source.CHUNK] + [Source.HOLD_UNDERRUN] * 3 + [Source.CHUNK] + [
+        Source.HOLD_UNDERRUN
+    ] * 3
+
+
+def test_async_zero_latency_threshold_zero_executes_whole_chunks():
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=0))
+    commands, requests = drive(core, 24)
+    assert all(c.source is Source.CHUNK for c in commands)
+    assert [r.tick for r in requests] == [0, 8, 16]
+
+
+def test_blend_merge_averages_overlap():
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=1, request_threshold=5, merge="blend"))
+    old = np.full((8, 7), 0.1)
+    new = np.full((8, 7), 0.5)
+    req = core.begin_tick(0)
+    core.deliver(req.request_id, old)  # due at tick 1; deliver directly for the unit test
+    buffered = len(core._buffer)
+    for t in range(1, 3):
+        core.command(t)
+    req = core.begin_tick(3)
+    core.deliver(req.request_id, new)
+    a = core.command(4).action
+    assert buffered == 7
+    assert a[0] == pytest.approx(0.7 * 0.5 + 0.3 * 0.1)
+
+
+@pytest.mark.parametrize(
+    "bad, fragment",
+    [
+        (np.full((4, 7), np.nan), "non-finite"),
+        (np.full((4, 7), np.inf), "non-finite"),
+        (np.zeros((4, 6)), "shape"),
+        (np.zeros(7), "shape"),
+        (np.zeros((0, 7)), "shape"),
+        (np.full((2, 7), 1.5), "outside the action bounds"),
+        ([["a"] * 7], "not a numeric array"),
+    ],
+)
+def test_validate_chunk_rejects_malformed(bad, fragment):
+    reason = validate_chunk(bad)
+    assert reason is not None and fragment in reason
+
+
+def test_rejected_chunk_is_never_commanded_and_episode_errors_after_limit():
+    bad = np.full((8, 7), 0.2)
+    bad[3, 2] = np.nan
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=1, max_consecutive_rejections=2))
+    commands, _ = drive(core, 6, make_chunk=lambda t: bad)
+    assert core.stats.chunks_rejected == 2 and core.error is not None
+    assert all(c.source is not Source.CHUNK for c in commands)
+    assert all(np.all(np.isfinite(c.action)) for c in commands)
+    assert Source.HOLD_REJECTED in [c.source for c in commands]
+
+
+def test_recovers_after_a_single_rejection():
+    calls = {"n": 0}
+
+    def flaky(t):
+        calls["n"] += 1
+        return np.full((8, 7), np.nan) if calls["n"] == 1 else chunk_for(t)
+
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=0, replan_steps=8))
+    commands, _ = drive(core, 10, make_chunk=flaky)
+    assert core.error is None and core.stats.chunks_rejected == 1
+    assert commands[0].source is Source.HOLD_REJECTED
+    assert all(c.source is Source.CHUNK for c in commands[1:])
+
+
+def test_invalid_config():
+    with pytest.raises(ValueError):
+        ExecutorConfig(mode="sometimes")
+    with pytest.raises(ValueError):
+        ExecutorConfig(replan_steps=0)
+    with pytest.raises(ValueError):
+        ExecutorConfig(latency_ticks=-1)
