@@ -14,8 +14,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lq_ros.env import LiberoEnv  # noqa: E402
-from lq_ros.policies.scripted import ScriptedExpert  # noqa: E402
+from lq_ros.env import LiberoEnv
+from lq_ros.policies.scripted import ScriptedExpert
 
 SUITE = "libero_spatial"
 SEED = 7

@@ -76,6 +76,12 @@ class _Machine:
     grasp_eef_z: float = 0.0
     grasp_obj_z: float = 0.0
     retries: int = 0
+    #: World angle (rad) of the grasp point seen from the bowl centre, and of every grasp that failed.
+    theta: float = 0.0
+    failed: tuple[float, ...] = ()
+    #: Descent progress seen on real observations (stall detection: a finger sits on an unseen edge).
+    best_err: float = math.inf
+    best_tick: int = 0
 
 
 @dataclass
@@ -134,10 +140,13 @@ class ScriptedExpert(Policy):
         tilt_gain: float = 2.0,
         travel_z: float = 1.20,
         grasp_height: float = 0.036,
-        preshape_gap: float = 0.05,
+        preshape_gap: float = 0.04,
         close_steps: int = 12,
         release_steps: int = 6,
-        max_retries: int = 3,
+        close_commit_dist: float = 0.012,
+        robot_base_xy: tuple[float, float] = (-0.66, 0.0),
+        reach_soft_limit: float = 0.70,
+        stall_ticks: int = 8,
     ) -> None:
         if chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -150,7 +159,10 @@ class ScriptedExpert(Policy):
         self.preshape_gap = float(preshape_gap)
         self.close_steps = int(close_steps)
         self.release_steps = int(release_steps)
-        self.max_retries = int(max_retries)
+        self.robot_base_xy = (float(robot_base_xy[0]), float(robot_base_xy[1]))
+        self.reach_soft_limit = float(reach_soft_limit)
+        self.stall_ticks = int(stall_ticks)
+        self.close_commit_dist = float(close_commit_dist)
         self._obj = ""
         self._target = ""
         self._machine = _Machine()
@@ -168,7 +180,10 @@ class ScriptedExpert(Policy):
             "preshape_gap": self.preshape_gap,
             "close_steps": self.close_steps,
             "release_steps": self.release_steps,
-            "max_retries": self.max_retries,
+            "robot_base_xy": self.robot_base_xy,
+            "reach_soft_limit": self.reach_soft_limit,
+            "stall_ticks": self.stall_ticks,
+            "close_commit_dist": self.close_commit_dist,
         }
 
     def reset(self, task: TaskInfo, seed: int) -> None:
@@ -194,9 +209,14 @@ class ScriptedExpert(Policy):
         chunk = np.zeros((self.chunk_size, 7))
         plan: dict[int, tuple[_Machine, np.ndarray]] = {}
         yaw_rate = 0.0
+        # Closing on a predicted pose is only trusted when the real pose is already close to the grasp
+        # point: closing early lands the pads on top of the rim and the grasp stalls there.
+        near = machine.grasp_local is not None and bool(
+            np.linalg.norm(self._grasp_point(machine, view) - view.eef) < self.close_commit_dist
+        )
         for i in range(self.chunk_size):
             plan[view.tick] = (machine, vel.copy())
-            machine, action = self._act(machine, view)
+            machine, action = self._act(machine, view, vel if i > 0 else None, near or i == 0)
             chunk[i] = action
             vel, yaw_rate = self._predict(view, machine, action, vel, yaw_rate)
         plan[view.tick] = (machine, vel.copy())
@@ -258,22 +278,31 @@ class ScriptedExpert(Policy):
 
     def _holding(self, m: _Machine, v: _View) -> bool:
         """The bowl rose with the EE and stays near it."""
-        near = np.linalg.norm((v.obj_pos - v.eef)[:2]) < 0.09
-        return bool(near and v.gap > GAP_EMPTY + 0.0015)
+        rel = v.obj_pos - v.eef
+        return bool(np.linalg.norm(rel[:2]) < 0.09 and -0.12 < rel[2] < 0.02)
 
     def _retry(self, m: _Machine, v: _View) -> _Machine:
-        return replace(m, phase=RETRY, t0=v.tick, retries=m.retries + 1)
+        return replace(m, phase=RETRY, t0=v.tick, retries=m.retries + 1, failed=(*m.failed, m.theta))
 
-    def _act(self, m: _Machine, v: _View) -> tuple[_Machine, np.ndarray]:
-        """One tick: possibly transition, then the action for this tick."""
+    def _act(
+        self, m: _Machine, v: _View, vel: np.ndarray | None, may_close: bool
+    ) -> tuple[_Machine, np.ndarray]:
+        """One tick: possibly transition, then the action for this tick.
+
+        ``vel`` is the predicted EE velocity during a rollout (None on a real observation).
+        """
         for _ in range(4):  # allow a few immediate transitions in one tick
-            nxt = self._transition(m, v)
+            nxt = self._transition(m, v, real=vel is None)
+            if nxt.phase == CLOSE and m.phase != CLOSE:
+                settled = vel is None or float(np.linalg.norm(vel)) < 0.003
+                if not (may_close and settled):
+                    break
             if nxt is m:
                 break
             m = nxt
         return m, self._command(m, v)
 
-    def _transition(self, m: _Machine, v: _View) -> _Machine:
+    def _transition(self, m: _Machine, v: _View, real: bool) -> _Machine:
         age = v.tick - m.t0
         if m.grasp_local is None:
             return self._choose_grasp(m, v)
@@ -282,10 +311,19 @@ class ScriptedExpert(Policy):
         yaw_err = abs(_wrap_half(m.axis - v.axis))
         if m.phase == APPROACH:
             if np.linalg.norm(err[:2]) < 0.008 and yaw_err < math.radians(6) and v.eef[2] > grasp[2] + 0.02:
-                return replace(m, phase=DESCEND, t0=v.tick)
+                return replace(m, phase=DESCEND, t0=v.tick, best_err=math.inf, best_tick=v.tick)
         elif m.phase == DESCEND:
-            if np.linalg.norm(err) < 0.005:
+            dist = float(np.linalg.norm(err))
+            if dist < 0.005:
                 return replace(m, phase=CLOSE, t0=v.tick)
+            if real:
+                # Stalled above the grasp height: a finger sits on an unseen edge, so try another side.
+                # (Stalling sideways at the right height is left to the servo, as before.)
+                height = float(-err[2])
+                if height < m.best_err - 0.002:
+                    return replace(m, best_err=height, best_tick=v.tick)
+                if v.tick - m.best_tick >= self.stall_ticks and height > 0.012:
+                    return self._retry(m, v)
         elif m.phase == CLOSE:
             if age >= self.close_steps:
                 if v.gap < 0.004:
@@ -307,9 +345,8 @@ class ScriptedExpert(Policy):
         elif m.phase == RELEASE:
             if age >= self.release_steps:
                 return replace(m, phase=RETREAT, t0=v.tick)
-        elif m.phase == RETRY:
-            if age >= 8 and v.eef[2] > grasp[2] + 0.04:
-                return replace(m, phase=APPROACH, t0=v.tick, grasp_local=None)
+        elif m.phase == RETRY and age >= 8 and v.eef[2] > grasp[2] + 0.04:
+            return replace(m, phase=APPROACH, t0=v.tick, grasp_local=None)
         return m
 
     def _command(self, m: _Machine, v: _View) -> np.ndarray:
@@ -320,8 +357,11 @@ class ScriptedExpert(Policy):
             target = np.array([grasp[0], grasp[1], max(self.travel_z, grasp[2] + 0.06)])
             gripper = self._preshape(v)
         elif m.phase == DESCEND:
-            target = grasp
+            target = grasp.copy()
             gripper = self._preshape(v)
+            if v.gap < self.preshape_gap - 0.015:
+                # Fingers still (partly) closed from an aborted close: re-open before going lower.
+                target[2] = max(v.eef[2], grasp[2])
         elif m.phase == CLOSE:
             target, gripper = grasp, 1.0
         elif m.phase in _CARRYING:
@@ -340,10 +380,8 @@ class ScriptedExpert(Policy):
         else:  # RETRY: open and back off upwards
             target = np.array([v.eef[0], v.eef[1], grasp[2] + 0.06])
         a[:3] = np.clip(self.pos_gain * (target - v.eef), -1.0, 1.0)
-        if m.phase == TRANSPORT:
-            # Move sideways only once the bowl is high enough to clear what it passes over.
-            if v.eef[2] < m.lift_z - 0.03:
-                a[:2] *= 0.3
+        if m.phase == TRANSPORT and v.eef[2] < m.lift_z - 0.03:
+            a[:2] *= 0.3  # move sideways only once the bowl is high enough to clear what it passes over
         a[3:5] = np.clip(self.tilt_gain * v.tilt[:2], -1.0, 1.0)
         if m.grasp_local is not None and m.phase in (APPROACH, DESCEND, CLOSE):
             a[5] = np.clip(self.yaw_gain * _wrap_half(m.axis - v.axis) / (YAW_PER_STEP * 4), -1.0, 1.0)
@@ -389,11 +427,20 @@ class ScriptedExpert(Policy):
             rotation = abs(_wrap_half(axis - v.axis))
             # Unobserved fixtures stand at the edge of the workspace: prefer fingers on the inner side.
             outward = float(np.linalg.norm(outer) - centre_dist)
-            score = min(clearance, 0.02) * 4.0 - 0.04 * rotation - 0.3 * max(outward, 0.0)
+            # The stretched arm cannot descend far from its base (elbow at its joint limit).
+            reach = float(np.linalg.norm(point[:2] - np.asarray(self.robot_base_xy)))
+            score = (
+                min(clearance, 0.02) * 4.0
+                - 0.04 * rotation
+                - 0.3 * max(outward, 0.0)
+                - 2.0 * max(reach - self.reach_soft_limit, 0.0)
+            )
             if clearance < 0:
                 score -= 1.0
+            if any(abs(math.remainder(theta - f, 2 * math.pi)) < math.radians(50) for f in m.failed):
+                score -= 0.5
             if best is None or score > best[0]:
-                best = (score, (float(local[0]), float(local[1]), float(local[2])), axis)
+                best = (score, (float(local[0]), float(local[1]), float(local[2])), axis, theta)
         assert best is not None
-        _, local, axis = best
-        return replace(m, phase=APPROACH if m.phase != RETRY else RETRY, t0=v.tick, grasp_local=local, axis=axis)
+        _, local, axis, theta = best
+        return replace(m, t0=v.tick, grasp_local=local, axis=axis, theta=theta)

@@ -1,0 +1,115 @@
+"""End to end: the four nodes as real OS processes (rclpy, Fast DDS on loopback, MuJoCo, MCAP)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lq_ros import messages as m
+from lq_ros.bag import read_run_metadata
+from lq_ros.config import RunConfig
+from lq_ros.launcher import launch_episode
+from lq_ros.runner import run_inprocess
+from tests.bag_compare import bag_messages, comparable
+
+pytestmark = pytest.mark.slow
+REPO = Path(__file__).resolve().parents[1]
+SCORE_KEYS = {"success", "completion_time_s", "jerk_mean", "ee_osc", "traj_length", "energy_total_j"}
+
+
+def shm_files() -> set[str]:
+    return {f for f in os.listdir("/dev/shm") if "fastrtps" in f or "fastdds" in f}
+
+
+def node_processes(marker: str) -> list[str]:
+    out = subprocess.run(["ps", "-eww", "-o", "pid,args"], capture_output=True, text=True).stdout
+    return [line for line in out.splitlines() if "nodes." in line and marker in line]
+
+
+def test_four_node_episode_bag_and_scores(tmp_path):
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30)
+    outcome, row = launch_episode(cfg, tmp_path)
+    assert outcome.status == "failure", row  # the task is failed, the run is fine
+    bag = outcome.bag_path
+    assert (bag / "metadata.yaml").exists() and list(bag.glob("*.mcap"))
+    meta_yaml = (bag / "metadata.yaml").read_text()
+    assert "storage_identifier: mcap" in meta_yaml and "serialization_format: cdr" in meta_yaml
+    meta = read_run_metadata(bag)
+    assert meta["transport"] == "ros" and meta["config"]["mode"] == "async"
+    assert {"mujoco", "robosuite", "libero", "rclpy", "git_commit"} <= set(meta["versions"])
+    msgs = bag_messages(bag)
+    assert {t.name for t in m.CORE_TOPICS} <= set(msgs)
+    assert len(msgs[m.COMMAND.name]) == 30 and len(msgs[m.EE_POSE.name]) == 31
+    # The CLI scorer reads the same bag without ROS.
+    out = subprocess.run(
+        [sys.executable, "-m", "lq_ros.cli", "score", str(bag), "--json"], capture_output=True, text=True, check=True
+    )
+    scored = json.loads(out.stdout.strip().splitlines()[-1])
+    assert SCORE_KEYS <= set(scored) and scored["success"] is False
+    assert scored["jerk_mean"] == row["jerk_mean"] and scored["energy_total_j"] > 0
+    assert scored["underrun_ticks"] == 0 and scored["hold_ticks"] == 4  # async startup: N = 4 ticks
+
+
+@pytest.mark.parametrize("mode, latency", [("sync", 0.0), ("sync", 0.15), ("async", 0.0), ("async", 0.2)])
+def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
+    """Bit-identical trajectories, commands and chunks for both transports (wall-clock fields aside)."""
+    cfg = RunConfig(policy="sine", mode=mode, latency_s=latency, max_steps=30, replan_steps=3)
+    ros, _ = launch_episode(cfg, tmp_path / "ros")
+    local = run_inprocess(cfg, tmp_path / "local")
+    assert ros.status == local.status == "failure"
+    assert comparable(ros.bag_path) == comparable(local.bag_path)
+
+
+def test_same_config_and_seed_give_identical_bags_and_scores(tmp_path):
+    cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=25, physics_rate=True)
+    first, row1 = launch_episode(cfg, tmp_path / "a")
+    second, row2 = launch_episode(cfg, tmp_path / "b")
+    assert comparable(first.bag_path) == comparable(second.bag_path)
+    wall = {k for k in row1 if k.startswith("latency_real")} | {"versions"}
+    assert {k: v for k, v in row1.items() if k not in wall} == {k: v for k, v in row2.items() if k not in wall}
+
+
+def test_malformed_chunk_rejected_through_ros(tmp_path):
+    cfg = RunConfig(policy="faulty", policy_args={"fault": "bounds", "at_requests": [2]}, max_steps=20, replan_steps=4)
+    outcome, row = launch_episode(cfg, tmp_path)
+    assert outcome.status == "failure" and row["chunks_rejected"] == 1
+    commands = [m.deserialize(r, m.COMMAND.msgtype) for _, r in bag_messages(outcome.bag_path)[m.COMMAND.name]]
+    assert all(np.all(np.abs(c.action) <= 1.0) for c in commands)
+    assert all(c.request_id != 2 for c in commands)
+
+
+def test_policy_crash_is_an_error(tmp_path):
+    cfg = RunConfig(policy="faulty", policy_args={"fault": "raise", "at_requests": [1]}, max_steps=20)
+    outcome, row = launch_episode(cfg, tmp_path)
+    assert outcome.status == "error" and row["success"] is None
+    assert "injected failure" in row["error_reason"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_no_process_or_shm_file_outlives_a_killed_cli(tmp_path, sig):
+    before = shm_files()
+    cli = subprocess.Popen(
+        [sys.executable, "-m", "lq_ros.cli", "run", "--policy", "sine", "--out", str(tmp_path)],
+        stdout=subprocess.DEVNULL,
+        stderr=open(tmp_path / "cli.log", "wb"),  # noqa: SIM115
+        cwd=REPO,
+    )
+    marker = "lq_run_"  # the params file of every child lives in a temp dir named so
+    deadline = time.monotonic() + 60
+    while len(node_processes(marker)) < 4 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert len(node_processes(marker)) == 4, (tmp_path / "cli.log").read_text()
+    time.sleep(8.0)  # let the episode get going
+    cli.send_signal(sig)
+    cli.wait(timeout=60)
+    deadline = time.monotonic() + 30
+    while node_processes(marker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert node_processes(marker) == []
+    assert shm_files() <= before
