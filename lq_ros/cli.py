@@ -6,7 +6,7 @@ import json
 import os
 import signal
 import sys
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -37,7 +37,7 @@ ROW_COLUMNS = [
 ]
 
 
-class Transport(str, Enum):
+class Transport(StrEnum):
     ros = "ros"
     inprocess = "inprocess"
 
@@ -65,12 +65,11 @@ def _fmt(value) -> str:
 
 
 def print_rows(rows: list[dict], title: str = "") -> None:
-    table = Table(title=title or None)
-    table.add_column("episode")
+    table = Table(title=title or None, caption="bags and episode names: see the run folder")
     for _, header in ROW_COLUMNS:
         table.add_column(header, justify="right")
     for row in rows:
-        table.add_row(str(row.get("episode", ""))[:48], *(_fmt(row.get(k)) for k, _ in ROW_COLUMNS))
+        table.add_row(*(_fmt(row.get(k)) for k, _ in ROW_COLUMNS))
     Console().print(table)
 
 
@@ -133,6 +132,28 @@ def run_episode(cfg, out: Path, transport: Transport, **launch_kwargs) -> dict:
 
     _, row = launch_episode(cfg, out, **launch_kwargs)
     return row
+
+
+@app.command()
+def demo(
+    out: Path = Path("bags/demo"),
+    policy: str = "scripted",
+    task: int = 0,
+    transport: Transport = Transport.ros,
+) -> None:
+    """LIBERO-Spatial task 0 through the four-node stack: sync and async at 0 and 0.2 s latency."""
+    from lq_ros.config import RunConfig
+
+    rows = []
+    for mode in ("sync", "async"):
+        for latency in (0.0, 0.2):
+            cfg = RunConfig(suite="libero_spatial", task=task, mode=mode, latency_s=latency, policy=policy)
+            console.print(f"running {mode} Δt_sim={latency} s ...")
+            rows.append(run_episode(cfg, out, transport))
+    print_rows(rows, title=f"LIBERO-LQ demo · libero_spatial task {task} · {policy} · {transport.value}")
+    console.print(f"bags: {out}/  (score again with: lq score {out})")
+    if any(r.get("status") == "error" for r in rows):
+        raise typer.Exit(1)
 
 
 @app.command()

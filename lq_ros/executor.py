@@ -18,24 +18,24 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from enum import Enum, IntEnum
+from enum import IntEnum, StrEnum
 
 import numpy as np
 
 from lq_ros.suites import ACTION_DIM, ACTION_HIGH, ACTION_LOW, DUMMY_ACTION
 
 
-class Mode(str, Enum):
+class Mode(StrEnum):
     SYNC = "sync"  # hold while inferring (stop-and-go)
     ASYNC = "async"  # keep consuming a buffer while the next chunk is computed
 
 
-class Hold(str, Enum):
+class Hold(StrEnum):
     STOP = "stop"  # zero arm delta, last gripper command
     REPEAT = "repeat"  # repeat the last applied action
 
 
-class Merge(str, Enum):
+class Merge(StrEnum):
     REPLACE = "replace"  # fresh actions replace the buffer (LeRobot RTC / ros2_control semantics)
     BLEND = "blend"  # overlapping steps: weighted average of old and new (LeRobot weighted_average)
 

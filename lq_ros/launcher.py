@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import yaml
@@ -114,10 +114,8 @@ def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
             p.send_signal(sig)
         deadline = time.monotonic() + wait_s
         for p in alive:
-            try:
+            with suppress(subprocess.TimeoutExpired):
                 p.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
     if any(p.poll() is None for p in procs.values()):
         raise RuntimeError("child processes survived SIGKILL")
 

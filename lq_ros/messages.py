@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lq_ros.env import Observation, TickState, TaskInfo
+from lq_ros.env import Observation, TaskInfo, TickState
 from lq_ros.executor import Command, Request
 from lq_ros.suites import PHYSICS_DT_S
 

@@ -19,8 +19,7 @@ from lq_ros import messages as m
 from lq_ros.bag import EpisodeBagWriter, log_time_ns
 from lq_ros.config import RunConfig, versions
 from lq_ros.env import sim_time_of_tick
-from lq_ros.ros_util import json_param, msg_class, run
-from lq_ros.ros_util import LOSSLESS_QOS
+from lq_ros.ros_util import LOSSLESS_QOS, json_param, msg_class, run
 from lq_ros.runner import episode_topics, run_metadata
 from lq_ros.scoring import score_bag, to_json
 

@@ -33,5 +33,5 @@ class Policy(abc.ABC):
         """Parameters recorded in the run metadata."""
         return {}
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - optional hook, most policies hold nothing
         """Release resources (connections, threads)."""

@@ -1,0 +1,49 @@
+# One-command install and run. `make demo` / `make test` install everything first (idempotent).
+SHELL := /bin/bash
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.stamps
+MSG_PKG := msg_schemas/lq_msgs
+# Keep DDS discovery on this machine (a user on a robot network may override it).
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+export MUJOCO_GL ?= egl
+
+.PHONY: setup test test-fast demo lint clean
+
+setup: $(STAMP)/package
+
+$(STAMP)/wheels: requirements.lock
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.lock
+	@mkdir -p $(STAMP) && touch $@
+
+# Custom messages: rclpy classes generated from msg_schemas (the same files rosbags reads).
+$(STAMP)/msgs: $(STAMP)/wheels $(MSG_PKG)/CMakeLists.txt $(MSG_PKG)/package.xml $(wildcard $(MSG_PKG)/msg/*.msg)
+	rm -rf build/lq_msgs
+	source $(VENV)/bin/activate && export AMENT_PREFIX_PATH=$$VIRTUAL_ENV && \
+	cmake -S $(MSG_PKG) -B build/lq_msgs -G Ninja -DCMAKE_PREFIX_PATH=$$VIRTUAL_ENV \
+	  -DCMAKE_INSTALL_PREFIX=$$VIRTUAL_ENV -DPython3_EXECUTABLE=$$VIRTUAL_ENV/bin/python \
+	  -DBUILD_TESTING=OFF > build/lq_msgs.log 2>&1 || (mkdir -p build; cat build/lq_msgs.log; false)
+	source $(VENV)/bin/activate && cmake --build build/lq_msgs >> build/lq_msgs.log 2>&1 && \
+	  cmake --install build/lq_msgs >> build/lq_msgs.log 2>&1 || (cat build/lq_msgs.log; false)
+	@touch $@
+
+$(STAMP)/package: $(STAMP)/msgs setup.py package.xml
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@touch $@
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+demo: setup
+	$(VENV)/bin/lq demo --out bags/demo
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf build $(VENV) bags/demo
