@@ -20,11 +20,11 @@ $(STAMP)/wheels: requirements.lock
 
 # Custom messages: rclpy classes generated from msg_schemas (the same files rosbags reads).
 $(STAMP)/msgs: $(STAMP)/wheels $(MSG_PKG)/CMakeLists.txt $(MSG_PKG)/package.xml $(wildcard $(MSG_PKG)/msg/*.msg)
-	rm -rf build/lq_msgs
+	rm -rf build/lq_msgs && mkdir -p build
 	source $(VENV)/bin/activate && export AMENT_PREFIX_PATH=$$VIRTUAL_ENV && \
 	cmake -S $(MSG_PKG) -B build/lq_msgs -G Ninja -DCMAKE_PREFIX_PATH=$$VIRTUAL_ENV \
 	  -DCMAKE_INSTALL_PREFIX=$$VIRTUAL_ENV -DPython3_EXECUTABLE=$$VIRTUAL_ENV/bin/python \
-	  -DBUILD_TESTING=OFF > build/lq_msgs.log 2>&1 || (mkdir -p build; cat build/lq_msgs.log; false)
+	  -DBUILD_TESTING=OFF > build/lq_msgs.log 2>&1 || (cat build/lq_msgs.log; false)
 	source $(VENV)/bin/activate && cmake --build build/lq_msgs >> build/lq_msgs.log 2>&1 && \
 	  cmake --install build/lq_msgs >> build/lq_msgs.log 2>&1 || (cat build/lq_msgs.log; false)
 	@touch $@
