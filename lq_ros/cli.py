@@ -70,7 +70,7 @@ def print_rows(rows: list[dict], title: str = "") -> None:
         table.add_column(header, justify="right")
     for row in rows:
         table.add_row(*(_fmt(row.get(k)) for k, _ in ROW_COLUMNS))
-    Console().print(table)
+    Console(width=None if sys.stdout.isatty() else 160).print(table)
 
 
 @app.command()
