@@ -272,11 +272,11 @@ class ScriptedExpert(Policy):
             err = np.linalg.norm(self._grasp_point(m, v) - v.eef)
             if err > 0.015 and v.tick - m.t0 < self.close_steps // 2:
                 return replace(m, phase=DESCEND, t0=v.tick)
-        if m.phase in (TRANSPORT, LOWER) and not self._holding(m, v):
+        if m.phase in (TRANSPORT, LOWER) and not self._holding(v):
             return self._retry(m, v)
         return m
 
-    def _holding(self, m: _Machine, v: _View) -> bool:
+    def _holding(self, v: _View) -> bool:
         """The bowl rose with the EE and stays near it."""
         rel = v.obj_pos - v.eef
         return bool(np.linalg.norm(rel[:2]) < 0.09 and -0.12 < rel[2] < 0.02)
@@ -284,9 +284,7 @@ class ScriptedExpert(Policy):
     def _retry(self, m: _Machine, v: _View) -> _Machine:
         return replace(m, phase=RETRY, t0=v.tick, retries=m.retries + 1, failed=(*m.failed, m.theta))
 
-    def _act(
-        self, m: _Machine, v: _View, vel: np.ndarray | None, may_close: bool
-    ) -> tuple[_Machine, np.ndarray]:
+    def _act(self, m: _Machine, v: _View, vel: np.ndarray | None, may_close: bool) -> tuple[_Machine, np.ndarray]:
         """One tick: possibly transition, then the action for this tick.
 
         ``vel`` is the predicted EE velocity during a rollout (None on a real observation).
