@@ -16,27 +16,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lq_ros.env import LiberoEnv
 from lq_ros.policies.scripted import ScriptedExpert
+from lq_ros.runner import run_conventional
 
 SUITE = "libero_spatial"
 SEED = 7
-
-
-def run_episode(env: LiberoEnv, policy: ScriptedExpert, init_index: int, replan_steps: int) -> tuple[bool, int]:
-    """One episode; returns (success, policy ticks used)."""
-    env.reset(init_index, seed=SEED)
-    policy.reset(env.task, seed=SEED)
-    budget = env.task.step_budget
-    t = 0
-    while t < budget:
-        chunk = policy.infer(env.observe(with_images=False))
-        for a in chunk[:replan_steps]:
-            state = env.step(a)
-            t += 1
-            if state.success:
-                return True, t
-            if t >= budget:
-                break
-    return False, t
 
 
 def main() -> None:
@@ -57,7 +40,8 @@ def main() -> None:
         marks = []
         for init in range(args.inits):
             t0 = time.perf_counter()
-            ok, steps = run_episode(env, policy, init, args.replan_steps)
+            result = run_conventional(env, policy, init, SEED, args.replan_steps)
+            ok, steps = result.success, result.ticks
             wall = time.perf_counter() - t0
             rows.append({"task": task_id, "init": init, "success": ok, "steps": steps, "wall_s": wall})
             marks.append(f"{'ok' if ok else '--'}{steps:4d}")

@@ -12,16 +12,17 @@ from lq_ros.suites import CONTROL_DT_S, latency_ticks
 RUN_METADATA_KEY = "lq_run"
 
 
-def log_time_ns(topic: m.Topic, msg) -> int:
-    """Sim time at which a message takes effect, used as its bag log time.
+def log_time_ns(topic: m.Topic, data: bytes) -> int:
+    """Sim time at which a serialized message takes effect, used as its bag log time.
 
     Using sim time (not receive time) makes a lockstep bag independent of scheduling. A chunk is
     logged at the tick it is applied (observation time + N ticks), the rest at their header stamp.
+    Every LIBERO-LQ message starts with its stamp, so only chunks need decoding (not per tick).
     """
-    t_ns = m.stamp_ns(msg)
     if topic.msgtype == m.ACTION_CHUNK.msgtype:
-        t_ns += m.to_ns(latency_ticks(msg.injected_latency_s) * CONTROL_DT_S)
-    return t_ns
+        msg = m.deserialize(data, topic.msgtype)
+        return m.stamp_ns(msg) + m.to_ns(latency_ticks(msg.injected_latency_s) * CONTROL_DT_S)
+    return m.leading_stamp_ns(data)
 
 
 class EpisodeBagWriter:

@@ -111,6 +111,18 @@ def stamp_ns(msg) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
+def leading_stamp_ns(data: bytes | memoryview) -> int:
+    """Stamp of a serialized message whose first field is a Header or a Time (e.g. Clock).
+
+    CDR: a 4-byte encapsulation header, then int32 sec and uint32 nanosec, little endian.
+    """
+    if bytes(data[:2]) != b"\x00\x01":
+        raise ValueError("not little-endian CDR")
+    sec = int.from_bytes(data[4:8], "little", signed=True)
+    nanosec = int.from_bytes(data[8:12], "little")
+    return sec * 1_000_000_000 + nanosec
+
+
 def _f64(values) -> np.ndarray:
     return np.ascontiguousarray(values, dtype=np.float64)
 
@@ -144,9 +156,7 @@ def ee_pose_msg(t_ns: int, pos, quat_xyzw) -> bytes:
     return serialize(msg, EE_POSE.msgtype)
 
 
-def tick_state_msgs(
-    state: TickState, physics_rate: bool = False, clock: bool = True
-) -> list[tuple[Topic, int, bytes]]:
+def tick_state_msgs(state: TickState, physics_rate: bool = False, clock: bool = True) -> list[tuple[Topic, int, bytes]]:
     """(topic, log time ns, bytes) for one tick: physics-rate samples first, then joints, pose, clock.
 
     /clock starts a control tick; the sim leaves it out at the tick that ends the episode, so no

@@ -12,6 +12,8 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from lq_ros import messages as m
 from lq_ros.bag import EpisodeBagWriter, log_time_ns
 from lq_ros.config import RunConfig, versions
@@ -48,6 +50,34 @@ def run_metadata(cfg: RunConfig, policy_params: dict, transport: str, env_versio
     }
 
 
+@dataclass
+class ConventionalResult:
+    success: bool
+    ticks: int
+    eef_positions: np.ndarray  # (ticks + 1, 3) m, tick 0 included
+
+
+def run_conventional(
+    env: LiberoEnv, policy: Policy, init_index: int, seed: int, replan_steps: int, max_steps: int = 0
+) -> ConventionalResult:
+    """The conventional zero-latency LIBERO loop: policy -> chunk -> env.step per action, nothing else.
+
+    The reference the lockstep transports must equal at dt_sim = 0 (sync), and a fast evaluator.
+    """
+    state = env.reset(init_index, seed)
+    policy.reset(env.task, seed)
+    budget = max_steps or env.task.step_budget
+    positions, tick = [state.eef_pos], 0
+    while tick < budget and not state.success:
+        for action in policy.infer(env.observe(with_images=False))[:replan_steps]:
+            state = env.step(action)
+            positions.append(state.eef_pos)
+            tick += 1
+            if tick >= budget or state.success:
+                break
+    return ConventionalResult(state.success, tick, np.array(positions))
+
+
 class _Recorder:
     """Writes messages with their deterministic sim-time log stamps."""
 
@@ -55,7 +85,7 @@ class _Recorder:
         self.writer = writer
 
     def put(self, topic: m.Topic, data: bytes) -> None:
-        self.writer.write(topic, log_time_ns(topic, m.deserialize(data, topic.msgtype)), data)
+        self.writer.write(topic, log_time_ns(topic, data), data)
 
     def put_at(self, topic: m.Topic, t_ns: int, data: bytes) -> None:
         self.writer.write(topic, t_ns, data)

@@ -177,8 +177,11 @@ def score_episode(
             latency_real_max_s=float(real.max()),
         )
     else:
-        _null(row, ["latency_real_mean_s", "latency_real_p50_s", "latency_real_p90_s", "latency_real_max_s"],
-              "no action chunks in the bag")
+        _null(
+            row,
+            ["latency_real_mean_s", "latency_real_p50_s", "latency_real_p90_s", "latency_real_max_s"],
+            "no action chunks in the bag",
+        )
     if data.command_sources:
         src = np.asarray(data.command_sources)
         row["hold_ticks"] = int((src != 0).sum())
@@ -194,8 +197,7 @@ def score_episode(
     dt = RATES["physics" if use_physics else "control"]
     row["trajectory_rate_hz"] = round(1.0 / dt, 6)
     traj_keys = ["jerk_mean", "jerk_p90", "ee_osc", "traj_length", "sparc", "ldlj"]
-    _, pos = ee_series.arrays(t0_ns, t1_ns)
-    t_ee, _ = ee_series.arrays(t0_ns, t1_ns)
+    t_ee, pos = ee_series.arrays(t0_ns, t1_ns)
     gap = metrics.check_uniform(t_ee / 1e9, dt) if len(t_ee) >= 2 else "fewer than 2 EE samples"
     if gap is not None:
         _null(row, traj_keys, f"EE pose series rejected: {gap}")

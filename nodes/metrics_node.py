@@ -59,13 +59,12 @@ class MetricsNode(Node):
         def record(data: bytes) -> None:
             if self.finished:
                 return
-            msg = m.deserialize(data, topic.msgtype)
-            self.writer.write(topic, log_time_ns(topic, msg), data)
+            self.writer.write(topic, log_time_ns(topic, data), data)
             self.last_message = time.monotonic()
             if topic.name == m.EPISODE_EVENTS.name:
-                self.on_event(msg)
+                self.on_event(m.deserialize(data, topic.msgtype))
             elif topic.name == m.COMMAND.name:
-                self.last_tick = msg.tick
+                self.last_tick = m.deserialize(data, topic.msgtype).tick
 
         return record
 

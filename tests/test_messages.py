@@ -36,3 +36,12 @@ def test_chunk_with_lying_shape_is_kept_for_rejection():
     msg = m.deserialize(raw, m.ACTION_CHUNK.msgtype)
     msg.horizon = 5  # declared shape does not match the data
     assert m.chunk_actions(msg).shape == (1, 14)
+
+
+def test_leading_stamp_matches_decoded_stamp():
+    for data, msgtype in [
+        (m.clock_msg(12_345_000_000), m.CLOCK.msgtype),
+        (m.joint_state_msg(1_550_000_000, np.ones(7), np.zeros(7), np.ones(7)), m.JOINT_STATES.msgtype),
+        (m.event_msg(700_000_000, m.EventKind.STARTED, 4, "x"), m.EPISODE_EVENTS.msgtype),
+    ]:
+        assert m.leading_stamp_ns(data) == m.stamp_ns(m.deserialize(data, msgtype))

@@ -10,7 +10,7 @@ from lq_ros.bag import read_run_metadata
 from lq_ros.config import RunConfig
 from lq_ros.env import LiberoEnv
 from lq_ros.policies import make_policy
-from lq_ros.runner import run_inprocess
+from lq_ros.runner import run_conventional, run_inprocess
 from lq_ros.scoring import score_bag
 from tests.bag_compare import bag_messages
 
@@ -54,19 +54,8 @@ def test_zero_latency_sync_equals_conventional_loop(tmp_path, env, policy, args)
     steps, replan = 40, 5
     cfg = RunConfig(policy=policy, policy_args=args, mode="sync", latency_s=0.0, replan_steps=replan, max_steps=steps)
     outcome = run_inprocess(cfg, tmp_path, env=env)
-    # The plain loop, as LIBERO evaluation scripts write it.
-    pol = make_policy(policy, **args)
-    state = env.reset(cfg.init, cfg.seed)
-    pol.reset(env.task, cfg.seed)
-    positions, t = [state.eef_pos], 0
-    while t < steps and not state.success:
-        for action in pol.infer(env.observe(with_images=False))[:replan]:
-            state = env.step(action)
-            positions.append(state.eef_pos)
-            t += 1
-            if t >= steps or state.success:
-                break
-    assert np.array_equal(ee_positions(outcome.bag_path), np.array(positions))
+    plain = run_conventional(env, make_policy(policy, **args), cfg.init, cfg.seed, replan, steps)
+    assert np.array_equal(ee_positions(outcome.bag_path), plain.eef_positions)
 
 
 def test_malformed_chunks_rejected_never_commanded(tmp_path, env):

@@ -8,27 +8,10 @@ import pytest
 from lq_ros.env import LiberoEnv
 from lq_ros.policies import make_policy
 from lq_ros.policies.scripted import ScriptedExpert
+from lq_ros.runner import run_conventional
 
 SUITE = "libero_spatial"
 SEED = 7
-
-
-def _run(env: LiberoEnv, policy: ScriptedExpert, init_index: int, replan_steps: int) -> tuple[bool, int]:
-    """The conventional zero-latency loop; returns (success, ticks used)."""
-    env.reset(init_index, seed=SEED)
-    policy.reset(env.task, seed=SEED)
-    budget = env.task.step_budget
-    t = 0
-    while t < budget:
-        chunk = policy.infer(env.observe(with_images=False))
-        for a in chunk[:replan_steps]:
-            state = env.step(a)
-            t += 1
-            if state.success:
-                return True, t
-            if t >= budget:
-                break
-    return False, t
 
 
 def test_chunk_shape_range_and_determinism() -> None:
@@ -60,7 +43,8 @@ def test_solves_task_within_budget(task_id: int, init_index: int) -> None:
     env = LiberoEnv(SUITE, task_id)
     try:
         policy = ScriptedExpert(chunk_size=8)
-        ok, steps = _run(env, policy, init_index, replan_steps=8)
+        result = run_conventional(env, policy, init_index, SEED, replan_steps=8)
+        ok, steps = result.success, result.ticks
         assert ok, f"task {task_id} init {init_index}: no success within {env.task.step_budget} ticks"
         assert steps <= env.task.step_budget
     finally:

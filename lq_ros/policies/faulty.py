@@ -52,5 +52,9 @@ class FaultyPolicy(Policy):
         return chunk
 
     def params(self) -> dict:
-        return {"inner": self._inner_name, "fault": self.fault, "at_requests": sorted(self.at_requests),
-                **self._inner_args}
+        return {
+            "inner": self._inner_name,
+            "fault": self.fault,
+            "at_requests": sorted(self.at_requests),
+            **self._inner_args,
+        }
