@@ -64,6 +64,7 @@ def read_run_metadata(path: Path) -> dict:
     import yaml
 
     meta_file = Path(path) / "metadata.yaml"
-    info = yaml.safe_load(meta_file.read_text())["rosbag2_bagfile_information"]
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: ~10x faster, matters when scoring many bags
+    info = yaml.load(meta_file.read_text(), Loader=loader)["rosbag2_bagfile_information"]
     raw = (info.get("custom_data") or {}).get(RUN_METADATA_KEY)
     return json.loads(raw) if raw else {}

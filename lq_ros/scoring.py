@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from lq_ros import mcap_stream, metrics
 from lq_ros import messages as m
-from lq_ros import metrics
 from lq_ros.bag import read_run_metadata
+from lq_ros.mcap_stream import McapDamage, StreamingMcapReader
 from lq_ros.suites import CONTROL_DT_S, PHYSICS_DT_S
 
 RATES = {"control": CONTROL_DT_S, "physics": PHYSICS_DT_S}
@@ -56,72 +58,110 @@ class EpisodeData:
     requests: int = 0
     metadata: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    #: The file was cut or corrupt: everything after the damage is missing.
+    damaged: bool = False
+    #: JointState messages without matching velocity and effort arrays (no energy from those).
+    joints_without_effort: int = 0
+    ee_topic: str = m.EE_POSE.name
+    joint_topic: str = m.JOINT_STATES.name
 
 
 def _mcap_files(bag: Path) -> list[Path]:
     return sorted(bag.glob("*.mcap"))
 
 
-def read_episode(bag: Path, ee_topic: str = m.EE_POSE.name, joint_topic: str = m.JOINT_STATES.name) -> EpisodeData:
-    """Decode the topics the scorer needs. Raises BagError naming the damaged file."""
-    from rosbags.highlevel import AnyReader
+#: What the scorer reads per role: the message type it requires and how it decodes a payload.
+_PHYSICS_ROLES = ("ee_physics", "joints_physics")
 
+
+def read_episode(
+    bag: Path,
+    ee_topic: str = m.EE_POSE.name,
+    joint_topic: str = m.JOINT_STATES.name,
+    physics: bool = False,
+) -> EpisodeData:
+    """Stream the topics the scorer needs from a bag folder (or a single .mcap file).
+
+    ``physics`` also reads the physics-rate topics (skipped otherwise: they are 25x the control data).
+    A damaged file yields what precedes the damage, with a warning naming the file and the problem;
+    a file that cannot be read at all raises BagError.
+    """
     bag = Path(bag)
-    if not (bag / "metadata.yaml").exists():
-        raise BagError(f"{bag}: not a rosbag2 folder (no metadata.yaml)")
-    data = EpisodeData()
-    try:
-        data.metadata = read_run_metadata(bag)
-    except Exception as exc:  # noqa: BLE001 - report, keep scoring
-        data.warnings.append(f"{bag / 'metadata.yaml'}: unreadable run metadata ({exc})")
-    wanted = {
-        ee_topic: "ee",
-        joint_topic: "joints",
-        m.EE_POSE_PHYSICS.name: "ee_physics",
-        m.JOINT_STATES_PHYSICS.name: "joints_physics",
-        m.EPISODE_EVENTS.name: "events",
-        m.ACTION_CHUNK.name: "chunks",
-        m.COMMAND.name: "commands",
-        m.OBSERVATION_REQUEST.name: "requests",
-    }
-    try:
-        reader = AnyReader([bag])
-        reader.open()
-    except Exception as exc:  # noqa: BLE001
-        files = ", ".join(str(f) for f in _mcap_files(bag)) or str(bag)
-        raise BagError(f"{files}: cannot open bag: {type(exc).__name__}: {exc}") from exc
-    try:
-        conns = [c for c in reader.connections if c.topic in wanted]
+    files = [bag] if bag.suffix == ".mcap" and bag.is_file() else _mcap_files(bag)
+    if not files:
+        raise BagError(f"{bag}: no .mcap file (not a rosbag2 MCAP bag folder)")
+    data = EpisodeData(ee_topic=ee_topic, joint_topic=joint_topic)
+    meta_file = (bag.parent if bag.is_file() else bag) / "metadata.yaml"
+    if not meta_file.exists():
+        data.warnings.append(f"{meta_file}: missing (the recorder did not finish); no run metadata")
+    else:
         try:
-            for conn, _t, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
-                _collect(data, wanted[conn.topic], msg)
-        except Exception as exc:  # noqa: BLE001 - keep what was read, mark partial
-            files = ", ".join(str(f) for f in _mcap_files(bag))
-            data.warnings.append(f"{files}: read stopped early ({type(exc).__name__}: {exc}); scores are partial")
-    finally:
-        reader.close()
+            data.metadata = read_run_metadata(meta_file.parent)
+        except Exception as exc:  # noqa: BLE001 - report, keep scoring
+            data.warnings.append(f"{meta_file}: unreadable run metadata ({exc})")
+    roles = {
+        ee_topic: ("ee", m.EE_POSE.msgtype),
+        joint_topic: ("joints", m.JOINT_STATES.msgtype),
+        m.EPISODE_EVENTS.name: ("events", m.EPISODE_EVENTS.msgtype),
+        m.ACTION_CHUNK.name: ("chunks", m.ACTION_CHUNK.msgtype),
+        m.COMMAND.name: ("commands", m.COMMAND.msgtype),
+        m.OBSERVATION_REQUEST.name: ("requests", m.OBSERVATION_REQUEST.msgtype),
+    }
+    if physics:
+        roles[m.EE_POSE_PHYSICS.name] = ("ee_physics", m.EE_POSE_PHYSICS.msgtype)
+        roles[m.JOINT_STATES_PHYSICS.name] = ("joints_physics", m.JOINT_STATES_PHYSICS.msgtype)
+    for file in files:
+        reader = StreamingMcapReader(file, roles)
+        checked: set[int] = set()
+        try:
+            for channel, _log_ns, payload in reader.messages():
+                role, msgtype = roles[channel.topic]
+                if channel.id not in checked:
+                    if channel.message_encoding != "cdr" or channel.msgtype != msgtype:
+                        raise BagError(
+                            f"{file}: topic {channel.topic} holds {channel.msgtype or '?'} "
+                            f"({channel.message_encoding}); the scorer needs {msgtype} (cdr)"
+                        )
+                    checked.add(channel.id)
+                try:
+                    _collect(data, role, payload)
+                except (ValueError, struct.error) as exc:
+                    reader.damage = f"undecodable {channel.topic} message ({exc})"
+                    break
+        except McapDamage as exc:
+            raise BagError(str(exc)) from exc
+        except OSError as exc:
+            raise BagError(f"{file}: cannot read: {exc}") from exc
+        if reader.damage:
+            data.damaged = True
+            data.warnings.append(f"{file}: {reader.damage}; scores are partial (read up to the damage)")
     return data
 
 
-def _collect(data: EpisodeData, kind: str, msg) -> None:
-    if kind in ("ee", "ee_physics"):
-        p = msg.pose.position
-        getattr(data, kind).t_ns.append(m.stamp_ns(msg))
-        getattr(data, kind).values.append(np.array([p.x, p.y, p.z]))
-    elif kind in ("joints", "joints_physics"):
-        n = len(msg.effort)
-        if n and len(msg.velocity) == n:
-            getattr(data, kind).t_ns.append(m.stamp_ns(msg))
-            getattr(data, kind).values.append(np.concatenate([msg.velocity, msg.effort]))
-    elif kind == "events":
-        data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
-    elif kind == "chunks":
-        data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
-    elif kind == "commands":
-        data.command_sources.append(msg.source)
-    elif kind == "requests":
+def _collect(data: EpisodeData, role: str, payload: memoryview) -> None:
+    if role in ("ee", "ee_physics"):
+        t_ns, pos = mcap_stream.pose_stamped_position(payload)
+        series = getattr(data, role)
+        series.t_ns.append(t_ns)
+        series.values.append(pos)
+    elif role in ("joints", "joints_physics"):
+        t_ns, velocity, effort = mcap_stream.joint_state_velocity_effort(payload)
+        if len(effort) and len(velocity) == len(effort):
+            series = getattr(data, role)
+            series.t_ns.append(t_ns)
+            series.values.append(np.concatenate([velocity, effort]))
+        else:
+            data.joints_without_effort += 1
+    elif role == "commands":
+        data.command_sources.append(mcap_stream.action_command_source(payload))
+    elif role == "requests":
         data.requests += 1
+    elif role == "events":
+        msg = m.deserialize(payload, m.EPISODE_EVENTS.msgtype)
+        data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
+    elif role == "chunks":
+        msg = m.deserialize(payload, m.ACTION_CHUNK.msgtype)
+        data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
 
 
 def _null(row: dict, keys: list[str], reason: str) -> None:
@@ -150,6 +190,8 @@ def score_episode(
     if not terminal:
         status = "unknown" if not data.events else "error"
         reason = "no episode events" if not data.events else "episode never ended (no terminal event)"
+        if data.damaged:  # the outcome was lost with the damaged part: a broken run, never a task outcome
+            status, reason = "error", f"bag damaged before the episode outcome: {data.warnings[-1]}"
     else:
         kind, tick, _, reason = terminal[0]
         status = {m.EventKind.SUCCESS: "success", m.EventKind.TIMEOUT: "failure"}.get(kind, "error")
@@ -198,7 +240,8 @@ def score_episode(
     row["trajectory_rate_hz"] = round(1.0 / dt, 6)
     traj_keys = ["jerk_mean", "jerk_p90", "ee_osc", "traj_length", "sparc", "ldlj"]
     t_ee, pos = ee_series.arrays(t0_ns, t1_ns)
-    gap = metrics.check_uniform(t_ee / 1e9, dt) if len(t_ee) >= 2 else "fewer than 2 EE samples"
+    ee_topic = m.EE_POSE_PHYSICS.name if use_physics else data.ee_topic
+    gap = metrics.check_uniform(t_ee / 1e9, dt) if len(t_ee) >= 2 else f"fewer than 2 EE samples on {ee_topic}"
     if gap is not None:
         _null(row, traj_keys, f"EE pose series rejected: {gap}")
     else:
@@ -227,7 +270,12 @@ def score_episode(
     # Samples strictly after the start: each one closes an interval of dt during which it was applied.
     t_j, jv = j_series.arrays(None if t0_ns is None else t0_ns + 1, t1_ns)
     if not len(jv):
-        _null(row, energy_keys, "no joint states with effort and velocity")
+        topic = m.JOINT_STATES_PHYSICS.name if use_physics_j else data.joint_topic
+        if data.joints_without_effort:
+            why = f"{data.joints_without_effort} joint state messages on {topic} lack velocity or effort"
+        else:
+            why = f"no joint states on {topic}"
+        _null(row, energy_keys, why)
     else:
         gap = metrics.check_uniform(t_j / 1e9, dt_j) if len(t_j) >= 2 else None
         if gap is not None:
@@ -253,16 +301,19 @@ def score_episode(
 def score_bag(bag: Path, **kwargs) -> dict:
     """Read and score one bag folder."""
     topics = {k: kwargs.pop(k) for k in ("ee_topic", "joint_topic") if k in kwargs}
-    data = read_episode(Path(bag), **topics)
+    data = read_episode(Path(bag), physics=kwargs.get("rate") == "physics", **topics)
     return score_episode(data, name=Path(bag).name, **kwargs)
 
 
 def find_bags(path: Path) -> list[Path]:
     """``path`` itself if it is a bag folder, else every bag folder below it."""
     path = Path(path)
-    if (path / "metadata.yaml").exists():
+    if path.suffix == ".mcap" and path.is_file():
         return [path]
-    return sorted(p.parent for p in path.rglob("metadata.yaml"))
+    if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")):
+        return [path]
+    # A folder with .mcap but no metadata.yaml is a bag whose recorder died: still found (scored partial).
+    return sorted({p.parent for pattern in ("metadata.yaml", "*.mcap") for p in path.rglob(pattern)})
 
 
 def to_json(row: dict) -> str:
