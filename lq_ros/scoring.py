@@ -171,9 +171,18 @@ def _null(row: dict, keys: list[str], reason: str) -> None:
 
 
 def score_episode(
-    data: EpisodeData, *, osc_window: int = metrics.DEFAULT_OSC_WINDOW, rate: str = "control", name: str = ""
+    data: EpisodeData,
+    *,
+    osc_window: int = metrics.DEFAULT_OSC_WINDOW,
+    rate: str = "control",
+    name: str = "",
+    elec_coeff: float = metrics.ELEC_LOSS_COEFF_W_PER_NM2,
+    overhead_w: float = metrics.OVERHEAD_POWER_W,
 ) -> dict:
-    """One row of metrics. ``rate`` picks the sampling of jerk/energy: control (20 Hz) or physics."""
+    """One row of metrics. ``rate`` picks the sampling of jerk/energy: control (20 Hz) or physics.
+
+    ``elec_coeff`` (W/(N m)^2) and ``overhead_w`` (W) are the energy model's constants (paper values by default).
+    """
     if rate not in RATES:
         raise ValueError(f"rate must be one of {sorted(RATES)}, got {rate!r}")
     row: dict = {"episode": name}
@@ -282,7 +291,7 @@ def score_episode(
             _null(row, energy_keys, f"joint state series rejected: {gap}")
         else:
             n = jv.shape[1] // 2
-            terms = metrics.energy_terms(jv[:, n:], jv[:, :n], dt_j)
+            terms = metrics.energy_terms(jv[:, n:], jv[:, :n], dt_j, elec_coeff=elec_coeff, overhead_w=overhead_w)
             steps = row.get("completion_steps") or len(jv) * dt_j / CONTROL_DT_S
             row.update(
                 energy_mech_j=terms.mech_j,
