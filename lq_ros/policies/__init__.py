@@ -11,6 +11,8 @@ REGISTRY: dict[str, str] = {
     "scripted": "lq_ros.policies.scripted:ScriptedExpert",
     "sine": "lq_ros.policies.sine:SinePolicy",
     "faulty": "lq_ros.policies.faulty:FaultyPolicy",
+    "openpi": "lq_ros.policies.openpi_remote:OpenPIPolicy",
+    "openvla": "lq_ros.policies.openvla_rest:OpenVLARestPolicy",
 }
 
 
