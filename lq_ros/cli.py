@@ -14,6 +14,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from lq_ros.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
+
 # Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
@@ -158,36 +160,89 @@ def demo(
 
 @app.command()
 def score(
-    bag_dir: Path,
-    ee_topic: str = "/ee_pose",
-    joint_topic: str = "/joint_states",
-    osc_window: Annotated[int, typer.Option(help="EE-Osc window K in samples.")] = 10,
+    path: Annotated[Path, typer.Argument(help="A bag folder, an .mcap file, or a directory of bags.")],
+    ee_topic: Annotated[str, typer.Option(help="geometry_msgs/PoseStamped topic of the end effector.")] = "/ee_pose",
+    joint_topic: Annotated[str, typer.Option(help="sensor_msgs/JointState topic (with effort).")] = "/joint_states",
+    osc_window: Annotated[int, typer.Option(help="EE-Osc window K in samples.")] = DEFAULT_OSC_WINDOW,
     rate: Annotated[str, typer.Option(help="Sampling of jerk/energy: control or physics.")] = "control",
-    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per episode.")] = False,
+    elec_coeff: Annotated[float, typer.Option(help="Electrical loss R/Kt², W/(N m)².")] = ELEC_LOSS_COEFF_W_PER_NM2,
+    overhead_w: Annotated[float, typer.Option(help="Constant overhead power, W.")] = OVERHEAD_POWER_W,
+    out: Annotated[Path | None, typer.Option(help="Where tables go (directory input: default PATH).")] = None,
+    jobs: Annotated[int, typer.Option(help="Scoring processes.")] = 1,
+    n_boot: Annotated[int, typer.Option(help="Bootstrap resamples per confidence interval.")] = 2000,
+    seed: Annotated[int, typer.Option(help="Bootstrap seed.")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per episode on stdout.")] = False,
 ) -> None:
-    """Score one bag folder, or every bag folder below BAG_DIR."""
-    from lq_ros.scoring import BagError, find_bags, score_bag, to_json
+    """Score bags. A directory of bags also gets per (policy, mode, Δt_sim, suite, task) aggregates with
+    95% CIs, written as CSV + Parquet, and a markdown table on stdout. Exits 1 if any bag is damaged."""
+    from lq_ros.aggregate import aggregate, markdown_table, score_directory, write_tables
+    from lq_ros.scoring import find_bags
 
-    bags = find_bags(bag_dir)
-    if not bags:
-        console.print(f"[red]no rosbag2 folder (metadata.yaml) at or below {bag_dir}[/red]")
+    if not find_bags(path):
+        console.print(f"[red]no rosbag2 MCAP bag at or below {path}[/red]")
         raise typer.Exit(2)
-    rows, failed = [], False
-    for bag in bags:
-        try:
-            row = score_bag(bag, ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate)
-        except BagError as exc:
-            console.print(f"[red]{exc}[/red]")
-            failed = True
-            continue
-        for warning in row.get("warnings", []):
+    kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate,
+                  elec_coeff=elec_coeff, overhead_w=overhead_w)  # fmt: skip
+    episodes = score_directory(path, jobs=jobs, **kwargs)
+    rows = [{k: v for k, v in r.items() if not (isinstance(v, float) and v != v)} for r in episodes.to_dict("records")]
+    # Partial: the bag was damaged or unreadable (a run error recorded in an intact bag is not).
+    damaged = any(row.get("partial") for row in rows)
+    for row in rows:
+        for warning in json.loads(row.get("warnings") or "[]"):
             console.print(f"[yellow]warning:[/yellow] {warning}")
-        rows.append(row)
-        if as_json:
-            print(to_json(row))
-    if not as_json:
+        if row.get("status") == "error":
+            console.print(f"[red]error:[/red] {row.get('episode')}: {row.get('error_reason')}")
+    single_bag = len(rows) == 1 and out is None
+    if as_json:
+        from lq_ros.scoring import to_json
+
+        for row in rows:
+            nested = {k: json.loads(v) for k, v in row.items() if k in ("versions", "null_reasons", "warnings") and v}
+            print(to_json(row | nested))
+    elif single_bag:
         print_rows(rows)
-    if failed:
+    if not single_bag:
+        aggregates = aggregate(episodes, n_boot=n_boot, seed=seed)
+        out_dir = out or (path if path.is_dir() else path.parent)
+        written = write_tables(episodes, aggregates, out_dir)
+        if not as_json:
+            print(markdown_table(aggregates))
+        console.print("wrote " + ", ".join(str(p) for p in written.values()))
+    if damaged:
+        raise typer.Exit(1)
+
+
+@app.command()
+def sweep(
+    spec: Path,
+    workers: Annotated[int | None, typer.Option(help="Parallel workers; default: CPU cores.")] = None,
+    transport: Annotated[Transport | None, typer.Option(help="Default: the spec's, else ros.")] = None,
+    backend: Annotated[str, typer.Option(help="local or ray.")] = "local",
+    address: Annotated[str | None, typer.Option(help="Ray cluster address; none: a private local Ray.")] = None,
+    out: Annotated[Path | None, typer.Option(help="Sweep folder; default: bags/sweeps/<spec name>.")] = None,
+    retry_errors: Annotated[bool, typer.Option(help="Run episodes recorded as error again.")] = False,
+) -> None:
+    """Run a latency sweep (docs/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
+    from lq_ros import sweep as sw
+
+    try:
+        sweep_spec = sw.load_spec(spec)
+        sw.check_policies(sweep_spec.configs)
+    except sw.SpecError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2) from exc
+    out = out or Path("bags/sweeps") / sweep_spec.name
+    summary = sw.run_with_progress(
+        sweep_spec, out, console=console, workers=workers, transport=transport.value if transport else None,
+        backend=backend, address=address, retry_errors=retry_errors,
+    )  # fmt: skip
+    c = summary.counts
+    console.print(
+        f"{summary.ran} episodes run in {summary.wall_s:.0f} s ({c['success']} success, {c['failure']} failure, "
+        f"{c['error']} error; {summary.retried} retried), {summary.skipped} skipped. Results: {out}  "
+        f"(report: lq report {out})"
+    )
+    if c["error"]:
         raise typer.Exit(1)
 
 
