@@ -246,6 +246,23 @@ def sweep(
         raise typer.Exit(1)
 
 
+@app.command()
+def report(
+    results_dir: Path,
+    out: Annotated[Path | None, typer.Option(help="Output folder; default: RESULTS_DIR/report.")] = None,
+) -> None:
+    """Figures (paper Figs. 4-7, 95% CIs), tables, report.html and report.md of a sweep or bag folder."""
+    from lq_ros.report import build_report
+
+    try:
+        result = build_report(results_dir, out)
+    except FileNotFoundError as exc:
+        console.print(f"[red]{exc}[/red]")
+        raise typer.Exit(2) from exc
+    console.print(f"{len(result.episodes)} episodes -> {result.files['report.html']}", soft_wrap=True)
+    console.print(f"markdown: {result.files['report.md']}", soft_wrap=True)
+
+
 def main() -> None:
     app()
 

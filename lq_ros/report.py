@@ -1,0 +1,442 @@
+"""``lq report``: the paper's figures (Figs. 4-7) with 95 % CIs, tables, provenance, an HTML and a markdown page.
+
+Input is a sweep folder (its ``results/`` store, see lq_ros/sweep.py) or any folder of episode bags
+(scored on the fly). Figures pool every task and init state of a (policy, mode, latency) cell; the
+per-task aggregate table is written beside them. Aggregation rules and CIs come from lq_ros/aggregate.py.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a display
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from lq_ros import aggregate as agg  # noqa: E402
+from lq_ros import metrics  # noqa: E402
+
+#: Figures pool tasks and init states: one point per (policy, protocol, latency).
+FIGURE_KEYS = ("policy", "mode", "latency_s")
+MODE_STYLE = {"sync": "--", "async": "-"}
+MODE_MARKER = {"sync": "s", "async": "o"}
+#: Stacked segments of Fig. 6: (per-episode column, label, colour).
+ENERGY_PARTS = (
+    ("energy_mech_j", "mechanical", "#4c72b0"),
+    ("energy_elec_j", "electrical loss", "#dd8452"),
+    ("energy_overhead_j", "overhead", "#8c8c8c"),
+)
+FIGURES = {
+    "fig4_success": "Fig. 4 - success rate vs injected latency",
+    "fig5_trajectory": "Fig. 5 - trajectory quality vs injected latency",
+    "fig6_energy_decomposition": "Fig. 6 - per-step energy decomposition",
+    "fig7_energy": "Fig. 7 - per-step and total energy",
+}
+
+
+# -- data ------------------------------------------------------------------------------------
+
+
+def load_episodes(results_dir: Path) -> pd.DataFrame:
+    """Per-episode rows of a sweep folder (from its store) or of every bag below ``results_dir``.
+
+    ``bag`` is kept relative to ``results_dir`` so the report's links survive moving the folder.
+    """
+    from lq_ros.sweep import ResultStore
+
+    results_dir = Path(results_dir)
+    store = ResultStore(results_dir)
+    if store.results.is_dir():
+        rows = []
+        for record in store.records():
+            row = dict(record["row"])
+            row.update(bag=record.get("bag"), key=record["key"], attempts=len(record.get("attempts", [])))
+            row["log"] = record["attempts"][-1].get("log") if record.get("attempts") else None
+            rows.append(row)
+        for row in rows:
+            versions = row.get("versions") or {}
+            row["git_commit"] = versions.get("git_commit") if isinstance(versions, dict) else None
+            for key in ("versions", "null_reasons", "warnings"):
+                if key in row and not isinstance(row[key], str):
+                    row[key] = json.dumps(row[key], sort_keys=True, default=str)
+        frame = agg.episodes_frame(rows)
+    else:
+        frame = agg.score_directory(results_dir)
+        if "bag" in frame:
+            frame["bag"] = [os.path.relpath(b, results_dir) if isinstance(b, str) else b for b in frame["bag"]]
+    if frame.empty or frame["status"].isna().all():
+        raise FileNotFoundError(f"no scored episodes in {results_dir} (neither results/*.json nor bags)")
+    return add_energy_parts_per_step(frame)
+
+
+def add_energy_parts_per_step(episodes: pd.DataFrame) -> pd.DataFrame:
+    """``<part>_per_step_j`` = part x (energy_per_step_j / energy_total_j): the scorer's own step count;
+    ``energy_actuator_per_step_j`` = mechanical + electrical loss per step."""
+    out = episodes.copy()
+    total = pd.to_numeric(out.get("energy_total_j"), errors="coerce")
+    per_step = pd.to_numeric(out.get("energy_per_step_j"), errors="coerce")
+    ratio = per_step / total.where(total > 0)
+    for col, _, _ in ENERGY_PARTS:
+        out[col.replace("_j", "_per_step_j")] = pd.to_numeric(out.get(col), errors="coerce") * ratio
+    out["energy_actuator_per_step_j"] = out["energy_mech_per_step_j"] + out["energy_elec_per_step_j"]
+    return out
+
+
+def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+    """aggregate() pooled per (policy, mode, latency), plus the per-step energy parts of Fig. 6."""
+    pooled = agg.aggregate(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
+    with_outcome = episodes["status"].isin(["success", "failure"])
+    for name in [c.replace("_j", "_per_step_j") for c, _, _ in ENERGY_PARTS] + ["energy_actuator_per_step_j"]:
+        means, lows, highs = [], [], []
+        for _, row in pooled.iterrows():
+            mask = with_outcome.copy()
+            for k in FIGURE_KEYS:
+                mask &= episodes[k] == row[k]
+            values = pd.to_numeric(episodes.loc[mask, name], errors="coerce").to_numpy(dtype=np.float64)
+            values = values[np.isfinite(values)]
+            if len(values):
+                lo, hi = metrics.bootstrap_ci(values, 0.95, n_boot, seed)
+                means.append(float(values.mean()))
+                lows.append(lo)
+                highs.append(hi)
+            else:
+                means.append(math.nan)
+                lows.append(math.nan)
+                highs.append(math.nan)
+        pooled[f"{name}_mean"], pooled[f"{name}_ci_lo"], pooled[f"{name}_ci_hi"] = means, lows, highs
+    return pooled
+
+
+# -- figures ---------------------------------------------------------------------------------
+
+
+def _series(pooled: pd.DataFrame) -> list[tuple[str, str, pd.DataFrame]]:
+    """(policy, mode, rows sorted by latency) for every series present."""
+    out = []
+    for (policy, mode), rows in pooled.groupby(["policy", "mode"], sort=True):
+        out.append((str(policy), str(mode), rows.sort_values("latency_s")))
+    return out
+
+
+def _colours(pooled: pd.DataFrame) -> dict[str, str]:
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    return {p: cycle[i % len(cycle)] for i, p in enumerate(sorted(pooled["policy"].astype(str).unique()))}
+
+
+def _ci_line(ax, x, mean, lo, hi, *, colour: str, mode: str, label: str, scale: float = 1.0) -> None:
+    mean, lo, hi = (np.asarray(v, dtype=np.float64) * scale for v in (mean, lo, hi))
+    ax.plot(x, mean, MODE_STYLE.get(mode, "-"), marker=MODE_MARKER.get(mode, "o"), color=colour, label=label)
+    ax.fill_between(x, lo, hi, color=colour, alpha=0.15, linewidth=0)
+
+
+def _latency_axis(ax, pooled: pd.DataFrame) -> None:
+    ax.set_xlabel("injected latency Δt_sim (s)")
+    ax.set_xticks(sorted(pooled["latency_s"].astype(float).unique()))
+    ax.grid(alpha=0.3)
+
+
+def fig_success(pooled: pd.DataFrame) -> plt.Figure:
+    """Fig. 4: one panel per protocol, one line per policy, shaded 95 % Wilson interval."""
+    modes = [m for m in ("sync", "async") if m in set(pooled["mode"])] + sorted(set(pooled["mode"]) - {"sync", "async"})
+    colours = _colours(pooled)
+    fig, axes = plt.subplots(1, len(modes), figsize=(5.0 * len(modes), 4.0), squeeze=False, sharey=True)
+    for ax, mode in zip(axes[0], modes, strict=True):
+        for policy, m, rows in _series(pooled):
+            if m != mode:
+                continue
+            _ci_line(ax, rows["latency_s"], rows["success_rate"], rows["success_ci_lo"], rows["success_ci_hi"],
+                     colour=colours[policy], mode=mode, label=policy, scale=100.0)  # fmt: skip
+        ax.set_title(f"{mode} execution")
+        ax.set_ylim(-2, 102)
+        _latency_axis(ax, pooled)
+        ax.legend(title="policy", fontsize=8)
+    axes[0][0].set_ylabel("success rate (%) [95% CI]")
+    fig.suptitle(FIGURES["fig4_success"])
+    fig.tight_layout()
+    return fig
+
+
+def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
+    """Fig. 5: mean jerk, P90 jerk and EE oscillation vs latency, one line per (policy, protocol)."""
+    panels = (("jerk_mean", "mean jerk (m/s³)"), ("jerk_p90", "P90 jerk (m/s³)"), ("ee_osc", "EE-Osc (mm)"))
+    colours = _colours(pooled)
+    fig, axes = plt.subplots(1, 3, figsize=(15.0, 4.0), squeeze=False)
+    for ax, (metric, label) in zip(axes[0], panels, strict=True):
+        scale = 1000.0 if metric == "ee_osc" else 1.0
+        for policy, mode, rows in _series(pooled):
+            _ci_line(ax, rows["latency_s"], rows[f"{metric}_mean"], rows[f"{metric}_ci_lo"], rows[f"{metric}_ci_hi"],
+                     colour=colours[policy], mode=mode, label=f"{policy} · {mode}", scale=scale)  # fmt: skip
+        ax.set_ylabel(f"{label} [95% CI]")
+        _latency_axis(ax, pooled)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(FIGURES["fig5_trajectory"])
+    fig.tight_layout()
+    return fig
+
+
+def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> None:
+    """Per latency, one stacked bar per (policy, protocol); whisker: 95 % CI of ``total_metric``."""
+    series = _series(pooled)
+    latencies = sorted(pooled["latency_s"].astype(float).unique())
+    width = 0.8 / max(1, len(series))
+    for i, (policy, mode, rows) in enumerate(series):
+        by_lat = rows.set_index(rows["latency_s"].astype(float))
+        x = np.arange(len(latencies)) - 0.4 + width * (i + 0.5)
+        bottom = np.zeros(len(latencies))
+        for col, label, colour in parts:
+            name = col.replace("_j", "_per_step_j") + "_mean"
+            h = np.nan_to_num(np.array([by_lat[name].get(lat, np.nan) for lat in latencies], dtype=np.float64))
+            ax.bar(x, h, width * 0.92, bottom=bottom, color=colour, edgecolor="white",
+                   hatch="//" if mode == "sync" else None, label=label if i == 0 else None)  # fmt: skip
+            bottom += h
+        lo = np.array([by_lat[f"{total_metric}_ci_lo"].get(lat, np.nan) for lat in latencies])
+        hi = np.array([by_lat[f"{total_metric}_ci_hi"].get(lat, np.nan) for lat in latencies])
+        ax.errorbar(x, bottom, yerr=[np.clip(bottom - lo, 0, None), np.clip(hi - bottom, 0, None)], fmt="none",
+                    ecolor="black", capsize=3)  # fmt: skip
+        for xi in x:
+            ax.annotate(f"{policy}\n{mode}", (xi, 0), xytext=(0, -26), textcoords="offset points", ha="center",
+                        fontsize=6, annotation_clip=False)  # fmt: skip
+    ax.set_xticks(np.arange(len(latencies)), [f"{lat:g} s" for lat in latencies])
+    ax.tick_params(axis="x", pad=30)
+    ax.set_xlabel("injected latency Δt_sim (bars: policy · protocol; hatched: sync)")
+    ax.legend(loc="upper left", fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+
+
+def fig_energy_decomposition(pooled: pd.DataFrame) -> plt.Figure:
+    """Fig. 6: per-step energy as stacked bars per latency and (policy, protocol): (a) mechanical +
+    electrical loss + overhead, (b) the actuator part alone (the constant overhead hides it in (a))."""
+    n_bars = len(_series(pooled)) * pooled["latency_s"].nunique()
+    fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 1.1 * n_bars), 4.8), squeeze=False)
+    _stacked_bars(axes[0][0], pooled, ENERGY_PARTS, "energy_per_step_j")
+    axes[0][0].set_ylabel("energy per control step (J) [95% CI of total]")
+    axes[0][0].set_title("(a) mechanical + electrical loss + overhead")
+    _stacked_bars(axes[0][1], pooled, ENERGY_PARTS[:2], "energy_actuator_per_step_j")
+    axes[0][1].set_ylabel("energy per control step (J) [95% CI of sum]")
+    axes[0][1].set_title("(b) actuators: mechanical + electrical loss")
+    fig.suptitle(FIGURES["fig6_energy_decomposition"])
+    fig.tight_layout()
+    return fig
+
+
+def fig_energy(pooled: pd.DataFrame) -> plt.Figure:
+    """Fig. 7: (a) per-step energy, (b) total episode energy vs latency."""
+    panels = (("energy_per_step_j", "(a) energy per control step (J)"), ("energy_total_j", "(b) total energy (J)"))
+    colours = _colours(pooled)
+    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.0), squeeze=False)
+    for ax, (metric, label) in zip(axes[0], panels, strict=True):
+        for policy, mode, rows in _series(pooled):
+            _ci_line(ax, rows["latency_s"], rows[f"{metric}_mean"], rows[f"{metric}_ci_lo"], rows[f"{metric}_ci_hi"],
+                     colour=colours[policy], mode=mode, label=f"{policy} · {mode}")  # fmt: skip
+        ax.set_ylabel(f"{label} [95% CI]")
+        _latency_axis(ax, pooled)
+    axes[0][0].legend(fontsize=8)
+    fig.suptitle(FIGURES["fig7_energy"])
+    fig.tight_layout()
+    return fig
+
+
+def make_figures(pooled: pd.DataFrame) -> dict[str, plt.Figure]:
+    return {
+        "fig4_success": fig_success(pooled),
+        "fig5_trajectory": fig_trajectory(pooled),
+        "fig6_energy_decomposition": fig_energy_decomposition(pooled),
+        "fig7_energy": fig_energy(pooled),
+    }
+
+
+# -- pages -----------------------------------------------------------------------------------
+
+
+def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
+    """What produced these numbers: versions, commits, seeds, transports, spec."""
+    out: dict[str, str] = {}
+    versions: dict[str, set] = {}
+    for raw in episodes.get("versions", pd.Series(dtype=object)).dropna():
+        try:
+            v = json.loads(raw) if isinstance(raw, str) else raw
+        except ValueError:
+            continue
+        for k, val in (v or {}).items():
+            versions.setdefault(k, set()).add(str(val))
+    for k in sorted(versions):
+        out[k] = ", ".join(sorted(versions[k]))
+    for col, label in (("seed", "seeds"), ("init", "init states"), ("transport", "transports"),
+                       ("suite", "suites"), ("task", "tasks")):  # fmt: skip
+        if col in episodes:
+            vals = sorted({v for v in episodes[col].dropna()}, key=lambda v: (str(type(v)), v))
+            out[label] = ", ".join(str(v) for v in vals)
+    spec = Path(results_dir) / "sweep.yaml"
+    if spec.exists():
+        out["sweep spec"] = str(spec.name)
+    out["episodes"] = str(len(episodes))
+    return out
+
+
+def _ci_text(row, metric: str, decimals: int, scale: float = 1.0) -> str:
+    mean = row.get(f"{metric}_mean") if metric != "success" else row.get("success_rate")
+    lo = row.get(f"{metric}_ci_lo") if metric != "success" else row.get("success_ci_lo")
+    hi = row.get(f"{metric}_ci_hi") if metric != "success" else row.get("success_ci_hi")
+    if mean is None or not np.isfinite(mean):
+        return "–"
+    return f"{mean * scale:.{decimals}f} [{lo * scale:.{decimals}f}, {hi * scale:.{decimals}f}]"
+
+
+#: (header, metric, decimals, scale) of the pooled summary table.
+SUMMARY_COLUMNS = (
+    ("success %", "success", 0, 100.0),
+    ("time s", "completion_time_s", 2, 1.0),
+    ("jerk m/s³", "jerk_mean", 2, 1.0),
+    ("jerk P90", "jerk_p90", 2, 1.0),
+    ("EE-Osc mm", "ee_osc", 2, 1000.0),
+    ("J/step", "energy_per_step_j", 2, 1.0),
+    ("energy J", "energy_total_j", 0, 1.0),
+)
+
+
+def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
+    rows = []
+    for _, r in pooled.sort_values(list(FIGURE_KEYS)).iterrows():
+        row = {"policy": r["policy"], "mode": r["mode"], "Δt_sim s": r["latency_s"], "n": int(r["n"]),
+               "errors": int(r["n_error"])}  # fmt: skip
+        for header, metric, decimals, scale in SUMMARY_COLUMNS:
+            row[header] = _ci_text(r, metric, decimals, scale)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+EPISODE_COLUMNS = ("policy", "mode", "latency_s", "suite", "task", "init", "seed", "status", "completion_steps",
+                   "jerk_mean", "ee_osc", "energy_total_j", "error_reason")  # fmt: skip
+
+
+def episode_table(episodes: pd.DataFrame) -> pd.DataFrame:
+    cols = [c for c in EPISODE_COLUMNS if c in episodes]
+    return episodes.sort_values([c for c in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")
+                                 if c in episodes])[[*cols, "bag"]]  # fmt: skip
+
+
+def _fmt(v) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def _link(bag, prefix: str) -> str:
+    return f"{prefix}{bag}/" if isinstance(bag, str) and bag else ""
+
+
+def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: dict, episodes: pd.DataFrame,
+                   prefix: str) -> None:  # fmt: skip
+    lines = ["# LIBERO-LQ sweep report", ""]
+    lines += [INTRO, ""]
+    for name, title in FIGURES.items():
+        lines += [f"## {title}", "", f"![{title}]({name}.png)", ""]
+    lines += ["## Summary", "", summary.to_markdown(index=False), ""]
+    lines += ["## Per task", "", per_task_md, ""]
+    lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
+    lines += ["## Episodes", ""]
+    table = episode_table(episodes)
+    header = [c for c in table.columns if c != "bag"]
+    lines += ["| " + " | ".join([*header, "bag"]) + " |", "|" + "---|" * (len(header) + 1)]
+    for _, r in table.iterrows():
+        bag = r["bag"]
+        cell = f"[bag]({_link(bag, prefix)})" if isinstance(bag, str) and bag else "–"
+        lines.append("| " + " | ".join([*(_fmt(r[c]).replace("|", "/") for c in header), cell]) + " |")
+    path.write_text("\n".join(lines) + "\n")
+
+
+INTRO = (
+    "Pooled over tasks and init states per (policy, protocol, Δt_sim); mean [95% CI]. Success: Wilson interval "
+    "over episodes with an outcome (errors counted apart); other metrics: seeded bootstrap of the mean."
+)
+_CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}
+table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
+img{max-width:100%}.error{color:#b00}"""
+
+
+def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: dict, episodes: pd.DataFrame,
+               prefix: str) -> None:  # fmt: skip
+    e = html.escape
+    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>LIBERO-LQ sweep report</title>",
+             f"<style>{_CSS}</style></head><body><h1>LIBERO-LQ sweep report</h1>",
+             f"<p>{html.escape(INTRO)}</p>"]  # fmt: skip
+    for name, title in FIGURES.items():
+        parts.append(f"<h2>{e(title)}</h2><img src='{name}.png' alt='{e(title)}'>")
+    parts.append("<h2>Summary</h2>" + summary.to_html(index=False, na_rep="–"))
+    parts.append("<h2>Per task</h2>" + per_task.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.4g}"))
+    parts.append("<h2>Provenance</h2><table>")
+    parts += [f"<tr><th>{e(k)}</th><td style='text-align:left'>{e(v)}</td></tr>" for k, v in prov.items()]
+    parts.append("</table><h2>Episodes</h2><table><tr>")
+    table = episode_table(episodes)
+    header = [c for c in table.columns if c != "bag"]
+    parts += [f"<th>{e(c)}</th>" for c in [*header, "bag"]]
+    parts.append("</tr>")
+    for _, r in table.iterrows():
+        cls = " class='error'" if r.get("status") == "error" else ""
+        cells = "".join(f"<td>{e(_fmt(r[c]))}</td>" for c in header)
+        bag = r["bag"]
+        link = (
+            f"<a href='{e(_link(bag, prefix))}'>{e(str(bag).rsplit('/', 1)[-1])}</a>" if isinstance(bag, str) else "–"
+        )
+        parts.append(f"<tr{cls}>{cells}<td style='text-align:left'>{link}</td></tr>")
+    parts.append("</table></body></html>")
+    path.write_text("\n".join(parts))
+
+
+@dataclass
+class Report:
+    out_dir: Path
+    files: dict[str, Path]
+    episodes: pd.DataFrame
+    pooled: pd.DataFrame
+    figures: dict[str, plt.Figure]
+
+
+def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int = 2000, seed: int = 0,
+                 keep_figures: bool = False) -> Report:  # fmt: skip
+    """Write figures, tables, report.html and report.md for ``results_dir`` into ``out_dir``
+    (default ``results_dir/report``). ``keep_figures`` leaves the matplotlib figures open (tests)."""
+    results_dir = Path(results_dir)
+    out_dir = Path(out_dir) if out_dir else results_dir / "report"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    episodes = load_episodes(results_dir)
+    pooled = figure_aggregates(episodes, n_boot=n_boot, seed=seed)
+    per_task = agg.aggregate(episodes, n_boot=n_boot, seed=seed)
+    files = agg.write_tables(episodes, per_task, out_dir)
+    pooled_csv = out_dir / "aggregates_pooled.csv"
+    pooled.to_csv(pooled_csv, index=False)
+    files["aggregates_pooled.csv"] = pooled_csv
+    figures = make_figures(pooled)
+    for name, fig in figures.items():
+        path = out_dir / f"{name}.png"
+        fig.savefig(path, dpi=110)
+        files[path.name] = path
+        if not keep_figures:
+            plt.close(fig)
+    prov = provenance(episodes, results_dir)
+    prefix = os.path.relpath(results_dir, out_dir).rstrip("/") + "/"
+    summary = summary_table(pooled)
+    files["report.md"] = out_dir / "report.md"
+    write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix)
+    files["report.html"] = out_dir / "report.html"
+    write_html(files["report.html"], summary, _per_task_view(per_task), prov, episodes, prefix)
+    return Report(out_dir, files, episodes, pooled, figures if keep_figures else {})
+
+
+def _per_task_view(per_task: pd.DataFrame) -> pd.DataFrame:
+    cols = [*agg.GROUP_KEYS, "n", "n_error"]
+    view = per_task[cols].copy()
+    for header, metric, decimals, scale in SUMMARY_COLUMNS:
+        view[header] = [_ci_text(r, metric, decimals, scale) for _, r in per_task.iterrows()]
+    return view
