@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lq_ros.env import Observation, TaskInfo
-from lq_ros.policies.base import Policy
+from lq_ros.policies.base import Policy, PolicyError
 
 # --- Measured constants (see the platform notes) -------------------------------------------------------
 #: EE displacement per tick at a steady unit action (OSC_POSE position delta), m.
@@ -168,6 +168,8 @@ class ScriptedExpert(Policy):
         self._machine = _Machine()
         #: Predicted (machine, EE velocity) at the start of each tick of the last chunk.
         self._plan: dict[int, tuple[_Machine, np.ndarray]] = {}
+        #: The expert that runs a non-Spatial task (chosen at reset), or None: this one runs it.
+        self._delegate: ScriptedExpert | None = None
 
     def params(self) -> dict:
         return {
@@ -187,15 +189,32 @@ class ScriptedExpert(Policy):
         }
 
     def reset(self, task: TaskInfo, seed: int) -> None:
+        """Start an episode; LIBERO-Object / -Goal tasks go to the expert covering them (PolicyError if none)."""
+        self._delegate = None
+        if task.suite != "libero_spatial":
+            from lq_ros.policies.scripted_tasks import expert_for  # imports this module
+
+            self._delegate = expert_for(task, self.chunk_size)
+            self._delegate._start(task)
+            return
+        self._start(task)
+
+    def _start(self, task: TaskInfo) -> None:
+        """Per-expert episode start: the bowl and the object it goes on come from the ('on', a, b) goal."""
         ons = [g for g in task.goal if len(g) == 3 and g[0].lower() == "on"]
         if not ons:
-            raise ValueError(f"scripted expert needs an ('on', object, target) goal, got {task.goal}")
+            raise PolicyError(
+                f"scripted expert: {task.suite} task {task.task_id} ({task.instruction!r}) is not covered: "
+                f"needs an ('on', object, target) goal, got {task.goal}"
+            )
         _, self._obj, self._target = ons[0]
         self._machine = _Machine()
         self._plan = {}
 
     # -- chunk generation ---------------------------------------------------------------------------
     def infer(self, obs: Observation) -> np.ndarray:
+        if self._delegate is not None:
+            return self._delegate.infer(obs)
         view = self._view(obs)
         if obs.tick in self._plan:
             machine, vel = self._plan[obs.tick]
