@@ -13,6 +13,7 @@ not a finite numeric (H, 7) chunk raise PolicyError: the episode ends as an erro
 
 from __future__ import annotations
 
+import re
 import time
 
 import numpy as np
@@ -160,7 +161,7 @@ class OpenVLARestPolicy(Policy):
             raise PolicyError(f"OpenVLA server {self.url}: no response within {self.timeout_s} s") from None
         except requests.RequestException as exc:
             self.close()
-            raise PolicyError(f"OpenVLA server {self.url} unreachable: {type(exc).__name__}: {exc}") from None
+            raise PolicyError(f"OpenVLA server {self.url}: request failed ({_root_cause(exc)})") from None
         if resp.status_code != 200:
             raise PolicyError(f"OpenVLA server {self.url}: HTTP {resp.status_code}: {_excerpt(resp.text)}")
         try:
@@ -187,6 +188,12 @@ class OpenVLARestPolicy(Policy):
                     return answer[key]
             raise PolicyError(f"OpenVLA server {self.url}: response has no action (keys {sorted(map(str, answer))})")
         return answer
+
+
+def _root_cause(exc: Exception) -> str:
+    """The OS-level reason (e.g. '[Errno 111] Connection refused') buried in requests' exception chain."""
+    found = re.search(r"\[Errno -?\d+\][^'\")]*", str(exc))
+    return found.group(0).strip() if found else f"{type(exc).__name__}: {_excerpt(str(exc))}"
 
 
 def _excerpt(text: str) -> str:
