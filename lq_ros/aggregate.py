@@ -112,7 +112,12 @@ def add_relative_efficiency(episodes: pd.DataFrame) -> pd.DataFrame:
 
 
 def _distinct(values: pd.Series) -> str:
-    return ",".join(sorted({str(v) for v in values.dropna()}))
+    """Sorted distinct values as text (integers stay integers when a missing value made the column float)."""
+
+    def text(v) -> str:
+        return str(int(v)) if isinstance(v, float) and v.is_integer() else str(v)
+
+    return ",".join(sorted({text(v) for v in values.dropna()}))
 
 
 def aggregate(
@@ -139,7 +144,11 @@ def aggregate(
         with_outcome = status.isin(["success", "failure"])
         for metric, over in CONTINUOUS_METRICS.items():
             mask = (status == "success") if over == SUCCESS_ONLY else with_outcome
-            values = pd.to_numeric(group.loc[mask, metric], errors="coerce") if metric in group else pd.Series([])
+            values = (
+                pd.to_numeric(group.loc[mask, metric], errors="coerce")
+                if metric in group
+                else pd.Series([], dtype=float)
+            )
             values = values[np.isfinite(values)].to_numpy(dtype=np.float64)
             row[f"{metric}_n"] = len(values)
             if len(values):

@@ -40,6 +40,31 @@ class Channel:
     message_encoding: str
 
 
+@dataclass(frozen=True)
+class Batch:
+    """Messages of one channel: payload ``i`` is ``data[payload_offsets[i] : + payload_lengths[i]]``."""
+
+    channel: Channel
+    data: memoryview
+    payload_offsets: np.ndarray  # int64, bytes into data
+    payload_lengths: np.ndarray  # int64, bytes
+
+    def __len__(self) -> int:
+        return len(self.payload_offsets)
+
+    def payload(self, i: int) -> memoryview:
+        start = int(self.payload_offsets[i])
+        return self.data[start : start + int(self.payload_lengths[i])]
+
+
+def _gather(u8: np.ndarray, starts: np.ndarray, dtype: str, count: int = 1) -> np.ndarray:
+    """Values of ``dtype`` at byte offsets ``starts`` (count per offset) of a uint8 buffer, vectorised."""
+    dt = np.dtype(dtype)
+    idx = starts[:, None] + np.arange(dt.itemsize * count)[None, :]
+    values = np.ascontiguousarray(u8[idx]).view(dt)
+    return values[:, 0] if count == 1 else values
+
+
 def _string(buf: bytes | memoryview, off: int) -> tuple[str, int]:
     (n,) = _U32.unpack_from(buf, off)
     return bytes(buf[off + 4 : off + 4 + n]).decode(), off + 4 + n
@@ -48,9 +73,9 @@ def _string(buf: bytes | memoryview, off: int) -> tuple[str, int]:
 class StreamingMcapReader:
     """Yield ``(channel, log_time_ns, cdr_payload)`` of the wanted topics, in file order within chunks.
 
-    After iteration, ``damage`` says what stopped the read early (None for an intact file) and
-    ``complete`` whether the data section ended properly. Damage never raises: whatever came before it
-    has been yielded.
+    After iteration, ``damage`` lists what was wrong (empty for an intact file): a corrupt chunk is
+    skipped and reading goes on; a truncation ends the read. ``complete`` says whether the data section
+    ended properly. Damage never raises: everything readable has been yielded.
     """
 
     def __init__(self, path: Path, topics: Collection[str]) -> None:
@@ -58,11 +83,12 @@ class StreamingMcapReader:
         self.topics = set(topics)
         self.channels: dict[int, Channel] = {}
         self._schemas: dict[int, str] = {}
-        self.damage: str | None = None
+        self.damage: list[str] = []
         self.complete = False
 
     # -- top level ---------------------------------------------------------------------------------
-    def messages(self) -> Iterator[tuple[Channel, int, memoryview]]:
+    def batches(self) -> Iterator[Batch]:
+        """Messages of the wanted topics, one batch per channel and chunk (file order within a batch)."""
         size = self.path.stat().st_size
         with self.path.open("rb") as f:
             if f.read(8) != MAGIC:
@@ -72,11 +98,11 @@ class StreamingMcapReader:
                 at = f.tell()
                 head = f.read(9)
                 if len(head) < 9:
-                    self.damage = f"truncated at byte {at}: the data section has no end record"
+                    self.damage.append(f"truncated at byte {at}: the data section has no end record")
                     break
                 op, length = _RECORD_HEADER.unpack(head)
                 if at + 9 + length > size:
-                    self.damage = (
+                    self.damage.append(
                         f"truncated at byte {size}: record 0x{op:02x} at byte {at} needs {length} bytes, "
                         f"{size - at - 9} remain"
                     )
@@ -89,26 +115,26 @@ class StreamingMcapReader:
                         f.seek(length - 2, 1)
                     continue
                 if pending is not None:
-                    yield from self._chunk_messages(*pending)
+                    yield from self._chunk_batches(*pending)
                     pending = None
-                    if self.damage:
-                        break
                 if op == OP_CHUNK:
                     pending = (at, f.read(length), [])
                 elif op in (OP_SCHEMA, OP_CHANNEL):
                     self._definition(op, f.read(length))
-                elif op == OP_MESSAGE:
-                    body = f.read(length)
-                    channel_id, _, log_ns, _ = _MESSAGE_HEADER.unpack_from(body)
+                elif op == OP_MESSAGE:  # a message outside any chunk (unchunked files)
+                    body = memoryview(f.read(length))
+                    channel_id = _U16.unpack_from(body)[0]
                     if self._wanted(channel_id):
-                        yield self.channels[channel_id], log_ns, memoryview(body)[22:]
+                        one = np.array([22], dtype=np.int64)
+                        yield Batch(self.channels[channel_id], body, one, np.array([length - 22], dtype=np.int64))
                 elif op == OP_DATA_END:
                     self.complete = True
                     break
                 else:
                     f.seek(length, 1)
-            if pending is not None and not self.damage:
-                yield from self._chunk_messages(*pending)
+            if pending is not None:
+                # The chunk itself was read whole; its indexes may have been cut, so scan it instead.
+                yield from self._chunk_batches(pending[0], pending[1], [] if self.damage else pending[2])
 
     def _wanted(self, channel_id: int) -> bool:
         channel = self.channels.get(channel_id)
@@ -126,53 +152,63 @@ class StreamingMcapReader:
             self.channels[channel_id] = Channel(channel_id, topic, self._schemas.get(schema_id, ""), encoding)
 
     # -- chunks ------------------------------------------------------------------------------------
-    def _chunk_messages(self, at: int, record: bytes, indexes: list) -> Iterator[tuple[Channel, int, memoryview]]:
+    def _chunk_batches(self, at: int, record: bytes, indexes: list) -> Iterator[Batch]:
         try:
             data = self._chunk_data(at, record)
-        except ValueError as exc:
-            self.damage = str(exc)
+        except Exception as exc:  # noqa: BLE001 - a corrupt header or payload, whatever the decoder raises
+            message = str(exc) if str(exc).startswith("chunk at byte") else f"chunk at byte {at}: {exc}"
+            self.damage.append(message)
             return
         # Channel definitions live inside chunks in rosbag2 files: pick up any this chunk introduces.
         if indexes and any(cid not in self.channels for cid, _ in indexes):
             self._scan_records(data, at, definitions_only=True)
+        per_channel: dict[int, np.ndarray] = {}
         if not indexes or any(cid not in self.channels for cid, _ in indexes):
-            offsets = self._scan_records(data, at)  # no usable index (e.g. the file was cut after the chunk)
+            # No usable index (e.g. the file was cut right after the chunk): walk the records.
+            for cid, offs in self._scan_records(data, at).items():
+                per_channel[cid] = np.asarray(offs, dtype=np.int64)
         else:
-            wanted = [np.frombuffer(raw, dtype="<u8", offset=4).reshape(-1, 2)[:, 1] for cid, raw in indexes
-                      if self._wanted(cid)]
-            offsets = np.sort(np.concatenate(wanted)).tolist() if wanted else []
-        for off in offsets:
-            if off + 9 + 22 > len(data):
-                self.damage = f"chunk at byte {at}: message index points past the chunk end"
+            for cid, raw in indexes:
+                if self._wanted(cid):
+                    offs = np.frombuffer(raw, dtype="<u8", offset=4).reshape(-1, 2)[:, 1].astype(np.int64)
+                    per_channel[cid] = np.sort(offs)
+        u8 = np.frombuffer(data, dtype=np.uint8)
+        for cid, offs in per_channel.items():
+            if not len(offs):
+                continue
+            if offs.max() + 31 > len(data):
+                self.damage.append(f"chunk at byte {at}: message index of channel {cid} points past the chunk end")
+                continue
+            lengths = _gather(u8, offs + 1, "<u8").astype(np.int64)
+            bad = (u8[offs] != OP_MESSAGE) | (offs + 9 + lengths > len(data)) | (lengths < 22)
+            bad |= _gather(u8, offs + 9, "<u2") != cid
+            if bad.any():
+                first = int(offs[bad][0])
+                self.damage.append(f"chunk at byte {at}: bad message record at chunk offset {first}; chunk skipped")
                 return
-            op, length = _RECORD_HEADER.unpack_from(data, off)
-            if op != OP_MESSAGE or off + 9 + length > len(data):
-                self.damage = f"chunk at byte {at}: bad message record at chunk offset {off}"
-                return
-            channel_id, _, log_ns, _ = _MESSAGE_HEADER.unpack_from(data, off + 9)
-            if self._wanted(channel_id):
-                yield self.channels[channel_id], log_ns, data[off + 9 + 22 : off + 9 + length]
+            yield Batch(self.channels[cid], data, offs + 31, lengths - 22)
 
-    def _scan_records(self, data: memoryview, at: int, definitions_only: bool = False) -> list[int]:
+    def _scan_records(self, data: memoryview, at: int, definitions_only: bool = False) -> dict[int, list[int]]:
         """Walk the record headers of a chunk: definitions are read, wanted message offsets returned.
 
         ``definitions_only`` stops at the first message (writers put a chunk's new schemas/channels first).
         """
-        offsets, off = [], 0
+        offsets: dict[int, list[int]] = {}
+        off = 0
         while off < len(data):
             if off + 9 > len(data):
-                self.damage = f"chunk at byte {at}: record header cut at chunk offset {off}"
+                self.damage.append(f"chunk at byte {at}: record header cut at chunk offset {off}")
                 break
             op, length = _RECORD_HEADER.unpack_from(data, off)
             if off + 9 + length > len(data):
-                self.damage = f"chunk at byte {at}: record at chunk offset {off} overruns the chunk"
+                self.damage.append(f"chunk at byte {at}: record at chunk offset {off} overruns the chunk")
                 break
             if op in (OP_SCHEMA, OP_CHANNEL):
                 self._definition(op, data[off + 9 : off + 9 + length])
             elif op == OP_MESSAGE and definitions_only:
                 break
-            elif op == OP_MESSAGE and self._wanted(_U16.unpack_from(data, off + 9)[0]):
-                offsets.append(off)
+            elif op == OP_MESSAGE and self._wanted(cid := _U16.unpack_from(data, off + 9)[0]):
+                offsets.setdefault(cid, []).append(off)
             off += 9 + length
         return offsets
 
@@ -180,7 +216,7 @@ class StreamingMcapReader:
         _start, _end, raw_size, crc = struct.unpack_from("<QQQI", record)
         compression, off = _string(record, 28)
         (size,) = _U64.unpack_from(record, off)
-        payload = record[off + 8 : off + 8 + size]
+        payload = memoryview(record)[off + 8 : off + 8 + size]
         if compression == "":
             data = payload
         elif compression == "zstd":
@@ -200,65 +236,134 @@ class StreamingMcapReader:
         return memoryview(data)
 
 
-# -- CDR field walkers ---------------------------------------------------------------------------------
+# -- CDR decoding of the scorer's fields -------------------------------------------------------------------
 # CDR (XCDR1): a 4-byte encapsulation header, then fields aligned to their size relative to byte 4.
+# A walker reads one message's layout: where each needed field sits, and the byte offsets of every length
+# or count field that determined it. Messages whose length/count fields equal the walked one's share its
+# layout, so the whole batch is decoded with a few vectorised gathers instead of per-message Python.
 
 
-def _cdr_endian(buf: memoryview) -> str:
-    kind = buf[1]
-    if buf[0] != 0 or kind not in (0, 1):
-        raise ValueError(f"unsupported CDR encapsulation {bytes(buf[:2]).hex()}")
-    return "<" if kind == 1 else ">"
+@dataclass
+class Layout:
+    endian: str
+    #: field name -> (byte offset in the payload, numpy dtype without endianness, count)
+    fields: dict[str, tuple[int, str, int]]
+    #: offsets of the encapsulation header and of every length/count field the layout depends on
+    length_fields: list[int]
 
 
 def _align(off: int, n: int) -> int:
     return 4 + (off - 4 + n - 1) // n * n
 
 
-def _header(buf: memoryview, e: str) -> tuple[int, int]:
-    """(stamp ns, offset after std_msgs/Header)."""
-    sec, nsec, n = struct.unpack_from(e + "iII", buf, 4)
-    return sec * 1_000_000_000 + nsec, 16 + n
+class _Walker:
+    def __init__(self, buf: memoryview) -> None:
+        if len(buf) < 16 or buf[0] != 0 or buf[1] not in (0, 1):
+            raise ValueError(f"unsupported or short CDR payload (header {bytes(buf[:2]).hex()})")
+        self.buf, self.e, self.off = buf, "<" if buf[1] == 1 else ">", 4
+        self.layout = Layout(self.e, {}, [0])
+
+    def u32(self, record_length: bool = False) -> int:
+        self.off = _align(self.off, 4)
+        if record_length:
+            self.layout.length_fields.append(self.off)
+        (value,) = struct.unpack_from(self.e + "I", self.buf, self.off)
+        self.off += 4
+        return value
+
+    def header(self) -> None:
+        self.layout.fields["sec"] = (4, "i4", 1)
+        self.layout.fields["nanosec"] = (8, "u4", 1)
+        self.off = 12
+        frame_id_bytes = self.u32(record_length=True)  # with its NUL
+        self.off += frame_id_bytes
+
+    def string_sequence(self) -> None:
+        for _ in range(self.u32(record_length=True)):
+            string_bytes = self.u32(record_length=True)
+            self.off += string_bytes
+
+    def float64_sequence(self, name: str | None) -> None:
+        count = self.u32(record_length=True)
+        if count:
+            self.off = _align(self.off, 8)
+        if name:
+            self.layout.fields[name] = (self.off, "f8", count)
+        self.off += 8 * count
+
+    def field(self, name: str, dtype: str, count: int = 1) -> None:
+        size = np.dtype(dtype).itemsize
+        self.off = _align(self.off, size)
+        self.layout.fields[name] = (self.off, dtype, count)
+        self.off += size * count
+
+    def done(self) -> Layout:
+        if self.off > len(self.buf):
+            raise ValueError(f"CDR payload of {len(self.buf)} bytes is shorter than its layout ({self.off})")
+        return self.layout
 
 
-def _float64s(buf: memoryview, off: int, e: str) -> tuple[np.ndarray, int]:
-    off = _align(off, 4)
-    (count,) = struct.unpack_from(e + "I", buf, off)
-    off += 4
-    if count:
-        off = _align(off, 8)
-    values = np.frombuffer(buf, dtype=e + "f8", count=count, offset=off)
-    return values, off + 8 * count
+def _pose_stamped(buf: memoryview) -> Layout:
+    w = _Walker(buf)
+    w.header()
+    w.field("position", "f8", 3)
+    return w.done()
 
 
-def pose_stamped_position(buf: memoryview) -> tuple[int, np.ndarray]:
-    """geometry_msgs/PoseStamped -> (stamp ns, position (3,) m)."""
-    e = _cdr_endian(buf)
-    stamp, off = _header(buf, e)
-    return stamp, np.frombuffer(buf, dtype=e + "f8", count=3, offset=_align(off, 8))
+def _joint_state(buf: memoryview) -> Layout:
+    w = _Walker(buf)
+    w.header()
+    w.string_sequence()  # name
+    w.float64_sequence(None)  # position
+    w.float64_sequence("velocity")
+    w.float64_sequence("effort")
+    return w.done()
 
 
-def joint_state_velocity_effort(buf: memoryview) -> tuple[int, np.ndarray, np.ndarray]:
-    """sensor_msgs/JointState -> (stamp ns, velocity rad/s, effort N m)."""
-    e = _cdr_endian(buf)
-    stamp, off = _header(buf, e)
-    off = _align(off, 4)
-    (names,) = struct.unpack_from(e + "I", buf, off)
-    off += 4
-    for _ in range(names):
-        off = _align(off, 4)
-        (n,) = struct.unpack_from(e + "I", buf, off)
-        off += 4 + n
-    _, off = _float64s(buf, off, e)  # position
-    velocity, off = _float64s(buf, off, e)
-    effort, _ = _float64s(buf, off, e)
-    return stamp, velocity, effort
+def _action_command(buf: memoryview) -> Layout:
+    w = _Walker(buf)
+    w.header()
+    w.field("tick", "u4")
+    w.float64_sequence(None)  # action
+    w.field("source", "u1")
+    return w.done()
 
 
-def action_command_source(buf: memoryview) -> int:
-    """lq_msgs/ActionCommand -> source (SOURCE_* constant)."""
-    e = _cdr_endian(buf)
-    _, off = _header(buf, e)
-    off = _align(off, 4) + 4  # tick
-    _, off = _float64s(buf, off, e)  # action
-    return buf[off]
+#: msgtype -> layout walker, for the per-tick messages the scorer decodes in bulk.
+WALKERS = {
+    "geometry_msgs/msg/PoseStamped": _pose_stamped,
+    "sensor_msgs/msg/JointState": _joint_state,
+    "lq_msgs/msg/ActionCommand": _action_command,
+}
+
+
+def decode(batch: Batch) -> list[dict[str, np.ndarray]]:
+    """Decode a batch of a WALKERS type into groups of equal layout: field -> (n,) or (n, count) array.
+
+    Each group also has ``stamp_ns`` (when the type has a header) and ``index`` (positions in the batch).
+    Raises ValueError for a payload that does not fit its type.
+    """
+    walker = WALKERS[batch.channel.msgtype]
+    u8 = np.frombuffer(batch.data, dtype=np.uint8)
+    starts, lengths = batch.payload_offsets, batch.payload_lengths
+    remaining = np.arange(len(batch))
+    groups = []
+    while len(remaining):
+        ref = int(remaining[0])
+        layout = walker(batch.payload(ref))
+        ref_start = int(starts[ref])
+        same = lengths[remaining] == lengths[ref]
+        for off in layout.length_fields:
+            ref_value = int.from_bytes(batch.data[ref_start + off : ref_start + off + 4], "little")
+            cand = remaining[same]
+            same[same] = _gather(u8, starts[cand] + off, "<u4") == ref_value
+        members = remaining[same]
+        group = {"index": members}
+        for name, (off, dtype, count) in layout.fields.items():
+            group[name] = _gather(u8, starts[members] + off, layout.endian + dtype, count) if count else (
+                np.empty((len(members), 0)))  # fmt: skip
+        if "sec" in group:
+            group["stamp_ns"] = group.pop("sec").astype(np.int64) * 1_000_000_000 + group.pop("nanosec")
+        groups.append(group)
+        remaining = remaining[~same]
+    return groups

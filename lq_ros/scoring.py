@@ -30,12 +30,25 @@ class BagError(RuntimeError):
 
 @dataclass
 class Series:
-    t_ns: list[int] = field(default_factory=list)
-    values: list[np.ndarray] = field(default_factory=list)
+    """A time series gathered in decoded blocks (compact: a few arrays, not one object per sample)."""
+
+    t_parts: list[np.ndarray] = field(default_factory=list)
+    value_parts: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, t_ns: np.ndarray, values: np.ndarray) -> None:
+        self.t_parts.append(np.asarray(t_ns, dtype=np.int64))
+        self.value_parts.append(np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1))
+
+    def __len__(self) -> int:
+        return sum(len(t) for t in self.t_parts)
 
     def arrays(self, t0_ns: int | None, t1_ns: int | None) -> tuple[np.ndarray, np.ndarray]:
-        t = np.asarray(self.t_ns, dtype=np.int64)
-        v = np.asarray(self.values, dtype=np.float64)
+        if not self.t_parts:
+            return np.empty(0, dtype=np.int64), np.empty((0, 0))
+        t = np.concatenate(self.t_parts)
+        v = np.concatenate(self.value_parts) if len({p.shape[1] for p in self.value_parts}) == 1 else None
+        if v is None:
+            raise ValueError("samples of different widths in one series (joint count changed)")
         order = np.argsort(t, kind="stable")
         t, v = t[order], v[order]
         keep = np.ones(len(t), dtype=bool)
@@ -58,7 +71,7 @@ class EpisodeData:
     requests: int = 0
     metadata: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    #: The file was cut or corrupt: everything after the damage is missing.
+    #: The file was cut or corrupt: what the damage covered is missing.
     damaged: bool = False
     #: JointState messages without matching velocity and effort arrays (no energy from those).
     joints_without_effort: int = 0
@@ -92,9 +105,9 @@ def read_episode(
         raise BagError(f"{bag}: no .mcap file (not a rosbag2 MCAP bag folder)")
     data = EpisodeData(ee_topic=ee_topic, joint_topic=joint_topic)
     meta_file = (bag.parent if bag.is_file() else bag) / "metadata.yaml"
-    if not meta_file.exists():
-        data.warnings.append(f"{meta_file}: missing (the recorder did not finish); no run metadata")
-    else:
+    # No metadata.yaml: a plain MCAP from another tool (fine), or a recorder that died (then the MCAP is
+    # incomplete too, which the reader reports as damage).
+    if meta_file.exists():
         try:
             data.metadata = read_run_metadata(meta_file.parent)
         except Exception as exc:  # noqa: BLE001 - report, keep scoring
@@ -114,7 +127,8 @@ def read_episode(
         reader = StreamingMcapReader(file, roles)
         checked: set[int] = set()
         try:
-            for channel, _log_ns, payload in reader.messages():
+            for batch in reader.batches():
+                channel = batch.channel
                 role, msgtype = roles[channel.topic]
                 if channel.id not in checked:
                     if channel.message_encoding != "cdr" or channel.msgtype != msgtype:
@@ -124,44 +138,41 @@ def read_episode(
                         )
                     checked.add(channel.id)
                 try:
-                    _collect(data, role, payload)
+                    _collect(data, role, batch)
                 except (ValueError, struct.error) as exc:
-                    reader.damage = f"undecodable {channel.topic} message ({exc})"
-                    break
+                    reader.damage.append(f"undecodable {channel.topic} message ({exc}); batch skipped")
         except McapDamage as exc:
             raise BagError(str(exc)) from exc
         except OSError as exc:
             raise BagError(f"{file}: cannot read: {exc}") from exc
         if reader.damage:
             data.damaged = True
-            data.warnings.append(f"{file}: {reader.damage}; scores are partial (read up to the damage)")
+            data.warnings.append(f"{file}: {'; '.join(reader.damage)}; scores are partial (damaged data skipped)")
     return data
 
 
-def _collect(data: EpisodeData, role: str, payload: memoryview) -> None:
-    if role in ("ee", "ee_physics"):
-        t_ns, pos = mcap_stream.pose_stamped_position(payload)
-        series = getattr(data, role)
-        series.t_ns.append(t_ns)
-        series.values.append(pos)
-    elif role in ("joints", "joints_physics"):
-        t_ns, velocity, effort = mcap_stream.joint_state_velocity_effort(payload)
-        if len(effort) and len(velocity) == len(effort):
-            series = getattr(data, role)
-            series.t_ns.append(t_ns)
-            series.values.append(np.concatenate([velocity, effort]))
-        else:
-            data.joints_without_effort += 1
-    elif role == "commands":
-        data.command_sources.append(mcap_stream.action_command_source(payload))
-    elif role == "requests":
-        data.requests += 1
-    elif role == "events":
-        msg = m.deserialize(payload, m.EPISODE_EVENTS.msgtype)
-        data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
-    elif role == "chunks":
-        msg = m.deserialize(payload, m.ACTION_CHUNK.msgtype)
-        data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
+def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
+    if role == "requests":
+        data.requests += len(batch)
+    elif role in ("events", "chunks"):  # a few per episode: the generic deserializer is fine
+        for i in range(len(batch)):
+            msg = m.deserialize(batch.payload(i), batch.channel.msgtype)
+            if role == "events":
+                data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
+            else:
+                data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
+    else:
+        for group in mcap_stream.decode(batch):
+            if role == "commands":
+                data.command_sources.extend(group["source"].tolist())
+            elif role in ("ee", "ee_physics"):
+                getattr(data, role).add(group["stamp_ns"], group["position"])
+            else:  # joint states: energy needs matching velocity and effort
+                velocity, effort = group["velocity"], group["effort"]
+                if effort.shape[1] and velocity.shape == effort.shape:
+                    getattr(data, role).add(group["stamp_ns"], np.hstack([velocity, effort]))
+                else:
+                    data.joints_without_effort += len(group["index"])
 
 
 def _null(row: dict, keys: list[str], reason: str) -> None:
@@ -243,7 +254,7 @@ def score_episode(
     row["chunks_rejected"] = sum(1 for e in data.events if e[0] == m.EventKind.CHUNK_REJECTED)
 
     # -- trajectory -----------------------------------------------------------------------------
-    use_physics = rate == "physics" and data.ee_physics.t_ns
+    use_physics = rate == "physics" and len(data.ee_physics) > 0
     ee_series = data.ee_physics if use_physics else data.ee
     dt = RATES["physics" if use_physics else "control"]
     row["trajectory_rate_hz"] = round(1.0 / dt, 6)
@@ -272,7 +283,7 @@ def score_episode(
 
     # -- energy ---------------------------------------------------------------------------------
     energy_keys = ["energy_mech_j", "energy_elec_j", "energy_overhead_j", "energy_total_j", "energy_per_step_j"]
-    use_physics_j = rate == "physics" and data.joints_physics.t_ns
+    use_physics_j = rate == "physics" and len(data.joints_physics) > 0
     j_series = data.joints_physics if use_physics_j else data.joints
     dt_j = RATES["physics" if use_physics_j else "control"]
     row["energy_rate_hz"] = round(1.0 / dt_j, 6)
