@@ -189,9 +189,9 @@ def score(
     damaged = any(row.get("partial") for row in rows)
     for row in rows:
         for warning in json.loads(row.get("warnings") or "[]"):
-            console.print(f"[yellow]warning:[/yellow] {warning}")
+            console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
         if row.get("status") == "error":
-            console.print(f"[red]error:[/red] {row.get('episode')}: {row.get('error_reason')}")
+            console.print(f"[red]error:[/red] {row.get('episode')}: {row.get('error_reason')}", soft_wrap=True)
     single_bag = len(rows) == 1 and out is None
     if as_json:
         from lq_ros.scoring import to_json
@@ -207,7 +207,7 @@ def score(
         written = write_tables(episodes, aggregates, out_dir)
         if not as_json:
             print(markdown_table(aggregates))
-        console.print("wrote " + ", ".join(str(p) for p in written.values()))
+        console.print("wrote " + ", ".join(str(p) for p in written.values()), soft_wrap=True)
     if damaged:
         raise typer.Exit(1)
 
