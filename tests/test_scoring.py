@@ -317,3 +317,15 @@ def test_cli_json_for_one_bag(tmp_path):
                             capture_output=True, text=True, check=True, timeout=120)  # fmt: skip
     row = json.loads(result.stdout.strip().splitlines()[-1])
     assert row["status"] == "success" and row["versions"] == {"git_commit": "abc"}
+
+
+def test_scoring_needs_no_ros_and_no_simulator(tmp_path):
+    """The scorer runs on any machine with Python: rclpy, MuJoCo and robosuite are never imported."""
+    bag = write_episode_bag(tmp_path / "ep")
+    code = (
+        "import sys; from lq_ros.aggregate import score_directory; "
+        f"assert score_directory({str(bag)!r})['status'].tolist() == ['success']; "
+        "print(sorted(k for k in ('rclpy', 'mujoco', 'robosuite', 'libero', 'torch') if k in sys.modules))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert result.stdout.strip() == "[]"
