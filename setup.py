@@ -6,6 +6,8 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(include=["lq_ros", "lq_ros.*", "nodes"]),
+    # Shipped learned-policy weights (LIBERO-Spatial), loaded by default by `oft` and `flow`.
+    package_data={"lq_ros.policies": ["weights/*.pt", "weights/*.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -263,6 +263,13 @@ def report(
     console.print(f"markdown: {result.files['report.md']}", soft_wrap=True)
 
 
+# Learned policies: demonstrations and training (lq_ros/learned/cli.py).
+from lq_ros.learned import cli as _learned_cli  # noqa: E402
+
+app.command()(_learned_cli.collect)
+app.command()(_learned_cli.train)
+
+
 def main() -> None:
     app()
 

@@ -13,6 +13,8 @@ REGISTRY: dict[str, str] = {
     "faulty": "lq_ros.policies.faulty:FaultyPolicy",
     "openpi": "lq_ros.policies.openpi_remote:OpenPIPolicy",
     "openvla": "lq_ros.policies.openvla_rest:OpenVLARestPolicy",
+    "oft": "lq_ros.policies.oft:OFTPolicy",
+    "flow": "lq_ros.policies.flow:FlowPolicy",
 }
 
 

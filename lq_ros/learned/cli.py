@@ -1,0 +1,92 @@
+"""``lq collect`` and ``lq train`` (registered in lq_ros/cli.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def _ints(spec: str) -> tuple[int, ...]:
+    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers."""
+    out: list[int] = []
+    try:
+        for part in spec.split(","):
+            lo, sep, hi = part.strip().partition("-")
+            out += range(int(lo), int(hi) + 1) if sep else [int(lo)]
+    except ValueError:
+        raise typer.BadParameter(f"expected integers like '0-9' or '0,2,5', got {spec!r}") from None
+    if not out:
+        raise typer.BadParameter(f"empty selection {spec!r}")
+    return tuple(out)
+
+
+def collect(
+    out: Annotated[Path, typer.Option(help="Dataset folder (data/frames.parquet + meta/).")],
+    suite: str = "libero_spatial",
+    tasks: Annotated[str, typer.Option(help="Task ids, e.g. '0-9' or '0,3'.")] = "0-9",
+    inits: Annotated[str, typer.Option(help="Init states (one episode each); 0-9 are the evaluation set.")] = "10-29",
+    noise: Annotated[str, typer.Option(help="Arm action-noise std per episode, cycled, e.g. '0,0.15,0.3'.")] = (
+        "0,0.15,0.3"
+    ),
+    seed: int = 7,
+    expert: str = "scripted",
+    chunk_rows: Annotated[int, typer.Option(help="Rows of the expert's plan stored per frame.")] = 16,
+    max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's.")] = 0,
+    workers: Annotated[int, typer.Option(help="Processes (one task each at a time).")] = 2,
+) -> None:
+    """Collect expert demonstrations with DART-style action noise; keeps the successful episodes."""
+    from lq_ros.learned.collect import CollectConfig
+    from lq_ros.learned.collect import collect as run_collect
+
+    try:
+        levels = tuple(float(x) for x in noise.split(","))
+        cfg = CollectConfig(
+            suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, seed=seed, expert=expert,
+            chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    info = run_collect(cfg, out)
+    stats = info["collection"]["per_task"]
+    for task, s in stats.items():
+        print(f"task {task}: kept {s['successes']}/{s['attempts']} ({s['frames']} frames, {s['errors']} errors)")
+    wall_s = info["collection"]["wall_s"]
+    print(f"{out}: {info['total_episodes']} episodes, {info['total_frames']} frames, {wall_s:.0f} s")
+
+
+def train(
+    policy: Annotated[str, typer.Option(help="oft | flow")],
+    data: Annotated[list[Path], typer.Option(help="Dataset folder from `lq collect` (repeatable).")],
+    out: Annotated[Path, typer.Option(help="Folder for <name>.pt + <name>.json.")],
+    chunk: Annotated[int, typer.Option(help="Chunk length H; default 8 (oft) / 10 (flow).")] = 0,
+    steps: int = 8000,
+    batch_size: int = 256,
+    lr: float = 1e-3,
+    width: int = 256,
+    depth: int = 3,
+    seed: int = 0,
+    target: Annotated[str, typer.Option(help="plan (expert's plan per frame) | future (next H labels).")] = "plan",
+    replan_steps: Annotated[int, typer.Option(help="Actions run per chunk (default); 0: H//2 flow, H oft.")] = 0,
+    flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = 10,
+    threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
+    name: Annotated[str, typer.Option(help="Checkpoint name; default <policy>_c<H>.")] = "",
+) -> None:
+    """Train a chunk policy on collected demonstrations (seeded; logs losses as JSON lines on stderr)."""
+    from lq_ros.learned.train import TrainConfig
+    from lq_ros.learned.train import train as run_train
+
+    horizon = chunk or (10 if policy == "flow" else 8)
+    replan = replan_steps or (max(horizon // 2, 1) if policy == "flow" else horizon)
+    try:
+        cfg = TrainConfig(
+            policy=policy, horizon=horizon, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
+            seed=seed, target=target, replan_steps=replan, flow_steps=flow_steps, threads=threads, name=name,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    meta = run_train(cfg, data, out)
+    m = meta["metrics"]
+    print(json.dumps({k: m[k] for k in ("params", "train_wall_s", "final_train_loss", "final_val_loss")}))

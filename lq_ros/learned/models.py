@@ -1,0 +1,94 @@
+"""Two small chunk models on state features (torch, CPU).
+
+* ``ChunkRegressor`` (OFT-like): one MLP decodes all H actions of a chunk in parallel; trained with L1.
+* ``FlowChunkModel`` (pi0-like): a velocity field over the whole (H, 7) chunk, conditioned on the
+  features and the flow time; trained with flow matching (x_t = (1-t) noise + t actions, target
+  actions - noise), sampled with a few Euler steps from seeded Gaussian noise.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+ACTION_DIM = 7
+
+
+class _Block(nn.Module):
+    """Pre-norm residual MLP block."""
+
+    def __init__(self, width: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, width), nn.GELU(), nn.Linear(width, width))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.net(x)
+
+
+class ChunkRegressor(nn.Module):
+    def __init__(self, feature_dim: int, horizon: int, width: int = 256, depth: int = 3) -> None:
+        super().__init__()
+        self.horizon = horizon
+        self.inp = nn.Linear(feature_dim, width)
+        self.blocks = nn.Sequential(*(_Block(width) for _ in range(depth)))
+        self.out = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, horizon * ACTION_DIM))
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        """(B, F) normalised features -> (B, H, 7) normalised actions."""
+        return self.out(self.blocks(self.inp(feats))).view(-1, self.horizon, ACTION_DIM)
+
+    def loss(self, feats: torch.Tensor, actions: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
+        return (self(feats) - actions).abs().mean()
+
+
+def _time_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sinusoidal embedding of flow time t in [0, 1], (B,) -> (B, dim)."""
+    half = dim // 2
+    # Frequencies from 1 to 100 half-turns over the unit interval: resolves t to ~0.01.
+    freqs = math.pi * torch.exp(torch.linspace(0.0, math.log(100.0), half, dtype=t.dtype))
+    ang = t[:, None] * freqs[None, :]
+    return torch.cat([ang.sin(), ang.cos()], dim=-1)
+
+
+class FlowChunkModel(nn.Module):
+    def __init__(self, feature_dim: int, horizon: int, width: int = 256, depth: int = 3, time_dim: int = 64) -> None:
+        super().__init__()
+        self.horizon = horizon
+        self.time_dim = time_dim
+        self.obs = nn.Linear(feature_dim, width)
+        self.act = nn.Linear(horizon * ACTION_DIM, width)
+        self.time = nn.Sequential(nn.Linear(time_dim, width), nn.GELU(), nn.Linear(width, width))
+        self.blocks = nn.Sequential(*(_Block(width) for _ in range(depth)))
+        self.out = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, horizon * ACTION_DIM))
+
+    def velocity(self, feats: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Velocity (B, H, 7) at chunk x_t (B, H, 7), flow time t (B,)."""
+        h = self.obs(feats) + self.act(x_t.flatten(1)) + self.time(_time_embedding(t, self.time_dim))
+        return self.out(self.blocks(h)).view(-1, self.horizon, ACTION_DIM)
+
+    def loss(self, feats: torch.Tensor, actions: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
+        noise = torch.randn(actions.shape, generator=gen)
+        t = torch.rand(actions.shape[0], generator=gen)
+        x_t = (1 - t)[:, None, None] * noise + t[:, None, None] * actions
+        return ((self.velocity(feats, x_t, t) - (actions - noise)) ** 2).mean()
+
+    @torch.no_grad()
+    def sample(self, feats: torch.Tensor, noise: torch.Tensor, steps: int) -> torch.Tensor:
+        """Euler integration from ``noise`` (B, H, 7) at t=0 to the chunk at t=1 in ``steps`` steps."""
+        x = noise
+        dt = 1.0 / steps
+        for k in range(steps):
+            t = torch.full((x.shape[0],), k * dt)
+            x = x + dt * self.velocity(feats, x, t)
+        return x
+
+
+MODELS = {"oft": ChunkRegressor, "flow": FlowChunkModel}
+
+
+def build_model(kind: str, feature_dim: int, horizon: int, width: int, depth: int) -> nn.Module:
+    if kind not in MODELS:
+        raise ValueError(f"unknown model kind {kind!r}; known: {', '.join(MODELS)}")
+    return MODELS[kind](feature_dim, horizon, width=width, depth=depth)

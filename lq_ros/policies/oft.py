@@ -1,0 +1,23 @@
+"""``oft``: OFT-like L1-regression policy decoding a whole chunk in parallel (state features, CPU)."""
+
+from __future__ import annotations
+
+from lq_ros.env import Observation
+from lq_ros.learned.policy import LearnedChunkPolicy
+
+
+class OFTPolicy(LearnedChunkPolicy):
+    """One forward pass -> (H, 7). ``chunk_size`` 8 (default) or 1 picks the shipped weights."""
+
+    name = "oft"
+    kind = "oft"
+
+    def __init__(self, chunk_size: int = 8, weights: str = "", threads: int = 1) -> None:
+        if not weights and chunk_size not in (1, 8):
+            raise ValueError(f"shipped oft weights have chunk_size 1 or 8, got {chunk_size}; pass weights=PATH")
+        super().__init__(weights or f"oft_c{chunk_size}", threads)
+        if weights and chunk_size not in (self.horizon, 8):
+            raise ValueError(f"{self.weights_path.name} decodes chunks of {self.horizon}, not {chunk_size}")
+
+    def _decode(self, x, obs: Observation):
+        return self.model(x)
