@@ -8,7 +8,8 @@
 
 Both bind 127.0.0.1 on an ephemeral port, check every request (keys, shapes, dtypes, 224 x 224,
 instruction), keep what they received, and answer with a deterministic small move computed from
-the robot state, unless told to misbehave (``fault``) from request ``at_request`` (1-based) on.
+the robot state, unless told to misbehave (``fault``) from request ``at_request`` (1-based) on
+(REST ``crash``: the server stops listening after answering request ``at_request - 1``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from websockets.frames import CloseCode
 from websockets.sync.server import serve
 
 OPENPI_FAULTS = ("none", "slow", "nan", "shape", "nonnumeric", "missing", "error", "close", "garbage")
-OPENVLA_FAULTS = ("none", "slow", "nan", "shape", "nonnumeric", "error", "http500", "close", "garbage")
+OPENVLA_FAULTS = ("none", "slow", "nan", "shape", "nonnumeric", "error", "http500", "close", "garbage", "crash")
 OPENPI_KEYS = {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
 IMAGE_SHAPE = (224, 224, 3)
 #: Where the stand-in policy steers the end effector (m, LIBERO world frame), and its gain (1/m).
@@ -229,11 +230,15 @@ class OpenVLAStandin(_Standin):
         self._thread = threading.Thread(target=self._server.serve_forever, args=(0.05,), daemon=True)
 
     def __enter__(self) -> OpenVLAStandin:
-        self._thread.start()
+        if self.fault == "crash" and self.at_request <= 1:
+            self._server.server_close()  # down from the start
+        else:
+            self._thread.start()
         return self
 
     def __exit__(self, *exc) -> None:
-        self._server.shutdown()
+        if self._thread.is_alive():
+            self._server.shutdown()
         self._server.server_close()
         self._thread.join(timeout=5)
 
@@ -302,15 +307,24 @@ class OpenVLAStandin(_Standin):
                 answer = ["up"] * 7
             elif self.fault == "error":
                 answer = "error"
-        return self._reply(handler, 200, json_numpy.dumps(answer))
+        crash = self.fault == "crash" and self.requests == self.at_request - 1
+        if crash:  # the server dies after this answer: nothing listens any more
+            threading.Thread(target=self._stop_listening, daemon=True).start()
+        return self._reply(handler, 200, json_numpy.dumps(answer), close=crash)
+
+    def _stop_listening(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
 
     @staticmethod
-    def _reply(handler: BaseHTTPRequestHandler, status: int, text: str) -> None:
+    def _reply(handler: BaseHTTPRequestHandler, status: int, text: str, close: bool = False) -> None:
         data = text.encode()
         try:
             handler.send_response(status)
             handler.send_header("Content-Type", "application/json")
             handler.send_header("Content-Length", str(len(data)))
+            if close:
+                handler.send_header("Connection", "close")  # also makes http.server drop the connection
             handler.end_headers()
             handler.wfile.write(data)
         except OSError:

@@ -302,10 +302,24 @@ def test_openpi_through_ros_images_then_server_error(tmp_path):
 
 
 @pytest.mark.slow
-def test_openvla_server_down_through_ros_is_an_error(tmp_path):
-    cfg = RunConfig(policy="openvla", policy_args={"port": free_port(), "timeout_s": 5.0}, max_steps=20)
-    started = time.monotonic()
-    outcome, row = launch_episode(cfg, tmp_path)
+def test_openvla_server_dies_mid_episode_through_ros(tmp_path):
+    """One action per query (OpenVLA); after two answers the server is gone: connection refused -> error."""
+    with OpenVLAStandin(fault="crash", at_request=3) as server:
+        cfg = RunConfig(policy="openvla", policy_args={"port": server.port, "timeout_s": 5.0}, max_steps=20)
+        started = time.monotonic()
+        outcome, row = launch_episode(cfg, tmp_path)
     assert time.monotonic() - started < 90.0
     assert outcome.status == "error" and row["success"] is None
-    assert "Connection refused" in row["error_reason"]
+    assert "request failed ([Errno 111] Connection refused)" in row["error_reason"]
+    assert server.check_failures == [] and server.requests == 2
+    bag = outcome.bag_path
+    images = [m.image_from_msg(i) for i in decoded(bag, m.camera_topic("agentview"))]
+    assert len(images) == 3 and not bag_messages(bag).get(m.camera_topic("robot0_eye_in_hand").name)
+    for k, sent in enumerate(server.received):
+        assert np.array_equal(sent["image"], libero_example_image(images[k]))
+    commands = decoded(bag, m.COMMAND)
+    assert len(commands) == 2  # chunks of one action; the third request found no server
+    for sent, command in zip(server.received, commands, strict=True):
+        expected = server.action_for(sent)
+        expected[6] = -1.0  # OpenVLA's 1 = open -> LIBERO's -1
+        assert np.allclose(command.action, expected)
