@@ -203,6 +203,23 @@ def test_openvla_payload_styles_and_gripper_convention():
     assert chunk.shape == (8, 7) and np.allclose(chunk[:, :6], standin_action(state)[:6]) and np.all(chunk[:, 6] == -1)
 
 
+def test_openvla_center_crop_keeps_central_90_percent_of_the_area():
+    obs = synthetic_obs()
+    columns = np.broadcast_to(np.arange(224, dtype=np.uint8)[None, :, None], (224, 224, 3))
+    obs.images["agentview"] = np.ascontiguousarray(columns[:, ::-1])  # the 180-degree rotation undoes the mirror
+    with OpenVLAStandin() as server:
+        for crop in (False, True):
+            policy = make_policy("openvla", port=server.port, center_crop=crop, timeout_s=5.0)
+            policy.reset(TASK, 7)
+            policy.infer(obs)
+    plain, cropped = server.received[0]["image"], server.received[1]["image"]
+    assert np.array_equal(plain, columns)
+    # Column j of the crop samples column (224 - s) / 2 + (j + 0.5) s / 224 - 0.5, s = 224 sqrt(0.9).
+    side = 224 * np.sqrt(0.9)
+    expected = (224 - side) / 2 + (np.arange(224) + 0.5) * side / 224 - 0.5
+    assert cropped.shape == (224, 224, 3) and np.abs(cropped[112, :, 0] - expected).max() <= 1.0
+
+
 # -- whole episodes, in-process (real MuJoCo, real rendering) ---------------------------------
 @pytest.fixture(scope="module")
 def env():

@@ -13,6 +13,7 @@ not a finite numeric (H, 7) chunk raise PolicyError: the episode ends as an erro
 
 from __future__ import annotations
 
+import math
 import re
 import time
 
@@ -30,6 +31,8 @@ from lq_ros.policies.openpi_remote import (
 )
 
 STYLES = ("openvla", "oft")
+#: Image area kept by ``center_crop`` (OpenVLA's crop scale).
+CENTER_CROP_AREA = 0.9
 GRIPPER_MODES = ("openvla", "raw")
 #: Longest response excerpt kept in an error reason, characters.
 MAX_BODY_CHARS = 300
@@ -57,6 +60,7 @@ class OpenVLARestPolicy(Policy):
         style: str = "openvla",
         gripper: str = "openvla",
         resize: int = 224,
+        center_crop: bool = False,
         clip: bool = False,
     ) -> None:
         if style not in STYLES:
@@ -74,6 +78,7 @@ class OpenVLARestPolicy(Policy):
         self.style = style
         self.gripper = gripper
         self.resize = int(resize)
+        self.center_crop = bool(center_crop)
         self.clip = bool(clip)
         self.camera_names = (AGENTVIEW, WRIST) if style == "oft" else (AGENTVIEW,)
         self.last_timing: dict[str, float | None] = {}
@@ -128,6 +133,7 @@ class OpenVLARestPolicy(Policy):
             "style": self.style,
             "gripper": self.gripper,
             "resize": self.resize,
+            "center_crop": self.center_crop,
             "clip": self.clip,
         }
 
@@ -138,12 +144,19 @@ class OpenVLARestPolicy(Policy):
 
     # -- internals --------------------------------------------------------------------------
     def _image(self, obs: Observation, camera: str) -> np.ndarray:
+        from PIL import Image
+
         image = libero_training_image(camera_image(obs, camera))
         if image.shape[:2] != (self.resize, self.resize):
-            from PIL import Image
-
             resized = Image.fromarray(image).resize((self.resize, self.resize), resample=Image.LANCZOS)
             image = np.asarray(resized, dtype=np.uint8)
+        if self.center_crop:
+            # OpenVLA's LIBERO evaluation for models trained with random-crop augmentation: keep the
+            # central 90 % of the area and scale it back up (bilinear; TF's crop_and_resize there).
+            side = self.resize * math.sqrt(CENTER_CROP_AREA)
+            lo, hi = (self.resize - side) / 2.0, (self.resize + side) / 2.0
+            cropped = Image.fromarray(image).resize((self.resize, self.resize), Image.BILINEAR, box=(lo, lo, hi, hi))
+            image = np.asarray(cropped, dtype=np.uint8)
         return image
 
     def _post(self, body: str) -> object:
