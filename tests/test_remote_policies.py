@@ -20,7 +20,7 @@ from lq_ros.config import RunConfig
 from lq_ros.env import LiberoEnv, Observation, TaskInfo
 from lq_ros.launcher import launch_episode
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.policies.openpi_remote import quat_xyzw_to_axis_angle
+from lq_ros.policies.openpi_remote import libero_training_image, quat_xyzw_to_axis_angle
 from lq_ros.runner import run_inprocess
 from lq_ros.scoring import score_bag
 from tests.bag_compare import bag_messages
@@ -252,6 +252,11 @@ def test_openpi_episode_sends_libero_example_payload(tmp_path, env):
         assert policy.timings[k]["tick"] == obs.tick == 5 * k
         assert policy.timings[k]["server_infer_ms"] is not None
     assert outcome.ticks == 12
+    # The image convention itself, against robosuite's own camera observation (what openpi's example
+    # rotates) of the env's current state.
+    sensors, _ = env._env.env._create_camera_sensors("agentview", 224, 224, False, None)
+    robosuite_image = sensors[0]({})
+    assert np.array_equal(libero_training_image(env.observe().images["agentview"]), robosuite_image[::-1, ::-1])
 
 
 @pytest.mark.slow
