@@ -679,8 +679,12 @@ def ray_init_local(num_cpus: int) -> None:
     listens on 127.0.0.1 only (checked in tests/test_sweep_ray.py).
     """
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
-    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # inherited by every Ray process started below
     import ray
+    from ray._private import ray_constants
+
+    # Imported earlier in this process: apply the same setting to the constant it was read into.
+    ray_constants.ENABLE_RAY_CLUSTER = False
 
     ray.init(
         num_cpus=num_cpus, _node_ip_address="127.0.0.1", include_dashboard=False, log_to_driver=False,
@@ -699,13 +703,15 @@ class RayPool:
     """Ray actors as workers (one CPU each); results and bags come back to the driver's store."""
 
     def __init__(self, n: int | None, transport: str, bags_dir: Path, timeout_s: float | None, address: str | None):
-        import ray
-
         if address:
+            import ray
+
             os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
             ray.init(address=address, log_to_driver=False)
         else:
-            ray_init_local(n or os.cpu_count() or 1)
+            ray_init_local(n or default_workers())
+        import ray
+
         self._ray = ray
         self._bags_dir = Path(bags_dir)
         if n is None:

@@ -1,0 +1,309 @@
+"""Sweeps: spec expansion and validation, the durable store, resume after a kill, retry-once, workers."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lq_ros import sweep as sw
+from lq_ros.config import RunConfig
+from lq_ros.env import Observation, TaskInfo
+from lq_ros.policies.base import Policy
+from tests.bag_compare import comparable
+
+REPO = Path(__file__).resolve().parents[1]
+#: Row fields measured on the wall clock (or naming the machine), excluded when comparing reruns.
+WALL_FIELDS = {"latency_real_mean_s", "latency_real_p50_s", "latency_real_p90_s", "latency_real_max_s", "versions"}
+
+
+def small_spec(**over) -> dict:
+    spec = {
+        "name": "small",
+        "transport": "inprocess",
+        "suite": "libero_spatial",
+        "tasks": [0],
+        "inits": [0],
+        "policies": ["sine"],
+        "latencies_s": [0.0, 0.1],
+        "modes": ["sync", "async"],
+        "max_steps": 8,
+    }
+    spec.update(over)
+    return spec
+
+
+# -- spec ------------------------------------------------------------------------------------
+
+
+def test_expansion_is_the_full_product_in_a_stable_order():
+    raw = {
+        "suites": {"libero_spatial": {"tasks": [0, 3], "inits": [0, 1]}},
+        "seeds": [7, 8],
+        "policies": ["sine", {"name": "scripted", "args": {}}],
+        "latencies_s": [0, 0.1, 0.2, 0.4],
+        "modes": {"sync": {"replan_steps": [4, 8], "hold": "stop"}, "async": {"merge": ["replace", "blend"]}},
+        "max_steps": 30,
+    }
+    spec = sw.expand_spec(raw)
+    # policies 2 x protocol variants (2 sync + 2 async) x latencies 4 x tasks 2 x inits 2 x seeds 2
+    assert len(spec.configs) == 2 * 4 * 4 * 2 * 2 * 2
+    assert len({c.key() for c in spec.configs}) == len(spec.configs)
+    assert {c.replan_steps for c in spec.configs if c.mode == "sync"} == {4, 8}
+    assert {c.merge for c in spec.configs if c.mode == "async"} == {"replace", "blend"}
+    assert all(c.max_steps == 30 for c in spec.configs)
+    assert [c.key() for c in sw.expand_spec(raw).configs] == [c.key() for c in spec.configs]
+
+
+def test_tasks_all_and_shorthand_and_defaults():
+    spec = sw.expand_spec({"tasks": "all", "inits": [0], "policies": ["sine"], "latencies_s": [0.0]})
+    assert sorted({c.task for c in spec.configs}) == list(range(10))
+    assert {c.mode for c in spec.configs} == {"sync", "async"} and {c.seed for c in spec.configs} == {7}
+    assert spec.transport is None and spec.name == "sweep"
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"latencies": [0.1]}, "unknown key"),
+        ({"policies": ["nope"]}, "unknown policy 'nope'"),
+        ({"policies": [{"name": "sine", "arg": {}}]}, "policies[0]"),
+        ({"latencies_s": [0.1, 0.12]}, "both round to N = 2"),
+        ({"latencies_s": [-0.1]}, "non-negative"),
+        ({"latencies_s": []}, "empty list"),
+        ({"modes": ["sync", "stream"]}, "unknown mode 'stream'"),
+        ({"modes": {"sync": {"chunk": 3}}}, "modes.sync"),
+        ({"modes": {"sync": {"hold": "freeze"}}}, "hold"),
+        ({"tasks": [10]}, "outside 0..9"),
+        ({"inits": [50]}, "outside 0..49"),
+        ({"suite": "libero_100"}, "unknown suite"),
+        ({"transport": "zmq"}, "transport"),
+        ({"max_steps": -1}, "max_steps"),
+        ({"physics_rate": "yes"}, "physics_rate: expected bool"),
+        ({"suites": {"libero_spatial": {"tasks": [0], "inits": [0]}}}, "not both"),
+        ({"policies": ["sine", "sine"]}, "same episode twice"),
+    ],
+)
+def test_invalid_specs_fail_with_a_clear_message(change, message):
+    with pytest.raises(sw.SpecError, match=None) as info:
+        sw.expand_spec(small_spec(**change))
+    assert message in str(info.value)
+
+
+def test_load_spec_names_the_file(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("policies: [sine\n")
+    with pytest.raises(sw.SpecError, match="bad.yaml: not valid YAML"):
+        sw.load_spec(bad)
+    with pytest.raises(sw.SpecError, match="missing.yaml: cannot read"):
+        sw.load_spec(tmp_path / "missing.yaml")
+    good = tmp_path / "mine.yaml"
+    good.write_text(yaml.safe_dump({k: v for k, v in small_spec().items() if k != "name"}))
+    assert sw.load_spec(good).name == "mine"
+
+
+def test_policy_arguments_are_checked_before_running():
+    spec = sw.expand_spec(small_spec(policies=[{"name": "sine", "args": {"amplitude": 3.0}}]))
+    with pytest.raises(sw.SpecError, match="amplitude must be in"):
+        sw.check_policies(spec.configs)
+
+
+def test_shipped_demo_spec_is_valid():
+    spec = sw.load_spec(REPO / "config" / "sweeps" / "demo.yaml")
+    assert spec.transport == "inprocess"
+    assert {c.latency_s for c in spec.configs} == {0.0, 0.1, 0.2, 0.4}
+    assert {c.mode for c in spec.configs} == {"sync", "async"}
+    assert {c.init for c in spec.configs} == {0, 1}
+    sw.check_policies(spec.configs)
+
+
+# -- store -----------------------------------------------------------------------------------
+
+
+def test_half_written_or_orphaned_results_do_not_count_as_finished(tmp_path):
+    spec = sw.expand_spec(small_spec())
+    store, jobs, done = sw.prepare(spec, tmp_path)
+    assert done == 0 and len(jobs) == 4
+    a, b, c, d = (cfg.key() for cfg in spec.configs)
+    full = {"key": a, "status": "failure", "bag": None, "row": {}, "attempts": []}
+    store.write(full)
+    text = json.dumps({**full, "key": b})
+    store.record_path(b).write_text(text[: len(text) // 2])  # killed while writing (without atomic rename)
+    (store.results / f".{c}.json.123.tmp").write_text(json.dumps({**full, "key": c}))  # rename never happened
+    store.write({**full, "key": d, "bag": "bags/gone"})  # points at a bag that is not there
+    assert store.load(a) is not None
+    assert store.load(b) is None and store.load(c) is None and store.load(d) is None
+    _, jobs, done = sw.prepare(spec, tmp_path)
+    assert done == 1 and {j.key for j in jobs} == {b, c, d}
+    assert json.loads((tmp_path / "manifest.json").read_text())["episodes"].keys() == {a, b, c, d}
+
+
+def test_scheduler_keeps_a_worker_on_its_task_and_spreads_the_rest():
+    cfgs = [RunConfig(policy="sine", task=t, init=i) for t in (0, 1) for i in range(3)]
+    sched = sw.Scheduler([sw.Job(c) for c in cfgs])
+    first = sched.pick(None, sw.Counter())
+    busy = sw.Counter({sw._env_key(first.cfg): 1})
+    second = sched.pick(None, busy)
+    assert first.cfg.task != second.cfg.task  # the idle worker goes where nobody is
+    again = sched.pick(sw._env_key(first.cfg), busy)
+    assert again.cfg.task == first.cfg.task  # a worker stays on its env while it has jobs
+
+
+# -- running ---------------------------------------------------------------------------------
+
+
+def _rows(store: sw.ResultStore) -> dict[str, dict]:
+    return {r["key"]: {k: v for k, v in r["row"].items() if k not in WALL_FIELDS} for r in store.records()}
+
+
+@pytest.mark.slow
+def test_two_local_workers_then_resume_reruns_only_unfinished(tmp_path):
+    spec = sw.expand_spec(small_spec())
+    summary = sw.run_sweep(spec, tmp_path, workers=2)
+    assert summary.ran == 4 and summary.counts == {"failure": 4} and summary.skipped == 0
+    store = sw.ResultStore(tmp_path)
+    first = _rows(store)
+    assert len(first) == 4 and all(r["status"] == "failure" for r in first.values())
+    index = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    assert {r["key"] for r in index} == set(first)
+    for record in store.records():
+        assert (tmp_path / record["bag"] / "metadata.yaml").exists()
+        assert (tmp_path / record["attempts"][0]["log"]).exists()
+    # A truncated record and a lost bag: exactly those two episodes run again, with the same results.
+    k1, k2 = sorted(first)[:2]
+    text = store.record_path(k1).read_text()
+    store.record_path(k1).write_text(text[:100])
+    lost = json.loads(store.record_path(k2).read_text())["bag"]
+    subprocess.run(["rm", "-rf", str(tmp_path / lost)], check=True)
+    again = sw.run_sweep(spec, tmp_path, workers=2)
+    assert again.skipped == 2 and again.ran == 2
+    assert _rows(store) == first  # deterministic: a rerun reproduces the scores exactly
+    assert sw.run_sweep(spec, tmp_path, workers=2).ran == 0
+
+
+@pytest.mark.slow
+def test_reused_env_gives_the_same_episode_as_a_fresh_one(tmp_path):
+    target = RunConfig(policy="scripted", mode="async", latency_s=0.2, init=1, max_steps=25)
+    other = RunConfig(policy="scripted", mode="sync", latency_s=0.1, init=0, max_steps=30)
+    fresh = sw.EpisodeWorker("inprocess", tmp_path / "fresh")
+    a = fresh.run(target, tmp_path / "a.log")
+    fresh.close()
+    reused = sw.EpisodeWorker("inprocess", tmp_path / "reused")
+    reused.run(other, tmp_path / "b.log")
+    env_before = reused._cached[1]
+    b = reused.run(target, tmp_path / "c.log")
+    assert reused._cached[1] is env_before  # really the same env object
+    reused.close()
+    assert a["status"] == b["status"] != "error"
+    assert comparable(Path(a["bag"])) == comparable(Path(b["bag"]))
+
+
+class ExitOncePolicy(Policy):
+    """Kills its worker process on the first request of the first episode run (marker file), then acts
+    like a zero policy: exercises the retry of an episode whose worker died."""
+
+    name = "exit_once"
+
+    def __init__(self, marker: str) -> None:
+        self.marker = Path(marker)
+
+    def reset(self, task: TaskInfo, seed: int) -> None:
+        pass
+
+    def infer(self, obs: Observation) -> np.ndarray:
+        if not self.marker.exists():
+            self.marker.write_text("died once")
+            os._exit(3)
+        return np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0], (4, 1))
+
+
+@pytest.mark.slow
+def test_crashed_episodes_are_retried_once_and_kept_with_their_logs(tmp_path):
+    marker = tmp_path / "marker"
+    raw = small_spec(
+        latencies_s=[0.0],
+        modes=["sync"],
+        policies=[
+            {"name": "faulty", "args": {"fault": "raise", "at_requests": [1]}},
+            {"name": "tests.test_sweep:ExitOncePolicy", "args": {"marker": str(marker)}},
+        ],
+    )
+    summary = sw.run_sweep(sw.expand_spec(raw), tmp_path / "out", workers=1)
+    assert summary.retried == 2 and summary.counts == {"error": 1, "failure": 1}
+    store = sw.ResultStore(tmp_path / "out")
+    by_policy = {r["config"]["policy"]: r for r in store.records()}
+    faulty = by_policy["faulty"]
+    assert faulty["status"] == "error" and len(faulty["attempts"]) == 2
+    assert all("injected failure" in a["reason"] for a in faulty["attempts"])
+    assert "injected failure" in faulty["row"]["error_reason"]
+    first = faulty["attempts"][0]
+    assert first["bag"].startswith("attempts/") and (tmp_path / "out" / first["bag"] / "metadata.yaml").exists()
+    assert (tmp_path / "out" / faulty["bag"] / "metadata.yaml").exists()  # the final (second) attempt's bag
+    died = by_policy["tests.test_sweep:ExitOncePolicy"]
+    assert died["status"] == "failure" and [a["status"] for a in died["attempts"]] == ["error", "failure"]
+    assert "worker process died (exit code 3)" in died["attempts"][0]["reason"]
+    assert (tmp_path / "out" / died["attempts"][0]["log"]).exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            children = (task / "children").read_text().split() if (task / "children").exists() else []
+            for c in map(int, children):
+                if c not in out:
+                    out.add(c)
+                    todo.append(c)
+    return out
+
+
+@pytest.mark.slow
+def test_kill_9_mid_sweep_then_restart_skips_finished(tmp_path):
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text(yaml.safe_dump(small_spec(max_steps=6)))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "lq_ros.cli", "sweep", str(spec_file), "--workers", "1", "--out", str(out)]
+    log = open(tmp_path / "sweep.log", "wb")  # noqa: SIM115 - closed below
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline and len(list((out / "results").glob("*.json"))) < 1:
+        time.sleep(0.2)
+    workers = _descendants(proc.pid)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    log.close()
+    finished = {p.stem for p in (out / "results").glob("*.json")}
+    assert 1 <= len(finished) < 4, (tmp_path / "sweep.log").read_text()[-2000:]
+    time.sleep(2.0)
+    assert not [p for p in workers if Path(f"/proc/{p}").exists() and "zombie" not in _state(p)], "worker outlived"
+    spec = sw.load_spec(spec_file)
+    summary = sw.run_sweep(spec, out, workers=1)
+    assert summary.skipped == len(finished) and summary.ran == 4 - len(finished)
+    assert len(sw.ResultStore(out).records()) == 4
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split("\n")[0].lower()
+    except (OSError, IndexError):
+        return "zombie"
+
+
+@pytest.mark.slow
+def test_ros_transport_sweep_runs_the_four_node_stack(tmp_path):
+    spec = sw.expand_spec(small_spec(transport="ros", latencies_s=[0.1], modes=["async"], max_steps=10))
+    summary = sw.run_sweep(spec, tmp_path, workers=1)
+    assert summary.counts == {"failure": 1}, [r["row"].get("error_reason") for r in sw.ResultStore(tmp_path).records()]
+    (record,) = sw.ResultStore(tmp_path).records()
+    assert record["transport"] == "ros" and record["row"]["transport"] == "ros"
+    assert record["row"]["completion_steps"] == 10
+    assert (tmp_path / record["bag"] / "logs" / "sim.log").exists()  # node logs kept with the bag
