@@ -308,13 +308,10 @@ class OpenVLAStandin(_Standin):
             elif self.fault == "error":
                 answer = "error"
         crash = self.fault == "crash" and self.requests == self.at_request - 1
-        if crash:  # the server dies after this answer: nothing listens any more
-            threading.Thread(target=self._stop_listening, daemon=True).start()
+        if crash:  # the server dies with this answer: stop listening before the client can ask again
+            self._server.shutdown()  # from this handler thread: waits for the accept loop to end
+            self._server.server_close()
         return self._reply(handler, 200, json_numpy.dumps(answer), close=crash)
-
-    def _stop_listening(self) -> None:
-        self._server.shutdown()
-        self._server.server_close()
 
     @staticmethod
     def _reply(handler: BaseHTTPRequestHandler, status: int, text: str, close: bool = False) -> None:
