@@ -203,6 +203,21 @@ def test_openvla_payload_styles_and_gripper_convention():
     assert chunk.shape == (8, 7) and np.allclose(chunk[:, :6], standin_action(state)[:6]) and np.all(chunk[:, 6] == -1)
 
 
+@pytest.mark.parametrize("kind", ["openpi", "openvla"])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        ({"timeout_s": "soon"}, "timeout_s must be a positive number"),
+        ({"timeout_s": 0}, "timeout_s must be a positive number"),
+        ({"resize": 2.5}, "resize must be a positive integer"),
+        ({"port": "http"}, "port must be a positive integer"),
+    ],
+)
+def test_bad_parameters_are_refused_at_construction(kind, args, message):
+    with pytest.raises(ValueError, match=message):
+        make_policy(kind, **args)
+
+
 def test_openvla_center_crop_keeps_central_90_percent_of_the_area():
     obs = synthetic_obs()
     columns = np.broadcast_to(np.arange(224, dtype=np.uint8)[None, :, None], (224, 224, 3))

@@ -94,6 +94,18 @@ def checked_chunk(actions: object, source: str) -> np.ndarray:
     return arr
 
 
+def positive_number(name: str, value: object, integer: bool = False) -> float:
+    """``value`` as a positive number (from the CLI it may be a string), else a ValueError naming ``name``."""
+    kind = "a positive integer" if integer else "a positive number"
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {kind}, got {value!r}") from None
+    if not number > 0 or not math.isfinite(number) or (integer and number != int(number)):
+        raise ValueError(f"{name} must be {kind}, got {value!r}")
+    return number
+
+
 def _exception_text(traceback_text: str) -> str:
     """The exception lines of a Python traceback (what follows the last indented frame line)."""
     lines = [line for line in traceback_text.strip().splitlines() if line.strip()]
@@ -134,14 +146,12 @@ class OpenPIPolicy(Policy):
         resize: int = 224,
         clip: bool = False,
     ) -> None:
-        if not timeout_s > 0:
-            raise ValueError(f"timeout_s must be > 0 s, got {timeout_s}")
-        if not int(resize) > 0:
-            raise ValueError(f"resize must be a positive pixel size, got {resize}")
+        timeout_s = positive_number("timeout_s", timeout_s)
+        resize = int(positive_number("resize", resize, integer=True))
         host = str(host)
         self.uri = host if host.startswith(("ws://", "wss://")) else f"ws://{host}"
         if port is not None:
-            self.uri += f":{int(port)}"
+            self.uri += f":{int(positive_number('port', port, integer=True))}"
         self._api_key = str(api_key) if api_key is not None else os.environ.get(API_KEY_ENV)
         self.timeout_s = float(timeout_s)
         self.prompt_override = prompt

@@ -28,6 +28,7 @@ from lq_ros.policies.openpi_remote import (
     checked_chunk,
     libero_state_8d,
     libero_training_image,
+    positive_number,
 )
 
 STYLES = ("openvla", "oft")
@@ -67,11 +68,9 @@ class OpenVLARestPolicy(Policy):
             raise ValueError(f"style must be one of {STYLES}, got {style!r}")
         if gripper not in GRIPPER_MODES:
             raise ValueError(f"gripper must be one of {GRIPPER_MODES}, got {gripper!r}")
-        if not timeout_s > 0:
-            raise ValueError(f"timeout_s must be > 0 s, got {timeout_s}")
-        if not int(resize) > 0:
-            raise ValueError(f"resize must be a positive pixel size, got {resize}")
-        self.url = url or f"http://{host}:{int(port)}/act"
+        timeout_s = positive_number("timeout_s", timeout_s)
+        resize = int(positive_number("resize", resize, integer=True))
+        self.url = url or f"http://{host}:{int(positive_number('port', port, integer=True))}/act"
         self.timeout_s = float(timeout_s)
         self.unnorm_key_override = unnorm_key
         self.prompt_override = prompt
