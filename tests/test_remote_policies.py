@@ -211,6 +211,7 @@ def test_openvla_payload_styles_and_gripper_convention():
         ({"timeout_s": 0}, "timeout_s must be a positive number"),
         ({"resize": 2.5}, "resize must be a positive integer"),
         ({"port": "http"}, "port must be a positive integer"),
+        ({"clip": "no"}, "clip must be true or false"),
     ],
 )
 def test_bad_parameters_are_refused_at_construction(kind, args, message):

@@ -106,12 +106,20 @@ def positive_number(name: str, value: object, integer: bool = False) -> float:
     return number
 
 
+def flag(name: str, value: object) -> bool:
+    """``value`` as a bool (true/false, or 1/0), else a ValueError naming ``name``."""
+    if isinstance(value, bool) or value in (0, 1):
+        return bool(value)
+    raise ValueError(f"{name} must be true or false, got {value!r}")
+
+
 def _exception_text(traceback_text: str) -> str:
     """The exception lines of a Python traceback (what follows the last indented frame line)."""
     lines = [line for line in traceback_text.strip().splitlines() if line.strip()]
     indented = [i for i, line in enumerate(lines) if line[:1].isspace()]
-    last = " ".join(line.strip() for line in lines[indented[-1] + 1 :] if indented) if indented else ""
-    return _tail(last or traceback_text)
+    if not indented:
+        return _tail(traceback_text)
+    return _tail(" ".join(line.strip() for line in lines[indented[-1] + 1 :]) or traceback_text)
 
 
 def _tail(text: str) -> str:
@@ -156,7 +164,7 @@ class OpenPIPolicy(Policy):
         self.timeout_s = float(timeout_s)
         self.prompt_override = prompt
         self.resize = int(resize)
-        self.clip = bool(clip)
+        self.clip = flag("clip", clip)
         self.server_metadata: dict | None = None
         #: The last error text frame (openpi: the server's full traceback).
         self.last_server_error: str | None = None

@@ -26,6 +26,7 @@ from lq_ros.policies.openpi_remote import (
     WRIST,
     camera_image,
     checked_chunk,
+    flag,
     libero_state_8d,
     libero_training_image,
     positive_number,
@@ -77,8 +78,8 @@ class OpenVLARestPolicy(Policy):
         self.style = style
         self.gripper = gripper
         self.resize = int(resize)
-        self.center_crop = bool(center_crop)
-        self.clip = bool(clip)
+        self.center_crop = flag("center_crop", center_crop)
+        self.clip = flag("clip", clip)
         self.camera_names = (AGENTVIEW, WRIST) if style == "oft" else (AGENTVIEW,)
         self.last_timing: dict[str, float | None] = {}
         self.timings: list[dict[str, float | None]] = []
