@@ -1,0 +1,141 @@
+"""Scripted experts for LIBERO-Object and LIBERO-Goal: geometry helpers, expert choice, real episodes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lq_ros.env import LiberoEnv, TaskInfo
+from lq_ros.policies import PolicyError, make_policy
+from lq_ros.policies.scripted import ScriptedExpert, _Machine, _View
+from lq_ros.policies.scripted_tasks import (
+    BowlExpert,
+    KnobExpert,
+    PickPlaceExpert,
+    category,
+    expert_for,
+    top_grasp,
+    world_extent,
+)
+from lq_ros.runner import run_conventional
+
+SEED = 7
+
+
+def _yaw(rad: float) -> np.ndarray:
+    c, s = math.cos(rad), math.sin(rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _task(suite: str, goal: list[list[str]], task_id: int = 0) -> TaskInfo:
+    return TaskInfo(suite, task_id, "t", "do it", goal, 300, 50)
+
+
+def test_category_parses_instance_names_and_rejects_unknown() -> None:
+    assert category("ketchup_1") == "ketchup"
+    assert category("akita_black_bowl_1") == "akita_black_bowl"
+    assert category("basket") == "basket"
+    with pytest.raises(PolicyError, match="teapot_1"):
+        category("teapot_1")
+
+
+def test_world_extent_follows_rotation() -> None:
+    lo, hi = world_extent("cream_cheese_1", np.eye(3))
+    np.testing.assert_allclose(hi - lo, [0.082, 0.042, 0.018], atol=1e-9)
+    lo, hi = world_extent("cream_cheese_1", _yaw(math.pi / 2))
+    np.testing.assert_allclose(hi - lo, [0.042, 0.082, 0.018], atol=1e-9)
+
+
+def test_top_grasp_closes_across_the_narrow_side() -> None:
+    pos = np.array([0.1, -0.2, 0.009])
+    g = top_grasp("cream_cheese_1", pos, np.eye(3), current_axis=0.0, depth=0.025)
+    # The 4.2 cm side is local y: the fingers close along world y, whatever the current wrist angle.
+    assert abs(abs(g.axis) - math.pi / 2) < 1e-9
+    assert g.width == pytest.approx(0.042)
+    # A flat box: the grasp point is held 12 mm above its bottom (pads off the table).
+    assert g.point[2] == pytest.approx(pos[2] - 0.009 + 0.012)
+    np.testing.assert_allclose(g.point[:2], pos[:2], atol=1e-9)
+    # Yawed by 30 degrees, the closing axis turns with it.
+    g = top_grasp("cream_cheese_1", pos, _yaw(math.radians(30)), current_axis=0.0, depth=0.025)
+    assert math.remainder(g.axis - math.radians(120), math.pi) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_top_grasp_tall_object_below_its_top_and_square_prefers_less_rotation() -> None:
+    # Milk stands with its long local y axis vertical (quaternion 0.5, 0.5, 0.5, 0.5 in the scenes).
+    rot = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    pos = np.array([0.0, 0.0, 0.07])
+    lo, hi = world_extent("milk_1", rot)
+    assert hi[2] - lo[2] == pytest.approx(0.131)
+    for current in (0.0, math.pi / 2):
+        g = top_grasp("milk_1", pos, rot, current_axis=current, depth=0.025)
+        assert g.point[2] == pytest.approx(pos[2] + hi[2] - 0.025)
+        assert abs(math.remainder(g.axis - current, math.pi)) < 1e-9  # 5.2 x 5.3 cm: no wrist turn needed
+
+
+def test_expert_choice_by_suite_and_goal() -> None:
+    obj = expert_for(_task("libero_object", [["in", "ketchup_1", "basket_1_contain_region"]]), 8)
+    assert isinstance(obj, PickPlaceExpert) and obj.chunk_size == 8
+    stove = expert_for(_task("libero_goal", [["on", "akita_black_bowl_1", "flat_stove_1_cook_region"]]), 8)
+    assert isinstance(stove, BowlExpert)
+    plate = expert_for(_task("libero_goal", [["on", "akita_black_bowl_1", "plate_1"]]), 8)
+    assert type(plate) is ScriptedExpert
+    cheese = expert_for(_task("libero_goal", [["on", "cream_cheese_1", "akita_black_bowl_1"]]), 4)
+    assert isinstance(cheese, PickPlaceExpert) and cheese.chunk_size == 4
+    assert isinstance(expert_for(_task("libero_goal", [["turnon", "flat_stove_1"]]), 8), KnobExpert)
+
+
+@pytest.mark.parametrize(
+    ("suite", "goal", "why"),
+    [
+        ("libero_goal", [["on", "wine_bottle_1", "wine_rack_1_top_region"]], "rack"),
+        ("libero_goal", [["in", "akita_black_bowl_1", "wooden_cabinet_1_top_region"]], "drawer"),
+        ("libero_10", [["on", "akita_black_bowl_1", "plate_1"]], "libero_spatial, libero_object"),
+        ("libero_object", [["on", "ketchup_1", "plate_1"]], "no expert"),
+        ("libero_spatial", [["open", "wooden_cabinet_1_top_region"]], "needs an"),
+    ],
+)
+def test_uncovered_task_raises_at_reset_naming_task_and_reason(suite: str, goal: list, why: str) -> None:
+    policy = make_policy("scripted")
+    with pytest.raises(PolicyError, match="not covered") as info:
+        policy.reset(_task(suite, goal, task_id=3), SEED)
+    assert f"{suite} task 3" in str(info.value)
+    assert why in str(info.value)
+
+
+def _view_at(eef: np.ndarray) -> _View:
+    z3 = np.zeros(3)
+    return _View(0, eef, 0.0, z3, 0.0, obj_pos=z3, obj_rot=np.eye(3), target_pos=z3, obstacles=[])
+
+
+def test_knob_expert_walks_its_waypoints() -> None:
+    knob = KnobExpert(chunk_size=8)
+    m = _Machine(phase="wp0")
+    view = _view_at(knob._waypoints[0].copy())
+    assert knob._transition(m, _view_at(knob._waypoints[0] + 0.02), real=True) is m  # not there yet
+    m = knob._transition(m, view, real=True)
+    assert m.phase == "wp1"
+    a = knob._command(m, view)
+    assert a[2] == -1.0 and a[6] == 1.0  # straight down, gripper closed
+    view = _view_at(knob._waypoints[-1].copy())
+    assert knob._transition(_Machine(phase="wp3"), view, real=True).phase == "wp3"  # last waypoint: stay
+
+
+def _solve(suite: str, task_id: int, init: int) -> None:
+    env = LiberoEnv(suite, task_id)
+    try:
+        result = run_conventional(env, make_policy("scripted", chunk_size=8), init, SEED, replan_steps=8)
+        assert result.success, f"{suite} task {task_id} init {init}: no success in {env.task.step_budget} ticks"
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_object_expert_solves_a_task() -> None:
+    _solve("libero_object", 0, 0)
+
+
+@pytest.mark.slow
+def test_goal_expert_solves_a_task() -> None:
+    _solve("libero_goal", 6, 0)
