@@ -548,9 +548,17 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
+def _raise_keyboard_interrupt(*_) -> None:
+    raise KeyboardInterrupt
+
+
 def _local_worker_main(slot: int, transport: str, bags_dir: str, timeout_s, tasks, results) -> None:
     _die_with_parent()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop (Ctrl-C)
+    # Ctrl-C reaches the whole process group: the parent decides when workers stop. A no-op handler,
+    # not SIG_IGN, since an ignored SIGINT would be inherited by the ROS nodes a worker launches.
+    signal.signal(signal.SIGINT, lambda *_: None)
+    # Stopped by the parent (SIGTERM): unwind like Ctrl-C, so a launcher stops its nodes cleanly.
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     worker = EpisodeWorker(transport, Path(bags_dir), timeout_s)
     try:
         while True:
@@ -962,5 +970,9 @@ def run_with_progress(spec: SweepSpec, out_dir: Path, *, console=None, **kwargs)
         if record is not None and record["status"] == "error":
             progress.console.print(f"[red]error[/red] {record['episode']}: {record['row'].get('error_reason')}")
 
-    with progress:
-        return run_sweep(spec, out_dir, on_progress=update, **kwargs)
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)  # SIGTERM stops it like Ctrl-C
+    try:
+        with progress:
+            return run_sweep(spec, out_dir, on_progress=update, **kwargs)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
