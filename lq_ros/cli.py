@@ -225,6 +225,12 @@ def sweep(
     """Run a latency sweep (docs/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
     from lq_ros import sweep as sw
 
+    if backend not in sw.BACKENDS:
+        raise typer.BadParameter(f"--backend must be one of {', '.join(sw.BACKENDS)}, got {backend!r}")
+    if address and backend != "ray":
+        raise typer.BadParameter("--address is the Ray cluster address: use it with --backend ray")
+    if workers is not None and workers < 1:
+        raise typer.BadParameter(f"--workers must be >= 1, got {workers}")
     try:
         sweep_spec = sw.load_spec(spec)
         sw.check_policies(sweep_spec.configs)
