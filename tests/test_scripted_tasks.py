@@ -9,9 +9,10 @@ import pytest
 
 from lq_ros.env import LiberoEnv, TaskInfo
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.policies.scripted import ScriptedExpert, _Machine, _View
+from lq_ros.policies.scripted import _Machine, _View
 from lq_ros.policies.scripted_tasks import (
     BowlExpert,
+    BowlOntoObjectExpert,
     KnobExpert,
     PickPlaceExpert,
     category,
@@ -80,7 +81,7 @@ def test_expert_choice_by_suite_and_goal() -> None:
     stove = expert_for(_task("libero_goal", [["on", "akita_black_bowl_1", "flat_stove_1_cook_region"]]), 8)
     assert isinstance(stove, BowlExpert)
     plate = expert_for(_task("libero_goal", [["on", "akita_black_bowl_1", "plate_1"]]), 8)
-    assert type(plate) is ScriptedExpert
+    assert isinstance(plate, BowlOntoObjectExpert)
     cheese = expert_for(_task("libero_goal", [["on", "cream_cheese_1", "akita_black_bowl_1"]]), 4)
     assert isinstance(cheese, PickPlaceExpert) and cheese.chunk_size == 4
     assert isinstance(expert_for(_task("libero_goal", [["turnon", "flat_stove_1"]]), 8), KnobExpert)
