@@ -208,7 +208,8 @@ def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> None:
     ax.set_xticks(np.arange(len(latencies)), [f"{lat:g} s" for lat in latencies])
     ax.tick_params(axis="x", pad=30)
     ax.set_xlabel("injected latency Δt_sim (bars: policy · protocol; hatched: sync)")
-    ax.legend(loc="upper left", fontsize=8)
+    ax.set_ylim(0, ax.get_ylim()[1] * 1.18)  # room for the legend above the bars
+    ax.legend(loc="upper center", ncol=len(parts), fontsize=8)
     ax.grid(axis="y", alpha=0.3)
 
 

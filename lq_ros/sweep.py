@@ -688,6 +688,9 @@ def ray_init_local(num_cpus: int) -> None:
     """
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # inherited by every Ray process started below
+    # Ray starts workers at nice 15; here the workers are the work (a sim at nice 15 on a busy machine
+    # ran ~6x slower than a local worker), so they get the same priority as local workers.
+    os.environ.setdefault("RAY_worker_niceness", "0")
     import ray
     from ray._private import ray_constants
 
