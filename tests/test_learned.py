@@ -1,0 +1,234 @@
+"""Learned chunk policies: feature layout, dataset I/O, models, training, shipped weights, end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from lq_ros.env import Observation, TaskInfo, load_task
+from lq_ros.learned.dataset import Episode, read_frames, read_info, write_dataset
+from lq_ros.learned.features import (
+    STATE_DIM,
+    features,
+    goal_slots,
+    layout_for,
+    raw_from_observation,
+)
+from lq_ros.learned.models import ChunkRegressor, FlowChunkModel
+from lq_ros.learned.train import TrainConfig, prepare, train
+from lq_ros.policies import PolicyError, make_policy
+
+SPATIAL = layout_for("libero_spatial")
+
+
+def _obs(tick: int = 0, shift: float = 0.0, drop: str = "") -> Observation:
+    """A plausible LIBERO-Spatial observation (bowl on the table, plate to its right)."""
+    objects = {
+        "akita_black_bowl_1": (np.array([-0.06 + shift, 0.20, 0.898]), np.array([0.0, 0.0, 0.0, 1.0])),
+        "akita_black_bowl_2": (np.array([-0.19, 0.32, 0.898]), np.array([0.0, 0.0, 0.38, 0.92])),
+        "cookies_1": (np.array([0.06, 0.03, 0.909]), np.array([0.0, 0.0, 0.0, 1.0])),
+        "glazed_rim_porcelain_ramekin_1": (np.array([-0.20, 0.19, 0.899]), np.array([0.0, 0.0, 0.0, 1.0])),
+        "plate_1": (np.array([0.05, 0.21, 0.902]), np.array([0.0, 0.0, 0.0, 1.0])),
+    }
+    objects.pop(drop, None)
+    return Observation(
+        tick=tick,
+        sim_time_s=0.5 + 0.05 * tick,
+        eef_pos=np.array([-0.2, 0.0, 1.18]),
+        eef_quat_xyzw=np.array([1.0, 0.0, 0.0, 0.0]),
+        gripper_qpos=np.array([0.039, -0.039]),
+        joint_pos=np.array([0.0, 0.2, 0.0, -2.4, 0.0, 2.6, 0.8]),
+        joint_vel=np.zeros(7),
+        objects=objects,
+    )
+
+
+@pytest.fixture(scope="module")
+def task0() -> TaskInfo:
+    return load_task("libero_spatial", 0)[0]
+
+
+# --- feature layout ------------------------------------------------------------------------------------
+def test_feature_layout_dims_slots_and_missing_objects():
+    assert SPATIAL.feature_dim == 18 + 10 * 5 + 11 + 10
+    assert goal_slots(SPATIAL, [["on", "akita_black_bowl_1", "plate_1"]]) == (0, 4)
+    assert goal_slots(SPATIAL, [["open", "drawer"]]) == (-1, -1)
+    state, env = raw_from_observation(SPATIAL, _obs())
+    assert state.shape == (STATE_DIM,) and env.shape == (SPATIAL.env_state_dim,)
+    f = features(SPATIAL, state[None], env[None], np.array([3]), np.array([[0, 4]]))
+    assert f.shape == (1, SPATIAL.feature_dim)
+    goal = f[0, 68:79]
+    np.testing.assert_allclose(goal[:3], [0.14, 0.20, -0.282], atol=1e-5)  # bowl - EE
+    np.testing.assert_allclose(goal[6:9], [0.11, 0.01, 0.004], atol=1e-5)  # plate - bowl
+    assert f[0, 79 + 3] == 1.0 and f[0, 79:].sum() == 1.0  # task one-hot
+    # A missing goal object: its slot's presence flag and the goal geometry go to zero, nothing is NaN.
+    s2, e2 = raw_from_observation(SPATIAL, _obs(drop="plate_1"))
+    f2 = features(SPATIAL, s2[None], e2[None], np.array([3]), np.array([[0, 4]]))
+    assert np.all(np.isfinite(f2)) and f2[0, 18 + 10 * 4 + 9] == 0.0 and f2[0, 18 + 10 * 0 + 9] == 1.0
+    assert f2[0, 68 + 9] == 1.0 and f2[0, 68 + 10] == 0.0
+
+
+def test_features_quaternion_sign_invariant_and_task_checked():
+    state, env = raw_from_observation(SPATIAL, _obs())
+    flipped = env.reshape(5, 7).copy()
+    flipped[:, 3:] *= -1
+    s_flip = state.copy()
+    s_flip[3:7] *= -1
+    a = features(SPATIAL, state[None], env[None], np.array([0]), np.array([[0, 4]]))
+    b = features(SPATIAL, s_flip[None], flipped.reshape(1, -1), np.array([0]), np.array([[0, 4]]))
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    with pytest.raises(ValueError, match="task index"):
+        features(SPATIAL, state[None], env[None], np.array([10]), np.array([[0, 4]]))
+    with pytest.raises(ValueError, match="no feature layout"):
+        layout_for("libero_nowhere")
+
+
+# --- dataset -------------------------------------------------------------------------------------------
+def _episode(rng: np.random.Generator, task: int, length: int) -> Episode:
+    return Episode(
+        task_index=task, init_index=10 + task, seed=17 + task, noise_std=0.15,
+        state=rng.normal(size=(length, STATE_DIM)).astype(np.float32),
+        env_state=rng.normal(size=(length, SPATIAL.env_state_dim)).astype(np.float32),
+        action=rng.uniform(-1, 1, (length, 7)).astype(np.float32),
+        action_executed=rng.uniform(-1, 1, (length, 7)).astype(np.float32),
+        action_chunk=rng.uniform(-1, 1, (length, 16, 7)).astype(np.float32),
+        success=np.r_[np.zeros(length - 1, bool), True],
+    )  # fmt: skip
+
+
+def _write_synthetic(root, lengths=(5, 7)) -> list[Episode]:
+    rng = np.random.default_rng(0)
+    eps = [_episode(rng, t, n) for t, n in enumerate(lengths)]
+    extra = {
+        "suite": "libero_spatial",
+        "layout": SPATIAL.to_dict(),
+        "goals": {str(t): [["on", "akita_black_bowl_1", "plate_1"]] for t in range(len(lengths))},
+    }
+    write_dataset(root, eps, extra, {t: f"task {t}" for t in range(len(lengths))})
+    return eps
+
+
+def test_dataset_roundtrip(tmp_path):
+    eps = _write_synthetic(tmp_path)
+    info, cols = read_frames(tmp_path)
+    assert info["fps"] == 20 and info["total_episodes"] == 2 and info["total_frames"] == 12
+    assert info["features"]["action.chunk"]["shape"] == [16, 7]
+    assert info["features"]["observation.state"]["shape"] == [STATE_DIM]
+    np.testing.assert_array_equal(cols["episode_index"], [0] * 5 + [1] * 7)
+    np.testing.assert_array_equal(cols["frame_index"], [*range(5), *range(7)])
+    np.testing.assert_allclose(cols["timestamp"][:5], np.arange(5) / 20)
+    np.testing.assert_array_equal(cols["observation.environment_state"][5:], eps[1].env_state)
+    np.testing.assert_array_equal(cols["action.chunk"][:5], eps[0].action_chunk)
+    np.testing.assert_array_equal(cols["action"][5:], eps[1].action)
+    assert cols["next.success"].sum() == 2
+    lines = (tmp_path / "meta" / "episodes.jsonl").read_text().splitlines()
+    assert [json.loads(x)["length"] for x in lines] == [5, 7]
+    with pytest.raises(ValueError, match="no episodes"):
+        write_dataset(tmp_path / "empty", [], {}, {})
+    with pytest.raises(FileNotFoundError, match="lq collect"):
+        read_info(tmp_path / "missing")
+
+
+def test_prepare_targets_plan_and_future(tmp_path):
+    eps = _write_synthetic(tmp_path)
+    _, layout, feats, plan, episode = prepare([tmp_path], 8, "plan")
+    assert layout == SPATIAL and feats.shape == (12, SPATIAL.feature_dim)
+    np.testing.assert_array_equal(plan[5], eps[1].action_chunk[0, :8])
+    _, _, _, fut, _ = prepare([tmp_path], 4, "future")
+    np.testing.assert_array_equal(fut[3], eps[0].action[[3, 4, 4, 4]])  # padded with the last label
+    _, _, _, _, ep2 = prepare([tmp_path, tmp_path], 4, "plan")
+    assert sorted(set(ep2.tolist())) == [0, 1, 2, 3]  # episode ids stay distinct across datasets
+    with pytest.raises(ValueError, match="horizon 20"):
+        prepare([tmp_path], 20, "plan")
+
+
+# --- models --------------------------------------------------------------------------------------------
+def test_model_shapes_and_flow_determinism():
+    torch.manual_seed(0)
+    feats = torch.randn(3, SPATIAL.feature_dim)
+    oft = ChunkRegressor(SPATIAL.feature_dim, 8, width=32, depth=1)
+    assert oft(feats).shape == (3, 8, 7)
+    flow = FlowChunkModel(SPATIAL.feature_dim, 10, width=32, depth=1)
+    actions = torch.randn(3, 10, 7)
+    assert torch.isfinite(flow.loss(feats, actions, torch.Generator().manual_seed(1)))
+    noise = torch.randn(3, 10, 7, generator=torch.Generator().manual_seed(2))
+    a, b = flow.sample(feats, noise, 4), flow.sample(feats, noise.clone(), 4)
+    assert a.shape == (3, 10, 7) and torch.equal(a, b)
+    assert not torch.equal(a, flow.sample(feats, noise + 1.0, 4))
+
+
+# --- shipped weights -----------------------------------------------------------------------------------
+@pytest.mark.parametrize(("name", "args", "horizon"), [("oft", {}, 8), ("oft", {"chunk_size": 1}, 1), ("flow", {}, 10)])
+def test_shipped_weights_load_and_infer_deterministically(task0, name, args, horizon):
+    policy = make_policy(name, **args)
+    policy.reset(task0, seed=7)
+    chunk = policy.infer(_obs(tick=3))
+    assert chunk.shape == (horizon, 7) and np.all(np.abs(chunk) <= 1.0)
+    assert set(np.unique(chunk[:, 6])) <= {-1.0, 1.0}
+    again = make_policy(name, **args)
+    again.reset(task0, seed=7)
+    np.testing.assert_array_equal(again.infer(_obs(tick=3)), chunk)
+    # The chunk depends on the observation (not a constant output).
+    assert not np.array_equal(policy.infer(_obs(tick=3, shift=0.08)), chunk)
+    meta = policy.meta
+    assert meta["layout"] == SPATIAL.to_dict() and meta["metrics"]["final_train_loss"] > 0
+
+
+def test_policy_rejects_other_suite_and_missing_weights(task0):
+    policy = make_policy("oft")
+    other = TaskInfo(**{**task0.to_dict(), "suite": "libero_object"})
+    with pytest.raises(PolicyError, match="libero_spatial"):
+        policy.reset(other, 0)
+    with pytest.raises(PolicyError, match="reset"):
+        make_policy("flow").infer(_obs())
+    with pytest.raises(FileNotFoundError, match="shipped"):
+        make_policy("oft", weights="no_such_weights")
+    with pytest.raises(ValueError, match="chunk_size 1 or 8"):
+        make_policy("oft", chunk_size=4)
+    with pytest.raises(ValueError, match="'flow' checkpoint"):
+        make_policy("oft", weights="flow_c10")
+
+
+# --- end to end ----------------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_collect_train_load_infer_end_to_end(tmp_path, task0):
+    """Collect one real expert episode, train both kinds a few steps, load the result, infer."""
+    from typer.testing import CliRunner
+
+    from lq_ros.cli import app
+    from lq_ros.env import LiberoEnv
+
+    data = tmp_path / "data"
+    runner = CliRunner()
+    res = runner.invoke(app, ["collect", "--out", str(data), "--tasks", "0", "--inits", "10", "--noise", "0.2",
+                              "--workers", "1"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    info, cols = read_frames(data)
+    assert info["total_episodes"] == 1 and info["collection"]["per_task"]["0"]["successes"] == 1
+    assert cols["next.success"][-1] and not cols["next.success"][:-1].any()
+    noise = cols["action.executed"][:, :6] - cols["action"][:, :6]
+    assert 0.05 < noise.std() < 0.3  # executed = label + noise (clipped); the gripper is never perturbed
+    np.testing.assert_array_equal(cols["action.executed"][:, 6], cols["action"][:, 6])
+    np.testing.assert_array_equal(cols["action.chunk"][:, 0], cols["action"])
+
+    out = tmp_path / "w"
+    meta = train(TrainConfig(policy="flow", horizon=10, steps=20, log_every=10, width=32, depth=1, replan_steps=5),
+                 [data], out)  # fmt: skip
+    assert [e["step"] for e in meta["metrics"]["log"]] == [10, 20]
+    res = runner.invoke(app, ["train", "--policy", "oft", "--data", str(data), "--out", str(out), "--steps", "20",
+                              "--width", "32", "--depth", "1"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    env = LiberoEnv("libero_spatial", 0)
+    try:
+        env.reset(0, 7)
+        obs = env.observe(with_images=False)
+    finally:
+        env.close()
+    for name, weights, horizon in (("oft", out / "oft_c8.json", 8), ("flow", out / "flow_c10.pt", 10)):
+        policy = make_policy(name, weights=str(weights))
+        policy.reset(task0, 7)
+        chunk = policy.infer(obs)
+        assert chunk.shape == (horizon, 7) and np.all(np.isfinite(chunk))
