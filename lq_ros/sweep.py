@@ -750,10 +750,11 @@ class RayPool:
             slot, log_path = self._pending.pop(ref)
             try:
                 result = ray.get(ref)
-            except (ray.exceptions.RayActorError, ray.exceptions.WorkerCrashedError) as exc:
-                result = {"status": "error", "reason": f"Ray worker died: {type(exc).__name__}", "row": None,
+            except ray.exceptions.RayError as exc:  # the actor died, or failed outside the episode
+                result = {"status": "error", "reason": f"Ray worker failed: {type(exc).__name__}", "row": None,
                           "bag": None, "wall_s": None, "log_text": str(exc)}  # fmt: skip
-                self._actors[slot] = self._actor_cls.remote(*self._args)
+                if isinstance(exc, ray.exceptions.RayActorError | ray.exceptions.WorkerCrashedError):
+                    self._actors[slot] = self._actor_cls.remote(*self._args)
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
             Path(log_path).write_text(result.pop("log_text", ""))
             for data in result.pop("tars", []):

@@ -67,17 +67,10 @@ def listening_addresses(pids: set[int]) -> dict[int, set[str]]:
 
 
 def test_ray_backend_on_loopback_gathers_results_and_shuts_down(tmp_path):
-    spec = sw.expand_spec(
-        {
-            "transport": "inprocess",
-            "tasks": [0],
-            "inits": [0],
-            "policies": ["sine"],
-            "latencies_s": [0.0, 0.1],
-            "modes": ["async"],
-            "max_steps": 6,
-        }  # fmt: skip
-    )
+    # The second policy kills its Ray worker once: the actor is replaced and the episode retried.
+    dies_once = {"name": "tests.test_sweep:ExitOncePolicy", "args": {"marker": str(tmp_path / "marker")}}
+    raw = {"transport": "inprocess", "tasks": [0], "inits": [0], "policies": ["sine", dies_once]}
+    spec = sw.expand_spec({**raw, "latencies_s": [0.1], "modes": ["async"], "max_steps": 6})
     seen: dict[int, set[str]] = {}
 
     def probe(summary, record) -> None:
@@ -85,17 +78,21 @@ def test_ray_backend_on_loopback_gathers_results_and_shuts_down(tmp_path):
         for pid, addrs in listening_addresses(_descendants(os.getpid())).items():
             seen.setdefault(pid, set()).update(addrs)
 
-    summary = sw.run_sweep(spec, tmp_path, workers=2, backend="ray", on_progress=probe)
-    assert summary.counts == {"failure": 2}
+    out = tmp_path / "out"
+    summary = sw.run_sweep(spec, out, workers=2, backend="ray", on_progress=probe)
+    assert summary.counts == {"failure": 2} and summary.retried == 1
     assert seen, "no Ray process was listening during the sweep"
     assert all(addrs <= LOOPBACK for addrs in seen.values()), seen
-    records = sw.ResultStore(tmp_path).records()
+    records = sw.ResultStore(out).records()
     assert len(records) == 2
     for record in records:
         # Bags travelled back from the Ray worker's own folder into the sweep's store.
-        assert (tmp_path / record["bag"] / "metadata.yaml").exists()
-        assert (tmp_path / record["attempts"][0]["log"]).exists()
+        assert (out / record["bag"] / "metadata.yaml").exists()
+        assert all((out / a["log"]).exists() for a in record["attempts"])
         assert record["row"]["completion_steps"] == 6
+    died = next(r for r in records if r["config"]["policy"] != "sine")
+    assert [a["status"] for a in died["attempts"]] == ["error", "failure"]
+    assert "Ray worker failed: ActorDiedError" in died["attempts"][0]["reason"]
     import ray
 
     assert not ray.is_initialized()
