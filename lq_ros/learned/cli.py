@@ -68,6 +68,8 @@ def train(
     width: int = 256,
     depth: int = 3,
     seed: int = 0,
+    dropout: float = 0.0,
+    feature_noise: Annotated[float, typer.Option(help="Input noise std (normalised units) in training.")] = 0.0,
     target: Annotated[str, typer.Option(help="plan (expert's plan per frame) | future (next H labels).")] = "plan",
     replan_steps: Annotated[int, typer.Option(help="Actions run per chunk (default); 0: H//2 flow, H oft.")] = 0,
     flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = 10,
@@ -83,7 +85,8 @@ def train(
     try:
         cfg = TrainConfig(
             policy=policy, horizon=horizon, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
-            seed=seed, target=target, replan_steps=replan, flow_steps=flow_steps, threads=threads, name=name,
+            seed=seed, dropout=dropout, feature_noise=feature_noise, target=target, replan_steps=replan,
+            flow_steps=flow_steps, threads=threads, name=name,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -19,20 +19,21 @@ ACTION_DIM = 7
 class _Block(nn.Module):
     """Pre-norm residual MLP block."""
 
-    def __init__(self, width: int) -> None:
+    def __init__(self, width: int, dropout: float = 0.0) -> None:
         super().__init__()
         self.net = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, width), nn.GELU(), nn.Linear(width, width))
+        self.drop = nn.Dropout(dropout)  # no parameters: checkpoints load with or without it
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x + self.net(x)
+        return x + self.drop(self.net(x))
 
 
 class ChunkRegressor(nn.Module):
-    def __init__(self, feature_dim: int, horizon: int, width: int = 256, depth: int = 3) -> None:
+    def __init__(self, feature_dim: int, horizon: int, width: int = 256, depth: int = 3, dropout: float = 0.0) -> None:
         super().__init__()
         self.horizon = horizon
         self.inp = nn.Linear(feature_dim, width)
-        self.blocks = nn.Sequential(*(_Block(width) for _ in range(depth)))
+        self.blocks = nn.Sequential(*(_Block(width, dropout) for _ in range(depth)))
         self.out = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, horizon * ACTION_DIM))
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
@@ -53,14 +54,16 @@ def _time_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 class FlowChunkModel(nn.Module):
-    def __init__(self, feature_dim: int, horizon: int, width: int = 256, depth: int = 3, time_dim: int = 64) -> None:
+    def __init__(
+        self, feature_dim: int, horizon: int, width: int = 256, depth: int = 3, dropout: float = 0.0, time_dim: int = 64
+    ) -> None:
         super().__init__()
         self.horizon = horizon
         self.time_dim = time_dim
         self.obs = nn.Linear(feature_dim, width)
         self.act = nn.Linear(horizon * ACTION_DIM, width)
         self.time = nn.Sequential(nn.Linear(time_dim, width), nn.GELU(), nn.Linear(width, width))
-        self.blocks = nn.Sequential(*(_Block(width) for _ in range(depth)))
+        self.blocks = nn.Sequential(*(_Block(width, dropout) for _ in range(depth)))
         self.out = nn.Sequential(nn.LayerNorm(width), nn.Linear(width, horizon * ACTION_DIM))
 
     def velocity(self, feats: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -88,7 +91,7 @@ class FlowChunkModel(nn.Module):
 MODELS = {"oft": ChunkRegressor, "flow": FlowChunkModel}
 
 
-def build_model(kind: str, feature_dim: int, horizon: int, width: int, depth: int) -> nn.Module:
+def build_model(kind: str, feature_dim: int, horizon: int, width: int, depth: int, dropout: float = 0.0) -> nn.Module:
     if kind not in MODELS:
         raise ValueError(f"unknown model kind {kind!r}; known: {', '.join(MODELS)}")
-    return MODELS[kind](feature_dim, horizon, width=width, depth=depth)
+    return MODELS[kind](feature_dim, horizon, width=width, depth=depth, dropout=dropout)

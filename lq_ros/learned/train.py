@@ -33,6 +33,10 @@ class TrainConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     warmup_steps: int = 200
+    #: Regularisation against the small dataset: dropout in the MLP blocks, and Gaussian noise (std in
+    #: normalised feature units) added to the training inputs.
+    dropout: float = 0.0
+    feature_noise: float = 0.0
     seed: int = 0
     #: Fraction of episodes held out for the validation loss.
     val_fraction: float = 0.05
@@ -145,7 +149,7 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     val_idx = torch.from_numpy(np.flatnonzero(is_val))
     _log(f"{len(episodes)} episodes ({n_val} held out), {len(train_idx)}/{len(val_idx)} train/val frames")
 
-    model = build_model(cfg.policy, layout.feature_dim, cfg.horizon, cfg.width, cfg.depth)
+    model = build_model(cfg.policy, layout.feature_dim, cfg.horizon, cfg.width, cfg.depth, cfg.dropout)
     n_params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
@@ -177,7 +181,10 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         for group in opt.param_groups:
             group["lr"] = lr_at(step)
         batch = train_idx[torch.randint(len(train_idx), (cfg.batch_size,), generator=gen)]
-        loss = model.loss(x[batch], y[batch], gen)
+        xb = x[batch]
+        if cfg.feature_noise > 0:
+            xb = xb + cfg.feature_noise * torch.randn(xb.shape, generator=gen)
+        loss = model.loss(xb, y[batch], gen)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
