@@ -333,9 +333,12 @@ class BowlOntoObjectExpert(ScriptedExpert):
         shift = v.obj_pos[:2] - v.target_pos[:2]
         self.robot_base_xy = (base[0] + float(shift[0]), base[1] + float(shift[1]))
         try:
-            return super()._choose_grasp(m, v)
+            # The hand is ~20 cm long along the closing axis: held by its -y side, it hits the cabinet's
+            # drawer handles (y -0.13) while lowering onto the plate, so that side counts as a failed one.
+            chosen = super()._choose_grasp(replace(m, failed=(*m.failed, -math.pi / 2)), v)
         finally:
             self.robot_base_xy = base
+        return replace(chosen, failed=m.failed)
 
 
 def expert_for(task: TaskInfo, chunk_size: int) -> ScriptedExpert:
