@@ -256,12 +256,13 @@ def sweep(
 def report(
     results_dir: Path,
     out: Annotated[Path | None, typer.Option(help="Output folder; default: RESULTS_DIR/report.")] = None,
+    all_episodes: Annotated[bool, typer.Option(help="Every finished episode, not only the spec's.")] = False,
 ) -> None:
     """Figures (paper Figs. 4-7, 95% CIs), tables, report.html and report.md of a sweep or bag folder."""
     from lq_ros.report import build_report
 
     try:
-        result = build_report(results_dir, out)
+        result = build_report(results_dir, out, all_episodes=all_episodes)
     except FileNotFoundError as exc:
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2) from exc

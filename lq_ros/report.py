@@ -46,9 +46,17 @@ FIGURES = {
 # -- data ------------------------------------------------------------------------------------
 
 
-def load_episodes(results_dir: Path) -> pd.DataFrame:
+def sweep_manifest(results_dir: Path) -> set[str] | None:
+    """Episode keys of the sweep's current spec (None: not a sweep folder)."""
+    path = Path(results_dir) / "manifest.json"
+    return set(json.loads(path.read_text())["episodes"]) if path.exists() else None
+
+
+def load_episodes(results_dir: Path, *, all_episodes: bool = False) -> pd.DataFrame:
     """Per-episode rows of a sweep folder (from its store) or of every bag below ``results_dir``.
 
+    In a sweep folder only the episodes of its current spec (manifest.json) are used, so every
+    series pools the same tasks; ``all_episodes`` takes every finished record in the store.
     ``bag`` is kept relative to ``results_dir`` so the report's links survive moving the folder.
     """
     from lq_ros.sweep import ResultStore
@@ -56,8 +64,11 @@ def load_episodes(results_dir: Path) -> pd.DataFrame:
     results_dir = Path(results_dir)
     store = ResultStore(results_dir)
     if store.results.is_dir():
+        wanted = None if all_episodes else sweep_manifest(results_dir)
         rows = []
         for record in store.records():
+            if wanted is not None and record["key"] not in wanted:
+                continue
             row = dict(record["row"])
             row.update(bag=record.get("bag"), key=record["key"], attempts=len(record.get("attempts", [])))
             row["log"] = record["attempts"][-1].get("log") if record.get("attempts") else None
@@ -280,6 +291,10 @@ def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
     if spec.exists():
         out["sweep spec"] = str(spec.name)
     out["episodes"] = str(len(episodes))
+    manifest = sweep_manifest(results_dir)
+    if manifest is not None:
+        done = set(episodes["key"].dropna()) if "key" in episodes else set()
+        out["episodes of the spec not finished"] = str(len(manifest - done))
     return out
 
 
@@ -405,13 +420,14 @@ class Report:
 
 
 def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int = 2000, seed: int = 0,
-                 keep_figures: bool = False) -> Report:  # fmt: skip
+                 keep_figures: bool = False, all_episodes: bool = False) -> Report:  # fmt: skip
     """Write figures, tables, report.html and report.md for ``results_dir`` into ``out_dir``
-    (default ``results_dir/report``). ``keep_figures`` leaves the matplotlib figures open (tests)."""
+    (default ``results_dir/report``). ``keep_figures`` leaves the matplotlib figures open (tests);
+    ``all_episodes``: see load_episodes."""
     results_dir = Path(results_dir)
     out_dir = Path(out_dir) if out_dir else results_dir / "report"
     out_dir.mkdir(parents=True, exist_ok=True)
-    episodes = load_episodes(results_dir)
+    episodes = load_episodes(results_dir, all_episodes=all_episodes)
     pooled = figure_aggregates(episodes, n_boot=n_boot, seed=seed)
     per_task = agg.aggregate(episodes, n_boot=n_boot, seed=seed)
     files = agg.write_tables(episodes, per_task, out_dir)

@@ -93,6 +93,7 @@ def test_pages_tables_provenance_and_links(report, sweep_dir):
     for key in ("mujoco", "git_commit", "seeds", "init states", "transports"):
         assert key in html and key in md
     assert "2.3.7" in html  # the MuJoCo version the episodes ran on
+    assert "| episodes of the spec not finished | 0 |" in md
     for table in ("episodes.csv", "episodes.parquet", "aggregates.csv", "aggregates.parquet", "aggregates_pooled.csv"):
         assert report.files[table].stat().st_size > 100
     assert len(report.pooled) == 4 and set(report.pooled["n"]) == {2}
