@@ -131,6 +131,9 @@ class ScriptedExpert(Policy):
 
     name = "scripted"
     camera_names = ()
+    #: Replay the last chunk's actions for ticks it still covers when planning the next one. Off for the
+    #: Spatial expert (its behaviour is kept as it was); the other experts turn it on (async latency).
+    commit_inflight = False
 
     def __init__(
         self,
@@ -170,6 +173,8 @@ class ScriptedExpert(Policy):
         self._plan: dict[int, tuple[_Machine, np.ndarray]] = {}
         #: The expert that runs a non-Spatial task (chosen at reset), or None: this one runs it.
         self._delegate: ScriptedExpert | None = None
+        #: Action and machine state per tick of the last chunk (for ``commit_inflight``).
+        self._rows: dict[int, tuple[np.ndarray, _Machine]] = {}
 
     def params(self) -> dict:
         return {
@@ -191,6 +196,7 @@ class ScriptedExpert(Policy):
     def reset(self, task: TaskInfo, seed: int) -> None:
         """Start an episode; LIBERO-Object / -Goal tasks go to the expert covering them (PolicyError if none)."""
         self._delegate = None
+        self._rows = {}
         if task.suite != "libero_spatial":
             from lq_ros.policies.scripted_tasks import expert_for  # imports this module
 
@@ -233,13 +239,27 @@ class ScriptedExpert(Policy):
         near = machine.grasp_local is not None and bool(
             np.linalg.norm(self._grasp_point(machine, view) - view.eef) < self.close_commit_dist
         )
+        rows: dict[int, tuple[np.ndarray, _Machine]] = {}
+        # A transition only a real observation may trigger, seen now, takes effect after the replayed rows.
+        replay = self.commit_inflight and view.tick in self._rows
+        seen = self._act(machine, view, None, True)[0] if replay else machine
+        at_obs = machine
         for i in range(self.chunk_size):
             plan[view.tick] = (machine, vel.copy())
-            machine, action = self._act(machine, view, vel if i > 0 else None, near or i == 0)
+            if self.commit_inflight and view.tick in self._rows:
+                # Still queued from the last chunk (async): those actions run whatever this chunk says, so
+                # the rollout replays them and plans the rest from where they will leave the arm.
+                action, machine = self._rows[view.tick]
+            else:
+                if seen.phase != at_obs.phase and machine.phase == at_obs.phase:
+                    machine, seen = seen, at_obs
+                machine, action = self._act(machine, view, vel if i > 0 else None, near or i == 0)
+            rows[view.tick] = (action, machine)
             chunk[i] = action
             vel, yaw_rate = self._predict(view, machine, action, vel, yaw_rate)
         plan[view.tick] = (machine, vel.copy())
         self._plan = plan
+        self._rows = rows
         return np.clip(chunk, -1.0, 1.0)
 
     def _view(self, obs: Observation) -> _View:

@@ -192,6 +192,8 @@ class Target:
 class PickPlaceExpert(ScriptedExpert):
     """Top-down pick of an upright box / can / bottle, placed onto or into a target."""
 
+    commit_inflight = True
+
     name = "scripted"
 
     def __init__(
@@ -301,6 +303,8 @@ class PickPlaceExpert(ScriptedExpert):
 class BowlExpert(ScriptedExpert):
     """The Spatial bowl expert with a fixed surface of the LIBERO-Goal scene as its target."""
 
+    commit_inflight = True
+
     def __init__(self, obj: str, surface: tuple[float, float, float], *, chunk_size: int = 8) -> None:
         super().__init__(chunk_size=chunk_size)
         self._obj = obj
@@ -327,6 +331,8 @@ class BowlOntoObjectExpert(ScriptedExpert):
     On LIBERO-Goal the plate lies ~0.70 m from the robot base: a bowl held by its far side cannot be
     lowered there (the stretched arm stalls ~15 cm up), so the reach penalty is taken at the target.
     """
+
+    commit_inflight = True
 
     def _choose_grasp(self, m: _Machine, v: _View) -> _Machine:
         base = self.robot_base_xy
@@ -387,6 +393,8 @@ class KnobExpert(ScriptedExpert):
     The knob angle is not observed: the push runs for a fixed distance, far enough to pass the 0.5 rad
     on-threshold (success ends the episode as soon as it is reached).
     """
+
+    commit_inflight = True
 
     def __init__(self, *, chunk_size: int = 8, push_radius: float = 0.034, push_z: float = 0.930,
                  push_from: float = -0.045, push_to: float = 0.045) -> None:
@@ -496,6 +504,8 @@ class DrawerExpert(ScriptedExpert):
     so they straddle the handle bar from above and below; a top-down grasp cannot reach behind a bar
     with another handle 7 cm above it. The handle is a fixture (not observed): its closed pose is fixed.
     """
+
+    commit_inflight = True
 
     def __init__(
         self,
