@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from lq_ros.env import LiberoEnv, TaskInfo
+from lq_ros.env import LiberoEnv, Observation, TaskInfo
 from lq_ros.policies import PolicyError, make_policy
 from lq_ros.policies.scripted import _Machine, _View
 from lq_ros.policies.scripted_tasks import (
@@ -140,3 +140,26 @@ def test_object_expert_solves_a_task() -> None:
 @pytest.mark.slow
 def test_goal_expert_solves_a_task() -> None:
     _solve("libero_goal", 6, 0)
+
+
+def _obs(tick: int, eef: tuple[float, float, float]) -> Observation:
+    soup = (np.array([-0.12, -0.24, 0.038]), np.array([0.002, 0.708, 0.706, -0.002]))
+    basket = (np.array([0.015, 0.252, -0.005]), np.array([-0.002, 0.002, 0.707, 0.707]))
+    return Observation(
+        tick=tick, sim_time_s=0.0, eef_pos=np.array(eef), eef_quat_xyzw=np.array([1.0, 0.0, 0.0, 0.0]),
+        gripper_qpos=np.array([0.039, -0.039]), joint_pos=np.zeros(7), joint_vel=np.zeros(7),
+        objects={"alphabet_soup_1": soup, "basket_1": basket},
+    )  # fmt: skip
+
+
+def test_queued_actions_are_replayed_when_planning_under_latency() -> None:
+    expert = expert_for(_task("libero_object", [["in", "alphabet_soup_1", "basket_1_contain_region"]]), 8)
+    expert._start(_task("libero_object", []))
+    first = expert.infer(_obs(0, (-0.15, 0.0, 0.25)))
+    # Observation 4 ticks later (async, N = 4): rows for ticks 4..7 are still queued and will run as sent.
+    second = expert.infer(_obs(4, (-0.148, -0.03, 0.25)))
+    np.testing.assert_array_equal(second[:4], first[4:])
+    assert not np.allclose(second[4:], first[4:])
+    # With no queued rows (the conventional loop) a chunk is planned from the observation alone.
+    third = expert.infer(_obs(20, (-0.148, -0.03, 0.25)))
+    assert third.shape == (8, 7) and np.all(np.abs(third) <= 1.0)
