@@ -65,8 +65,8 @@ class Timed(Policy):
         return out
 
 
-def eval_task(job: tuple[int, list[str], int, int]) -> list[dict]:
-    """All policies on one task (one env), init states 0..inits-1."""
+def eval_task(job: tuple[int, list[str], range, int]) -> list[dict]:
+    """All policies on one task (one env), over the init states ``inits``."""
     task_id, specs, inits, replan_override = job
     env = LiberoEnv(SUITE, task_id)
     rows = []
@@ -75,7 +75,7 @@ def eval_task(job: tuple[int, list[str], int, int]) -> list[dict]:
             name, kwargs = parse_spec(spec)
             policy = Timed(make_policy(name, **kwargs))
             replan = replan_override or int(policy.inner.meta["inference"]["replan_steps"])
-            for init in range(inits):
+            for init in inits:
                 t0 = time.perf_counter()
                 try:
                     res = run_conventional(env, policy, init, SEED, replan)
@@ -113,10 +113,10 @@ def isolated_latency_ms(spec: str, repeats: int = 200) -> dict:
     return {"mean": float(t.mean()), "p50": float(np.median(t)), "p95": float(np.percentile(t, 95))}
 
 
-def report(rows: list[dict], specs: list[str], tasks: list[int], inits: int, isolated: bool) -> dict:
+def report(rows: list[dict], specs: list[str], tasks: list[int], inits, isolated: bool) -> dict:
     """Print the per-task success table and latency of ``rows``; returns the summary."""
     episodes = [r for r in rows if "status" in r]
-    print(f"suite={SUITE} seed={SEED} inits=0..{inits - 1} tasks={tasks} Δt_sim=0 (conventional loop)")
+    print(f"suite={SUITE} seed={SEED} inits={list(inits)} tasks={tasks} Δt_sim=0 (conventional loop)")
     print("policy             replan " + " ".join(f"t{t:<3d}" for t in tasks) + "  total       steps(ok)  infer ms")
     summary = {}
     for spec in specs:
@@ -156,7 +156,8 @@ def report(rows: list[dict], specs: list[str], tasks: list[int], inits: int, iso
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--inits", type=int, default=10, help="first N init states per task")
+    ap.add_argument("--inits", type=int, default=10, help="N init states per task")
+    ap.add_argument("--init-start", type=int, default=0, help="first init state (to split a run; see --merge)")
     ap.add_argument("--tasks", type=int, nargs="*", default=list(range(10)))
     ap.add_argument("--policy", action="append", help="name[:key=value,...] (repeatable)")
     ap.add_argument("--replan-steps", type=int, default=0, help="override the weights' replan_steps")
@@ -170,12 +171,13 @@ def main() -> None:
         rows = [r for path in args.merge for r in json.loads(path.read_text())["rows"]]
         specs = list(dict.fromkeys(r["policy"] for r in rows))
         tasks = sorted({r["task"] for r in rows})
-        inits = max(r["init"] for r in rows if "init" in r) + 1
+        inits = sorted({r["init"] for r in rows if "init" in r})
         report(rows, specs, tasks, inits, isolated=not args.no_isolated)
         return
     specs = args.policy or list(DEFAULT_POLICIES)
     started = time.perf_counter()
-    jobs = [(t, specs, args.inits, args.replan_steps) for t in args.tasks]
+    inits = range(args.init_start, args.init_start + args.inits)
+    jobs = [(t, specs, inits, args.replan_steps) for t in args.tasks]
     if args.workers > 1 and len(jobs) > 1:
         with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
             results = pool.map(eval_task, jobs, chunksize=1)
@@ -185,7 +187,7 @@ def main() -> None:
     wall = time.perf_counter() - started
     if args.json:
         args.json.write_text(json.dumps({"rows": rows}, indent=1))
-    summary = report(rows, specs, args.tasks, args.inits, isolated=not args.no_isolated)
+    summary = report(rows, specs, args.tasks, inits, isolated=not args.no_isolated)
     print(f"wall time {wall:.0f} s with {args.workers} workers (episodes only)")
     if args.json:
         args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
