@@ -387,7 +387,7 @@ def expert_for(task: TaskInfo, chunk_size: int) -> ScriptedExpert:
 
 # --- stove knob ------------------------------------------------------------------------------------------
 class KnobExpert(ScriptedExpert):
-    """Turn the stove knob on: lower the closed gripper beside the knob's pointer and push it sideways.
+    """Turn the stove knob on: lower the closed gripper beside the knob's handle and push it sideways.
 
     Waypoints in the world frame, followed with the same servo and chunk rollout as the pick experts.
     The knob angle is not observed: the push runs for a fixed distance, far enough to pass the 0.5 rad
@@ -396,9 +396,13 @@ class KnobExpert(ScriptedExpert):
 
     commit_inflight = True
 
-    def __init__(self, *, chunk_size: int = 8, push_radius: float = 0.034, push_z: float = 0.930,
-                 push_from: float = -0.045, push_to: float = 0.045) -> None:
+    def __init__(self, *, chunk_size: int = 8, push_radius: float = -0.040, push_z: float = 0.945,
+                 push_from: float = 0.05, push_to: float = -0.045, closing_axis: float = math.pi / 2) -> None:
+        """``push_radius``: signed x offset of the push line from the hinge (m; negative: the knob's handle
+        on the robot's side); ``push_from``/``push_to``: y offsets of the push (m); ``closing_axis``: world
+        angle of the fingers' closing axis (rad)."""
         super().__init__(chunk_size=chunk_size)
+        self.closing_axis = float(closing_axis)
         ax, ay = GOAL_SCENE_KNOB_AXIS
         x = ax + push_radius
         self._waypoints = [
@@ -417,6 +421,7 @@ class KnobExpert(ScriptedExpert):
             "push_z": self.push_z,
             "push_from": self.push_from,
             "push_to": self.push_to,
+            "closing_axis": self.closing_axis,
         }
 
     def _start(self, task: TaskInfo) -> None:
@@ -458,10 +463,11 @@ class KnobExpert(ScriptedExpert):
         if self._index(m) == 0:
             a[:3] *= 0.6  # arrive without overshoot next to the stove
         a[3:5] = np.clip(self.tilt_gain * v.tilt[:2], -1.0, 1.0)
-        # Fingers side by side along x. Known failure (4 of the first 10 inits): the inner finger's 2.6 cm
-        # body touches the knob's handle across the axis and pins the knob below the on-threshold; closing
-        # along y or pushing further out (tried) pins it on the pointer's top or the handle instead.
-        a[5] = np.clip(self.yaw_gain * _wrap_half(0.0 - v.axis) / (YAW_PER_STEP * 4), -1.0, 1.0)
+        # Fingers closing along y, pushing the handle on the robot's side of the hinge toward -y, pads high
+        # on it: with the fingers closing along x (first version, 6/10) the inner finger's 2.6 cm thick body
+        # touched the pointer across the hinge and the two torques cancelled; lower pads let the thick part
+        # of a finger rest on the knob's top and pin it.
+        a[5] = np.clip(self.yaw_gain * _wrap_half(self.closing_axis - v.axis) / (YAW_PER_STEP * 4), -1.0, 1.0)
         a[6] = 1.0  # closed: the two fingers make one pusher
         return a
 
