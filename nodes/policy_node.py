@@ -41,6 +41,7 @@ class PolicyNode(Node):
             raw_subscription(self, m.camera_topic(cam), self.on_image)
 
         self.ready = False  # policy reset for the episode
+        self.reset_error = ""  # why reset failed: every request is then answered with this error
         self.now_ns = 0
         self.pending_obs: list = []  # observations waiting for the task or their images
         self.images: dict[int, dict[str, np.ndarray]] = {}  # stamp ns -> camera -> image
@@ -49,7 +50,11 @@ class PolicyNode(Node):
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED:
             detail = json.loads(event.detail_json)
-            self.policy.reset(TaskInfo.from_dict(detail["task"]), int(detail["seed"]))
+            try:
+                self.policy.reset(TaskInfo.from_dict(detail["task"]), int(detail["seed"]))
+            except Exception as exc:  # noqa: BLE001 - e.g. a task the policy does not cover: answered as an error
+                self.reset_error = f"reset failed: {type(exc).__name__}: {exc}"
+                self.get_logger().error(f"{self.reset_error}\n{traceback.format_exc()}")
             self.ready = True
             self.try_infer()
 
@@ -79,9 +84,10 @@ class PolicyNode(Node):
     def infer(self, msg, images: dict[str, np.ndarray]) -> None:
         obs = m.observation_from_msg(msg, images)
         started = time.perf_counter()
-        actions, error = None, ""
+        actions, error = None, self.reset_error
         try:
-            actions = self.policy.infer(obs)
+            if not error:
+                actions = self.policy.infer(obs)
         except Exception as exc:  # noqa: BLE001 - reported to the executor, which ends the episode
             error = f"{type(exc).__name__}: {exc}"
             self.get_logger().error(f"inference failed: {error}\n{traceback.format_exc()}")

@@ -91,6 +91,14 @@ def test_policy_crash_is_an_error(tmp_path):
     assert "injected failure" in row["error_reason"]
 
 
+def test_policy_reset_failure_is_an_error_with_its_reason(tmp_path):
+    # LIBERO-Goal task 5 (push the plate) is a task the scripted expert declines at reset.
+    cfg = RunConfig(suite="libero_goal", task=5, policy="scripted", max_steps=20)
+    outcome, row = launch_episode(cfg, tmp_path)
+    assert outcome.status == "error" and row["success"] is None
+    assert "reset failed: PolicyError" in row["error_reason"] and "plate" in row["error_reason"]
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
 def test_no_process_or_shm_file_outlives_a_killed_cli(tmp_path, sig):
     before = shm_files()
