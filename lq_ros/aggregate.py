@@ -20,8 +20,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from lq_ros import metrics
+from lq_ros import metrics, scoring
+from lq_ros.config import RunConfig
 from lq_ros.scoring import BagError, find_bags, score_bag
+
+#: RunConfig's defaults: a parameter at its default is not spelled out in a variant label.
+_DEFAULTS = {f: getattr(RunConfig(), f) for f in scoring.VARIANT_FIELDS}
 
 GROUP_KEYS: tuple[str, ...] = ("policy", "mode", "latency_s", "suite", "task")
 
@@ -49,7 +53,7 @@ CONTINUOUS_METRICS: dict[str, str] = {
     "underrun_ticks": WITH_OUTCOME,
 }
 #: Per-episode columns stored as JSON text (nested values do not fit CSV/Parquet columns uniformly).
-_JSON_COLUMNS = ("versions", "null_reasons", "warnings")
+_JSON_COLUMNS = ("versions", "null_reasons", "warnings", "policy_args")
 
 
 # -- per-episode rows --------------------------------------------------------------------------------------
@@ -85,12 +89,45 @@ def score_directory(path: Path, *, jobs: int = 1, **score_kwargs) -> pd.DataFram
 
 
 def episodes_frame(rows: Iterable[dict]) -> pd.DataFrame:
-    """Per-episode table with relative trajectory efficiency added."""
+    """Per-episode table with variant labels and relative trajectory efficiency added."""
     frame = pd.DataFrame(list(rows))
     for key in (*GROUP_KEYS, "status", "success", "traj_length"):
         if key not in frame:
             frame[key] = None
-    return add_relative_efficiency(frame)
+    return add_relative_efficiency(label_variants(frame))
+
+
+def _variant_label(row: pd.Series) -> str | None:
+    """``name`` for a policy run with default settings, else ``name [k=v, ...]`` with what differs."""
+    name = row.get("policy")
+    if name is None or (isinstance(name, float) and math.isnan(name)):
+        return None
+    parts = []
+    args = row.get("policy_args")
+    if isinstance(args, str) and args:
+        args = json.loads(args)
+    if isinstance(args, dict):
+        parts += [f"{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in sorted(args.items())]
+    for key in scoring.VARIANT_FIELDS[1:]:
+        value = row.get(key)
+        if value is not None and not (isinstance(value, float) and math.isnan(value)) and value != _DEFAULTS[key]:
+            parts.append(f"{key}={int(value) if isinstance(value, float) else value}")
+    return f"{name} [{', '.join(parts)}]" if parts else str(name)
+
+
+def label_variants(episodes: pd.DataFrame) -> pd.DataFrame:
+    """Group variants apart: ``policy`` becomes a label carrying the policy arguments and any protocol
+    parameter that differs from RunConfig's default (the bare name stays in ``policy_name``).
+
+    Without this, ``oft`` at chunk 1 and at chunk 8, or sync at replan 5 and 8, would pool into one row.
+    """
+    out = episodes.copy()
+    if "policy_name" in out:  # already labelled
+        return out
+    out["policy_name"] = out["policy"]
+    if len(out):
+        out["policy"] = out.apply(_variant_label, axis=1)
+    return out
 
 
 def add_relative_efficiency(episodes: pd.DataFrame) -> pd.DataFrame:

@@ -22,6 +22,8 @@ from lq_ros.mcap_stream import McapDamage, StreamingMcapReader
 from lq_ros.suites import CONTROL_DT_S, PHYSICS_DT_S
 
 RATES = {"control": CONTROL_DT_S, "physics": PHYSICS_DT_S}
+#: Run configuration fields besides the group keys that distinguish episodes of different variants.
+VARIANT_FIELDS = ("policy_args", "replan_steps", "hold", "request_threshold", "merge")
 
 
 class BagError(RuntimeError):
@@ -200,6 +202,8 @@ def score_episode(
     meta = data.metadata
     cfg = meta.get("config", {})
     row.update({k: cfg.get(k) for k in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")})
+    # Policy arguments and protocol parameters: what tells variants of one policy or mode apart.
+    row.update({k: cfg[k] for k in VARIANT_FIELDS if k in cfg})
     row["transport"] = meta.get("transport")
 
     # -- outcome --------------------------------------------------------------------------------

@@ -96,3 +96,21 @@ def test_tables_round_trip_and_markdown(tmp_path):
 def test_a_group_of_errors_only_has_no_rate():
     agg = aggregate(episodes_frame([_episode("error")])).iloc[0]
     assert agg["n_error"] == 1 and math.isnan(agg["success_rate"]) and agg["jerk_mean_n"] == 0
+
+
+def test_policy_and_protocol_variants_are_not_pooled():
+    rows = [
+        _episode("success", policy="oft", policy_args='{"chunk_size": 8}'),
+        _episode("failure", policy="oft", policy_args='{"chunk_size": 1}', replan_steps=1),
+        _episode("success", policy="oft", policy_args="{}", replan_steps=5, merge="replace"),  # all defaults
+        _episode("success", policy="scripted", policy_args={}, mode="async", merge="blend"),
+    ]
+    frame = episodes_frame(rows)
+    assert frame["policy"].tolist() == [
+        "oft [chunk_size=8]",
+        "oft [chunk_size=1, replan_steps=1]",
+        "oft",
+        "scripted [merge=blend]",
+    ]
+    assert frame["policy_name"].tolist() == ["oft", "oft", "oft", "scripted"]
+    assert len(aggregate(frame)) == 4
