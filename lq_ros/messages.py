@@ -237,6 +237,7 @@ def chunk_msg(
     actions: np.ndarray | None,
     policy_name: str,
     error: str = "",
+    timing: dict | None = None,
 ) -> bytes:
     """An ActionChunk; ``actions`` may be malformed (it is validated by the executor, not here)."""
     arr = np.zeros((0, 0)) if actions is None else np.asarray(actions, dtype=np.float64)
@@ -253,6 +254,7 @@ def chunk_msg(
         actions=_f64(arr.reshape(-1)),
         policy_name=policy_name,
         error=error,
+        timing_json=json.dumps(timing, sort_keys=True) if timing else "",
     )
     return serialize(msg, ACTION_CHUNK.msgtype)
 

@@ -143,8 +143,10 @@ def run_inprocess(
             started = time.perf_counter()
             actions = policy.infer(obs)
             inference_s = time.perf_counter() - started
-            chunk_bytes = m.chunk_msg(t_ns, req.request_id, req.tick, cfg.latency_s, inference_s, actions, policy.name)
-            return chunk_bytes
+            return m.chunk_msg(
+                t_ns, req.request_id, req.tick, cfg.latency_s, inference_s, actions, policy.name,
+                timing=policy.last_timing,
+            )  # fmt: skip
 
         def deliver_due(tick: int) -> str | None:
             """Apply the chunk due at ``tick``, if any; returns the reason the episode must end."""

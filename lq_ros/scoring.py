@@ -69,6 +69,7 @@ class EpisodeData:
     joints_physics: Series = field(default_factory=Series)
     events: list = field(default_factory=list)  # (kind, tick, t_ns, reason)
     chunks: list = field(default_factory=list)  # (injected s, real s, error)
+    chunk_timings: list[dict] = field(default_factory=list)  # the policy's own timing per chunk (ms)
     command_sources: list[int] = field(default_factory=list)
     requests: int = 0
     metadata: dict = field(default_factory=dict)
@@ -163,6 +164,8 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
                 data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
             else:
                 data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
+                if getattr(msg, "timing_json", ""):  # bags from before the field existed have none
+                    data.chunk_timings.append(json.loads(msg.timing_json))
     else:
         for group in mcap_stream.decode(batch):
             if role == "commands":
@@ -175,6 +178,10 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
                     getattr(data, role).add(group["stamp_ns"], np.hstack([velocity, effort]))
                 else:
                     data.joints_without_effort += len(group["index"])
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _null(row: dict, keys: list[str], reason: str) -> None:
@@ -248,6 +255,11 @@ def score_episode(
             ["latency_real_mean_s", "latency_real_p50_s", "latency_real_p90_s", "latency_real_max_s"],
             "no action chunks in the bag",
         )
+    # The policy's own timing (e.g. a remote server's infer_ms), mean per key over the chunks that have it.
+    timing_keys = sorted({k for t in data.chunk_timings for k, v in t.items() if k != "tick" and _is_number(v)})
+    for key in timing_keys:
+        values = [t[key] for t in data.chunk_timings if _is_number(t.get(key))]
+        row[f"policy_timing_{key}_mean"] = float(np.mean(values))
     if data.command_sources:
         src = np.asarray(data.command_sources)
         row["hold_ticks"] = int((src != 0).sum())

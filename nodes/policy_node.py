@@ -94,8 +94,9 @@ class PolicyNode(Node):
         inference_s = time.perf_counter() - started
         stamp = m.stamp_ns(msg)
         data = m.chunk_msg(
-            stamp, msg.request_id, msg.tick, self.latency_s, inference_s, actions, self.policy.name, error
-        )
+            stamp, msg.request_id, msg.tick, self.latency_s, inference_s, actions, self.policy.name, error,
+            timing=None if error else self.policy.last_timing,
+        )  # fmt: skip
         self.outbox.append((stamp + self.delay_ns, data))
         self.flush()
 

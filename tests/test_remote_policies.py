@@ -6,6 +6,7 @@ they return, the server timing they keep, and that every server failure ends the
 *error* with its reason, quickly (never a hang, a success or a plain failure).
 """
 
+import json
 import time
 from pathlib import Path
 
@@ -267,7 +268,14 @@ def test_openpi_episode_sends_libero_example_payload(tmp_path, env):
         assert np.array_equal(m.chunk_actions(chunks[k]), np.tile(standin_action(sent["observation/state"]), (10, 1)))
         assert policy.timings[k]["tick"] == obs.tick == 5 * k
         assert policy.timings[k]["server_infer_ms"] is not None
+        # The server's timing travels with its chunk into the bag ...
+        assert json.loads(chunks[k].timing_json) == policy.timings[k]
     assert outcome.ticks == 12
+    # ... and the scorer reports it.
+    row = score_bag(bag)
+    server_ms = [t["server_infer_ms"] for t in policy.timings]
+    assert row["policy_timing_server_infer_ms_mean"] == pytest.approx(np.mean(server_ms))
+    assert row["policy_timing_round_trip_ms_mean"] >= row["policy_timing_server_infer_ms_mean"]
     # The image convention itself, against robosuite's own camera observation (what openpi's example
     # rotates) of the env's current state.
     sensors, _ = env._env.env._create_camera_sensors("agentview", 224, 224, False, None)
