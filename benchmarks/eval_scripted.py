@@ -55,8 +55,14 @@ def main() -> None:
             result = run_conventional(env, policy, init, SEED, args.replan_steps)
             wall = time.perf_counter() - t0
             rows.append(
-                {"suite": args.suite, "task": task_id, "init": init, "success": result.success,
-                 "steps": result.ticks, "wall_s": round(wall, 2)}
+                {
+                    "suite": args.suite,
+                    "task": task_id,
+                    "init": init,
+                    "success": result.success,
+                    "steps": result.ticks,
+                    "wall_s": round(wall, 2),
+                }
             )
             n_ok += result.success
             if result.success:

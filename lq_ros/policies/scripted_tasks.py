@@ -369,7 +369,10 @@ def expert_for(task: TaskInfo, chunk_size: int) -> ScriptedExpert:
                 return BowlOntoObjectExpert(chunk_size=chunk_size)
             if where in GOAL_SURFACES:
                 return PickPlaceExpert(
-                    obj, Target(surface=GOAL_SURFACES[where]), chunk_size=chunk_size, travel_z=1.20,
+                    obj,
+                    Target(surface=GOAL_SURFACES[where]),
+                    chunk_size=chunk_size,
+                    travel_z=1.20,
                     release_height=0.015,
                 )
             return PickPlaceExpert(obj, Target(name=where), chunk_size=chunk_size, travel_z=1.20, release_height=0.015)
@@ -396,8 +399,16 @@ class KnobExpert(ScriptedExpert):
 
     commit_inflight = True
 
-    def __init__(self, *, chunk_size: int = 8, push_radius: float = -0.040, push_z: float = 0.945,
-                 push_from: float = 0.05, push_to: float = -0.045, closing_axis: float = math.pi / 2) -> None:
+    def __init__(
+        self,
+        *,
+        chunk_size: int = 8,
+        push_radius: float = -0.040,
+        push_z: float = 0.945,
+        push_from: float = 0.05,
+        push_to: float = -0.045,
+        closing_axis: float = math.pi / 2,
+    ) -> None:
         """``push_radius``: signed x offset of the push line from the hinge (m; negative: the knob's handle
         on the robot's side); ``push_from``/``push_to``: y offsets of the push (m); ``closing_axis``: world
         angle of the fingers' closing axis (rad)."""
@@ -605,4 +616,3 @@ class DrawerExpert(ScriptedExpert):
         a[3:6] = np.clip(self.rot_gain * _rotvec(self._rot_goal @ v.rot.T), -1.0, 1.0)
         a[6] = 1.0 if m.phase in ("close", "pull") else self._preshape(v)
         return a
-
