@@ -560,15 +560,24 @@ def _local_worker_main(slot: int, transport: str, bags_dir: str, timeout_s, task
     # Stopped by the parent (SIGTERM): unwind like Ctrl-C, so a launcher stops its nodes cleanly.
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     worker = EpisodeWorker(transport, Path(bags_dir), timeout_s)
+    parent = os.getppid()
     try:
         while True:
-            item = tasks.get()
+            try:
+                item = tasks.get(timeout=1.0)
+            except queue.Empty:
+                # The sweep was killed (kill -9) after SIGTERM was handled, e.g. by an episode that
+                # recorded the interrupt as its outcome: nobody will send work or stop us, so leave.
+                if os.getppid() != parent:
+                    return
+                continue
             if item is None:
                 return
             cfg_dict, log_path = item
             results.put((slot, worker.run(RunConfig(**cfg_dict), Path(log_path))))
     finally:
         worker.close()
+        results.cancel_join_thread()  # don't block exit on results a dead sweep will never read
 
 
 class LocalPool:

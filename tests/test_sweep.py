@@ -283,12 +283,25 @@ def test_kill_9_mid_sweep_then_restart_skips_finished(tmp_path):
     log.close()
     finished = {p.stem for p in (out / "results").glob("*.json")}
     assert 1 <= len(finished) < 4, (tmp_path / "sweep.log").read_text()[-2000:]
-    time.sleep(2.0)
-    assert not [p for p in workers if Path(f"/proc/{p}").exists() and "zombie" not in _state(p)], "worker outlived"
+    # Workers get SIGTERM from the kernel when the sweep dies (PR_SET_PDEATHSIG) and unwind like Ctrl-C,
+    # closing their env; on a loaded machine that takes a few seconds, so poll instead of one fixed sleep.
+    alive = list(workers)
+    deadline = time.monotonic() + 30
+    while alive and time.monotonic() < deadline:
+        time.sleep(0.5)
+        alive = [p for p in alive if Path(f"/proc/{p}").exists() and "zombie" not in _state(p)]
+    assert not alive, f"worker outlived the sweep: {[_cmdline(p) for p in alive]}"
     spec = sw.load_spec(spec_file)
     summary = sw.run_sweep(spec, out, workers=1)
     assert summary.skipped == len(finished) and summary.ran == 4 - len(finished)
     assert len(sw.ResultStore(out).records()) == 4
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()[:200]
+    except OSError:
+        return "?"
 
 
 def _state(pid: int) -> str:
