@@ -1,14 +1,15 @@
 """The two execution protocols of LIBERO-LQ (paper section 3.2) as one tick-driven core.
 
-The core knows nothing of transports. Each control tick ``m`` a transport (the ROS executor node or
-the in-process runner) does, in this order:
+The core knows nothing of transports. A transport (the ROS executor node or the in-process runner)
+drives each control tick ``m`` by calling :meth:`ExecutorCore.advance` until it returns the tick's
+:class:`Command`; every other answer says what the tick needs first:
 
-1. ``awaiting(m)``: if a chunk is due at tick ``m`` (requested at tick ``m - N``, N = latency
-   ticks), wait for it (wall clock) and pass it to ``deliver``;
-2. ``begin_tick(m)``: returns a new :class:`Request` when inference must start on the observation
-   of tick ``m`` (the transport captures that observation and hands it to the policy); with N = 0
-   that chunk is due at once, so step 1 is repeated;
-3. ``command(m)``: the one command applied at tick ``m``.
+- :class:`ChunkDue`: the chunk requested at tick ``m - N`` (N = latency ticks) takes effect now; the
+  transport waits for it (wall clock) and hands it to :meth:`ExecutorCore.deliver`;
+- :class:`ObservationNeeded`: inference starts on the observation of tick ``m``; the transport
+  captures that observation and gives it to the policy (with N = 0 its chunk is due at once, so the
+  next answer is a ``ChunkDue``);
+- :class:`Failed`: the episode must end as an error (the reason is given).
 
 Because a chunk requested at tick n is applied exactly at tick n + N whatever its wall-clock
 inference time, results never depend on the measured latency (lockstep determinism).
@@ -101,6 +102,31 @@ class Command:
     chunk_index: int = 0
 
 
+@dataclass(frozen=True)
+class ChunkDue:
+    """The chunk of ``request`` takes effect at this tick: deliver it before anything else."""
+
+    request: Request
+
+
+@dataclass(frozen=True)
+class ObservationNeeded:
+    """Inference starts on this tick's observation (the chunk is due at ``request.due_tick``)."""
+
+    request: Request
+
+
+@dataclass(frozen=True)
+class Failed:
+    """The episode ends as an error."""
+
+    reason: str
+
+
+#: What :meth:`ExecutorCore.advance` answers.
+TickStep = ChunkDue | ObservationNeeded | Failed | Command
+
+
 @dataclass
 class ExecutorStats:
     inferences: int = 0
@@ -153,14 +179,28 @@ class ExecutorCore:
         # async: buffered (action, request_id, chunk_index)
         self._buffer: deque[tuple[np.ndarray, int, int]] = deque()
         self._received_any = False
+        #: Last tick whose inference decision was taken (once per tick).
+        self._planned_tick: int | None = None
 
-    @property
-    def outstanding(self) -> Request | None:
-        return self._outstanding
+    def advance(self, tick: int) -> TickStep:
+        """The next thing control tick ``tick`` needs; call again until it returns the Command."""
+        if self.error is not None:
+            return Failed(self.error)
+        req = self._outstanding
+        if req is not None and req.due_tick == tick:
+            return ChunkDue(req)
+        if req is not None and req.due_tick < tick:
+            raise RuntimeError(f"request {req.request_id} was due at tick {req.due_tick}, now {tick}: not delivered")
+        if self._planned_tick != tick:
+            # Once per tick, after the due chunk (if any) took effect: does inference start now?
+            self._planned_tick = tick
+            new = self._start_inference(tick)
+            if new is not None:
+                return ObservationNeeded(new)
+        return self._command(tick)
 
-    # -- step 1 -----------------------------------------------------------------------------
-    def begin_tick(self, tick: int) -> Request | None:
-        if self.error is not None or self._outstanding is not None:
+    def _start_inference(self, tick: int) -> Request | None:
+        if self._outstanding is not None:
             return None
         if self.config.mode is Mode.SYNC:
             need = self._chunk is None or self._chunk_pos >= min(self.config.replan_steps, len(self._chunk))
@@ -175,15 +215,6 @@ class ExecutorCore:
         self._outstanding = req
         self.stats.inferences += 1
         return req
-
-    # -- step 2 -----------------------------------------------------------------------------
-    def awaiting(self, tick: int) -> Request | None:
-        req = self._outstanding
-        if req is not None and req.due_tick == tick:
-            return req
-        if req is not None and req.due_tick < tick:
-            raise RuntimeError(f"request {req.request_id} was due at tick {req.due_tick}, now {tick}: not delivered")
-        return None
 
     def deliver(self, request_id: int, chunk: object) -> str | None:
         """Apply the chunk of ``request_id`` at its due tick; returns the rejection reason or None."""
@@ -223,10 +254,7 @@ class ExecutorCore:
                 fresh[k] = (w * action + (1.0 - w) * old[k][0], rid, idx)
         self._buffer = deque(fresh)
 
-    # -- step 3 -----------------------------------------------------------------------------
-    def command(self, tick: int) -> Command:
-        if self._outstanding is not None and self._outstanding.due_tick == tick:
-            raise RuntimeError(f"tick {tick}: the chunk of request {self._outstanding.request_id} is due first")
+    def _command(self, tick: int) -> Command:
         cmd = self._next_command(tick)
         self._last_action = cmd.action
         name = cmd.source.name.lower()

@@ -18,7 +18,7 @@ from lq_ros import messages as m
 from lq_ros.bag import EpisodeBagWriter, log_time_ns
 from lq_ros.config import RunConfig, versions
 from lq_ros.env import LiberoEnv, sim_time_of_tick
-from lq_ros.executor import ExecutorCore
+from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
 from lq_ros.policies import Policy, make_policy
 
 
@@ -148,34 +148,32 @@ def run_inprocess(
                 timing=policy.last_timing,
             )  # fmt: skip
 
-        def deliver_due(tick: int) -> str | None:
-            """Apply the chunk due at ``tick``, if any; returns the reason the episode must end."""
-            due = core.awaiting(tick)
-            if due is not None:
-                # Recorded when it takes effect (unapplied chunks are never published), and the
-                # executor gets what crossed the wire, exactly as in the ROS transport.
-                chunk_bytes = chunks.pop(due.request_id)
-                rec.put(m.ACTION_CHUNK, chunk_bytes)
-                chunk = m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
-                reason = core.deliver(due.request_id, chunk)
-                if reason is not None:
-                    rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": due.request_id})
-            return core.error
+        def deliver(req) -> None:
+            """Apply the chunk of ``req`` at its due tick, exactly as the ROS executor node does."""
+            # Recorded when it takes effect (unapplied chunks are never published), and the
+            # executor gets what crossed the wire, exactly as in the ROS transport.
+            chunk_bytes = chunks.pop(req.request_id)
+            rec.put(m.ACTION_CHUNK, chunk_bytes)
+            chunk = m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
+            reason = core.deliver(req.request_id, chunk)
+            if reason is not None:
+                rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": req.request_id})
 
         budget = cfg.budget
         while tick < budget:
+            step = core.advance(tick)
+            if isinstance(step, ObservationNeeded):
+                chunks[step.request.request_id] = infer(step.request)
+                continue
+            if isinstance(step, ChunkDue):
+                deliver(step.request)
+                continue
+            if isinstance(step, Failed):
+                rec.event(m.EventKind.ERROR, tick, step.reason)
+                return EpisodeOutcome("error", tick, step.reason, bag_path)
             t_ns = m.to_ns(sim_time_of_tick(tick))
-            error = deliver_due(tick)
-            req = core.begin_tick(tick) if error is None else None
-            if req is not None:
-                chunks[req.request_id] = infer(req)
-                error = deliver_due(tick)  # N = 0: the chunk is due at once
-            if error is not None:
-                rec.event(m.EventKind.ERROR, tick, error)
-                return EpisodeOutcome("error", tick, error, bag_path)
-            cmd = core.command(tick)
-            rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, cmd))
-            state = env.step(cmd.action)
+            rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, step))
+            state = env.step(step.action)
             tick += 1
             ended = state.success or tick >= budget
             for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate, clock=not ended):

@@ -15,7 +15,7 @@ from rclpy.node import Node
 
 from lq_ros import messages as m
 from lq_ros.env import tick_of_sim_time
-from lq_ros.executor import ExecutorConfig, ExecutorCore
+from lq_ros.executor import ChunkDue, ExecutorConfig, ExecutorCore, Failed, ObservationNeeded
 from lq_ros.ros_util import publisher, raw_subscription, run
 from lq_ros.suites import latency_ticks
 
@@ -57,7 +57,6 @@ class ExecutorNode(Node):
         self.finished = False
         self.tick: int | None = None  # tick waiting for its command
         self.tick_ns = 0
-        self.requested_this_tick = False
         self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
         self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
         self.waiting_since: float | None = None
@@ -68,7 +67,6 @@ class ExecutorNode(Node):
             return
         self.tick_ns = m.stamp_ns(msg)
         self.tick = tick_of_sim_time(self.tick_ns / 1e9)
-        self.requested_this_tick = False
         self.advance()
 
     def on_chunk(self, msg) -> None:
@@ -86,29 +84,24 @@ class ExecutorNode(Node):
 
     # -- the tick state machine -------------------------------------------------------------
     def advance(self) -> None:
-        """Do as much of the current tick as the messages in hand allow."""
-        if self.finished or self.tick is None or self.awaiting_observation is not None:
-            return
-        if not self.deliver_due():
-            return
-        if not self.requested_this_tick:
-            self.requested_this_tick = True
-            req = self.core.begin_tick(self.tick)
-            if req is not None:
-                self.awaiting_observation = req.request_id
-                self.request_pub.publish(m.request_msg(self.tick_ns, req))
-                return  # continue once the sim has captured the observation of this tick
-        if not self.deliver_due():  # N = 0: the chunk just requested is due now
-            return
-        cmd = self.core.command(self.tick)
-        self.command_pub.publish(m.command_msg(self.tick_ns, cmd))
-        self.tick = None
+        """Do as much of the current tick as the messages in hand allow (lq_ros.executor's loop)."""
+        while not self.finished and self.tick is not None and self.awaiting_observation is None:
+            step = self.core.advance(self.tick)
+            if isinstance(step, ObservationNeeded):
+                # Continue once the sim has captured the observation of this tick.
+                self.awaiting_observation = step.request.request_id
+                self.request_pub.publish(m.request_msg(self.tick_ns, step.request))
+            elif isinstance(step, ChunkDue):
+                if not self.deliver(step.request):
+                    return  # not arrived yet: on_chunk calls advance again
+            elif isinstance(step, Failed):
+                self.end_with_error(step.reason)
+            else:
+                self.command_pub.publish(m.command_msg(self.tick_ns, step))
+                self.tick = None
 
-    def deliver_due(self) -> bool:
-        """Apply the chunk due at this tick; False while it has not arrived (or the episode ended)."""
-        due = self.core.awaiting(self.tick)
-        if due is None:
-            return True
+    def deliver(self, due) -> bool:
+        """Apply the chunk due at this tick; False while it has not arrived."""
         msg = self.chunks.pop(due.request_id, None)
         if msg is None:
             self.waiting_since = self.waiting_since or time.monotonic()
@@ -116,14 +109,11 @@ class ExecutorNode(Node):
         self.waiting_since = None
         if msg.error:
             self.end_with_error(f"policy failed on request {due.request_id}: {msg.error}")
-            return False
+            return True
         reason = self.core.deliver(due.request_id, m.chunk_actions(msg))
         if reason is not None:
             self.get_logger().error(f"chunk of request {due.request_id} rejected: {reason}")
             self.event(m.EventKind.CHUNK_REJECTED, reason, {"request_id": due.request_id})
-        if self.core.error is not None:
-            self.end_with_error(self.core.error)
-            return False
         return True
 
     def check_chunk_timeout(self) -> None:

@@ -3,7 +3,16 @@
 import numpy as np
 import pytest
 
-from lq_ros.executor import ExecutorConfig, ExecutorCore, Source, validate_chunk
+from lq_ros.executor import (
+    ChunkDue,
+    Command,
+    ExecutorConfig,
+    ExecutorCore,
+    Failed,
+    ObservationNeeded,
+    Source,
+    validate_chunk,
+)
 
 
 def chunk_for(tick: int, horizon: int = 8) -> np.ndarray:
@@ -18,18 +27,42 @@ def drive(core: ExecutorCore, ticks: int, make_chunk=chunk_for):
     """The transport loop of lq_ros.executor's docstring; returns the commands and requests."""
     pending, commands, requests = {}, [], []
     for t in range(ticks):
-        due = core.awaiting(t)
-        if due:
-            core.deliver(due.request_id, pending.pop(due.request_id))
-        req = core.begin_tick(t)
-        if req:
-            requests.append(req)
-            pending[req.request_id] = make_chunk(req.tick)
-            due = core.awaiting(t)
-            if due:
-                core.deliver(due.request_id, pending.pop(due.request_id))
-        commands.append(core.command(t))
+        while True:
+            step = core.advance(t)
+            if isinstance(step, ObservationNeeded):
+                requests.append(step.request)
+                pending[step.request.request_id] = make_chunk(step.request.tick)
+            elif isinstance(step, ChunkDue):
+                core.deliver(step.request.request_id, pending.pop(step.request.request_id))
+            elif isinstance(step, Failed):
+                return commands, requests
+            else:
+                commands.append(step)
+                break
     return commands, requests
+
+
+def test_advance_answers_in_the_order_of_a_tick():
+    # N = 2: the observation of tick 0 is asked for first, its chunk is due at tick 2 before that
+    # tick's command; with N = 0 the chunk is due right after the observation.
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=2, replan_steps=4))
+    step = core.advance(0)
+    assert isinstance(step, ObservationNeeded) and step.request.due_tick == 2
+    assert isinstance(core.advance(0), Command) and isinstance(core.advance(1), Command)
+    assert isinstance(core.advance(2), ChunkDue)
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=0))
+    req = core.advance(0).request
+    assert core.advance(0) == ChunkDue(req)
+    core.deliver(req.request_id, chunk_for(0))
+    cmd = core.advance(0)
+    assert isinstance(cmd, Command) and cmd.source is Source.CHUNK
+
+
+def test_undelivered_due_chunk_is_a_transport_bug():
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=1))
+    core.advance(0), core.advance(0)
+    with pytest.raises(RuntimeError, match="not delivered"):
+        core.advance(2)
 
 
 @pytest.mark.parametrize("n", [0, 1, 3, 6])
@@ -102,14 +135,18 @@ def test_blend_merge_averages_overlap():
     core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=1, request_threshold=5, merge="blend"))
     old = np.full((8, 7), 0.1)
     new = np.full((8, 7), 0.5)
-    req = core.begin_tick(0)
-    core.deliver(req.request_id, old)  # due at tick 1; deliver directly for the unit test
+    req = core.advance(0).request
+    assert isinstance(core.advance(0), Command)  # startup hold
+    assert core.advance(1) == ChunkDue(req)
+    core.deliver(req.request_id, old)
     buffered = len(core._buffer)
     for t in range(1, 3):
-        core.command(t)
-    req = core.begin_tick(3)
+        assert isinstance(core.advance(t), Command)
+    req = core.advance(3).request  # 5 left: at the threshold
+    assert isinstance(core.advance(3), Command)
+    assert core.advance(4) == ChunkDue(req)
     core.deliver(req.request_id, new)
-    a = core.command(4).action
+    a = core.advance(4).action
     assert buffered == 7
     assert a[0] == pytest.approx(0.7 * 0.5 + 0.3 * 0.1)
 
