@@ -19,7 +19,7 @@ from pathlib import Path
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 from lq_ros.config import RunConfig  # noqa: E402
-from lq_ros.launcher import launch_episode  # noqa: E402
+from lq_ros.episode import run_episode  # noqa: E402
 from lq_ros.runner import run_inprocess  # noqa: E402
 
 
@@ -41,7 +41,7 @@ def main() -> None:
         times["inprocess"].append(time.perf_counter() - start)
         ticks["inprocess"].append(local.ticks)
         start = time.perf_counter()
-        ros, _ = launch_episode(cfg, out / f"ros{i}")
+        ros, _ = run_episode(cfg, out / f"ros{i}", "ros")
         times["ros"].append(time.perf_counter() - start)
         ticks["ros"].append(ros.ticks)
         assert ros.status != "error", ros.reason

@@ -1,15 +1,41 @@
-"""rosbag2 (MCAP storage) episode bags: one writer for both transports, deterministic log times."""
+"""rosbag2 (MCAP storage) episode bags for both transports: topics, run metadata, writer, sim-time log times."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lq_ros import messages as m
 from lq_ros.suites import CONTROL_DT_S, latency_ticks
 
+if TYPE_CHECKING:  # the scorer imports this module: keep it free of the run configuration's imports
+    from lq_ros.config import RunConfig
+
 #: Key of the run metadata (JSON) in metadata.yaml's custom_data.
 RUN_METADATA_KEY = "lq_run"
+
+
+def episode_topics(cfg: RunConfig, camera_names: tuple[str, ...]) -> list[m.Topic]:
+    """Every topic an episode of ``cfg`` records (the same list for both transports)."""
+    topics = list(m.CORE_TOPICS)
+    if cfg.physics_rate:
+        topics += [m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS]
+    topics += [m.camera_topic(c) for c in camera_names]
+    return topics
+
+
+def run_metadata(cfg: RunConfig, policy_params: dict, transport: str, env_versions: dict) -> dict:
+    """The run metadata stored in a bag (``set_run_metadata``): configuration, policy, transport, versions."""
+    return {
+        "config": cfg.to_dict(),
+        "config_key": cfg.key(),
+        "policy_params": policy_params,
+        "transport": transport,
+        "lockstep": True,
+        "latency_ticks": cfg.latency_ticks,
+        "versions": env_versions,
+    }
 
 
 def log_time_ns(topic: m.Topic, data: bytes) -> int:

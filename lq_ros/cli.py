@@ -121,18 +121,11 @@ def run(
 
 def run_episode(cfg, out: Path, transport: Transport, **launch_kwargs) -> dict:
     """One episode through the chosen transport; returns the scored row."""
-    from lq_ros.scoring import score_bag, to_json
+    from lq_ros import episode
+    from lq_ros.procs import sigterm_as_keyboard_interrupt
 
-    # SIGTERM (e.g. from a job runner) stops the children cleanly like Ctrl-C does.
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
-    if transport is Transport.inprocess:
-        from lq_ros.runner import run_inprocess
-
-        outcome = run_inprocess(cfg, out)
-        return json.loads(to_json(score_bag(outcome.bag_path)))
-    from lq_ros.launcher import launch_episode
-
-    _, row = launch_episode(cfg, out, **launch_kwargs)
+    sigterm_as_keyboard_interrupt()  # e.g. from a job runner: the children are stopped cleanly, like on Ctrl-C
+    _, row = episode.run_episode(cfg, out, transport.value, **launch_kwargs)
     return row
 
 
@@ -238,8 +231,8 @@ def sweep(
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2) from exc
     out = out or Path("bags/sweeps") / sweep_spec.name
-    summary = sw.run_with_progress(
-        sweep_spec, out, console=console, workers=workers, transport=transport.value if transport else None,
+    summary = _run_sweep_with_progress(
+        sweep_spec, out, workers=workers, transport=transport.value if transport else None,
         backend=backend, address=address, retry_errors=retry_errors,
     )  # fmt: skip
     c = summary.counts
@@ -250,6 +243,49 @@ def sweep(
     )
     if c["error"]:
         raise typer.Exit(1)
+
+
+def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
+    """run_sweep with a rich progress bar: episodes done, successes, failures, errors, ETA."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from lq_ros.procs import sigterm_as_keyboard_interrupt
+    from lq_ros.sweep import SweepSummary, run_sweep
+
+    progress = Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TextColumn("[green]✓ {task.fields[ok]}[/] [yellow]✗ {task.fields[fail]}[/] [red]! {task.fields[err]}[/]"
+                   " [dim]retried {task.fields[retried]}[/]"),
+        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=False,
+    )  # fmt: skip
+    state: dict = {}
+
+    def update(summary: SweepSummary, record: dict | None) -> None:
+        if "task" not in state:
+            pending = summary.total - summary.skipped
+            state["task"] = progress.add_task(spec.name, total=pending, ok=0, fail=0, err=0, retried=0)
+            if summary.skipped:
+                console.print(f"{summary.skipped} of {summary.total} episodes already finished in {out_dir}: skipped")
+        c = summary.counts
+        progress.update(state["task"], completed=summary.ran, ok=c["success"], fail=c["failure"], err=c["error"],
+                        retried=summary.retried)  # fmt: skip
+        if record is not None and record["status"] == "error":
+            progress.console.print(f"[red]error[/red] {record['episode']}: {record['row'].get('error_reason')}")
+
+    previous = sigterm_as_keyboard_interrupt()  # SIGTERM stops the sweep (and its workers) like Ctrl-C
+    try:
+        with progress:
+            return run_sweep(spec, out_dir, on_progress=update, **kwargs)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
 
 
 @app.command()

@@ -7,7 +7,6 @@ ROS_DOMAIN_ID and, unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHO
 
 from __future__ import annotations
 
-import ctypes
 import fcntl
 import json
 import os
@@ -23,19 +22,12 @@ from pathlib import Path
 import yaml
 
 from lq_ros.config import RunConfig
-from lq_ros.runner import EpisodeOutcome
-from lq_ros.scoring import score_bag, to_json
+from lq_ros.procs import die_with_parent
 
 NODES = ("sim", "policy", "executor", "metrics")
 #: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
 DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
 DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent() -> None:
-    """Runs in the child before exec: SIGTERM it when the launcher dies, even by kill -9."""
-    ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 @contextmanager
@@ -128,17 +120,17 @@ def _clean_shm_if_killed(procs: dict[str, subprocess.Popen], env: dict[str, str]
             subprocess.run([str(tool), "shm", "clean"], env=env, capture_output=True, timeout=30, check=False)
 
 
-def launch_episode(
+def launch_nodes(
     cfg: RunConfig,
     out_dir: Path,
     *,
     domain_id: int | None = None,
     timeout_s: float | None = None,
-) -> tuple[EpisodeOutcome, dict]:
-    """Run one episode through the four-node stack; returns the outcome and the scored row.
+) -> tuple[Path, str]:
+    """Run one episode through the four-node stack; returns its bag folder and the launch error ("" if none).
 
-    The run (not the task) is an error when a node crashes, the episode does not end within
-    ``timeout_s`` wall seconds, or the bag has no terminal event.
+    The launch (not the task) failed when a node crashes or the episode does not end within
+    ``timeout_s`` wall seconds. Scoring and the outcome are ``lq_ros.episode.run_episode``'s.
     """
     from lq_ros.policies import make_policy
 
@@ -166,7 +158,7 @@ def launch_episode(
                     stdout=log,
                     stderr=subprocess.STDOUT,
                     stdin=subprocess.DEVNULL,
-                    preexec_fn=_die_with_parent,
+                    preexec_fn=die_with_parent,
                 )
                 log.close()
             deadline = time.monotonic() + timeout_s
@@ -187,7 +179,7 @@ def launch_episode(
             _stop(procs)
             _clean_shm_if_killed(procs, env)
             _collect_logs(work, bag_path)
-    return _outcome(bag_path, reason)
+    return bag_path, reason
 
 
 def _collect_logs(work: Path, bag_path: Path) -> None:
@@ -197,21 +189,3 @@ def _collect_logs(work: Path, bag_path: Path) -> None:
     for log in work.glob("*.log"):
         shutil.copy(log, dest / log.name)
     shutil.rmtree(work, ignore_errors=True)
-
-
-def _outcome(bag_path: Path, launch_error: str) -> tuple[EpisodeOutcome, dict]:
-    score_file = bag_path / "score.json"
-    if score_file.exists():
-        row = json.loads(score_file.read_text())
-    elif (bag_path / "metadata.yaml").exists():
-        row = json.loads(to_json(score_bag(bag_path)))
-    else:
-        row = {"episode": bag_path.name, "status": "error", "success": None}
-    if launch_error:
-        row["status"], row["success"] = "error", None
-        row["error_reason"] = launch_error
-    status = row.get("status") or "error"
-    if status == "unknown":
-        status = "error"
-    reason = row.get("error_reason") or ""
-    return EpisodeOutcome(status, row.get("completion_steps") or 0, reason, bag_path), row

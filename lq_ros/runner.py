@@ -15,39 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from lq_ros import messages as m
-from lq_ros.bag import EpisodeBagWriter, log_time_ns
+from lq_ros.bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
 from lq_ros.config import RunConfig, versions
 from lq_ros.env import LiberoEnv, sim_time_of_tick
+from lq_ros.episode import EpisodeOutcome
 from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
 from lq_ros.policies import Policy, make_policy
-
-
-@dataclass
-class EpisodeOutcome:
-    status: str  # "success" | "failure" | "error"
-    ticks: int
-    reason: str
-    bag_path: Path
-
-
-def episode_topics(cfg: RunConfig, camera_names: tuple[str, ...]) -> list[m.Topic]:
-    topics = list(m.CORE_TOPICS)
-    if cfg.physics_rate:
-        topics += [m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS]
-    topics += [m.camera_topic(c) for c in camera_names]
-    return topics
-
-
-def run_metadata(cfg: RunConfig, policy_params: dict, transport: str, env_versions: dict) -> dict:
-    return {
-        "config": cfg.to_dict(),
-        "config_key": cfg.key(),
-        "policy_params": policy_params,
-        "transport": transport,
-        "lockstep": True,
-        "latency_ticks": cfg.latency_ticks,
-        "versions": env_versions,
-    }
 
 
 @dataclass

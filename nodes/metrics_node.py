@@ -16,11 +16,10 @@ from pathlib import Path
 from rclpy.node import Node
 
 from lq_ros import messages as m
-from lq_ros.bag import EpisodeBagWriter, log_time_ns
+from lq_ros.bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
 from lq_ros.config import RunConfig, versions
 from lq_ros.env import sim_time_of_tick
 from lq_ros.ros_util import LOSSLESS_QOS, json_param, msg_class, run
-from lq_ros.runner import episode_topics, run_metadata
 from lq_ros.scoring import score_bag, to_json
 
 SCORE_FILE = "score.json"

@@ -14,7 +14,7 @@ import pytest
 from lq_ros import messages as m
 from lq_ros.bag import read_run_metadata
 from lq_ros.config import RunConfig
-from lq_ros.launcher import launch_episode
+from lq_ros.episode import run_episode
 from lq_ros.runner import run_inprocess
 from tests.bag_compare import bag_messages, comparable
 
@@ -34,7 +34,7 @@ def node_processes(marker: str) -> list[str]:
 
 def test_four_node_episode_bag_and_scores(tmp_path):
     cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30)
-    outcome, row = launch_episode(cfg, tmp_path)
+    outcome, row = run_episode(cfg, tmp_path, "ros")
     assert outcome.status == "failure", row  # the task is failed, the run is fine
     bag = outcome.bag_path
     assert (bag / "metadata.yaml").exists() and list(bag.glob("*.mcap"))
@@ -60,7 +60,7 @@ def test_four_node_episode_bag_and_scores(tmp_path):
 def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
     """Bit-identical trajectories, commands and chunks for both transports (wall-clock fields aside)."""
     cfg = RunConfig(policy="sine", mode=mode, latency_s=latency, max_steps=30, replan_steps=3)
-    ros, _ = launch_episode(cfg, tmp_path / "ros")
+    ros, _ = run_episode(cfg, tmp_path / "ros", "ros")
     local = run_inprocess(cfg, tmp_path / "local")
     assert ros.status == local.status == "failure"
     assert comparable(ros.bag_path) == comparable(local.bag_path)
@@ -68,8 +68,8 @@ def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
 
 def test_same_config_and_seed_give_identical_bags_and_scores(tmp_path):
     cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=25, physics_rate=True)
-    first, row1 = launch_episode(cfg, tmp_path / "a")
-    second, row2 = launch_episode(cfg, tmp_path / "b")
+    first, row1 = run_episode(cfg, tmp_path / "a", "ros")
+    second, row2 = run_episode(cfg, tmp_path / "b", "ros")
     assert comparable(first.bag_path) == comparable(second.bag_path)
     wall = {k for k in row1 if k.startswith("latency_real")} | {"versions"}
     assert {k: v for k, v in row1.items() if k not in wall} == {k: v for k, v in row2.items() if k not in wall}
@@ -77,7 +77,7 @@ def test_same_config_and_seed_give_identical_bags_and_scores(tmp_path):
 
 def test_malformed_chunk_rejected_through_ros(tmp_path):
     cfg = RunConfig(policy="faulty", policy_args={"fault": "bounds", "at_requests": [2]}, max_steps=20, replan_steps=4)
-    outcome, row = launch_episode(cfg, tmp_path)
+    outcome, row = run_episode(cfg, tmp_path, "ros")
     assert outcome.status == "failure" and row["chunks_rejected"] == 1
     commands = [m.deserialize(r, m.COMMAND.msgtype) for _, r in bag_messages(outcome.bag_path)[m.COMMAND.name]]
     assert all(np.all(np.abs(c.action) <= 1.0) for c in commands)
@@ -86,7 +86,7 @@ def test_malformed_chunk_rejected_through_ros(tmp_path):
 
 def test_policy_crash_is_an_error(tmp_path):
     cfg = RunConfig(policy="faulty", policy_args={"fault": "raise", "at_requests": [1]}, max_steps=20)
-    outcome, row = launch_episode(cfg, tmp_path)
+    outcome, row = run_episode(cfg, tmp_path, "ros")
     assert outcome.status == "error" and row["success"] is None
     assert "injected failure" in row["error_reason"]
 
@@ -94,7 +94,7 @@ def test_policy_crash_is_an_error(tmp_path):
 def test_policy_reset_failure_is_an_error_with_its_reason(tmp_path):
     # LIBERO-Goal task 5 (push the plate) is a task the scripted expert declines at reset.
     cfg = RunConfig(suite="libero_goal", task=5, policy="scripted", max_steps=20)
-    outcome, row = launch_episode(cfg, tmp_path)
+    outcome, row = run_episode(cfg, tmp_path, "ros")
     assert outcome.status == "error" and row["success"] is None
     assert "reset failed: PolicyError" in row["error_reason"] and "plate" in row["error_reason"]
 

@@ -1,0 +1,115 @@
+"""One sweep worker's job: run episodes one after another (in a local worker process or a Ray actor)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sys
+import time
+import traceback
+from collections.abc import Iterator
+from pathlib import Path
+
+from lq_ros.config import RunConfig
+from lq_ros.episode import TRANSPORTS, run_episode
+
+
+def default_workers() -> int:
+    """Workers when none are asked for: the CPU cores this process may use."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def env_key(cfg: RunConfig) -> tuple:
+    """Episodes with equal keys can share one worker's env and policy instance."""
+    return (cfg.suite, cfg.task, cfg.policy, json.dumps(cfg.policy_args, sort_keys=True), cfg.camera_size,
+            cfg.physics_rate)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _capture_output(log_path: Path) -> Iterator[None]:
+    """Send this process's stdout/stderr (fd level, so C libraries too) to ``log_path``."""
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(log_path, "ab") as log:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+class EpisodeWorker:
+    """Runs episodes one after another, like one sweep worker process (local or a Ray actor).
+
+    In-process transport: the LiberoEnv and the policy of the previous episode are reused when the
+    next one has the same task, policy and camera setup (env creation dominates a short episode;
+    tests/test_sweep.py checks a reused env gives the same bag as a fresh one).
+    """
+
+    def __init__(self, transport: str, bags_dir: Path, timeout_s: float | None = None) -> None:
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
+        self.transport = transport
+        self.bags_dir = Path(bags_dir)
+        self.timeout_s = timeout_s
+        self._cached: tuple | None = None  # (env key, env, policy)
+
+    def run(self, cfg: RunConfig, log_path: Path) -> dict:
+        """Run ``cfg`` once; returns {status, reason, row, bag, wall_s}. Never raises for episode failures."""
+        started = time.monotonic()
+        bag = self.bags_dir / cfg.episode_name()
+        row, reason = None, ""
+        with _capture_output(log_path):
+            try:
+                if self.transport == "inprocess":
+                    env, policy = self._env_policy(cfg)
+                    outcome, row = run_episode(cfg, self.bags_dir, "inprocess", env=env, policy=policy)
+                else:
+                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s)
+                status, reason = outcome.status, outcome.reason
+                if status == "error" and outcome.reason:
+                    print(f"episode error: {outcome.reason}", flush=True)
+            except Exception as exc:  # noqa: BLE001 - a crash outside the episode loop is still an error
+                traceback.print_exc()
+                status, reason = "error", f"{type(exc).__name__}: {exc}"
+                self.close()  # a half-built env must not be reused
+        return {
+            "status": status,
+            "reason": reason,
+            "row": row,
+            "bag": str(bag) if (bag / "metadata.yaml").exists() else None,
+            "wall_s": time.monotonic() - started,
+        }
+
+    def _env_policy(self, cfg: RunConfig):
+        from lq_ros.env import LiberoEnv
+        from lq_ros.policies import make_policy
+
+        key = env_key(cfg)
+        if self._cached is None or self._cached[0] != key:
+            self.close()
+            policy = make_policy(cfg.policy, **cfg.policy_args)
+            env = LiberoEnv(
+                cfg.suite, cfg.task, camera_names=policy.camera_names, camera_size=cfg.camera_size,
+                record_physics=cfg.physics_rate,
+            )  # fmt: skip
+            self._cached = (key, env, policy)
+        return self._cached[1], self._cached[2]
+
+    def close(self) -> None:
+        if self._cached is not None:
+            _, env, policy = self._cached
+            self._cached = None
+            with contextlib.suppress(Exception):
+                policy.close()
+            with contextlib.suppress(Exception):
+                env.close()
