@@ -1,4 +1,4 @@
-"""The scripted expert on the real LIBERO-Spatial simulator (no mocks)."""
+"""The ``scripted`` policy: its parameters, and the Spatial expert on the real simulator (no mocks)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,20 @@ from lq_ros.runner import run_conventional
 
 SUITE = "libero_spatial"
 SEED = 7
+
+
+def test_params_are_the_spatial_experts_recorded_as_before() -> None:
+    policy = make_policy("scripted", chunk_size=4, pos_gain=20, robot_base_xy=[-0.6, 0])
+    assert policy.params() == {
+        "chunk_size": 4, "pos_gain": 20.0, "yaw_gain": 2.0, "tilt_gain": 2.0, "travel_z": 1.2, "grasp_height": 0.036,
+        "preshape_gap": 0.04, "close_steps": 12, "release_steps": 6, "close_commit_dist": 0.012,
+        "robot_base_xy": (-0.6, 0.0), "reach_soft_limit": 0.7, "stall_ticks": 8,
+    }  # fmt: skip
+    assert isinstance(policy.params()["pos_gain"], float)  # an int given for a float is recorded as the float
+    with pytest.raises(ValueError, match="chunk_size"):
+        make_policy("scripted", chunk_size=0)
+    with pytest.raises(TypeError, match="gain"):
+        make_policy("scripted", gain=1.0)
 
 
 def test_chunk_shape_range_and_determinism() -> None:

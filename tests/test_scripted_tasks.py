@@ -1,4 +1,4 @@
-"""Scripted experts for LIBERO-Object and LIBERO-Goal: geometry helpers, expert choice, real episodes."""
+"""Scripted experts: geometry helpers, expert choice per task, the knob's waypoints, real Object/Goal episodes."""
 
 from __future__ import annotations
 
@@ -9,17 +9,12 @@ import pytest
 
 from lq_ros.env import LiberoEnv, Observation, TaskInfo
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.policies.scripted import _Machine, _View
-from lq_ros.policies.scripted_tasks import (
-    BowlExpert,
-    BowlOntoObjectExpert,
-    KnobExpert,
-    PickPlaceExpert,
-    category,
-    expert_for,
-    top_grasp,
-    world_extent,
-)
+from lq_ros.policies.scripted import ExpertParams, expert_for
+from lq_ros.policies.scripted.bowl import BowlExpert, BowlOntoObjectExpert, SpatialBowlExpert
+from lq_ros.policies.scripted.knob import KnobExpert
+from lq_ros.policies.scripted.machine import Machine, View
+from lq_ros.policies.scripted.pick_place import PickPlaceExpert, top_grasp
+from lq_ros.policies.scripted.scene import category, world_extent
 from lq_ros.runner import run_conventional
 
 SEED = 7
@@ -76,15 +71,20 @@ def test_top_grasp_tall_object_below_its_top_and_square_prefers_less_rotation() 
 
 
 def test_expert_choice_by_suite_and_goal() -> None:
-    obj = expert_for(_task("libero_object", [["in", "ketchup_1", "basket_1_contain_region"]]), 8)
-    assert isinstance(obj, PickPlaceExpert) and obj.chunk_size == 8
-    stove = expert_for(_task("libero_goal", [["on", "akita_black_bowl_1", "flat_stove_1_cook_region"]]), 8)
-    assert isinstance(stove, BowlExpert)
-    plate = expert_for(_task("libero_goal", [["on", "akita_black_bowl_1", "plate_1"]]), 8)
-    assert isinstance(plate, BowlOntoObjectExpert)
-    cheese = expert_for(_task("libero_goal", [["on", "cream_cheese_1", "akita_black_bowl_1"]]), 4)
-    assert isinstance(cheese, PickPlaceExpert) and cheese.chunk_size == 4
-    assert isinstance(expert_for(_task("libero_goal", [["turnon", "flat_stove_1"]]), 8), KnobExpert)
+    def pick(suite: str, goal: list[str], **params) -> object:
+        return expert_for(_task(suite, [goal]), ExpertParams(**params))
+
+    obj = pick("libero_object", ["in", "ketchup_1", "basket_1_contain_region"])
+    assert isinstance(obj, PickPlaceExpert) and obj.cfg.chunk_size == 8
+    assert isinstance(pick("libero_goal", ["on", "akita_black_bowl_1", "flat_stove_1_cook_region"]), BowlExpert)
+    assert isinstance(pick("libero_goal", ["on", "akita_black_bowl_1", "plate_1"]), BowlOntoObjectExpert)
+    cheese = pick("libero_goal", ["on", "cream_cheese_1", "akita_black_bowl_1"], chunk_size=4, pos_gain=20.0)
+    assert isinstance(cheese, PickPlaceExpert) and cheese.cfg.chunk_size == 4
+    assert cheese.cfg.pos_gain == 25.0 and cheese.cfg.travel_z == 1.20  # its own tuning, not the Spatial params
+    assert isinstance(pick("libero_goal", ["turnon", "flat_stove_1"]), KnobExpert)
+    # Spatial: the bowl expert runs with every parameter given to the policy.
+    spatial = pick("libero_spatial", ["on", "akita_black_bowl_1", "plate_1"], pos_gain=20.0)
+    assert type(spatial) is SpatialBowlExpert and spatial.cfg.pos_gain == 20.0
 
 
 @pytest.mark.parametrize(
@@ -105,22 +105,22 @@ def test_uncovered_task_raises_at_reset_naming_task_and_reason(suite: str, goal:
     assert why in str(info.value)
 
 
-def _view_at(eef: np.ndarray) -> _View:
+def _view_at(eef: np.ndarray) -> View:
     z3 = np.zeros(3)
-    return _View(0, eef, 0.0, z3, 0.0, obj_pos=z3, obj_rot=np.eye(3), target_pos=z3, obstacles=[])
+    return View(0, eef, 0.0, z3, 0.0, obj_pos=z3, obj_rot=np.eye(3), target_pos=z3, obstacles=[])
 
 
 def test_knob_expert_walks_its_waypoints() -> None:
     knob = KnobExpert(chunk_size=8)
-    m = _Machine(phase="wp0")
+    state = Machine(phase="wp0")
     view = _view_at(knob._waypoints[0].copy())
-    assert knob._transition(m, _view_at(knob._waypoints[0] + 0.02), real=True) is m  # not there yet
-    m = knob._transition(m, view, real=True)
-    assert m.phase == "wp1"
-    a = knob._command(m, view)
+    assert knob._transition(state, _view_at(knob._waypoints[0] + 0.02), real=True) is state  # not there yet
+    state = knob._transition(state, view, real=True)
+    assert state.phase == "wp1"
+    a = knob._command(state, view)
     assert a[2] == -1.0 and a[6] == 1.0  # straight down, gripper closed
     view = _view_at(knob._waypoints[-1].copy())
-    assert knob._transition(_Machine(phase="wp3"), view, real=True).phase == "wp3"  # last waypoint: stay
+    assert knob._transition(Machine(phase="wp3"), view, real=True).phase == "wp3"  # last waypoint: stay
 
 
 def _solve(suite: str, task_id: int, init: int) -> None:
@@ -153,8 +153,8 @@ def _obs(tick: int, eef: tuple[float, float, float]) -> Observation:
 
 
 def test_queued_actions_are_replayed_when_planning_under_latency() -> None:
-    expert = expert_for(_task("libero_object", [["in", "alphabet_soup_1", "basket_1_contain_region"]]), 8)
-    expert._start(_task("libero_object", []))
+    expert = expert_for(_task("libero_object", [["in", "alphabet_soup_1", "basket_1_contain_region"]]))
+    expert.reset(_task("libero_object", []), SEED)
     first = expert.infer(_obs(0, (-0.15, 0.0, 0.25)))
     # Observation 4 ticks later (async, N = 4): rows for ticks 4..7 are still queued and will run as sent.
     second = expert.infer(_obs(4, (-0.148, -0.03, 0.25)))
