@@ -5,7 +5,10 @@ package_name = "lq_ros"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=find_packages(include=["lq_ros", "lq_ros.*", "nodes"]),
+    # The node programs live in nodes/ (the design's layout) but install under a name that is ours:
+    # a top-level package called "nodes" in site-packages would collide with anyone else's.
+    packages=[*find_packages(include=["lq_ros", "lq_ros.*"]), "lq_ros_nodes"],
+    package_dir={"lq_ros_nodes": "nodes"},
     # Shipped learned-policy weights (LIBERO-Spatial), loaded by default by `oft` and `flow`.
     package_data={"lq_ros.policies": ["weights/*.pt", "weights/*.json"]},
     data_files=[
@@ -22,10 +25,10 @@ setup(
     entry_points={
         "console_scripts": [
             "lq = lq_ros.cli:main",
-            "sim_node = nodes.sim_node:main",
-            "policy_node = nodes.policy_node:main",
-            "executor_node = nodes.executor_node:main",
-            "metrics_node = nodes.metrics_node:main",
+            "sim_node = lq_ros_nodes.sim_node:main",
+            "policy_node = lq_ros_nodes.policy_node:main",
+            "executor_node = lq_ros_nodes.executor_node:main",
+            "metrics_node = lq_ros_nodes.metrics_node:main",
         ],
     },
 )

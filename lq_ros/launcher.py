@@ -25,6 +25,8 @@ from lq_ros.config import RunConfig
 from lq_ros.procs import die_with_parent
 
 NODES = ("sim", "policy", "executor", "metrics")
+#: Module of each node program: nodes/<name>_node.py, installed as the package lq_ros_nodes (setup.py).
+NODE_MODULE = "lq_ros_nodes.{}_node"
 #: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
 DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
 DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
@@ -153,7 +155,7 @@ def launch_nodes(
             for name in NODES:
                 log = open(work / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
                 procs[name] = subprocess.Popen(
-                    [sys.executable, "-m", f"nodes.{name}_node", "--ros-args", "--params-file", str(params_file)],
+                    [sys.executable, "-m", NODE_MODULE.format(name), "--ros-args", "--params-file", str(params_file)],
                     env=env,
                     stdout=log,
                     stderr=subprocess.STDOUT,
