@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -37,6 +38,11 @@ ROW_COLUMNS = [
     ("hold_ticks", "holds"),
     ("underrun_ticks", "underruns"),
 ]
+
+
+class LatencyRounding(StrEnum):
+    exact = "exact"
+    nearest = "nearest"
 
 
 class Transport(StrEnum):
@@ -82,7 +88,12 @@ def run(
     init: int = 0,
     seed: int = 7,
     mode: str = "sync",
-    latency: Annotated[float, typer.Option(help="Injected inference latency Δt_sim, seconds.")] = 0.0,
+    latency: Annotated[
+        float, typer.Option(help="Injected inference latency Δt_sim, seconds: a whole number of 0.05 s ticks.")
+    ] = 0.0,
+    latency_rounding: Annotated[
+        LatencyRounding, typer.Option(help="exact: refuse a latency between ticks; nearest: round it to N·0.05 s.")
+    ] = LatencyRounding.exact,
     replan_steps: int = 5,
     hold: str = "stop",
     request_threshold: Annotated[int, typer.Option(help="async: request at this buffer size; -1: N.")] = -1,
@@ -99,7 +110,11 @@ def run(
 ) -> None:
     """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task)."""
     from lq_ros.config import RunConfig
+    from lq_ros.suites import round_latency
 
+    if latency_rounding is LatencyRounding.nearest and latency >= 0 and round_latency(latency) != latency:
+        console.print(f"latency {latency:g} s rounded to {round_latency(latency):g} s (--latency-rounding nearest)")
+        latency = round_latency(latency)
     try:
         cfg = RunConfig(
             suite=suite, task=task, init=init, seed=seed, mode=mode, latency_s=latency,
@@ -108,7 +123,9 @@ def run(
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
-    row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
+    # LIBERO prints progress on stdout; with --json stdout must hold nothing but the row.
+    with contextlib.redirect_stdout(sys.stderr) if as_json else contextlib.nullcontext():
+        row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
     if as_json:
         print(json.dumps(row, sort_keys=True, default=str))
     else:
@@ -157,7 +174,24 @@ def score(
     ee_topic: Annotated[str, typer.Option(help="geometry_msgs/PoseStamped topic of the end effector.")] = "/ee_pose",
     joint_topic: Annotated[str, typer.Option(help="sensor_msgs/JointState topic (with effort).")] = "/joint_states",
     osc_window: Annotated[int, typer.Option(help="EE-Osc window K in samples.")] = DEFAULT_OSC_WINDOW,
-    rate: Annotated[str, typer.Option(help="Sampling of jerk/energy: control or physics.")] = "control",
+    rate: Annotated[
+        str,
+        typer.Option(
+            help="Trajectory sampling: auto (control for our bags, the topic's own rate for others), "
+            "control, physics, native."
+        ),
+    ] = "auto",
+    energy_rate: Annotated[
+        str,
+        typer.Option(
+            help="Energy sampling: auto (substep integrals when present), substep, physics, "
+            "control (the paper's 20 Hz estimate), native."
+        ),
+    ] = "auto",
+    efficiency_reference: Annotated[
+        Path | None,
+        typer.Option(help="episodes.csv/.parquet of an earlier scoring: pin the relative-efficiency reference paths."),
+    ] = None,
     elec_coeff: Annotated[float, typer.Option(help="Electrical loss R/Kt², W/(N m)².")] = ELEC_LOSS_COEFF_W_PER_NM2,
     overhead_w: Annotated[float, typer.Option(help="Constant overhead power, W.")] = OVERHEAD_POWER_W,
     out: Annotated[Path | None, typer.Option(help="Where tables go (directory input: default PATH).")] = None,
@@ -174,9 +208,16 @@ def score(
     if not find_bags(path):
         console.print(f"[red]no rosbag2 MCAP bag at or below {path}[/red]")
         raise typer.Exit(2)
-    kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate,
+    from lq_ros.scoring import ENERGY_RATES, TRAJECTORY_RATES
+
+    if rate not in TRAJECTORY_RATES:
+        raise typer.BadParameter(f"--rate must be one of {', '.join(TRAJECTORY_RATES)}; got {rate!r}")
+    if energy_rate not in ENERGY_RATES:
+        raise typer.BadParameter(f"--energy-rate must be one of {', '.join(ENERGY_RATES)}; got {energy_rate!r}")
+    references = _read_references(efficiency_reference) if efficiency_reference else None
+    kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate, energy_rate=energy_rate,
                   elec_coeff=elec_coeff, overhead_w=overhead_w)  # fmt: skip
-    episodes = score_directory(path, jobs=jobs, **kwargs)
+    episodes = score_directory(path, jobs=jobs, references=references, **kwargs)
     rows = [{k: v for k, v in r.items() if not (isinstance(v, float) and v != v)} for r in episodes.to_dict("records")]
     # Partial: the bag was damaged or unreadable (a run error recorded in an intact bag is not).
     damaged = any(row.get("partial") for row in rows)
@@ -203,6 +244,24 @@ def score(
         console.print("wrote " + ", ".join(str(p) for p in written.values()), soft_wrap=True)
     if damaged:
         raise typer.Exit(1)
+
+
+def _read_references(path: Path):
+    """Relative-efficiency references from an earlier episodes table (one line naming a bad file)."""
+    import pandas as pd
+
+    from lq_ros.aggregate import REFERENCE_KEYS, efficiency_references
+
+    try:
+        table = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+    except (OSError, ValueError) as exc:
+        raise typer.BadParameter(f"--efficiency-reference {path}: unreadable ({exc})") from exc
+    if "traj_ref_length" in table:
+        return table[[*REFERENCE_KEYS, "traj_ref_length", "traj_ref_episode"]].drop_duplicates(list(REFERENCE_KEYS))
+    missing = [c for c in (*REFERENCE_KEYS, "status", "traj_length", "episode") if c not in table]
+    if missing:
+        raise typer.BadParameter(f"--efficiency-reference {path}: not an episodes table (missing {', '.join(missing)})")
+    return efficiency_references(table)
 
 
 @app.command()

@@ -15,6 +15,13 @@ from lq_ros.suites import latency_ticks, step_budget
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
+#: Run configuration fields besides the group keys that tell variants of a policy or protocol apart.
+#: Every parameter that changes outcomes is one: results that differ in any of them never pool.
+VARIANT_FIELDS = ("policy_args", "replan_steps", "hold", "request_threshold", "merge", "max_steps", "camera_size")
+#: What an aggregate row (and a figure's series point) is computed over: one policy variant, protocol,
+#: applied latency, task, and the sampling its trajectory and energy metrics were computed at.
+GROUP_KEYS = ("policy", "mode", "latency_s", "suite", "task", "trajectory_rate_hz", "energy_sampling")
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -100,6 +107,33 @@ def git_commit() -> str:
         return "unknown"
 
 
+#: x86 SIMD extensions that select different floating-point code paths in MuJoCo, BLAS and numpy.
+_SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni")
+
+
+def cpu_info() -> dict:
+    """CPU model, its SIMD flags and the class within which lockstep results are bit-identical.
+
+    MuJoCo guarantees identical results only on the same architecture; AVX-512 and AVX2-only x86 CPUs
+    take different code paths and can diverge (mujoco issue #2659), so the class is the widest vector
+    extension present.
+    """
+    model, flags = platform.processor() or platform.machine(), set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and model in ("", platform.machine(), platform.processor()):
+                model = value.strip()
+            elif key.strip() == "flags":
+                flags = set(value.split())
+                break
+    except OSError:
+        pass
+    simd = [f for f in _SIMD_FLAGS if f in flags]
+    widest = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "AVX" if "avx" in flags else "SSE"
+    return {"model": model, "simd": simd, "class": f"{platform.machine()} {widest}"}
+
+
 def versions() -> dict:
     """Versions of everything that can change a result."""
     return {
@@ -113,4 +147,5 @@ def versions() -> dict:
         "rosbags": _dist_version("rosbags"),
         "python": platform.python_version(),
         "git_commit": git_commit(),
+        "cpu": cpu_info(),
     }

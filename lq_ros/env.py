@@ -66,6 +66,20 @@ class PhysicsSamples:
     joint_torque: np.ndarray  # (S, 7) N m
 
 
+@dataclass(frozen=True)
+class EnergyIntegrals:
+    """Joint-power integrals over the physics substeps of one control tick (paper eq. 6-8).
+
+    With MuJoCo's Euler integrator a substep moves the joints by ``qdot_end * dt``, so
+    ``tau . qdot_end * dt`` is exactly the work the actuators did in that substep.
+    """
+
+    duration_s: float
+    substeps: int
+    positive_work_j: float  # sum_k max(0, tau_k . qdot_k) dt
+    torque_squared_integral: float  # sum_k tau_k . tau_k dt, N^2 m^2 s
+
+
 @dataclass
 class TickState:
     """Robot state at the start of control tick ``tick`` (after the previous command was applied)."""
@@ -80,6 +94,8 @@ class TickState:
     gripper_qpos: np.ndarray  # (2,) m
     success: bool
     physics: PhysicsSamples | None = None
+    #: Integrals over the substeps of the tick that led here (None at tick 0: nothing applied yet).
+    energy: EnergyIntegrals | None = None
 
 
 @dataclass
@@ -162,6 +178,7 @@ class LiberoEnv:
         )
         self._mujoco = mujoco
         self._substeps: list[tuple[np.ndarray, ...]] = []
+        self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
         self._bind_sim()
         self._obs: dict | None = None
         self._tick = 0
@@ -178,9 +195,9 @@ class LiberoEnv:
         self._bind_sim()
         self._env.set_init_state(self._init_states[init_index])
         for _ in range(NUM_WAIT_STEPS):
-            self._substeps.clear()
             self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
         self._substeps.clear()  # the wait steps are not part of the episode
+        self._energy[:] = 0.0
         self._tick = 0
         self._success = False
         return self._tick_state()
@@ -188,6 +205,7 @@ class LiberoEnv:
     def step(self, action: np.ndarray) -> TickState:
         """Apply ``action`` for one control tick; returns the state at the next tick."""
         self._substeps.clear()
+        self._energy[:] = 0.0
         self._obs, _, done, _ = self._env.step(np.asarray(action, dtype=np.float64))
         self._tick += 1
         self._success = bool(done)
@@ -248,6 +266,15 @@ class LiberoEnv:
         if self.record_physics and self._substeps:
             eef, eef_quat, vel, tau = (np.array(col) for col in zip(*self._substeps))
             physics = PhysicsSamples(eef_pos=eef, eef_quat_xyzw=eef_quat, joint_vel=vel, joint_torque=tau)
+        substeps, work, torque_sq = self._energy
+        energy = None
+        if substeps:
+            energy = EnergyIntegrals(
+                duration_s=substeps * PHYSICS_DT_S,
+                substeps=int(substeps),
+                positive_work_j=float(work) * PHYSICS_DT_S,
+                torque_squared_integral=float(torque_sq) * PHYSICS_DT_S,
+            )
         return TickState(
             tick=self._tick,
             sim_time_s=sim_time_of_tick(self._tick),
@@ -259,6 +286,7 @@ class LiberoEnv:
             gripper_qpos=np.array(self._obs["robot0_gripper_qpos"], dtype=np.float64),
             success=self._success,
             physics=physics,
+            energy=energy,
         )
 
     def _bind_sim(self) -> None:
@@ -274,19 +302,30 @@ class LiberoEnv:
         self._torque_idx = np.asarray(self._robot._ref_joint_actuator_indexes)
         self._qpos_idx = np.asarray(self._robot._ref_joint_pos_indexes)
         self._qvel_idx = np.asarray(self._robot._ref_joint_vel_indexes)
-        if self.record_physics and not getattr(self._sim, "_lq_recording", False):
+        if self._model.opt.timestep != PHYSICS_DT_S:
+            raise RuntimeError(f"MuJoCo timestep {self._model.opt.timestep} s, expected {PHYSICS_DT_S} s")
+        if not getattr(self._sim, "_lq_recording", False):
             self._wrap_sim_step()
 
     def _wrap_sim_step(self) -> None:
-        """Record EE position, arm velocity and torque after every physics substep."""
+        """Integrate joint power after every physics substep (and record the substep when asked).
+
+        robosuite calls ``sim.step`` SUBSTEPS_PER_TICK times per ``env.step``; reading the state after
+        each one changes nothing in the simulation.
+        """
         sim_step = self._sim.step
+        energy = self._energy
 
         def step_and_record() -> None:
             sim_step()
-            pos, quat = self._eef_pose()
-            self._substeps.append(
-                (pos, quat, self._data.qvel[self._qvel_idx].copy(), self._data.actuator_force[self._torque_idx].copy())
-            )
+            vel = self._data.qvel[self._qvel_idx]
+            tau = self._data.actuator_force[self._torque_idx]
+            energy[0] += 1.0
+            energy[1] += max(0.0, float(tau @ vel))  # eq. 7: clip the instantaneous power
+            energy[2] += float(tau @ tau)
+            if self.record_physics:
+                pos, quat = self._eef_pose()
+                self._substeps.append((pos, quat, vel.copy(), tau.copy()))
 
         self._sim.step = step_and_record
         self._sim._lq_recording = True

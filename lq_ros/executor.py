@@ -80,6 +80,17 @@ class ExecutorConfig:
             raise ValueError(f"request_threshold must be >= 0, got {self.request_threshold}")
         if not 0.0 <= self.blend_new_weight <= 1.0:
             raise ValueError(f"blend_new_weight must be in [0, 1], got {self.blend_new_weight}")
+        if self.merge is not Merge.REPLACE:
+            # A merge rule acts only where the buffered rest of the old chunk overlaps the new one.
+            if self.mode is not Mode.ASYNC:
+                raise ValueError(f"merge {self.merge.value!r} applies to the async protocol only; use merge 'replace'")
+            if self.threshold <= self.latency_ticks:
+                raise ValueError(
+                    f"merge {self.merge.value!r} never sees overlapping chunks with request_threshold "
+                    f"{self.threshold} <= latency ticks N={self.latency_ticks} (the buffer is empty when the next "
+                    f"chunk lands, identical to 'replace'); set request_threshold > {self.latency_ticks} or "
+                    "use merge 'replace'"
+                )
 
     @property
     def threshold(self) -> int:
@@ -167,6 +178,8 @@ class ExecutorCore:
         self.stats = ExecutorStats()
         #: Set when the episode must end as an error (reason).
         self.error: str | None = None
+        self._warnings: list[str] = []
+        self._warned_no_fresh = False
         self._next_request_id = 1
         self._outstanding: Request | None = None
         self._last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
@@ -241,10 +254,21 @@ class ExecutorCore:
             self._merge(arr, request_id)
         return None
 
+    def take_warnings(self) -> list[str]:
+        """Protocol warnings since the last call, for the transport to publish (one WARNING event each)."""
+        taken, self._warnings = self._warnings, []
+        return taken
+
     def _merge(self, chunk: np.ndarray, request_id: int) -> None:
         # Rows 0..N-1 were meant for the ticks that passed while inferring: stale, never executed.
         stale = min(self.config.latency_ticks, len(chunk))
         self.stats.stale_actions_dropped += stale
+        if stale == len(chunk) and not self._warned_no_fresh:
+            self._warned_no_fresh = True
+            self._warnings.append(
+                f"async chunk of {len(chunk)} actions with N={self.config.latency_ticks} latency ticks: every "
+                "action is stale on arrival, nothing fresh is executed (use a chunk longer than N)"
+            )
         fresh = [(chunk[i], request_id, i) for i in range(stale, len(chunk))]
         if self.config.merge is Merge.BLEND:
             w = self.config.blend_new_weight

@@ -8,7 +8,7 @@ channels. Record layouts follow the MCAP specification (https://mcap.dev/spec); 
 uses the ``mcap`` package.
 
 Payload decoding of the few fields the scorer needs (stamps, EE position, joint velocity/effort,
-command source) walks the CDR layout directly: ~40x cheaper than a generic deserializer per message.
+command source, energy integrals) walks the CDR layout directly: ~40x cheaper than a generic deserializer per message.
 """
 
 from __future__ import annotations
@@ -329,11 +329,23 @@ def _action_command(buf: memoryview) -> Layout:
     return w.done()
 
 
+def _energy_integrals(buf: memoryview) -> Layout:
+    w = _Walker(buf)
+    w.header()
+    w.field("tick", "u4")
+    w.field("duration_s", "f8")
+    w.field("substeps", "u4")
+    w.field("positive_work_j", "f8")
+    w.field("torque_squared_integral", "f8")
+    return w.done()
+
+
 #: msgtype -> layout walker, for the per-tick messages the scorer decodes in bulk.
 WALKERS = {
     "geometry_msgs/msg/PoseStamped": _pose_stamped,
     "sensor_msgs/msg/JointState": _joint_state,
     "lq_msgs/msg/ActionCommand": _action_command,
+    "lq_msgs/msg/EnergyIntegrals": _energy_integrals,
 }
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo, TickState
+from lq_ros.env import EnergyIntegrals, Observation, TaskInfo, TickState
 from lq_ros.executor import Command, Request
 from lq_ros.suites import PHYSICS_DT_S
 
@@ -43,6 +43,7 @@ OBSERVATION_REQUEST = Topic("/lq/observation_request", "lq_msgs/msg/ObservationR
 OBSERVATION = Topic("/lq/observation", "lq_msgs/msg/Observation")
 ACTION_CHUNK = Topic("/lq/action_chunk", "lq_msgs/msg/ActionChunk")
 EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
+ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 
 
@@ -51,7 +52,17 @@ def camera_topic(camera: str) -> Topic:
 
 
 #: Topics every episode bag holds (cameras and physics-rate topics are added when enabled).
-CORE_TOPICS = (CLOCK, JOINT_STATES, EE_POSE, COMMAND, OBSERVATION_REQUEST, OBSERVATION, ACTION_CHUNK, EPISODE_EVENTS)
+CORE_TOPICS = (
+    CLOCK,
+    JOINT_STATES,
+    EE_POSE,
+    ENERGY_INTEGRALS,
+    COMMAND,
+    OBSERVATION_REQUEST,
+    OBSERVATION,
+    ACTION_CHUNK,
+    EPISODE_EVENTS,
+)
 
 
 class EventKind:
@@ -63,8 +74,9 @@ class EventKind:
     ERROR = 3
     CHUNK_REJECTED = 4
     STOPPED = 5
+    WARNING = 6
     TERMINAL = (SUCCESS, TIMEOUT, ERROR, STOPPED)
-    NAMES = {0: "started", 1: "success", 2: "timeout", 3: "error", 4: "chunk_rejected", 5: "stopped"}
+    NAMES = {0: "started", 1: "success", 2: "timeout", 3: "error", 4: "chunk_rejected", 5: "stopped", 6: "warning"}
 
 
 @cache
@@ -156,8 +168,21 @@ def ee_pose_msg(t_ns: int, pos, quat_xyzw) -> bytes:
     return serialize(msg, EE_POSE.msgtype)
 
 
+def energy_integrals_msg(t_ns: int, tick: int, energy: EnergyIntegrals) -> bytes:
+    msg = _cls(ENERGY_INTEGRALS.msgtype)(
+        header=_header(t_ns),
+        tick=tick,
+        duration_s=energy.duration_s,
+        substeps=energy.substeps,
+        positive_work_j=energy.positive_work_j,
+        torque_squared_integral=energy.torque_squared_integral,
+    )
+    return serialize(msg, ENERGY_INTEGRALS.msgtype)
+
+
 def tick_state_msgs(state: TickState, physics_rate: bool = False, clock: bool = True) -> list[tuple[Topic, int, bytes]]:
-    """(topic, log time ns, bytes) for one tick: physics-rate samples first, then joints, pose, clock.
+    """(topic, log time ns, bytes) for one tick: physics-rate samples first, then joints, pose, the
+    energy integrals of the tick that led here, clock.
 
     /clock starts a control tick; the sim leaves it out at the tick that ends the episode, so no
     node acts on a tick that will never be stepped.
@@ -174,6 +199,8 @@ def tick_state_msgs(state: TickState, physics_rate: bool = False, clock: bool = 
             out.append((EE_POSE_PHYSICS, ts, ee_pose_msg(ts, ph.eef_pos[i], ph.eef_quat_xyzw[i])))
     out.append((JOINT_STATES, t_ns, joint_state_msg(t_ns, state.joint_pos, state.joint_vel, state.joint_torque)))
     out.append((EE_POSE, t_ns, ee_pose_msg(t_ns, state.eef_pos, state.eef_quat_xyzw)))
+    if state.energy is not None:
+        out.append((ENERGY_INTEGRALS, t_ns, energy_integrals_msg(t_ns, state.tick - 1, state.energy)))
     if clock:
         out.append((CLOCK, t_ns, clock_msg(t_ns)))
     return out

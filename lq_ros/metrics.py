@@ -27,12 +27,16 @@ __all__ = [
     "OVERHEAD_POWER_W",
     "SPARC_AMP_THRESHOLD",
     "SPARC_FC_HZ",
+    "MIN_MOVEMENT_SPEED_M_S",
     "SPARC_PADLEVEL",
     "EnergyTerms",
     "bootstrap_ci",
     "check_uniform",
     "dimensionless_jerk",
     "ee_oscillation",
+    "ee_oscillation_detrended",
+    "energy_from_integrals",
+    "restricted_mean_time",
     "energy_terms",
     "jerk_mean",
     "jerk_norms",
@@ -62,6 +66,9 @@ DEFAULT_OSC_WINDOW = 10
 SPARC_PADLEVEL = 4
 SPARC_FC_HZ = 10.0
 SPARC_AMP_THRESHOLD = 0.05
+#: Below this peak speed (m/s) a trajectory counts as motionless: SPARC and LDLJ describe the shape of a
+#: movement and are undefined without one (on simulator noise they would report "perfectly smooth").
+MIN_MOVEMENT_SPEED_M_S = 1e-3
 
 
 # --------------------------------------------------------------------------------------------------
@@ -156,6 +163,30 @@ def ee_oscillation(pos: ArrayLike, window: int = DEFAULT_OSC_WINDOW) -> float:
     return float(np.mean(np.linalg.norm(tail - tail.mean(axis=0), axis=1)))
 
 
+def ee_oscillation_detrended(pos: ArrayLike, window: int = DEFAULT_OSC_WINDOW) -> float:
+    """EE-Osc about the least-squares straight line through the last ``window`` positions, metres.
+
+    The paper's EE-Osc (:func:`ee_oscillation`) measures the spread of the last K samples about their
+    mean, so on an arm still travelling at the end it mostly measures travel (K samples of a 0.1 m/s
+    motion spread by ~2 cm). Here each axis is fitted by ``a + b k`` over the window (k = sample
+    index) and the mean Euclidean distance from that line is returned: only back-and-forth remains.
+    Fewer than ``window`` samples: all are used; with one or two samples the result is 0.
+
+    Raises:
+        ValueError: if ``pos`` is empty or ``window`` < 1.
+    """
+    p = _as_positions(pos)
+    if window < 1:
+        raise ValueError(f"EE-Osc window must be >= 1 sample, got {window}")
+    if p.shape[0] == 0:
+        raise ValueError("EE-Osc needs at least one position sample, got none")
+    tail = p[-window:]
+    k = np.arange(len(tail), dtype=np.float64)
+    design = np.column_stack([np.ones_like(k), k])
+    coef, *_ = np.linalg.lstsq(design, tail, rcond=None)
+    return float(np.mean(np.linalg.norm(tail - design @ coef, axis=1)))
+
+
 def trajectory_length(pos: ArrayLike) -> float:
     """Path length ``sum_t ||p_t - p_{t-1}||`` in metres (paper A.4); 0 for fewer than two samples."""
     p = _as_positions(pos)
@@ -241,6 +272,47 @@ def energy_terms(
     return EnergyTerms(mech_j=mech, elec_j=elec, overhead_j=overhead, total_j=total, per_step_j=total / n, n_steps=n)
 
 
+def energy_from_integrals(
+    positive_work_j: ArrayLike,
+    torque_squared_integral: ArrayLike,
+    duration_s: ArrayLike,
+    steps: int,
+    elec_coeff: float = ELEC_LOSS_COEFF_W_PER_NM2,
+    overhead_w: float = OVERHEAD_POWER_W,
+) -> EnergyTerms:
+    """Trajectory energy (eq. 6-10) from per-interval integrals computed at the physics rate.
+
+    Each interval (one control tick) carries ``sum max(0, tau . qdot) dt`` (J), ``sum tau . tau dt``
+    (N^2 m^2 s) and its length (s), all summed over its physics substeps; the trajectory's terms are
+    their sums (eq. 8's coefficient and eq. 9's overhead power applied here).
+
+    Args:
+        positive_work_j, torque_squared_integral, duration_s: (T,) one entry per interval.
+        steps: T in eq. 10, the number of control steps the energy is normalised by.
+
+    Raises:
+        ValueError: no interval, non-finite values, negative integrals or steps < 1.
+    """
+    work = np.asarray(positive_work_j, dtype=np.float64).reshape(-1)
+    torque_sq = np.asarray(torque_squared_integral, dtype=np.float64).reshape(-1)
+    duration = np.asarray(duration_s, dtype=np.float64).reshape(-1)
+    if not work.size or not (work.size == torque_sq.size == duration.size):
+        raise ValueError(
+            f"need one value of each integral per interval, got {work.size}, {torque_sq.size}, {duration.size}"
+        )
+    if not all(np.all(np.isfinite(a)) and np.all(a >= 0.0) for a in (work, torque_sq, duration)):
+        raise ValueError("energy integrals must be finite and non-negative")
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    mech = float(work.sum())
+    elec = float(elec_coeff) * float(torque_sq.sum())
+    overhead = float(overhead_w) * float(duration.sum())
+    total = mech + elec + overhead
+    return EnergyTerms(
+        mech_j=mech, elec_j=elec, overhead_j=overhead, total_j=total, per_step_j=total / steps, n_steps=steps
+    )
+
+
 # --------------------------------------------------------------------------------------------------
 # speed-profile smoothness: SPARC and (log) dimensionless jerk
 # --------------------------------------------------------------------------------------------------
@@ -264,7 +336,9 @@ def sparc(
     4. return ``-sum sqrt((df / (f_c - f_0))**2 + dM**2)`` over the kept bins.
 
     Less negative means smoother. Reference: ``t = arange(-1, 1, 0.01)``, ``exp(-5 t**2)``, fs = 100 Hz
-    gives -1.41403.
+    gives -1.41403. Undefined (ValueError) without movement (peak speed below
+    :data:`MIN_MOVEMENT_SPEED_M_S`, speed in m/s) or when fewer than two spectral bins pass the
+    threshold (no arc to measure); it never reports such a case as perfectly smooth (0).
 
     Args:
         speed: (N,) speed profile (any unit; the spectrum is normalised).
@@ -274,12 +348,13 @@ def sparc(
         amp_th: amplitude threshold of the normalised spectrum for the adaptive cut-off.
 
     Raises:
-        ValueError: empty / non-finite / identically-zero profile, or non-positive fs_hz.
+        ValueError: empty / non-finite / motionless profile, no spectral arc, or non-positive fs_hz.
     """
     v = _as_speed(speed)
     fs = float(fs_hz)
     if not math.isfinite(fs) or fs <= 0.0:
         raise ValueError(f"fs_hz must be a positive sampling frequency in Hz, got {fs_hz!r}")
+    _require_movement(v)
     nfft = int(2 ** (math.ceil(math.log2(v.size)) + int(padlevel)))
     freqs = np.arange(nfft) * (fs / nfft)
     mag = np.abs(np.fft.fft(v, nfft))
@@ -293,11 +368,20 @@ def sparc(
     m_sel = mag[in_band]
     above = np.nonzero(m_sel >= amp_th)[0]
     if above.size < 2:
-        return 0.0
+        raise ValueError(f"SPARC is undefined: fewer than 2 spectral bins up to {fc:g} Hz reach {amp_th:g} of the peak")
     f_sel = f_sel[above[0] : above[-1] + 1]
     m_sel = m_sel[above[0] : above[-1] + 1]
     span = f_sel[-1] - f_sel[0]
     return float(-np.sum(np.sqrt((np.diff(f_sel) / span) ** 2 + np.diff(m_sel) ** 2)))
+
+
+def _require_movement(v: NDArray[np.float64]) -> None:
+    peak = float(np.max(np.abs(v)))
+    if peak < MIN_MOVEMENT_SPEED_M_S:
+        raise ValueError(
+            f"undefined without movement: peak speed {peak:.2g} m/s < {MIN_MOVEMENT_SPEED_M_S:g} m/s "
+            "(the arm did not move)"
+        )
 
 
 def dimensionless_jerk(speed: ArrayLike, fs_hz: float) -> float:
@@ -318,9 +402,8 @@ def dimensionless_jerk(speed: ArrayLike, fs_hz: float) -> float:
         raise ValueError(f"fs_hz must be a positive sampling frequency in Hz, got {fs_hz!r}")
     if v.size < 3:
         raise ValueError(f"dimensionless jerk needs at least 3 speed samples, got N={v.size}")
+    _require_movement(v)
     v_peak = float(np.max(np.abs(v)))
-    if v_peak == 0.0:
-        raise ValueError("dimensionless jerk is undefined for an identically zero speed profile (no movement)")
     dt = 1.0 / fs
     duration = v.size * dt
     d2v = np.diff(v, 2) / dt**2
@@ -330,12 +413,13 @@ def dimensionless_jerk(speed: ArrayLike, fs_hz: float) -> float:
 def ldlj(speed: ArrayLike, fs_hz: float) -> float:
     """Log dimensionless jerk ``-ln |DJ|`` of a speed profile (see :func:`dimensionless_jerk`).
 
-    Less negative means smoother. Returns ``+inf`` when DJ == 0 (speed with zero second difference,
-    e.g. constant). Reference: ``exp(-5 t**2)``, ``t = arange(-1, 1, 0.01)``, fs = 100 Hz gives -5.81636.
+    Less negative means smoother. Undefined (ValueError) when DJ == 0 (a speed with zero second
+    difference, e.g. constant: log of 0) and without movement. Reference: ``exp(-5 t**2)``,
+    ``t = arange(-1, 1, 0.01)``, fs = 100 Hz gives -5.81636.
     """
     dj = dimensionless_jerk(speed, fs_hz)
     if dj == 0.0:
-        return math.inf
+        raise ValueError("LDLJ is undefined: the speed profile has zero second difference (log of 0)")
     return -math.log(abs(dj))
 
 
@@ -447,6 +531,36 @@ def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[f
     low = 0.0 if successes == 0 else max(0.0, center - half)
     high = 1.0 if successes == n else min(1.0, center + half)
     return low, high
+
+
+def restricted_mean_time(times: ArrayLike, events: ArrayLike, horizon: float) -> float:
+    """Kaplan-Meier restricted mean time to success up to ``horizon`` (same unit as ``times``).
+
+    ``times[i]`` is when episode i succeeded (``events[i]`` True) or was censored (False: a failure
+    ends at its step budget, so the success time is only known to exceed it). The restricted mean
+    ``integral_0^horizon S(t) dt`` of the Kaplan-Meier survival curve ("still not succeeded") counts
+    every episode: a policy that rarely succeeds but succeeds fast does not look fastest, unlike the
+    success-only mean. With every failure censored at the horizon it equals the mean of
+    ``min(time, horizon)``.
+
+    Raises:
+        ValueError: empty input, mismatched lengths, negative or non-finite times, horizon <= 0.
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    e = np.asarray(events, dtype=bool).reshape(-1)
+    if t.size == 0 or t.size != e.size:
+        raise ValueError(f"need one event flag per time, got {t.size} times and {e.size} flags")
+    if not np.all(np.isfinite(t)) or np.any(t < 0):
+        raise ValueError("times must be finite and >= 0")
+    if not (math.isfinite(horizon) and horizon > 0):
+        raise ValueError(f"horizon must be positive, got {horizon}")
+    survival, area, last_t = 1.0, 0.0, 0.0
+    for ti in np.unique(t[e & (t <= horizon)]):
+        area += survival * (ti - last_t)
+        at_risk = int(np.sum(t >= ti))
+        survival *= 1.0 - int(np.sum((t == ti) & e)) / at_risk
+        last_t = ti
+    return float(area + survival * (horizon - last_t))
 
 
 def bootstrap_ci(

@@ -131,6 +131,8 @@ def run_inprocess(
             reason = core.deliver(req.request_id, chunk)
             if reason is not None:
                 rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": req.request_id})
+            for warning in core.take_warnings():
+                rec.event(m.EventKind.WARNING, tick, warning, {"request_id": req.request_id})
 
         budget = cfg.budget
         while tick < budget:

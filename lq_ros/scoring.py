@@ -18,12 +18,22 @@ import numpy as np
 from lq_ros import mcap_stream, metrics
 from lq_ros import messages as m
 from lq_ros.bag import read_run_metadata
+from lq_ros.config import VARIANT_FIELDS
+from lq_ros.executor import Source, validate_chunk
 from lq_ros.mcap_stream import McapDamage, StreamingMcapReader
-from lq_ros.suites import CONTROL_DT_S, PHYSICS_DT_S
+from lq_ros.suites import CONTROL_DT_S, PHYSICS_DT_S, STEP_BUDGETS, latency_ticks
 
-RATES = {"control": CONTROL_DT_S, "physics": PHYSICS_DT_S}
-#: Run configuration fields besides the group keys that distinguish episodes of different variants.
-VARIANT_FIELDS = ("policy_args", "replan_steps", "hold", "request_threshold", "merge")
+#: Sampling of the trajectory metrics (jerk, EE-Osc, length, SPARC, LDLJ): ``control`` (20 Hz EE pose,
+#: the paper's), ``physics`` (500 Hz, bags recorded with --physics-rate), ``native`` (the EE topic's own
+#: rate, for bags of other tools), ``auto`` (control for our bags, native for others).
+TRAJECTORY_RATES = ("auto", "control", "physics", "native")
+#: Sampling of the energy: ``substep`` (per-tick integrals over every 500 Hz physics substep, the
+#: default of our bags), ``physics`` (500 Hz joint-state samples), ``control`` (one 20 Hz joint-state
+#: sample standing for its tick: the paper's estimate), ``native`` (the joint topic's own rate),
+#: ``auto`` (substep when the bag has the integrals, else control for our bags, native for others).
+ENERGY_RATES = ("auto", "substep", "physics", "control", "native")
+#: Relative tolerance of a sample interval: our bags are exact (sim time); other tools' topics jitter.
+_UNIFORM_TOL = {"control": 0.01, "physics": 0.01, "substep": 0.01, "native": 0.05}
 
 
 class BagError(RuntimeError):
@@ -67,8 +77,10 @@ class EpisodeData:
     joints: Series = field(default_factory=Series)  # rows: velocity (J) + effort (J)
     ee_physics: Series = field(default_factory=Series)
     joints_physics: Series = field(default_factory=Series)
+    #: rows: duration (s), positive work (J), torque^2 integral (N^2 m^2 s), one per control tick
+    energy: Series = field(default_factory=Series)
     events: list = field(default_factory=list)  # (kind, tick, t_ns, reason)
-    chunks: list = field(default_factory=list)  # (injected s, real s, error)
+    chunks: list = field(default_factory=list)  # (injected s, real s, error, horizon, valid)
     chunk_timings: list[dict] = field(default_factory=list)  # the policy's own timing per chunk (ms)
     command_sources: list[int] = field(default_factory=list)
     requests: int = 0
@@ -122,6 +134,7 @@ def read_episode(
         m.ACTION_CHUNK.name: ("chunks", m.ACTION_CHUNK.msgtype),
         m.COMMAND.name: ("commands", m.COMMAND.msgtype),
         m.OBSERVATION_REQUEST.name: ("requests", m.OBSERVATION_REQUEST.msgtype),
+        m.ENERGY_INTEGRALS.name: ("energy", m.ENERGY_INTEGRALS.msgtype),
     }
     if physics:
         roles[m.EE_POSE_PHYSICS.name] = ("ee_physics", m.EE_POSE_PHYSICS.msgtype)
@@ -163,13 +176,18 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
             if role == "events":
                 data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
             else:
-                data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error))
+                actions = m.chunk_actions(msg)
+                valid = not msg.error and validate_chunk(actions) is None
+                data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), valid))
                 if getattr(msg, "timing_json", ""):  # bags from before the field existed have none
                     data.chunk_timings.append(json.loads(msg.timing_json))
     else:
         for group in mcap_stream.decode(batch):
             if role == "commands":
                 data.command_sources.extend(group["source"].tolist())
+            elif role == "energy":
+                values = (group["duration_s"], group["positive_work_j"], group["torque_squared_integral"])
+                data.energy.add(group["stamp_ns"], np.column_stack(values))
             elif role in ("ee", "ee_physics"):
                 getattr(data, role).add(group["stamp_ns"], group["position"])
             else:  # joint states: energy needs matching velocity and effort
@@ -190,28 +208,65 @@ def _null(row: dict, keys: list[str], reason: str) -> None:
     row.setdefault("null_reasons", {}).update({k: reason for k in keys})
 
 
+def _native_dt(t_ns: np.ndarray) -> float | None:
+    """Median sample interval of a series (s), None with fewer than two samples."""
+    return float(np.median(np.diff(t_ns))) / 1e9 if len(t_ns) >= 2 else None
+
+
+def _coverage(
+    t_ns: np.ndarray, t0_ns: int | None, t1_ns: int | None, first_s: float, dt_s: float, what: str
+) -> str | None:
+    """Why ``t_ns`` does not run from the episode's start to its end (None when it does).
+
+    ``first_s``: where the first sample belongs after the start event (0 for a state sample, one
+    interval for a sample that closes an interval). A series that stops early or starts late would
+    otherwise be scored as if it were the whole episode.
+    """
+    if t0_ns is None or t1_ns is None or not len(t_ns):
+        return None
+    tol_ns = 0.01 * dt_s * 1e9
+    first, last = int(t_ns[0]), int(t_ns[-1])
+    if abs(first - (t0_ns + first_s * 1e9)) > tol_ns or abs(t1_ns - last) > tol_ns:
+        return (
+            f"{what} samples span {first / 1e9:.3f}-{last / 1e9:.3f} s, the episode "
+            f"{(t0_ns + first_s * 1e9) / 1e9:.3f}-{t1_ns / 1e9:.3f} s"
+        )
+    return None
+
+
 def score_episode(
     data: EpisodeData,
     *,
     osc_window: int = metrics.DEFAULT_OSC_WINDOW,
-    rate: str = "control",
+    rate: str = "auto",
+    energy_rate: str = "auto",
     name: str = "",
     elec_coeff: float = metrics.ELEC_LOSS_COEFF_W_PER_NM2,
     overhead_w: float = metrics.OVERHEAD_POWER_W,
 ) -> dict:
-    """One row of metrics. ``rate`` picks the sampling of jerk/energy: control (20 Hz) or physics.
+    """One row of metrics.
 
-    ``elec_coeff`` (W/(N m)^2) and ``overhead_w`` (W) are the energy model's constants (paper values by default).
+    ``rate`` picks the sampling of the trajectory metrics and ``energy_rate`` that of the energy
+    (see :data:`TRAJECTORY_RATES`, :data:`ENERGY_RATES`); a sampling the bag cannot provide makes its
+    metrics null with the reason, never a silent fallback. ``elec_coeff`` (W/(N m)^2) and
+    ``overhead_w`` (W) are the energy model's constants (paper values by default).
     """
-    if rate not in RATES:
-        raise ValueError(f"rate must be one of {sorted(RATES)}, got {rate!r}")
+    if rate not in TRAJECTORY_RATES:
+        raise ValueError(f"rate must be one of {', '.join(TRAJECTORY_RATES)}; got {rate!r}")
+    if energy_rate not in ENERGY_RATES:
+        raise ValueError(f"energy rate must be one of {', '.join(ENERGY_RATES)}; got {energy_rate!r}")
     row: dict = {"episode": name}
     meta = data.metadata
     cfg = meta.get("config", {})
-    row.update({k: cfg.get(k) for k in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")})
+    ours = bool(cfg)  # written by this stack (sim-time stamps, known topics)
+    row.update({k: cfg.get(k) for k in ("policy", "mode", "suite", "task", "init", "seed")})
     # Policy arguments and protocol parameters: what tells variants of one policy or mode apart.
     row.update({k: cfg[k] for k in VARIANT_FIELDS if k in cfg})
     row["transport"] = meta.get("transport")
+    versions = meta.get("versions") or {}
+    cpu = versions.get("cpu") if isinstance(versions, dict) else None
+    row["cpu_class"] = cpu.get("class") if isinstance(cpu, dict) else None
+    warnings = list(data.warnings)
 
     # -- outcome --------------------------------------------------------------------------------
     started = [e for e in data.events if e[0] == m.EventKind.STARTED]
@@ -229,6 +284,8 @@ def score_episode(
     row["status"] = status
     row["success"] = {"success": True, "failure": False}.get(status)
     row["error_reason"] = reason if status in ("error", "unknown") else None
+    # The budget a failure is censored at (Kaplan-Meier completion time in the aggregates).
+    row["step_budget"] = cfg.get("max_steps") or STEP_BUDGETS.get(cfg.get("suite"))
     if terminal and status in ("success", "failure"):
         steps = terminal[0][1]
         row["completion_steps"] = steps
@@ -238,10 +295,60 @@ def score_episode(
         _null(row, ["completion_steps", "completion_time_s", "censored"], f"no outcome ({status})")
 
     # -- latency and protocol -------------------------------------------------------------------
+    _score_protocol(row, data, cfg, meta)
+
+    # -- trajectory -----------------------------------------------------------------------------
+    sampling = ("control" if ours else "native") if rate == "auto" else rate
+    row["trajectory_sampling"] = sampling
+    traj_keys = ["jerk_mean", "jerk_p90", "ee_osc", "ee_osc_detrended", "traj_length", "sparc", "ldlj"]
+    ee_series = data.ee_physics if sampling == "physics" else data.ee
+    ee_topic = m.EE_POSE_PHYSICS.name if sampling == "physics" else data.ee_topic
+    t_ee, pos = ee_series.arrays(t0_ns, t1_ns)
+    dt = {"control": CONTROL_DT_S, "physics": PHYSICS_DT_S}.get(sampling) or _native_dt(t_ee)
+    row["trajectory_rate_hz"] = round(1.0 / dt, 6) if dt else None
+    if sampling == "physics" and not len(data.ee_physics):
+        _null(row, traj_keys, f"no {ee_topic} samples at the physics rate (record with --physics-rate)")
+    else:
+        gap = (
+            metrics.check_uniform(t_ee / 1e9, dt, _UNIFORM_TOL[sampling])
+            if len(t_ee) >= 2
+            else f"fewer than 2 EE samples on {ee_topic}"
+        )
+        # The first physics sample closes the first substep; a state sample starts at the start event.
+        span = gap or _coverage(t_ee, t0_ns, t1_ns, PHYSICS_DT_S if sampling == "physics" else 0.0, dt, ee_topic)
+        if gap is not None:
+            _null(row, traj_keys, f"EE pose series rejected: {gap}")
+        elif span is not None:
+            warnings.append(f"{name or 'bag'}: {span}")
+            _null(row, traj_keys, f"EE pose series incomplete: {span}")
+        else:
+            _score_trajectory(row, pos, dt, osc_window, data, t0_ns, t1_ns, sampling)
+
+    # -- energy ---------------------------------------------------------------------------------
+    _score_energy(row, data, energy_rate, ours, t0_ns, t1_ns, elec_coeff, overhead_w, warnings, name)
+
+    row["partial"] = bool(warnings)
+    row["warnings"] = warnings
+    row["versions"] = meta.get("versions")
+    return row
+
+
+def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None:
+    """Latency that was applied, inference timing, holds, and what each chunk contributed."""
+    # Applied latency: N ticks and the effective N * dt_c (never the requested value if they differ).
+    n_ticks = meta.get("latency_ticks")
+    if n_ticks is None and cfg.get("latency_s") is not None:
+        n_ticks = latency_ticks(cfg["latency_s"])
+    row["latency_ticks"] = n_ticks
+    row["latency_s"] = None if n_ticks is None else round(n_ticks * CONTROL_DT_S, 9)
+    if n_ticks is None and data.chunks:
+        row["latency_s"] = data.chunks[0][0]
+    requested = cfg.get("latency_s")
+    if requested is not None and row["latency_s"] is not None and abs(requested - row["latency_s"]) > 1e-9:
+        row["latency_requested_s"] = requested
     real = np.array([c[1] for c in data.chunks if not c[2]], dtype=np.float64)
     # Inferences started (a last one may still be in flight when the episode ends).
     row["num_inferences"] = data.requests or len(data.chunks)
-    row["latency_sim_s"] = data.chunks[0][0] if data.chunks else cfg.get("latency_s")
     if real.size:
         row.update(
             latency_real_mean_s=float(real.mean()),
@@ -260,84 +367,125 @@ def score_episode(
     for key in timing_keys:
         values = [t[key] for t in data.chunk_timings if _is_number(t.get(key))]
         row[f"policy_timing_{key}_mean"] = float(np.mean(values))
+    chunk_keys = ["chunks_applied", "fresh_actions_executed", "stale_actions_dropped", "actions_per_chunk_mean"]
     if data.command_sources:
         src = np.asarray(data.command_sources)
-        row["hold_ticks"] = int((src != 0).sum())
-        row["underrun_ticks"] = int((src == 3).sum())
-        row["rejected_hold_ticks"] = int((src == 4).sum())
+        row["hold_ticks"] = int((src != Source.CHUNK).sum())
+        row["underrun_ticks"] = int((src == Source.HOLD_UNDERRUN).sum())
+        row["rejected_hold_ticks"] = int((src == Source.HOLD_REJECTED).sum())
+        # What the protocol actually executed of each chunk: sync replan_steps, async H - N (or fewer).
+        applied = [c for c in data.chunks if c[4]]
+        fresh = int((src == Source.CHUNK).sum())
+        row["chunks_applied"] = len(applied)
+        row["fresh_actions_executed"] = fresh
+        async_mode = cfg.get("mode") == "async"
+        row["stale_actions_dropped"] = sum(min(n_ticks or 0, c[3]) for c in applied) if async_mode else 0
+        row["actions_per_chunk_mean"] = fresh / len(applied) if applied else None
     else:
-        _null(row, ["hold_ticks", "underrun_ticks", "rejected_hold_ticks"], "no command topic")
+        _null(row, ["hold_ticks", "underrun_ticks", "rejected_hold_ticks", *chunk_keys], "no command topic")
     row["chunks_rejected"] = sum(1 for e in data.events if e[0] == m.EventKind.CHUNK_REJECTED)
+    protocol_warnings = [e[3] for e in data.events if e[0] == m.EventKind.WARNING]
+    degenerate = protocol_warnings[:1]
+    if not degenerate and row.get("chunks_applied") and row.get("fresh_actions_executed") == 0:
+        degenerate = ["no fresh action of any chunk was executed"]
+    row["degenerate_protocol"] = bool(degenerate)
+    row["degenerate_reason"] = degenerate[0] if degenerate else None
 
-    # -- trajectory -----------------------------------------------------------------------------
-    use_physics = rate == "physics" and len(data.ee_physics) > 0
-    ee_series = data.ee_physics if use_physics else data.ee
-    dt = RATES["physics" if use_physics else "control"]
-    row["trajectory_rate_hz"] = round(1.0 / dt, 6)
-    traj_keys = ["jerk_mean", "jerk_p90", "ee_osc", "traj_length", "sparc", "ldlj"]
-    t_ee, pos = ee_series.arrays(t0_ns, t1_ns)
-    ee_topic = m.EE_POSE_PHYSICS.name if use_physics else data.ee_topic
-    gap = metrics.check_uniform(t_ee / 1e9, dt) if len(t_ee) >= 2 else f"fewer than 2 EE samples on {ee_topic}"
-    if gap is not None:
-        _null(row, traj_keys, f"EE pose series rejected: {gap}")
+
+def _score_trajectory(
+    row: dict, pos: np.ndarray, dt: float, osc_window: int, data: EpisodeData, t0_ns, t1_ns, sampling: str
+) -> None:
+    row["traj_length"] = metrics.trajectory_length(pos)
+    # EE-Osc's window K counts control steps (0.5 s): always on the control-rate pose.
+    osc_pos = data.ee.arrays(t0_ns, t1_ns)[1] if sampling == "physics" else pos
+    row["ee_osc"] = metrics.ee_oscillation(osc_pos, osc_window)
+    row["ee_osc_detrended"] = metrics.ee_oscillation_detrended(osc_pos, osc_window)
+    row["ee_osc_window"] = osc_window
+    if len(pos) >= 4:
+        row["jerk_mean"] = metrics.jerk_mean(pos, dt)
+        row["jerk_p90"] = metrics.jerk_p90(pos, dt)
     else:
-        row["traj_length"] = metrics.trajectory_length(pos)
-        osc_pos = data.ee.arrays(t0_ns, t1_ns)[1] if use_physics else pos
-        row["ee_osc"] = metrics.ee_oscillation(osc_pos, osc_window)
-        row["ee_osc_window"] = osc_window
-        if len(pos) >= 4:
-            row["jerk_mean"] = metrics.jerk_mean(pos, dt)
-            row["jerk_p90"] = metrics.jerk_p90(pos, dt)
-        else:
-            _null(row, ["jerk_mean", "jerk_p90"], "fewer than 4 EE samples")
-        speed = metrics.speed_profile(pos, dt)
+        _null(row, ["jerk_mean", "jerk_p90"], "fewer than 4 EE samples")
+    speed = metrics.speed_profile(pos, dt)
+    for key, fn in (("sparc", metrics.sparc), ("ldlj", metrics.ldlj)):
         try:
-            row["sparc"] = metrics.sparc(speed, 1.0 / dt)
-            row["ldlj"] = metrics.ldlj(speed, 1.0 / dt)
+            row[key] = fn(speed, 1.0 / dt)
         except ValueError as exc:
-            _null(row, ["sparc", "ldlj"], str(exc))
+            _null(row, [key], str(exc))
 
-    # -- energy ---------------------------------------------------------------------------------
-    energy_keys = ["energy_mech_j", "energy_elec_j", "energy_overhead_j", "energy_total_j", "energy_per_step_j"]
-    use_physics_j = rate == "physics" and len(data.joints_physics) > 0
-    j_series = data.joints_physics if use_physics_j else data.joints
-    dt_j = RATES["physics" if use_physics_j else "control"]
-    row["energy_rate_hz"] = round(1.0 / dt_j, 6)
-    # Samples strictly after the start: each one closes an interval of dt during which it was applied.
-    t_j, jv = j_series.arrays(None if t0_ns is None else t0_ns + 1, t1_ns)
-    if not len(jv):
-        topic = m.JOINT_STATES_PHYSICS.name if use_physics_j else data.joint_topic
-        if data.joints_without_effort:
-            why = f"{data.joints_without_effort} joint state messages on {topic} lack velocity or effort"
-        else:
-            why = f"no joint states on {topic}"
-        _null(row, energy_keys, why)
+
+def _score_energy(
+    row: dict,
+    data: EpisodeData,
+    energy_rate: str,
+    ours: bool,
+    t0_ns: int | None,
+    t1_ns: int | None,
+    elec_coeff: float,
+    overhead_w: float,
+    warnings: list[str],
+    name: str,
+) -> None:
+    keys = ["energy_mech_j", "energy_elec_j", "energy_overhead_j", "energy_total_j", "energy_per_step_j"]
+    sampling = energy_rate
+    if sampling == "auto":
+        sampling = "substep" if len(data.energy) else ("control" if ours else "native")
+    row["energy_sampling"] = sampling
+    after_start = None if t0_ns is None else t0_ns + 1  # each sample closes the interval before it
+    steps = row.get("completion_steps")
+    if sampling == "substep":
+        row["energy_rate_hz"] = round(1.0 / PHYSICS_DT_S, 6)
+        t, values = data.energy.arrays(after_start, t1_ns)
+        if not len(t):
+            return _null(row, keys, f"no {m.ENERGY_INTEGRALS.name} records (a bag of another tool or an older one)")
+        problem = metrics.check_uniform(t / 1e9, CONTROL_DT_S) if len(t) >= 2 else None
+        problem = problem or _coverage(t, t0_ns, t1_ns, CONTROL_DT_S, CONTROL_DT_S, m.ENERGY_INTEGRALS.name)
+        if problem is not None:
+            warnings.append(f"{name or 'bag'}: {problem}")
+            return _null(row, keys, f"energy integrals incomplete: {problem}")
+        steps = steps or len(t)
+        terms = metrics.energy_from_integrals(
+            values[:, 1], values[:, 2], values[:, 0], steps, elec_coeff=elec_coeff, overhead_w=overhead_w
+        )
     else:
-        gap = metrics.check_uniform(t_j / 1e9, dt_j) if len(t_j) >= 2 else None
+        series = data.joints_physics if sampling == "physics" else data.joints
+        topic = m.JOINT_STATES_PHYSICS.name if sampling == "physics" else data.joint_topic
+        t, jv = series.arrays(after_start, t1_ns)
+        dt = {"control": CONTROL_DT_S, "physics": PHYSICS_DT_S}.get(sampling) or _native_dt(t)
+        row["energy_rate_hz"] = round(1.0 / dt, 6) if dt else None
+        if not len(jv):
+            if sampling == "physics":
+                why = f"no {topic} samples at the physics rate (record with --physics-rate)"
+            elif data.joints_without_effort:
+                why = f"{data.joints_without_effort} joint state messages on {topic} lack velocity or effort"
+            else:
+                why = f"no joint states on {topic}"
+            return _null(row, keys, why)
+        gap = metrics.check_uniform(t / 1e9, dt, _UNIFORM_TOL[sampling]) if len(t) >= 2 else None
         if gap is not None:
-            _null(row, energy_keys, f"joint state series rejected: {gap}")
-        else:
-            n = jv.shape[1] // 2
-            terms = metrics.energy_terms(jv[:, n:], jv[:, :n], dt_j, elec_coeff=elec_coeff, overhead_w=overhead_w)
-            steps = row.get("completion_steps") or len(jv) * dt_j / CONTROL_DT_S
-            row.update(
-                energy_mech_j=terms.mech_j,
-                energy_elec_j=terms.elec_j,
-                energy_overhead_j=terms.overhead_j,
-                energy_total_j=terms.total_j,
-                # Per control step (paper B.2), whatever the sampling rate.
-                energy_per_step_j=terms.total_j / steps,
-            )
-    row["partial"] = bool(data.warnings)
-    row["warnings"] = list(data.warnings)
-    row["versions"] = meta.get("versions")
-    return row
+            return _null(row, keys, f"joint state series rejected: {gap}")
+        span = _coverage(t, t0_ns, t1_ns, dt, dt, topic)
+        if span is not None:
+            warnings.append(f"{name or 'bag'}: {span}")
+            return _null(row, keys, f"joint state series incomplete: {span}")
+        n = jv.shape[1] // 2
+        terms = metrics.energy_terms(jv[:, n:], jv[:, :n], dt, elec_coeff=elec_coeff, overhead_w=overhead_w)
+        steps = steps or len(jv) * dt / CONTROL_DT_S
+    row.update(
+        energy_mech_j=terms.mech_j,
+        energy_elec_j=terms.elec_j,
+        energy_overhead_j=terms.overhead_j,
+        energy_total_j=terms.total_j,
+        # Per control step (paper B.2), whatever the sampling rate.
+        energy_per_step_j=terms.total_j / steps,
+    )
 
 
 def score_bag(bag: Path, **kwargs) -> dict:
     """Read and score one bag folder."""
     topics = {k: kwargs.pop(k) for k in ("ee_topic", "joint_topic") if k in kwargs}
-    data = read_episode(Path(bag), physics=kwargs.get("rate") == "physics", **topics)
+    physics = "physics" in (kwargs.get("rate"), kwargs.get("energy_rate"))
+    data = read_episode(Path(bag), physics=physics, **topics)
     return score_episode(data, name=Path(bag).name, **kwargs)
 
 

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 #: Control period of the LIBERO OSC controller (20 Hz), seconds.
 CONTROL_DT_S = 0.05
 #: MuJoCo physics timestep, seconds (25 substeps per control tick).
 PHYSICS_DT_S = 0.002
 SUBSTEPS_PER_TICK = round(CONTROL_DT_S / PHYSICS_DT_S)
+#: Control (and recorded-dataset) frame rate, Hz.
+FPS = round(1 / CONTROL_DT_S)
 
 #: Steps run with DUMMY_ACTION after ``set_init_state`` so objects settle; excluded from the step
 #: budget and from every metric (openpi / OpenVLA-OFT LIBERO convention).
@@ -40,7 +44,27 @@ def step_budget(suite: str) -> int:
 
 
 def latency_ticks(latency_s: float, control_dt_s: float = CONTROL_DT_S) -> int:
-    """N = round(dt_sim / dt_c): control ticks an inference occupies in sim time."""
-    if latency_s < 0:
+    """N = dt_sim / dt_c: control ticks an inference occupies in sim time.
+
+    The simulator advances in whole control ticks, so only whole multiples of dt_c can be applied;
+    anything else is refused (ValueError naming the nearest valid values) rather than silently rounded
+    (0.025 s would run as 0 s). :func:`round_latency` rounds on purpose.
+    """
+    if not latency_s >= 0:  # also catches NaN
         raise ValueError(f"injected latency must be >= 0 s, got {latency_s}")
-    return int(round(latency_s / control_dt_s))
+    ticks = latency_s / control_dt_s
+    n = int(round(ticks))
+    if abs(ticks - n) > 1e-6:
+        lo, hi = math.floor(ticks) * control_dt_s, math.ceil(ticks) * control_dt_s
+        raise ValueError(
+            f"latency {latency_s:g} s is not a whole number of {control_dt_s:g} s control ticks; "
+            f"nearest valid: {lo:.10g} s or {hi:.10g} s (or round on purpose: --latency-rounding nearest)"
+        )
+    return n
+
+
+def round_latency(latency_s: float, control_dt_s: float = CONTROL_DT_S) -> float:
+    """The nearest applicable latency, seconds: round(dt_sim / dt_c) * dt_c (half to even)."""
+    if not latency_s >= 0:
+        raise ValueError(f"injected latency must be >= 0 s, got {latency_s}")
+    return round(round(latency_s / control_dt_s) * control_dt_s, 9)

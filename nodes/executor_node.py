@@ -114,6 +114,9 @@ class ExecutorNode(Node):
         if reason is not None:
             self.get_logger().error(f"chunk of request {due.request_id} rejected: {reason}")
             self.event(m.EventKind.CHUNK_REJECTED, reason, {"request_id": due.request_id})
+        for warning in self.core.take_warnings():
+            self.get_logger().warning(warning)
+            self.event(m.EventKind.WARNING, warning, {"request_id": due.request_id})
         return True
 
     def check_chunk_timeout(self) -> None:

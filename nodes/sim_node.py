@@ -1,8 +1,8 @@
 """Sim node: owns the LIBERO env and applies exactly one command per control tick (lockstep).
 
-Publishes /clock, /joint_states (effort = arm torque), /ee_pose every tick (and per physics substep
-on /joint_states_physics, /ee_pose_physics when enabled), the observation and camera images only
-when asked (/lq/observation_request), and episode events. Tick m is stepped only once the command
+Publishes /clock, /joint_states (effort = arm torque), /ee_pose, /lq/energy_integrals every tick
+(and per physics substep on /joint_states_physics, /ee_pose_physics when enabled), the observation
+and camera images only when asked (/lq/observation_request), and episode events. Tick m is stepped only once the command
 for tick m has arrived, so sim time never depends on wall-clock timing.
 """
 
@@ -44,7 +44,7 @@ class SimNode(Node):
 
         self.pubs = {
             t.name: publisher(self, t)
-            for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.OBSERVATION, m.EPISODE_EVENTS)
+            for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
             + ((m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ())
             + tuple(m.camera_topic(c) for c in cameras)
         }

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lq_ros.aggregate import aggregate, episodes_frame, markdown_table, write_tables
+from lq_ros.aggregate import aggregate, efficiency_references, episodes_frame, markdown_table, write_tables
 
 
 def _episode(status: str, *, latency: float = 0.0, steps: int = 100, length: float = 1.0, jerk: float = 10.0, **kw):
@@ -43,17 +43,51 @@ def test_success_rate_excludes_errors_and_uses_wilson():
     assert agg["inits"] == ",".join(sorted(str(i) for i in [*range(10), 20]))
 
 
-def test_completion_time_over_successes_only_and_other_metrics_over_all_outcomes():
+def test_quality_over_successes_with_failure_and_all_outcome_columns_beside():
     rows = [
         _episode("success", steps=100, jerk=10.0),
         _episode("success", steps=200, jerk=20.0),
-        _episode("failure", steps=220, jerk=60.0),  # censored at the budget: not a completion time
+        _episode("failure", steps=220, jerk=0.004),  # ended motionless: must not make the policy look smooth
         _episode("error", jerk=1000.0),
     ]
     agg = aggregate(episodes_frame(rows)).iloc[0]
     assert agg["completion_steps_mean"] == 150.0 and agg["completion_steps_n"] == 2
-    assert agg["jerk_mean_mean"] == pytest.approx(30.0) and agg["jerk_mean_n"] == 3
-    assert agg["jerk_mean_ci_lo"] <= 30.0 <= agg["jerk_mean_ci_hi"]
+    assert agg["jerk_mean_mean"] == pytest.approx(15.0) and agg["jerk_mean_n"] == 2
+    assert agg["jerk_mean_ci_lo"] <= 15.0 <= agg["jerk_mean_ci_hi"]
+    assert agg["jerk_mean_failure_mean"] == pytest.approx(0.004) and agg["jerk_mean_failure_n"] == 1
+    assert agg["jerk_mean_all_mean"] == pytest.approx((10 + 20 + 0.004) / 3) and agg["jerk_mean_all_n"] == 3
+
+
+def test_kaplan_meier_completion_time_counts_failures_censored_at_the_budget():
+    # A rarely successful but fast policy: 1 success at 40 steps, 3 timeouts at the 220-step budget.
+    fast = [_episode("success", steps=40, step_budget=220)]
+    fast += [_episode("failure", steps=220, step_budget=220, init=i) for i in range(1, 4)]
+    # A reliable, slower one: 4 successes at 100 steps.
+    steady = [_episode("success", steps=100, step_budget=220, init=i, policy="q") for i in range(4)]
+    agg = aggregate(episodes_frame(fast + steady)).set_index("policy")
+    # The success-only mean ranks the fast policy first; the restricted mean does not.
+    assert agg.loc["p", "completion_time_s_mean"] == pytest.approx(2.0)
+    assert agg.loc["q", "completion_time_s_mean"] == pytest.approx(5.0)
+    # Closed form, every failure censored at the horizon: mean of min(t, 11 s) = (2 + 3 * 11) / 4.
+    assert agg.loc["p", "completion_time_rmst_s"] == pytest.approx((2.0 + 3 * 11.0) / 4)
+    assert agg.loc["q", "completion_time_rmst_s"] == pytest.approx(5.0)
+    assert agg.loc["p", "completion_time_rmst_ci_lo"] <= 8.75 <= agg.loc["p", "completion_time_rmst_ci_hi"]
+
+
+def test_sampling_rates_are_group_keys():
+    rows = [
+        _episode("success", jerk=22.0, trajectory_rate_hz=20.0),
+        _episode("success", jerk=85.0, trajectory_rate_hz=500.0),
+    ]
+    rows += [_episode("success", energy_sampling="control"), _episode("success", energy_sampling="substep")]
+    assert len(aggregate(episodes_frame(rows))) == 4
+
+
+def test_degenerate_episodes_are_counted_and_marked():
+    rows = [_episode("failure", degenerate_protocol=True), _episode("failure", init=1, degenerate_protocol=False)]
+    agg = aggregate(episodes_frame(rows))
+    assert agg["n_degenerate"].tolist() == [1]
+    assert "⚠" in markdown_table(agg)
 
 
 def test_bootstrap_is_seeded():
@@ -65,19 +99,30 @@ def test_bootstrap_is_seeded():
     assert a["jerk_mean_ci_lo"][0] != c["jerk_mean_ci_lo"][0]
 
 
-def test_relative_efficiency_within_task_among_successes():
+def test_relative_efficiency_within_task_and_init_among_successes():
     rows = [
-        _episode("success", length=1.0, latency=0.0),
-        _episode("success", length=2.0, latency=0.2),
-        _episode("failure", length=0.5, latency=0.2),  # shorter, but failed: not a reference
-        _episode("success", length=4.0, task=1),
+        _episode("success", length=1.0, latency=0.0, episode="a"),
+        _episode("success", length=2.0, latency=0.2, episode="b"),
+        _episode("failure", length=0.5, latency=0.2, episode="c"),  # shorter, but failed: not a reference
+        _episode("success", length=4.0, task=1, episode="d"),
+        _episode("success", length=3.0, init=1, episode="e"),  # another init state: its own reference
     ]
     frame = episodes_frame(rows)
     assert frame["traj_efficiency"].tolist()[:2] == [1.0, 0.5]
     assert math.isnan(frame["traj_efficiency"][2])
-    assert frame["traj_efficiency"][3] == 1.0  # its own task's shortest
-    agg = aggregate(frame)
-    assert len(agg) == 3  # (latency 0, task 0), (latency 0.2, task 0), (latency 0, task 1)
+    assert frame["traj_efficiency"].tolist()[3:] == [1.0, 1.0]  # its own task's / init's shortest
+    assert frame["traj_ref_episode"].tolist() == ["a", "a", "a", "d", "e"]
+    assert frame["traj_ref_length"].tolist()[:2] == [1.0, 1.0]
+    assert len(aggregate(frame)) == 3  # (latency 0, task 0), (latency 0.2, task 0), (latency 0, task 1)
+
+
+def test_pinned_references_keep_rows_when_bags_are_added():
+    first = episodes_frame([_episode("success", length=2.0, episode="a")])
+    pinned = efficiency_references(first)
+    more = [_episode("success", length=2.0, episode="a"), _episode("success", length=1.0, latency=0.2, episode="z")]
+    assert episodes_frame(more)["traj_efficiency"].tolist() == [0.5, 1.0]  # the table's own shortest moved
+    kept = episodes_frame(more, pinned)
+    assert kept["traj_efficiency"].tolist() == [1.0, 2.0] and kept["traj_ref_episode"].tolist() == ["a", "a"]
 
 
 def test_tables_round_trip_and_markdown(tmp_path):
