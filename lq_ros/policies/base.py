@@ -20,6 +20,9 @@ class Policy(abc.ABC):
     name: str = "policy"
     #: Cameras the policy needs rendered at inference ticks (none: no rendering at all).
     camera_names: tuple[str, ...] = ()
+    #: Camera render size in px this policy's reference evaluation uses (e.g. 256 for openpi's and
+    #: OpenVLA's LIBERO clients, which render 256 and resize themselves); None: the run's default.
+    render_size: int | None = None
     #: Timing the policy measured or was told for its last ``infer`` (e.g. a remote server's times, ms);
     #: recorded with that chunk in the bag. None: nothing beyond the wall-clock latency measured outside.
     last_timing: dict | None = None

@@ -29,6 +29,8 @@ WRIST = "robot0_eye_in_hand"
 API_KEY_ENV = "OPENPI_API_KEY"
 #: Longest server text (traceback tail) kept in an error reason, characters.
 MAX_REASON_CHARS = 600
+#: Camera size openpi's LIBERO example renders at (``LIBERO_ENV_RESOLUTION``, that of the training data).
+OPENPI_RENDER_SIZE = 256
 
 
 # -- observation conversion shared by the remote clients --------------------------------------
@@ -143,6 +145,8 @@ class OpenPIPolicy(Policy):
 
     name = "openpi"
     camera_names = (AGENTVIEW, WRIST)
+    #: openpi's examples/libero/main.py renders at LIBERO_ENV_RESOLUTION = 256, then resizes with padding.
+    render_size = OPENPI_RENDER_SIZE
 
     def __init__(
         self,
