@@ -200,3 +200,30 @@ def test_invalid_config():
         ExecutorConfig(replan_steps=0)
     with pytest.raises(ValueError):
         ExecutorConfig(latency_ticks=-1)
+
+
+def test_merge_without_overlap_is_refused():
+    with pytest.raises(ValueError, match="never sees overlapping chunks"):
+        ExecutorConfig(mode="async", latency_ticks=3, merge="blend")  # threshold N: the buffer is empty
+    with pytest.raises(ValueError, match="async protocol only"):
+        ExecutorConfig(mode="sync", merge="blend")
+    ExecutorConfig(mode="async", latency_ticks=3, request_threshold=4, merge="blend")  # overlaps by one
+
+
+def test_async_chunk_with_nothing_fresh_warns_once():
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=4))
+    commands, _ = drive(core, 20, make_chunk=lambda t: chunk_for(t, horizon=4))
+    assert all(c.source is not Source.CHUNK for c in commands)
+    warnings = core.take_warnings()
+    assert len(warnings) == 1 and "nothing fresh" in warnings[0] and core.take_warnings() == []
+
+
+def test_latency_must_be_whole_ticks():
+    from lq_ros.suites import latency_ticks, round_latency
+
+    assert [latency_ticks(v) for v in (0.0, 0.05, 0.1, 0.2, 0.3, 0.4)] == [0, 1, 2, 4, 6, 8]
+    with pytest.raises(ValueError, match=r"nearest valid: 0 s or 0.05 s"):
+        latency_ticks(0.025)
+    with pytest.raises(ValueError, match=r"nearest valid: 0.05 s or 0.1 s"):
+        latency_ticks(0.075)
+    assert round_latency(0.11) == 0.1 and round_latency(0.14) == 0.15

@@ -202,3 +202,35 @@ def test_bootstrap_ci_deterministic_and_contains_mean():
     assert high - low < 2.0  # ~ 2 * 1.96 * 2 / sqrt(40) = 1.24
     assert m.bootstrap_ci([1.5]) == (1.5, 1.5)
     assert math.isclose(m.bootstrap_ci(np.full(10, 2.0))[0], 2.0)
+
+
+def test_smoothness_is_undefined_without_movement():
+    still = np.full(40, 1e-5)  # simulator noise of an arm that never moved, m/s
+    for fn in (m.sparc, m.ldlj):
+        with pytest.raises(ValueError, match="did not move"):
+            fn(still, 20.0)
+    with pytest.raises(ValueError, match="zero second difference"):
+        m.ldlj(np.full(30, 0.25), 20.0)  # constant speed: DJ = 0, its log undefined
+
+
+def test_ee_osc_detrended_removes_straight_travel():
+    k = np.arange(10)[:, None]
+    travel = np.array([0.0, 0.0, 1.0]) + 0.005 * k * np.array([1.0, 0.5, 0.0])  # 5 mm/step straight line
+    assert m.ee_oscillation(travel) > 0.01 and m.ee_oscillation_detrended(travel) == pytest.approx(0.0, abs=1e-12)
+    wobble = travel + 0.002 * np.where(k % 2, 1.0, -1.0) * np.array([0.0, 0.0, 1.0])  # +-2 mm in z
+    assert m.ee_oscillation_detrended(wobble) == pytest.approx(0.002, rel=0.05)
+
+
+def test_energy_from_integrals_sums_the_intervals():
+    terms = m.energy_from_integrals([1.0, 2.0], [100.0, 300.0], [0.05, 0.05], steps=2, elec_coeff=0.01, overhead_w=10.0)
+    assert (terms.mech_j, terms.elec_j, terms.overhead_j) == pytest.approx((3.0, 4.0, 1.0))
+    assert terms.per_step_j == pytest.approx(4.0)
+    with pytest.raises(ValueError):
+        m.energy_from_integrals([-1.0], [0.0], [0.05], steps=1)
+
+
+def test_restricted_mean_time_kaplan_meier():
+    # Censored before the horizon too: S drops to 2/3 at 2, to 1/3 at 3, stays past the censoring at 5.
+    assert m.restricted_mean_time([2, 3, 5], [True, True, False], 10.0) == pytest.approx(2 + 2 / 3 + 7 / 3)
+    # Everything censored at the horizon: the mean of min(t, horizon).
+    assert m.restricted_mean_time([2, 11, 11], [True, False, False], 11.0) == pytest.approx(8.0)

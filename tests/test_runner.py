@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lq_ros import messages as m
-from lq_ros.bag import read_run_metadata
+from lq_ros.bag import EpisodeBagWriter, read_run_metadata
 from lq_ros.config import RunConfig
 from lq_ros.env import LiberoEnv
 from lq_ros.policies import make_policy
@@ -80,3 +80,88 @@ def test_broken_policy_is_an_error_not_a_failure(tmp_path, env, fault):
     assert outcome.status == "error"
     row = score_bag(outcome.bag_path)
     assert row["status"] == "error" and row["success"] is None and row["error_reason"]
+
+
+# -- issue 9: the numbers on real episodes ----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def physics_bag(tmp_path_factory):
+    """A real sync episode at 0.2 s with the 500 Hz topics recorded too."""
+    cfg = RunConfig(policy="scripted", mode="sync", latency_s=0.2, max_steps=60, physics_rate=True)
+    return run_inprocess(cfg, tmp_path_factory.mktemp("physics")).bag_path
+
+
+def test_default_energy_integrates_every_physics_substep(physics_bag):
+    default, physics = score_bag(physics_bag), score_bag(physics_bag, energy_rate="physics")
+    control = score_bag(physics_bag, energy_rate="control")
+    assert default["energy_sampling"] == "substep" and default["energy_rate_hz"] == 500.0
+    # The per-tick integrals equal the sum over the recorded 500 Hz samples (same substeps, same rule).
+    for key in ("energy_mech_j", "energy_elec_j", "energy_overhead_j", "energy_total_j"):
+        assert default[key] == pytest.approx(physics[key], rel=1e-9)
+    # One sample per tick standing for the whole tick is a different (biased) estimate, labelled as such.
+    assert control["energy_sampling"] == "control" and control["energy_rate_hz"] == 20.0
+    assert control["energy_mech_j"] != pytest.approx(default["energy_mech_j"], rel=1e-3)
+    msgs = bag_messages(physics_bag)
+    assert len(msgs[m.ENERGY_INTEGRALS.name]) == 60  # one per applied command
+    assert default["partial"] is False
+
+
+def test_a_rate_the_bag_lacks_is_null_with_a_reason_never_a_fallback(tmp_path, env):
+    cfg = RunConfig(policy="sine", max_steps=20)
+    bag = run_inprocess(cfg, tmp_path, env=env).bag_path
+    row = score_bag(bag, rate="physics", energy_rate="physics")
+    assert row["jerk_mean"] is None and "--physics-rate" in row["null_reasons"]["jerk_mean"]
+    assert row["energy_total_j"] is None and "--physics-rate" in row["null_reasons"]["energy_total_j"]
+    assert row["trajectory_sampling"] == "physics" and row["energy_sampling"] == "physics"
+
+
+def test_samples_that_stop_before_the_episode_ends_make_the_row_partial(tmp_path, env):
+    """Dropping the last 3 pose/joint/energy samples must not go unnoticed (it changed EE-Osc silently)."""
+    from rosbags.rosbag2 import Reader
+
+    bag = run_inprocess(RunConfig(policy="sine", max_steps=30), tmp_path / "full", env=env).bag_path
+    cut = tmp_path / "cut"
+    with Reader(bag) as reader:
+        last = {c.topic: sorted(t for cc, t, _ in reader.messages([c]))[-3:] for c in reader.connections}
+        writer = EpisodeBagWriter(cut, [])
+        for conn in reader.connections:
+            writer.add_topic(m.Topic(conn.topic, conn.msgtype))
+        for conn, t, raw in reader.messages():
+            if conn.topic in (m.EE_POSE.name, m.JOINT_STATES.name, m.ENERGY_INTEGRALS.name) and t in last[conn.topic]:
+                continue
+            writer.write(m.Topic(conn.topic, conn.msgtype), t, raw)
+        writer.set_run_metadata(read_run_metadata(bag))
+        writer.close()
+    row = score_bag(cut)
+    assert row["partial"] is True and row["status"] == "failure"
+    assert row["ee_osc"] is None and "incomplete" in row["null_reasons"]["ee_osc"]
+    assert row["energy_per_step_j"] is None and "incomplete" in row["null_reasons"]["energy_per_step_j"]
+    assert any("samples span" in w for w in row["warnings"])
+    assert score_bag(bag)["partial"] is False
+
+
+def test_async_chunk_no_longer_than_the_latency_is_flagged(tmp_path, env):
+    cfg = RunConfig(policy="sine", policy_args={"chunk_size": 4}, mode="async", latency_s=0.2, max_steps=20)
+    outcome = run_inprocess(cfg, tmp_path, env=env)
+    events = [
+        m.deserialize(raw, m.EPISODE_EVENTS.msgtype) for _, raw in bag_messages(outcome.bag_path)[m.EPISODE_EVENTS.name]
+    ]
+    warnings = [e for e in events if e.kind == m.EventKind.WARNING]
+    assert len(warnings) == 1 and "nothing fresh" in warnings[0].reason
+    row = score_bag(outcome.bag_path)
+    assert row["degenerate_protocol"] is True and "nothing fresh" in row["degenerate_reason"]
+    assert row["fresh_actions_executed"] == 0 and row["stale_actions_dropped"] == 4 * row["chunks_applied"]
+    assert row["hold_ticks"] == 20  # the arm never got a fresh action
+
+
+def test_rows_carry_the_applied_latency_and_the_cpu_class(tmp_path, env):
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.15, max_steps=10)
+    row = score_bag(run_inprocess(cfg, tmp_path, env=env).bag_path)
+    assert row["latency_ticks"] == 3 and row["latency_s"] == 0.15
+    # Async executes H - N = 5 actions per chunk: the chunks applied at ticks 3 and 8; nothing ran dry.
+    assert (row["chunks_applied"], row["fresh_actions_executed"], row["stale_actions_dropped"]) == (2, 7, 6)
+    assert row["cpu_class"] and row["cpu_class"].startswith(("x86_64", "aarch64"))
+    assert row["versions"]["cpu"]["model"]
+    with pytest.raises(ValueError, match="nearest valid: 0.1 s or 0.15 s"):
+        RunConfig(latency_s=0.125)
