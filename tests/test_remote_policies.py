@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from lq_ros import messages as m
 from lq_ros.config import RunConfig
 from lq_ros.env import LiberoEnv, Observation, TaskInfo
-from lq_ros.launcher import launch_episode
+from lq_ros.episode import run_episode
 from lq_ros.policies import PolicyError, make_policy
 from lq_ros.policies.openpi_remote import libero_training_image, quat_xyzw_to_axis_angle
 from lq_ros.runner import run_inprocess
@@ -331,7 +331,7 @@ def test_openpi_through_ros_images_then_server_error(tmp_path):
         cfg = RunConfig(
             policy="openpi", policy_args={"port": server.port, "timeout_s": 10.0}, max_steps=20, replan_steps=4
         )
-        outcome, row = launch_episode(cfg, tmp_path)
+        outcome, row = run_episode(cfg, tmp_path, "ros")
     assert outcome.status == "error" and row["success"] is None
     assert "openpi server error: RuntimeError: stand-in model failed (injected error)" in row["error_reason"]
     assert server.check_failures == [] and server.requests == 3
@@ -353,7 +353,7 @@ def test_openvla_server_dies_mid_episode_through_ros(tmp_path):
     with OpenVLAStandin(fault="crash", at_request=3) as server:
         cfg = RunConfig(policy="openvla", policy_args={"port": server.port, "timeout_s": 5.0}, max_steps=20)
         started = time.monotonic()
-        outcome, row = launch_episode(cfg, tmp_path)
+        outcome, row = run_episode(cfg, tmp_path, "ros")
     assert time.monotonic() - started < 90.0
     assert outcome.status == "error" and row["success"] is None
     assert "request failed ([Errno 111] Connection refused)" in row["error_reason"]
