@@ -12,8 +12,13 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lq_ros.config import RunConfig
+
+if TYPE_CHECKING:  # imported when an episode runs: `lq run --help` and sweep specs stay light
+    from lq_ros.env import LiberoEnv
+    from lq_ros.policies import Policy
 
 TRANSPORTS = ("ros", "inprocess")
 
@@ -31,8 +36,8 @@ def run_episode(
     out_dir: Path,
     transport: str = "ros",
     *,
-    env=None,
-    policy=None,
+    env: LiberoEnv | None = None,
+    policy: Policy | None = None,
     domain_id: int | None = None,
     timeout_s: float | None = None,
 ) -> tuple[EpisodeOutcome, dict]:

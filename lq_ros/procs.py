@@ -9,6 +9,8 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import signal
+from collections.abc import Callable
+from types import FrameType
 
 #: prctl option from <linux/prctl.h>.
 _PR_SET_PDEATHSIG = 1
@@ -29,6 +31,6 @@ def raise_keyboard_interrupt(*_) -> None:
     raise KeyboardInterrupt
 
 
-def sigterm_as_keyboard_interrupt():
+def sigterm_as_keyboard_interrupt() -> Callable[[int, FrameType | None], object] | int | None:
     """SIGTERM (a job runner, a parent stopping its workers) stops like Ctrl-C; returns the previous handler."""
     return signal.signal(signal.SIGTERM, raise_keyboard_interrupt)

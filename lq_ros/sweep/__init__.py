@@ -1,13 +1,11 @@
 """Latency sweeps: a YAML spec expanded to episodes, run by parallel workers, kept in a durable store.
 
-=================  ==========================================================================
 ``spec``           the YAML spec, validated and expanded to one RunConfig per episode
 ``store``          the sweep folder: one atomically written record per finished episode
 ``worker``         one worker: episodes one after another, env and policy reused per task
 ``local``          the default pool: spawned worker processes that die with the sweep
 ``ray_pool``       the Ray pool: actors on a private loopback Ray or a cluster
 ``orchestrator``   ``run_sweep``: scheduling, records, retry of a crashed attempt
-=================  ==========================================================================
 
 The progress bar is the CLI's (``lq sweep``, lq_ros/cli.py). Layout of a sweep folder (``OUT``)::
 
