@@ -59,6 +59,16 @@ CONTINUOUS_METRICS: dict[str, str] = {
     "underrun_ticks": WITH_OUTCOME,
     "actions_per_chunk_mean": WITH_OUTCOME,
 }
+#: Per-episode column -> the aggregate column listing its distinct values (what produced the numbers).
+PROVENANCE_COLUMNS = {
+    "latency_ticks": "latency_ticks",
+    "seed": "seeds",
+    "init": "inits",
+    "transport": "transports",
+    "git_commit": "git_commits",
+    "cpu_class": "cpu_classes",
+    "versions": "versions",
+}
 #: Column infix of each population of a BY_OUTCOME metric.
 POPULATIONS = {"": "success", "_failure": "failure", "_all": "outcome"}
 #: Per-episode columns stored as JSON text (nested values do not fit CSV/Parquet columns uniformly).
@@ -172,6 +182,7 @@ def add_relative_efficiency(episodes: pd.DataFrame, references: pd.DataFrame | N
         if key not in out:
             out[key] = None
     refs = efficiency_references(out) if references is None else references
+
     def keys(frame: pd.DataFrame) -> list[tuple[str, ...]]:
         return [tuple(str(v) for v in values) for values in frame[list(REFERENCE_KEYS)].itertuples(index=False)]
 
@@ -230,8 +241,8 @@ def aggregate(
         degenerate = group.get("degenerate_protocol", pd.Series(dtype=object))
         row["n_degenerate"] = int(degenerate.fillna(False).astype(bool).sum())
         # Provenance of every row: what produced these numbers.
-        for column in ("latency_ticks", "seed", "init", "transport", "git_commit", "cpu_class", "versions"):
-            row[f"{column}s" if column != "versions" else column] = _distinct(group[column]) if column in group else ""
+        for column, name in PROVENANCE_COLUMNS.items():
+            row[name] = _distinct(group[column]) if column in group else ""
         rows.append(row)
     return pd.DataFrame(rows)
 
