@@ -25,11 +25,17 @@ def episode_topics(cfg: RunConfig, camera_names: tuple[str, ...]) -> list[m.Topi
     return topics
 
 
-def run_metadata(cfg: RunConfig, policy_params: dict, transport: str, env_versions: dict) -> dict:
-    """The run metadata stored in a bag (``set_run_metadata``): configuration, policy, transport, versions."""
+def run_metadata(
+    cfg: RunConfig, policy_params: dict, transport: str, env_versions: dict, camera_size_px: int | None
+) -> dict:
+    """The run metadata stored in a bag (``set_run_metadata``): configuration, policy, transport, versions.
+
+    ``camera_size_px``: the render size actually used (None: no camera rendered).
+    """
     return {
         "config": cfg.to_dict(),
         "config_key": cfg.key(),
+        "camera_size_px": camera_size_px,
         "policy_params": policy_params,
         "transport": transport,
         "lockstep": True,

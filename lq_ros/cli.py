@@ -15,6 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from lq_ros.config import RunConfig
 from lq_ros.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
 # Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
@@ -38,6 +39,10 @@ ROW_COLUMNS = [
     ("hold_ticks", "holds"),
     ("underrun_ticks", "underruns"),
 ]
+
+
+#: Defaults of `lq run` options: RunConfig's (the one source; node parameters derive from it too).
+_RUN = RunConfig()
 
 
 class LatencyRounding(StrEnum):
@@ -83,25 +88,30 @@ def print_rows(rows: list[dict], title: str = "") -> None:
 
 @app.command()
 def run(
-    suite: str = "libero_spatial",
-    task: int = 0,
-    init: int = 0,
-    seed: int = 7,
-    mode: str = "sync",
+    suite: Annotated[str, typer.Option(help="LIBERO suite.")] = _RUN.suite,
+    task: Annotated[int, typer.Option(help="Task index in the suite.")] = _RUN.task,
+    init: Annotated[int, typer.Option(help="Init state index.")] = _RUN.init,
+    seed: int = _RUN.seed,
+    mode: Annotated[str, typer.Option(help="sync (hold while inferring) or async (buffer).")] = _RUN.mode,
     latency: Annotated[
         float, typer.Option(help="Injected inference latency Δt_sim, seconds: a whole number of 0.05 s ticks.")
-    ] = 0.0,
+    ] = _RUN.latency_s,
     latency_rounding: Annotated[
         LatencyRounding, typer.Option(help="exact: refuse a latency between ticks; nearest: round it to N·0.05 s.")
     ] = LatencyRounding.exact,
-    replan_steps: int = 5,
-    hold: str = "stop",
-    request_threshold: Annotated[int, typer.Option(help="async: request at this buffer size; -1: N.")] = -1,
-    merge: str = "replace",
-    policy: str = "scripted",
+    replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = _RUN.replan_steps,
+    hold: Annotated[str, typer.Option(help="sync hold: stop or repeat.")] = _RUN.hold,
+    request_threshold: Annotated[
+        int, typer.Option(help="async: request at this buffer size; -1: N.")
+    ] = _RUN.request_threshold,
+    merge: Annotated[str, typer.Option(help="async merge: replace or blend.")] = _RUN.merge,
+    policy: str = _RUN.policy,
     policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
-    physics_rate: bool = False,
-    max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = 0,
+    camera_size: Annotated[
+        int, typer.Option(help="Camera render size, px; 0: the policy's reference size, else 224.")
+    ] = _RUN.camera_size,
+    physics_rate: Annotated[bool, typer.Option(help="Also record 500 Hz poses and joint states.")] = _RUN.physics_rate,
+    max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = _RUN.max_steps,
     out: Path = Path("bags"),
     transport: Transport = Transport.ros,
     domain_id: Annotated[int | None, typer.Option(help="ROS_DOMAIN_ID; default: a free one.")] = None,
@@ -109,7 +119,6 @@ def run(
     as_json: Annotated[bool, typer.Option("--json", help="Print the scored row as JSON.")] = False,
 ) -> None:
     """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task)."""
-    from lq_ros.config import RunConfig
     from lq_ros.suites import round_latency
 
     if latency_rounding is LatencyRounding.nearest and latency >= 0 and round_latency(latency) != latency:
@@ -119,7 +128,8 @@ def run(
         cfg = RunConfig(
             suite=suite, task=task, init=init, seed=seed, mode=mode, latency_s=latency,
             replan_steps=replan_steps, hold=hold, request_threshold=request_threshold, merge=merge,
-            policy=policy, policy_args=_parse_policy_args(policy_arg), physics_rate=physics_rate, max_steps=max_steps,
+            policy=policy, policy_args=_parse_policy_args(policy_arg), camera_size=camera_size,
+            physics_rate=physics_rate, max_steps=max_steps,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
@@ -154,7 +164,6 @@ def demo(
     transport: Transport = Transport.ros,
 ) -> None:
     """LIBERO-Spatial task 0 through the four-node stack: sync and async at 0 and 0.2 s latency."""
-    from lq_ros.config import RunConfig
 
     rows = []
     for mode in ("sync", "async"):

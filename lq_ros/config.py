@@ -15,9 +15,13 @@ from lq_ros.suites import latency_ticks, step_budget
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
+#: RunConfig fields of the execution protocol besides the mode (a sweep spec's ``modes`` entries set them).
+PROTOCOL_FIELDS = ("replan_steps", "hold", "request_threshold", "merge")
 #: Run configuration fields besides the group keys that tell variants of a policy or protocol apart.
 #: Every parameter that changes outcomes is one: results that differ in any of them never pool.
-VARIANT_FIELDS = ("policy_args", "replan_steps", "hold", "request_threshold", "merge", "max_steps", "camera_size")
+VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "camera_size")
+#: Camera render size when neither the run nor the policy names one, px.
+DEFAULT_CAMERA_SIZE_PX = 224
 #: What an aggregate row (and a figure's series point) is computed over: one policy variant, protocol,
 #: applied latency, task, and the sampling its trajectory and energy metrics were computed at.
 GROUP_KEYS = ("policy", "mode", "latency_s", "suite", "task", "trajectory_rate_hz", "energy_sampling")
@@ -41,7 +45,8 @@ class RunConfig:
     merge: str = "replace"
     policy: str = "scripted"
     policy_args: dict = field(default_factory=dict)
-    camera_size: int = 224
+    #: Camera render size, px (square); 0: the policy's reference size (Policy.render_size), else 224.
+    camera_size: int = 0
     #: Also record 500 Hz joint states and EE poses (per physics substep).
     physics_rate: bool = False
     #: Policy-controlled tick budget; 0: the suite's budget.
@@ -50,6 +55,10 @@ class RunConfig:
     def __post_init__(self) -> None:
         step_budget(self.suite)  # validates the suite name
         self.executor_config()  # validates the protocol parameters
+        if self.camera_size < 0 or self.max_steps < 0:
+            raise ValueError(
+                f"camera_size and max_steps must be >= 0 (0: default), got {self.camera_size}, {self.max_steps}"
+            )
 
     @property
     def latency_ticks(self) -> int:
@@ -58,6 +67,28 @@ class RunConfig:
     @property
     def budget(self) -> int:
         return self.max_steps or step_budget(self.suite)
+
+    def camera_size_for(self, policy_render_size: int | None) -> int:
+        """Render size in px: this run's, else the policy's reference evaluation's, else 224."""
+        return self.camera_size or policy_render_size or DEFAULT_CAMERA_SIZE_PX
+
+    def ros_parameters(self) -> dict:
+        """The run as ROS parameters, every node's single source (``ros_util.declare_run_config``).
+
+        Values keep the type of RunConfig's defaults (a ROS parameter's type is fixed when it is
+        declared); ``policy_args`` travels as JSON text.
+        """
+        defaults = RunConfig().to_dict()
+        out = {}
+        for name, value in self.to_dict().items():
+            default = defaults[name]
+            out[name] = json.dumps(value, sort_keys=True) if isinstance(default, dict) else type(default)(value)
+        return out
+
+    @classmethod
+    def from_ros_parameters(cls, values: dict) -> RunConfig:
+        defaults = RunConfig().to_dict()
+        return cls(**{k: json.loads(v) if isinstance(defaults[k], dict) else v for k, v in values.items()})
 
     def executor_config(self) -> ExecutorConfig:
         return ExecutorConfig(

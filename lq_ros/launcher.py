@@ -62,40 +62,27 @@ def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
     return env
 
 
-def node_parameters(cfg: RunConfig, bag_path: Path, cameras: tuple[str, ...], policy_params: dict) -> dict:
-    """ROS parameters of each node, from the one run configuration."""
+def node_parameters(
+    cfg: RunConfig, bag_path: Path, cameras: tuple[str, ...], camera_size_px: int, policy_params: dict
+) -> dict:
+    """The params file: the run's parameters once for every node (``/**``), then what only one node needs
+    (derived from the policy: its cameras and render size, its parameters for the bag)."""
     cams = list(cameras) or [""]  # ROS string arrays cannot be empty in YAML
     return {
-        "lq_sim": {
-            "suite": cfg.suite,
-            "task": cfg.task,
-            "init": cfg.init,
-            "seed": cfg.seed,
-            "cameras": list(cams),
-            "camera_size": cfg.camera_size,
-            "physics_rate": cfg.physics_rate,
-            "max_steps": cfg.max_steps,
-        },
-        "lq_policy": {
-            "policy": cfg.policy,
-            "policy_args_json": json.dumps(cfg.policy_args),
-            "latency_s": float(cfg.latency_s),
-        },
-        "lq_executor": {
-            "mode": cfg.mode,
-            "latency_s": float(cfg.latency_s),
-            "replan_steps": cfg.replan_steps,
-            "hold": cfg.hold,
-            "request_threshold": cfg.request_threshold,
-            "merge": cfg.merge,
-        },
+        "/**": cfg.ros_parameters(),
+        "lq_sim": {"cameras": list(cams), "camera_size_px": camera_size_px},
         "lq_metrics": {
             "bag_path": str(bag_path),
             "cameras": list(cams),
-            "run_config_json": json.dumps(cfg.to_dict()),
+            "camera_size_px": camera_size_px,
             "policy_params_json": json.dumps(policy_params),
         },
     }
+
+
+def params_yaml(params: dict) -> str:
+    """A ROS 2 params file: ``{node or /**: {ros__parameters: {...}}}``."""
+    return yaml.safe_dump({n: {"ros__parameters": p} for n, p in params.items()}, sort_keys=False)
 
 
 def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
@@ -141,12 +128,13 @@ def launch_nodes(
     # The policy node builds its own instance; this one only tells cameras and parameters.
     probe = make_policy(cfg.policy, **cfg.policy_args)
     cameras, policy_params = probe.camera_names, probe.params()
+    camera_size_px = cfg.camera_size_for(probe.render_size)
     probe.close()
     timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
     work = Path(tempfile.mkdtemp(prefix="lq_run_"))
     params_file = work / "params.yaml"
-    params = node_parameters(cfg, bag_path, cameras, policy_params)
-    params_file.write_text(yaml.safe_dump({n: {"ros__parameters": p} for n, p in params.items()}))
+    params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
+    params_file.write_text(params_yaml(params))
     procs: dict[str, subprocess.Popen] = {}
     reason = ""
     with reserved_domain(domain_id) as did:

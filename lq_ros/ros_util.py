@@ -12,6 +12,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from lq_ros import messages as m
+from lq_ros.config import RunConfig
 
 #: Every LIBERO-LQ topic: nothing may be lost (reliable, deep history) and a subscriber that
 #: matches a little late still receives what was published before (transient local).
@@ -40,6 +41,18 @@ def raw_subscription(node: Node, topic: m.Topic, callback: Callable[[object], No
         callback(m.deserialize(data, topic.msgtype))
 
     return node.create_subscription(msg_class(topic.msgtype), topic.name, on_raw, LOSSLESS_QOS, raw=True)
+
+
+def declare_run_config(node: Node) -> RunConfig:
+    """Declare every RunConfig field as a parameter (RunConfig's default, same name) and return the run.
+
+    The launcher writes them once for all nodes (``/**`` in the params file), so no node repeats a
+    default or builds its own protocol configuration.
+    """
+    defaults = RunConfig().ros_parameters()
+    for name, default in defaults.items():
+        node.declare_parameter(name, default)
+    return RunConfig.from_ros_parameters({name: node.get_parameter(name).value for name in defaults})
 
 
 def json_param(node: Node, name: str, default: dict | None = None) -> dict:

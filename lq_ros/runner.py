@@ -87,14 +87,15 @@ def run_inprocess(
             cfg.suite,
             cfg.task,
             camera_names=policy.camera_names,
-            camera_size=cfg.camera_size,
+            camera_size=cfg.camera_size_for(policy.render_size),
             record_physics=cfg.physics_rate,
         )
     bag_path = Path(out_dir) / cfg.episode_name()
     writer = EpisodeBagWriter(bag_path, episode_topics(cfg, policy.camera_names))
     rec = _Recorder(writer)
     env_versions = versions()
-    writer.set_run_metadata(run_metadata(cfg, policy.params(), "inprocess", env_versions))
+    camera_size_px = env.camera_size if policy.camera_names else None
+    writer.set_run_metadata(run_metadata(cfg, policy.params(), "inprocess", env_versions, camera_size_px))
     tick = 0
     try:
         state = env.reset(cfg.init, cfg.seed)

@@ -15,35 +15,17 @@ from rclpy.node import Node
 
 from lq_ros import messages as m
 from lq_ros.env import tick_of_sim_time
-from lq_ros.executor import ChunkDue, ExecutorConfig, ExecutorCore, Failed, ObservationNeeded
-from lq_ros.ros_util import publisher, raw_subscription, run
-from lq_ros.suites import latency_ticks
+from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
 
 
 class ExecutorNode(Node):
     def __init__(self) -> None:
         super().__init__("lq_executor")
-        self.declare_parameter("mode", "sync")
-        self.declare_parameter("latency_s", 0.0)
-        self.declare_parameter("replan_steps", 5)
-        self.declare_parameter("hold", "stop")
-        self.declare_parameter("request_threshold", -1)
-        self.declare_parameter("merge", "replace")
+        self.core = ExecutorCore(declare_run_config(self).executor_config())
         # Wall-clock seconds to wait for a due chunk before ending the episode as an error.
         self.declare_parameter("chunk_timeout_s", 60.0)
-        param = lambda name: self.get_parameter(name).value  # noqa: E731
-        threshold = param("request_threshold")
-        self.core = ExecutorCore(
-            ExecutorConfig(
-                mode=param("mode"),
-                latency_ticks=latency_ticks(param("latency_s")),
-                replan_steps=param("replan_steps"),
-                hold=param("hold"),
-                request_threshold=None if threshold < 0 else threshold,
-                merge=param("merge"),
-            )
-        )
-        self.chunk_timeout_s = param("chunk_timeout_s")
+        self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
 
         self.command_pub = publisher(self, m.COMMAND)
         self.request_pub = publisher(self, m.OBSERVATION_REQUEST)

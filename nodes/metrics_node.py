@@ -17,9 +17,9 @@ from rclpy.node import Node
 
 from lq_ros import messages as m
 from lq_ros.bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
-from lq_ros.config import RunConfig, versions
+from lq_ros.config import versions
 from lq_ros.env import sim_time_of_tick
-from lq_ros.ros_util import LOSSLESS_QOS, json_param, msg_class, run
+from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, json_param, msg_class, run
 from lq_ros.scoring import score_bag, to_json
 
 SCORE_FILE = "score.json"
@@ -28,15 +28,15 @@ SCORE_FILE = "score.json"
 class MetricsNode(Node):
     def __init__(self) -> None:
         super().__init__("lq_metrics")
+        self.cfg = declare_run_config(self)
         self.declare_parameter("bag_path", "")
         self.declare_parameter("cameras", [""])
+        self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
         # Wall seconds without messages, after the terminal event, before the bag is closed.
         self.declare_parameter("quiet_period_s", 0.3)
-        config = json_param(self, "run_config_json")
         self.policy_params = json_param(self, "policy_params_json")
-        self.cfg = RunConfig(**config)
         self.quiet_period_s = self.get_parameter("quiet_period_s").value
-        cameras = tuple(c for c in self.get_parameter("cameras").value if c)
+        self.cameras = cameras = tuple(c for c in self.get_parameter("cameras").value if c)
         self.bag_path = Path(self.get_parameter("bag_path").value)
 
         self.topics = episode_topics(self.cfg, cameras)
@@ -81,7 +81,8 @@ class MetricsNode(Node):
         self.finished = True
         env_versions = dict(self.started_detail.get("versions") or self.versions)
         env_versions["rclpy"] = self.versions["rclpy"]
-        self.writer.set_run_metadata(run_metadata(self.cfg, self.policy_params, "ros", env_versions))
+        camera_size_px = self.get_parameter("camera_size_px").value if self.cameras else None
+        self.writer.set_run_metadata(run_metadata(self.cfg, self.policy_params, "ros", env_versions, camera_size_px))
         self.writer.close()
         row = score_bag(self.bag_path)
         (self.bag_path / SCORE_FILE).write_text(to_json(row) + "\n")

@@ -19,19 +19,17 @@ from rclpy.node import Node
 from lq_ros import messages as m
 from lq_ros.env import TaskInfo
 from lq_ros.policies import make_policy
-from lq_ros.ros_util import json_param, publisher, raw_subscription, run
-from lq_ros.suites import CONTROL_DT_S, latency_ticks
+from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+from lq_ros.suites import CONTROL_DT_S
 
 
 class PolicyNode(Node):
     def __init__(self) -> None:
         super().__init__("lq_policy")
-        self.declare_parameter("policy", "scripted")
-        self.declare_parameter("latency_s", 0.0)
-        policy_args = json_param(self, "policy_args_json")
-        self.latency_s = self.get_parameter("latency_s").value
-        self.delay_ns = m.to_ns(latency_ticks(self.latency_s) * CONTROL_DT_S)
-        self.policy = make_policy(self.get_parameter("policy").value, **policy_args)
+        cfg = declare_run_config(self)
+        self.latency_s = cfg.latency_s
+        self.delay_ns = m.to_ns(cfg.latency_ticks * CONTROL_DT_S)
+        self.policy = make_policy(cfg.policy, **cfg.policy_args)
 
         self.chunk_pub = publisher(self, m.ACTION_CHUNK)
         raw_subscription(self, m.EPISODE_EVENTS, self.on_event)

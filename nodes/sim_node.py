@@ -16,29 +16,24 @@ from rclpy.node import Node
 from lq_ros import messages as m
 from lq_ros.config import versions
 from lq_ros.env import LiberoEnv, sim_time_of_tick
-from lq_ros.ros_util import publisher, raw_subscription, run
-from lq_ros.suites import step_budget
+from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
 
 
 class SimNode(Node):
     def __init__(self) -> None:
         super().__init__("lq_sim")
-        self.declare_parameter("suite", "libero_spatial")
-        self.declare_parameter("task", 0)
-        self.declare_parameter("init", 0)
-        self.declare_parameter("seed", 7)
+        cfg = declare_run_config(self)
+        # What the policy needs rendered (the launcher asks the policy).
         self.declare_parameter("cameras", [""])
-        self.declare_parameter("camera_size", 224)
-        self.declare_parameter("physics_rate", False)
-        self.declare_parameter("max_steps", 0)
+        self.declare_parameter("camera_size_px", cfg.camera_size_for(None))
         # Subscribers each topic needs before the episode starts (so no node misses tick 0).
         self.declare_parameter("min_subscribers", 1)
         self.declare_parameter("min_clock_subscribers", 3)
-        names = ("suite", "task", "init", "seed", "cameras", "camera_size", "physics_rate", "max_steps")
-        p = {name: self.get_parameter(name).value for name in names + ("min_subscribers", "min_clock_subscribers")}
-        self.init_index, self.seed = p["init"], p["seed"]
-        self.physics_rate = p["physics_rate"]
-        self.budget = p["max_steps"] or step_budget(p["suite"])
+        p = {name: self.get_parameter(name).value for name in ("cameras", "camera_size_px", "min_subscribers",
+                                                                "min_clock_subscribers")}  # fmt: skip
+        self.init_index, self.seed = cfg.init, cfg.seed
+        self.physics_rate = cfg.physics_rate
+        self.budget = cfg.budget
         self.min_subscribers, self.min_clock_subscribers = p["min_subscribers"], p["min_clock_subscribers"]
         cameras = tuple(c for c in p["cameras"] if c)
 
@@ -55,9 +50,9 @@ class SimNode(Node):
         self.finished = False
         self.started = False
         self.versions = versions()
-        self.get_logger().info(f"creating {p['suite']} task {p['task']} (cameras: {cameras or 'none'})")
+        self.get_logger().info(f"creating {cfg.suite} task {cfg.task} (cameras: {cameras or 'none'})")
         self.env = LiberoEnv(
-            p["suite"], p["task"], camera_names=cameras, camera_size=p["camera_size"], record_physics=self.physics_rate
+            cfg.suite, cfg.task, camera_names=cameras, camera_size=p["camera_size_px"], record_physics=self.physics_rate
         )
         self.state = self.env.reset(self.init_index, self.seed)
         self.start_timer = self.create_timer(0.05, self.start_when_ready)

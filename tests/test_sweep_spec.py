@@ -34,7 +34,10 @@ def test_expansion_is_the_full_product_in_a_stable_order():
         "seeds": [7, 8],
         "policies": ["sine", {"name": "scripted", "args": {}}],
         "latencies_s": [0, 0.1, 0.2, 0.4],
-        "modes": {"sync": {"replan_steps": [4, 8], "hold": "stop"}, "async": {"merge": ["replace", "blend"]}},
+        "modes": {
+            "sync": {"replan_steps": [4, 8], "hold": "stop"},
+            "async": {"request_threshold": 9, "merge": ["replace", "blend"]},
+        },
         "max_steps": 30,
     }
     spec = sw.expand_spec(raw)
@@ -45,6 +48,16 @@ def test_expansion_is_the_full_product_in_a_stable_order():
     assert {c.merge for c in spec.configs if c.mode == "async"} == {"replace", "blend"}
     assert all(c.max_steps == 30 for c in spec.configs)
     assert [c.key() for c in sw.expand_spec(raw).configs] == [c.key() for c in spec.configs]
+
+
+def test_latencies_between_ticks_and_merges_without_overlap_are_refused():
+    base = {"tasks": [0], "inits": [0], "policies": ["sine"]}
+    with pytest.raises(sw.SpecError, match=r"latencies_s: latency 0.075 s .* nearest valid: 0.05 s or 0.1 s"):
+        sw.expand_spec(base | {"latencies_s": [0.075]})
+    rounded = sw.expand_spec(base | {"latencies_s": [0.075, 0.2], "latency_rounding": "nearest"})
+    assert sorted({c.latency_s for c in rounded.configs}) == [0.05, 0.2]
+    with pytest.raises(sw.SpecError, match="never sees overlapping chunks"):
+        sw.expand_spec(base | {"latencies_s": [0.2], "modes": {"async": {"merge": "blend"}}})
 
 
 def test_tasks_all_and_shorthand_and_defaults():
@@ -60,7 +73,8 @@ def test_tasks_all_and_shorthand_and_defaults():
         ({"latencies": [0.1]}, "unknown key"),
         ({"policies": ["nope"]}, "unknown policy 'nope'"),
         ({"policies": [{"name": "sine", "arg": {}}]}, "policies[0]"),
-        ({"latencies_s": [0.1, 0.12]}, "both round to N = 2"),
+        ({"latencies_s": [0.1, 0.1]}, "are both N = 2"),
+        ({"latencies_s": [0.12]}, "not a whole number of 0.05 s control ticks"),
         ({"latencies_s": [-0.1]}, "non-negative"),
         ({"latencies_s": []}, "empty list"),
         ({"modes": ["sync", "stream"]}, "unknown mode 'stream'"),

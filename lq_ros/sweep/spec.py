@@ -10,16 +10,16 @@ from pathlib import Path
 
 import yaml
 
-from lq_ros.config import RunConfig
+from lq_ros.config import PROTOCOL_FIELDS, RunConfig
 from lq_ros.episode import TRANSPORTS
-from lq_ros.suites import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks
+from lq_ros.suites import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 
 MODES = ("sync", "async")
 #: Protocol parameters a ``modes`` entry may set (scalars or lists; lists multiply).
-PROTOCOL_KEYS = ("replan_steps", "hold", "request_threshold", "merge")
+PROTOCOL_KEYS = PROTOCOL_FIELDS
 SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
-    "latencies_s", "modes", "camera_size", "physics_rate", "max_steps",
+    "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps",
 }  # fmt: skip
 
 
@@ -122,16 +122,25 @@ def _policies(raw: dict) -> list[tuple[str, dict]]:
 
 
 def _latencies(raw: dict) -> list[float]:
+    """Applied latencies (whole control ticks; ``latency_rounding: nearest`` rounds on purpose)."""
     if "latencies_s" not in raw:
         raise SpecError("'latencies_s' is required (injected latencies, seconds)")
+    rounding = raw.get("latency_rounding", "exact")
+    if rounding not in ("exact", "nearest"):
+        raise SpecError(f"latency_rounding: expected exact or nearest, got {rounding!r}")
     out, by_ticks = [], {}
     for v in _as_list(raw["latencies_s"], "latencies_s"):
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
             raise SpecError(f"latencies_s: expected non-negative seconds, got {v!r}")
-        n = latency_ticks(float(v))
+        if rounding == "nearest":
+            v = round_latency(float(v))
+        try:
+            n = latency_ticks(float(v))
+        except ValueError as exc:
+            raise SpecError(f"latencies_s: {exc}") from None
         if n in by_ticks:
             raise SpecError(
-                f"latencies_s: {by_ticks[n]} and {v} s both round to N = {n} ticks of {CONTROL_DT_S} s (same episodes)"
+                f"latencies_s: {by_ticks[n]} and {v} s are both N = {n} ticks of {CONTROL_DT_S} s (same episodes)"
             )
         by_ticks[n] = v
         out.append(float(v))
@@ -178,8 +187,8 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             if not isinstance(raw[key], typ) or (typ is int and isinstance(raw[key], bool)):
                 raise SpecError(f"{key}: expected {typ.__name__}, got {raw[key]!r}")
             common[key] = raw[key]
-    if common.get("max_steps", 0) < 0 or common.get("camera_size", 1) < 1:
-        raise SpecError("max_steps must be >= 0 (0: the suite's budget) and camera_size >= 1")
+    if common.get("max_steps", 0) < 0 or common.get("camera_size", 0) < 0:
+        raise SpecError("max_steps must be >= 0 (0: the suite's budget) and camera_size >= 0 (0: the policy's)")
     policies, latencies, modes, suites = _policies(raw), _latencies(raw), _modes(raw), _suites(raw)
     configs: dict[str, RunConfig] = {}
     for (policy, args), proto, latency, (suite, tasks, inits) in itertools.product(policies, modes, latencies, suites):

@@ -99,8 +99,8 @@ class EpisodeWorker:
             self.close()
             policy = make_policy(cfg.policy, **cfg.policy_args)
             env = LiberoEnv(
-                cfg.suite, cfg.task, camera_names=policy.camera_names, camera_size=cfg.camera_size,
-                record_physics=cfg.physics_rate,
+                cfg.suite, cfg.task, camera_names=policy.camera_names,
+                camera_size=cfg.camera_size_for(policy.render_size), record_physics=cfg.physics_rate,
             )  # fmt: skip
             self._cached = (key, env, policy)
         return self._cached[1], self._cached[2]
