@@ -7,15 +7,26 @@ H x W x 3), ``instruction``, optional ``unnorm_key``. The response is one json-n
 with the JSON string ``"error"``. OFT servers take ``full_image``, ``wrist_image`` and ``state``
 instead of ``image`` (``style="oft"``). See docs/remote_policies.md.
 
+Images are preprocessed exactly as OpenVLA's and OpenVLA-OFT's LIBERO evaluations do before
+querying the model (``experiments/robot/libero/``): 180-degree rotation, a JPEG encode/decode round
+trip and an antialiased Lanczos-3 resize to 224 (TensorFlow in the reference; reproduced here bit for
+bit without it, see ``openvla_resize``), then, for OpenVLA only, the 90 % center crop (OFT servers
+crop server-side).
+
 Server down, slower than ``timeout_s``, HTTP errors, the ``"error"`` answer and any response that is
 not a finite numeric (H, 7) chunk raise PolicyError: the episode ends as an error with the reason.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
+import io
 import math
 import re
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -38,6 +49,155 @@ CENTER_CROP_AREA = 0.9
 GRIPPER_MODES = ("openvla", "raw")
 #: Longest response excerpt kept in an error reason, characters.
 MAX_BODY_CHARS = 300
+#: Camera size OpenVLA's and OFT's LIBERO evaluations render at (``get_libero_env(resolution=256)``,
+#: OFT's ``env_img_res``), before their own resize to 224.
+OPENVLA_RENDER_SIZE = 256
+#: ``tf.image.encode_jpeg``'s default quality (its other defaults, 4:2:0 chroma and baseline, are
+#: libjpeg's, which Pillow uses too).
+TF_JPEG_QUALITY = 95
+LANCZOS3_RADIUS = 3.0
+
+
+# -- OpenVLA's image preprocessing, TensorFlow 2.15's ops reproduced bit for bit ---------------
+# The reference (OpenVLA libero_utils.resize_image, OFT openvla_utils.resize_image_for_policy and
+# crop_and_resize) uses TensorFlow, which we do not install for four image ops. Equality with the
+# real TensorFlow functions on rendered LIBERO frames is tested against recorded outputs
+# (tests/data/vla_reference/).
+def jpeg_round_trip(image: np.ndarray) -> np.ndarray:
+    """``tf.io.decode_image(tf.image.encode_jpeg(image))``: OpenVLA's RLDS dataset builder stored JPEGs.
+
+    Encoding: libjpeg at quality 95, 4:2:0, accurate integer DCT (Pillow's defaults give the same
+    coefficients). Decoding: TensorFlow's default DCT method is INTEGER_FAST (libjpeg's JDCT_IFAST),
+    which Pillow cannot select, hence simplejpeg (libjpeg-turbo) with ``fastdct=True``.
+    """
+    import simplejpeg
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buffer, format="JPEG", quality=TF_JPEG_QUALITY)
+    return simplejpeg.decode_jpeg(buffer.getvalue(), colorspace="RGB", fastdct=True, fastupsample=False)
+
+
+@functools.cache
+def _sinf() -> Callable[[float], float]:
+    """The C library's single-precision sine, which TensorFlow's Lanczos kernel calls (``std::sin(float)``).
+
+    Rounding the double-precision sine to float32 differs from glibc's ``sinf`` in the last bit for
+    about 1 argument in 12, enough to move a resized pixel across a .5 boundary now and then.
+    """
+    name = ctypes.util.find_library("m")
+    if name is not None:
+        try:
+            sinf = ctypes.CDLL(name).sinf
+            sinf.restype, sinf.argtypes = ctypes.c_float, [ctypes.c_float]
+            return sinf
+        except (OSError, AttributeError):
+            pass
+    return lambda x: float(np.float32(math.sin(x)))  # no C sinf: off by one bit now and then
+
+
+@functools.cache
+def _lanczos3_spans(out_size: int, in_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """First input index and float32 weights (out_size, span) of TensorFlow's ScaleAndTranslate spans.
+
+    Antialiased Lanczos-3 (the kernel widened by the downscale factor), half-pixel centres, weights
+    normalised by their float32 sum: the arithmetic of TensorFlow's ``ComputeSpansCore``, in float32
+    and in its order, so that the weights come out identical.
+    """
+    f32 = np.float32
+    sinf = _sinf()
+    pi, radius = f32(3.14159265359), f32(LANCZOS3_RADIUS)
+    inv_scale = f32(1.0 / float(f32(out_size) / f32(in_size)))
+    kernel_scale = max(inv_scale, f32(1.0))
+    one_over_kernel_scale = f32(1.0) / kernel_scale
+    span_size = min(2 * math.ceil(radius * kernel_scale) + 1, in_size)
+    starts = np.zeros(out_size, dtype=np.int64)
+    weights = np.zeros((out_size, span_size), dtype=f32)
+    for x in range(out_size):
+        sample = (f32(x) + f32(0.5)) * inv_scale
+        if sample < 0 or sample > in_size:
+            continue
+        lo = min(max(math.ceil(sample - radius * kernel_scale - f32(0.5)), 0), in_size - 1)
+        hi = min(max(math.floor(sample + radius * kernel_scale - f32(0.5)), 0), in_size - 1) + 1
+        kernel = []
+        for source in range(lo, hi):
+            t = abs((f32(source) + f32(0.5) - sample) * one_over_kernel_scale)
+            if t > radius:
+                kernel.append(f32(0.0))
+            elif t <= f32(1e-3):
+                kernel.append(f32(1.0))
+            else:
+                s1, s2 = f32(sinf(pi * t)), f32(sinf(pi * t / radius))
+                kernel.append(radius * s1 * s2 / (pi * pi * t * t))
+        total = f32(0.0)
+        for w in kernel:
+            total = f32(total + w)
+        starts[x] = lo
+        if abs(total) >= f32(1000.0) * np.finfo(f32).tiny:
+            weights[x, : len(kernel)] = np.asarray(kernel, dtype=f32) * (f32(1.0) / total)
+    return starts, weights
+
+
+def _gather(image: np.ndarray, axis: int, starts: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """One separable pass: float32 sums over the span, tap after tap (TensorFlow's accumulation order)."""
+    size = image.shape[axis]
+    out_shape = list(image.shape)
+    out_shape[axis] = len(starts)
+    out = np.zeros(out_shape, dtype=np.float32)
+    shape = [1] * image.ndim
+    shape[axis] = len(starts)
+    for tap in range(weights.shape[1]):
+        index = np.minimum(starts + tap, size - 1)  # past the span the weight is 0
+        out += weights[:, tap].reshape(shape) * np.take(image, index, axis=axis)
+    return out
+
+
+def resize_lanczos3(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """``tf.image.resize(image, (height, width), method="lanczos3", antialias=True)``: float32 (H, W, C).
+
+    Rows first into a float32 intermediate, then columns, as TensorFlow's ScaleAndTranslate kernel does.
+    """
+    pixels = np.asarray(image).astype(np.float32)
+    rows = _gather(pixels, 0, *_lanczos3_spans(height, pixels.shape[0]))
+    return _gather(rows, 1, *_lanczos3_spans(width, pixels.shape[1]))
+
+
+def openvla_resize(image: np.ndarray, size: int) -> np.ndarray:
+    """OpenVLA's ``resize_image`` / OFT's ``resize_image_for_policy``: JPEG round trip, Lanczos-3, round.
+
+    The round trip mimics the RLDS training data; rounding is half to even (``tf.round``).
+    """
+    resized = resize_lanczos3(jpeg_round_trip(image), size, size)
+    return np.clip(np.round(resized), 0, 255).astype(np.uint8)
+
+
+def openvla_center_crop(image: np.ndarray, area: float = CENTER_CROP_AREA) -> np.ndarray:
+    """OpenVLA's center crop for models trained with random-crop augmentation, same size out.
+
+    ``tf.image.crop_and_resize`` (bilinear, corner-aligned box of side sqrt(area) in normalised
+    coordinates) on the image scaled to [0, 1] in float32, then ``convert_image_dtype`` back to uint8
+    (x 255.5, truncated).
+    """
+    f32 = np.float32
+    pixels = np.asarray(image).astype(f32) * f32(1.0 / 255)
+    height, width = pixels.shape[:2]
+    side = np.clip(np.sqrt(f32(area)), f32(0.0), f32(1.0))
+    lo = (f32(1.0) - side) / f32(2.0)
+    hi = lo + side
+
+    def coordinates(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        step = (hi - lo) * f32(n - 1) / f32(n - 1)  # output size = input size
+        at = lo * f32(n - 1) + np.arange(n, dtype=f32) * step
+        below = np.floor(at)
+        return below.astype(np.int64), np.ceil(at).astype(np.int64), (at - below).astype(f32)
+
+    top, bottom, y_lerp = coordinates(height)
+    left, right, x_lerp = coordinates(width)
+    x_lerp = x_lerp[None, :, None]
+    upper = pixels[top][:, left] + (pixels[top][:, right] - pixels[top][:, left]) * x_lerp
+    lower = pixels[bottom][:, left] + (pixels[bottom][:, right] - pixels[bottom][:, left]) * x_lerp
+    cropped = np.clip(upper + (lower - upper) * y_lerp[:, None, None], f32(0.0), f32(1.0))
+    return np.clip(cropped * f32(255.5), 0, 255).astype(np.uint8)
 
 
 class OpenVLARestPolicy(Policy):
@@ -47,9 +207,16 @@ class OpenVLARestPolicy(Policy):
     gripper value in [0, 1] (1 = open) becomes -1 (open) / +1 (close); ``"raw"`` passes it through.
     ``unnorm_key`` defaults to the LIBERO suite name (OpenVLA's LIBERO fine-tunes use it); ``""``
     leaves it out. Timing: ``last_timing["round_trip_ms"]`` per request, listed in ``timings``.
+
+    ``center_crop`` (None: the reference's choice) crops client-side for OpenVLA, whose
+    ``deploy.py`` passes the image straight to the model while its LIBERO evaluation crops
+    (``--center_crop True`` for the LIBERO fine-tunes), and never for OFT, whose ``deploy.py``
+    crops itself (``--center_crop True``): cropping here too would crop twice.
     """
 
     name = "openvla"
+    #: OpenVLA's and OFT's LIBERO evaluations render at 256 and resize to 224 themselves.
+    render_size = OPENVLA_RENDER_SIZE
 
     def __init__(
         self,
@@ -62,7 +229,7 @@ class OpenVLARestPolicy(Policy):
         style: str = "openvla",
         gripper: str = "openvla",
         resize: int = 224,
-        center_crop: bool = False,
+        center_crop: bool | None = None,
         clip: bool = False,
     ) -> None:
         if style not in STYLES:
@@ -78,7 +245,14 @@ class OpenVLARestPolicy(Policy):
         self.style = style
         self.gripper = gripper
         self.resize = int(resize)
+        if center_crop is None:
+            center_crop = style == "openvla"
         self.center_crop = flag("center_crop", center_crop)
+        if self.center_crop and style == "oft":
+            raise ValueError(
+                "center_crop with style='oft': OFT's deploy.py crops server-side (--center_crop True); "
+                "cropping in the client too would crop twice"
+            )
         self.clip = flag("clip", clip)
         self.camera_names = (AGENTVIEW, WRIST) if style == "oft" else (AGENTVIEW,)
         self.last_timing: dict[str, float | None] = {}
@@ -144,20 +318,11 @@ class OpenVLARestPolicy(Policy):
 
     # -- internals --------------------------------------------------------------------------
     def _image(self, obs: Observation, camera: str) -> np.ndarray:
-        from PIL import Image
-
-        image = libero_training_image(camera_image(obs, camera))
-        if image.shape[:2] != (self.resize, self.resize):
-            resized = Image.fromarray(image).resize((self.resize, self.resize), resample=Image.LANCZOS)
-            image = np.asarray(resized, dtype=np.uint8)
-        if self.center_crop:
-            # OpenVLA's LIBERO evaluation for models trained with random-crop augmentation: keep the
-            # central 90 % of the area and scale it back up (bilinear; TF's crop_and_resize there).
-            side = self.resize * math.sqrt(CENTER_CROP_AREA)
-            lo, hi = (self.resize - side) / 2.0, (self.resize + side) / 2.0
-            cropped = Image.fromarray(image).resize((self.resize, self.resize), Image.BILINEAR, box=(lo, lo, hi, hi))
-            image = np.asarray(cropped, dtype=np.uint8)
-        return image
+        """What OpenVLA's (``get_libero_image`` + ``get_vla_action``) or OFT's (``prepare_observation``)
+        LIBERO evaluation hands its model for this camera, from our upright image."""
+        # Always resized, even at 224: the reference's JPEG round trip happens at any size.
+        image = openvla_resize(libero_training_image(camera_image(obs, camera)), self.resize)
+        return openvla_center_crop(image) if self.center_crop else image
 
     def _post(self, body: str) -> object:
         import json_numpy
