@@ -2,10 +2,13 @@
 
 Records real in-process episodes (LIBERO-10 task 0, sine policy, physics-rate topics on) of 130, 260,
 520 and 900 ticks, then scores each one repeatedly in this single process (one core) and prints:
-- episode bags per second at the control rate (the default) and at the physics rate;
+- episode bags per second with the default scoring (20 Hz trajectory, energy from the per-tick substep
+  integrals), with the paper's control-rate energy estimate (``--energy-rate control``, the old
+  default: the ratio shows what the exact energy costs), and at the physics rate (500 Hz topics);
 - peak Python heap while scoring one bag (tracemalloc), to show memory does not grow with bag length;
 - the same bag read by a generic reader (rosbags AnyReader, every message deserialized) as the baseline.
-Target (issue 3): >= 50 bags/s for the 520-tick bag; memory flat in bag length.
+Targets (issues 3 and 9): >= 50 bags/s for the 520-tick bag with the default scoring; memory flat in
+bag length.
 
     .venv/bin/python benchmarks/bench_scorer.py [--bags /tmp/lq_bench_bags] [--repeat 20]
 """
@@ -76,17 +79,21 @@ def main() -> None:
     from lq_ros.scoring import score_bag
 
     bags = record_bags(args.bags)
-    print(f"{'ticks':>6} {'MB':>6} {'bags/s control':>15} {'bags/s physics':>15} {'baseline bags/s':>16} "
-          f"{'speedup':>8} {'peak MiB control':>17} {'peak MiB physics':>17}")  # fmt: skip
+    print(f"{'ticks':>6} {'MB':>6} {'bags/s default':>15} {'bags/s ctl-energy':>18} {'default/ctl':>12} "
+          f"{'bags/s physics':>15} {'baseline bags/s':>16} {'speedup':>8} {'peak MiB default':>17} "
+          f"{'peak MiB physics':>17}")  # fmt: skip
+    physics_rates = {"rate": "physics", "energy_rate": "physics"}
     for ticks, bag in bags.items():
         size_mb = sum(f.stat().st_size for f in bag.glob("*.mcap")) / 1e6
-        control = per_second(lambda b=bag: score_bag(b), args.repeat)
-        physics = per_second(lambda b=bag: score_bag(b, rate="physics"), max(2, args.repeat // 10))
+        default = per_second(lambda b=bag: score_bag(b), args.repeat)
+        control = per_second(lambda b=bag: score_bag(b, energy_rate="control"), args.repeat)
+        physics = per_second(lambda b=bag: score_bag(b, **physics_rates), max(2, args.repeat // 10))
         baseline = per_second(lambda b=bag: baseline_read(b), max(2, args.repeat // 10))
-        mem_control = peak_heap_mib(lambda b=bag: score_bag(b))
-        mem_physics = peak_heap_mib(lambda b=bag: score_bag(b, rate="physics"))
-        print(f"{ticks:>6} {size_mb:>6.1f} {control:>15.1f} {physics:>15.1f} {baseline:>16.2f} "
-              f"{control / baseline:>7.0f}x {mem_control:>17.2f} {mem_physics:>17.2f}")  # fmt: skip
+        mem_default = peak_heap_mib(lambda b=bag: score_bag(b))
+        mem_physics = peak_heap_mib(lambda b=bag: score_bag(b, **physics_rates))
+        print(f"{ticks:>6} {size_mb:>6.1f} {default:>15.1f} {control:>18.1f} {default / control:>12.2f} "
+              f"{physics:>15.1f} {baseline:>16.2f} {default / baseline:>7.0f}x {mem_default:>17.2f} "
+              f"{mem_physics:>17.2f}")  # fmt: skip
 
 
 if __name__ == "__main__":

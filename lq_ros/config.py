@@ -176,6 +176,9 @@ def versions() -> dict:
         "numpy": _dist_version("numpy"),
         "torch": _dist_version("torch"),
         "rosbags": _dist_version("rosbags"),
+        # Image preprocessing of the remote VLA clients (OpenVLA's JPEG round trip depends on both).
+        "pillow": _dist_version("pillow"),
+        "simplejpeg": _dist_version("simplejpeg"),
         "python": platform.python_version(),
         "git_commit": git_commit(),
         "cpu": cpu_info(),
