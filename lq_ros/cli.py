@@ -361,17 +361,68 @@ def report(
     results_dir: Path,
     out: Annotated[Path | None, typer.Option(help="Output folder; default: RESULTS_DIR/report.")] = None,
     all_episodes: Annotated[bool, typer.Option(help="Every finished episode, not only the spec's.")] = False,
+    videos: Annotated[
+        int, typer.Option(help="Replay videos per (policy, protocol, Δt_sim) cell (re-simulated: costs CPU).")
+    ] = 0,
 ) -> None:
-    """Figures (paper Figs. 4-7, 95% CIs), tables, report.html and report.md of a sweep or bag folder."""
+    """Figures (paper Figs. 4-7, 95% CIs), tables, report.html and report.md of a sweep or bag folder, a figure
+    per episode and, with --videos K, up to K replay videos per cell (successes and failures)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
     from lq_ros.report import build_report
 
+    if videos < 0:
+        raise typer.BadParameter(f"--videos must be >= 0, got {videos}")
+    bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                   console=console)  # fmt: skip
+    stages: dict[str, int] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if stage not in stages:
+            stages[stage] = bar.add_task(stage + (" (ticks)" if stage == "replay videos" else ""), total=total)
+        bar.update(stages[stage], completed=done, total=total)
+
     try:
-        result = build_report(results_dir, out, all_episodes=all_episodes)
+        with bar:
+            result = build_report(results_dir, out, all_episodes=all_episodes, videos=videos, progress=progress)
     except FileNotFoundError as exc:
         console.print(f"[red]{exc}[/red]")
         raise typer.Exit(2) from exc
+    for warning in result.media_warnings or []:
+        console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
     console.print(f"{len(result.episodes)} episodes -> {result.files['report.html']}", soft_wrap=True)
     console.print(f"markdown: {result.files['report.md']}", soft_wrap=True)
+
+
+@app.command()
+def replay(
+    bag: Annotated[Path, typer.Argument(help="An episode bag folder (or its .mcap) recorded by lq run / lq sweep.")],
+    video: Annotated[Path | None, typer.Option(help="Also render the episode into this MP4.")] = None,
+    cameras: Annotated[str, typer.Option(help="Cameras, side by side.")] = "agentview,robot0_eye_in_hand",
+    size: Annotated[int, typer.Option(help="Pixels per camera image (square).")] = 256,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the verdict as JSON.")] = False,
+) -> None:
+    """Re-simulate a recorded lockstep episode from its bag's configuration and commands; check that the EE
+    trajectory equals the recorded one. Exits 1 if it differs, 2 if the bag cannot be replayed (reason given)."""
+    from lq_ros.replay import ReplayRefused
+    from lq_ros.replay import replay as replay_bag
+
+    names = tuple(c.strip() for c in cameras.split(",") if c.strip())
+    if video is not None and not names:
+        raise typer.BadParameter("--cameras names no camera")
+    if not 16 <= size <= 2048:
+        raise typer.BadParameter(f"--size must be 16..2048 pixels, got {size}")
+    try:
+        result = replay_bag(bag, video=video, cameras=names, size_px=size)
+    except ReplayRefused as exc:
+        console.print(f"[red]cannot replay[/red] {bag}: {exc}", soft_wrap=True, highlight=False)
+        raise typer.Exit(2) from None
+    if as_json:
+        print(json.dumps(result.to_dict(), sort_keys=True))
+    else:
+        print(result.summary())
+    if not result.equal:
+        raise typer.Exit(1)
 
 
 # Learned policies: demonstrations and training (lq_ros/learned/cli.py).

@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from lq_ros import aggregate as agg  # noqa: E402
+from lq_ros import episode_media as media  # noqa: E402
 from lq_ros import metrics  # noqa: E402
 
 #: Figures pool tasks and init states: one point per (policy, protocol, latency).
@@ -337,7 +338,7 @@ EPISODE_COLUMNS = ("policy", "mode", "latency_s", "suite", "task", "init", "seed
 def episode_table(episodes: pd.DataFrame) -> pd.DataFrame:
     cols = [c for c in EPISODE_COLUMNS if c in episodes]
     return episodes.sort_values([c for c in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")
-                                 if c in episodes])[[*cols, "bag"]]  # fmt: skip
+                                 if c in episodes])[[*cols, "bag", *media.table_columns(episodes)]]  # fmt: skip
 
 
 def _fmt(v) -> str:
@@ -361,14 +362,17 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     lines += ["## Summary", "", summary.to_markdown(index=False), ""]
     lines += ["## Per task", "", per_task_md, ""]
     lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
+    lines += media.videos_md(episodes, FIGURE_KEYS)
     lines += ["## Episodes", ""]
     table = episode_table(episodes)
-    header = [c for c in table.columns if c != "bag"]
-    lines += ["| " + " | ".join([*header, "bag"]) + " |", "|" + "---|" * (len(header) + 1)]
+    header = [c for c in table.columns if c != "bag" and c not in media.MEDIA_COLUMNS]
+    links = media.link_headers(table)
+    lines += ["| " + " | ".join([*header, "bag", *links]) + " |", "|" + "---|" * (len(header) + 1 + len(links))]
     for _, r in table.iterrows():
         bag = r["bag"]
         cell = f"[bag]({_link(bag, prefix)})" if isinstance(bag, str) and bag else "–"
-        lines.append("| " + " | ".join([*(_fmt(r[c]).replace("|", "/") for c in header), cell]) + " |")
+        cells = [*(_fmt(r[c]).replace("|", "/") for c in header), cell, *media.md_cells(r)]
+        lines.append("| " + " | ".join(cells) + " |")
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -393,10 +397,10 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
     parts.append("<h2>Per task</h2>" + per_task.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.4g}"))
     parts.append("<h2>Provenance</h2><table>")
     parts += [f"<tr><th>{e(k)}</th><td style='text-align:left'>{e(v)}</td></tr>" for k, v in prov.items()]
-    parts.append("</table><h2>Episodes</h2><table><tr>")
+    parts.append("</table>" + media.videos_html(episodes, FIGURE_KEYS) + "<h2>Episodes</h2><table><tr>")
     table = episode_table(episodes)
-    header = [c for c in table.columns if c != "bag"]
-    parts += [f"<th>{e(c)}</th>" for c in [*header, "bag"]]
+    header = [c for c in table.columns if c != "bag" and c not in media.MEDIA_COLUMNS]
+    parts += [f"<th>{e(c)}</th>" for c in [*header, "bag", *media.link_headers(table)]]
     parts.append("</tr>")
     for _, r in table.iterrows():
         cls = " class='error'" if r.get("status") == "error" else ""
@@ -405,7 +409,7 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
         link = (
             f"<a href='{e(_link(bag, prefix))}'>{e(str(bag).rsplit('/', 1)[-1])}</a>" if isinstance(bag, str) else "–"
         )
-        parts.append(f"<tr{cls}>{cells}<td style='text-align:left'>{link}</td></tr>")
+        parts.append(f"<tr{cls}>{cells}<td style='text-align:left'>{link}</td>{media.html_cells(r)}</tr>")
     parts.append("</table></body></html>")
     path.write_text("\n".join(parts))
 
@@ -417,13 +421,17 @@ class Report:
     episodes: pd.DataFrame
     pooled: pd.DataFrame
     figures: dict[str, plt.Figure]
+    #: Per-episode figures and replay videos that could not be made, and replays that differ from their bag.
+    media_warnings: list[str] | None = None
 
 
 def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int = 2000, seed: int = 0,
-                 keep_figures: bool = False, all_episodes: bool = False) -> Report:  # fmt: skip
+                 keep_figures: bool = False, all_episodes: bool = False, videos: int = 0,
+                 progress: media.Progress | None = None) -> Report:  # fmt: skip
     """Write figures, tables, report.html and report.md for ``results_dir`` into ``out_dir``
     (default ``results_dir/report``). ``keep_figures`` leaves the matplotlib figures open (tests);
-    ``all_episodes``: see load_episodes."""
+    ``all_episodes``: see load_episodes. Every episode gets a figure; ``videos``: replay videos per
+    (policy, protocol, Δt_sim) cell (lq_ros/episode_media.py); ``progress(stage, done, total)`` follows both."""
     results_dir = Path(results_dir)
     out_dir = Path(out_dir) if out_dir else results_dir / "report"
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -441,6 +449,8 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
         files[path.name] = path
         if not keep_figures:
             plt.close(fig)
+    episodes, media_warnings = media.add_episode_media(episodes, results_dir, out_dir, videos=videos,
+                                                       cell_keys=FIGURE_KEYS, progress=progress)  # fmt: skip
     prov = provenance(episodes, results_dir)
     prefix = os.path.relpath(results_dir, out_dir).rstrip("/") + "/"
     summary = summary_table(pooled)
@@ -448,7 +458,7 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix)
     files["report.html"] = out_dir / "report.html"
     write_html(files["report.html"], summary, _per_task_view(per_task), prov, episodes, prefix)
-    return Report(out_dir, files, episodes, pooled, figures if keep_figures else {})
+    return Report(out_dir, files, episodes, pooled, figures if keep_figures else {}, media_warnings)
 
 
 def _per_task_view(per_task: pd.DataFrame) -> pd.DataFrame:
