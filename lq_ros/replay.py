@@ -175,10 +175,21 @@ def _collect(rec: Recording, topic: str, msg) -> None:
         rec.events.append((int(msg.kind), int(msg.tick), str(msg.reason)))
 
 
-def check_replayable(rec: Recording):
-    """The RunConfig to re-simulate ``rec`` with; raises ReplayRefused with the reason it cannot be."""
-    from lq_ros.config import RunConfig
+@dataclass(frozen=True)
+class ReplaySetup:
+    """What a replay needs of the run configuration: the commands are recorded, so the protocol's
+    parameters only label the video (and a configuration a newer RunConfig would refuse still replays)."""
 
+    suite: str
+    task: int
+    init: int
+    seed: int
+    mode: str
+    latency_s: float
+
+
+def check_replayable(rec: Recording) -> ReplaySetup:
+    """The setup to re-simulate ``rec`` with; raises ReplayRefused with the reason it cannot be."""
     folder = rec.bag
     if not (folder / "metadata.yaml").exists():
         raise ReplayRefused("no metadata.yaml: a plain MCAP from another tool (or a recorder that died), "
@@ -193,10 +204,12 @@ def check_replayable(rec: Recording):
                             f"(replayable: {', '.join(SIMULATED_TRANSPORTS)})")  # fmt: skip
     if meta.get("lockstep") is not True:
         raise ReplayRefused("recorded in real time (not lockstep): its commands depended on wall-clock timing")
+    cfg = meta.get("config") or {}
     try:
-        cfg = RunConfig(**meta["config"])
+        setup = ReplaySetup(str(cfg["suite"]), int(cfg["task"]), int(cfg["init"]), int(cfg["seed"]),
+                            str(cfg.get("mode", "?")), float(cfg.get("latency_s", math.nan)))  # fmt: skip
     except (KeyError, TypeError, ValueError) as exc:
-        raise ReplayRefused(f"run configuration not understood: {exc}") from exc
+        raise ReplayRefused(f"run configuration lacks the task, init state or seed ({exc!r})") from exc
     if rec.damage:
         raise ReplayRefused(f"bag damaged: {rec.damage[0]}")
     if not rec.commands:
@@ -208,7 +221,7 @@ def check_replayable(rec: Recording):
                             f"{len(ticks)} commands)")  # fmt: skip
     if 0 not in rec.poses:
         raise ReplayRefused(f"no {m.EE_POSE.name} at tick 0")
-    return cfg
+    return setup
 
 
 # -- machines -------------------------------------------------------------------------------------
@@ -386,7 +399,10 @@ def replay(
     # Written under a temporary name, renamed when complete: a stopped replay leaves no truncated video.
     partial = Path(video).with_name(Path(video).name + ".part") if video is not None else None
     try:
-        state = env.reset(cfg.init, cfg.seed)
+        try:
+            state = env.reset(cfg.init, cfg.seed)
+        except ValueError as exc:  # e.g. an init state this LIBERO package does not have
+            raise ReplayRefused(f"cannot reset to the recorded init state: {exc}") from exc
         overlay = Overlay(rec, cfg, len(cameras) * size_px, size_px) if video is not None else None
         divergence: Divergence | None = None
         max_err, max_tick, success_tick = 0.0, 0, None
@@ -516,7 +532,7 @@ class Overlay:
     MIN_WIDTH_PX = 256
     BORDER_PX = 3
 
-    def __init__(self, rec: Recording, cfg, tiles_width: int, tile_px: int) -> None:
+    def __init__(self, rec: Recording, cfg: ReplaySetup, tiles_width: int, tile_px: int) -> None:
         self.rec, self.cfg = rec, cfg
         # At least MIN_WIDTH_PX wide so the strip's text fits under small images (tiles stay at the left).
         width = max(tiles_width, self.MIN_WIDTH_PX)

@@ -173,6 +173,7 @@ def test_unreplayable_bags_are_refused_in_one_line(bags, tmp_path):
         plain: "no metadata.yaml",
         _with_metadata(src, tmp_path / "realtime", lockstep=False): "real time",
         _with_metadata(src, tmp_path / "robot", transport="robot"): "not a lockstep simulation",
+        _with_metadata(src, tmp_path / "noconfig", config={"policy": "scripted"}): "lacks the task",
         tmp_path / "missing": "no .mcap file",
     }
     runner = CliRunner()
