@@ -184,6 +184,20 @@ def _caption(row) -> str:
     return " · ".join([*parts, end, f"replay {row.get('replay')}"])
 
 
+def _cell_title(cell_keys: Sequence[str], cell) -> str:
+    """'scripted · async · Δt_sim 0.2 s' (+ 'key value' for any other grouping key)."""
+    cell = cell if isinstance(cell, tuple) else (cell,)
+    parts = []
+    for k, v in zip(cell_keys, cell, strict=True):
+        if k in ("policy", "mode"):
+            parts.append(str(v))
+        elif k == "latency_s":
+            parts.append(f"Δt_sim {v:g} s" if isinstance(v, int | float) else f"Δt_sim {v}")
+        else:
+            parts.append(f"{k} {v}")
+    return " · ".join(parts)
+
+
 def videos_html(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> str:
     """A "Replay videos" section: per cell, its videos inline (empty string without videos)."""
     if "video" not in episodes or not episodes["video"].map(_present).any():
@@ -194,9 +208,7 @@ def videos_html(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> str:
              "and the outcome. docs/visualize.md explains them.</p>"]  # fmt: skip
     with_video = episodes[episodes["video"].map(_present)]
     for cell, rows in with_video.groupby(list(cell_keys), sort=True):
-        cell = cell if isinstance(cell, tuple) else (cell,)
-        title = " · ".join(f"{k} {v}" for k, v in zip(cell_keys, cell))
-        parts.append(f"<h3>{e(title)}</h3><div style='display:flex;flex-wrap:wrap;gap:12px'>")
+        parts.append(f"<h3>{e(_cell_title(cell_keys, cell))}</h3><div style='display:flex;flex-wrap:wrap;gap:12px'>")
         for _, r in rows.iterrows():
             parts.append(f'<figure style="margin:0"><video controls preload="metadata" src="{e(r["video"])}" '
                          f'style="max-width:560px"></video><figcaption style="font-size:12px">'
@@ -210,7 +222,6 @@ def videos_md(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> list[str]:
         return []
     lines = ["## Replay videos", ""]
     for cell, rows in episodes[episodes["video"].map(_present)].groupby(list(cell_keys), sort=True):
-        cell = cell if isinstance(cell, tuple) else (cell,)
-        lines.append("- " + " · ".join(f"{k} {v}" for k, v in zip(cell_keys, cell)) + ": "
+        lines.append("- " + _cell_title(cell_keys, cell) + ": "
                      + ", ".join(f"[{_caption(r)}]({r['video']})" for _, r in rows.iterrows()))  # fmt: skip
     return [*lines, ""]
