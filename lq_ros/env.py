@@ -6,6 +6,7 @@ trajectory depends only on the commands it is given.
 
 from __future__ import annotations
 
+import copy
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -179,7 +180,11 @@ class LiberoEnv:
         self._mujoco = mujoco
         self._substeps: list[tuple[np.ndarray, ...]] = []
         self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
+        #: The simulator's data when robosuite last sampled its observations (cameras render from it).
+        self._observed_data = None
         self._bind_sim()
+        if self.camera_names:
+            self._wrap_observables()
         self._obs: dict | None = None
         self._tick = 0
         self._success = False
@@ -191,7 +196,7 @@ class LiberoEnv:
             raise ValueError(f"init state {init_index} out of range 0..{len(self._init_states) - 1}")
         self._env.seed(seed)
         np.random.seed(seed)
-        self._env.reset()  # robosuite may build a new MjSim here (hard reset)
+        self._reset_robosuite()  # robosuite may build a new MjSim here (hard reset)
         self._bind_sim()
         self._env.set_init_state(self._init_states[init_index])
         for _ in range(NUM_WAIT_STEPS):
@@ -201,6 +206,22 @@ class LiberoEnv:
         self._tick = 0
         self._success = False
         return self._tick_state()
+
+    def _reset_robosuite(self) -> None:
+        """robosuite's reset, retried only when object placement failed.
+
+        LIBERO's ``ControlEnv.reset`` retries inside ``try/finally: continue``, which swallows every
+        exception, KeyboardInterrupt and SystemExit included: a process told to stop during a reset
+        spun there forever. Same retry, nothing else swallowed.
+        """
+        from robosuite.utils.errors import RandomizationError
+
+        while True:
+            try:
+                self._env.env.reset()
+                return
+            except RandomizationError:
+                continue
 
     def step(self, action: np.ndarray) -> TickState:
         """Apply ``action`` for one control tick; returns the state at the next tick."""
@@ -233,10 +254,17 @@ class LiberoEnv:
                 name = key[: -len("_pos")]
                 objects[name] = (np.array(obs[key], dtype=np.float64), np.array(obs[name + "_quat"], dtype=np.float64))
         images = {}
-        if with_images:
-            for cam in self.camera_names:
-                frame = self._sim.render(camera_name=cam, width=self.camera_size, height=self.camera_size)
-                images[cam] = np.ascontiguousarray(frame[::-1])  # MuJoCo renders bottom row first
+        if with_images and self.camera_names:
+            # Render the instant robosuite sampled the rest of the observation (after the tick's
+            # second-to-last substep), exactly as a robosuite camera observable would have.
+            live = self._sim.data._data
+            self._sim.data._data = self._observed_data if self._observed_data is not None else live
+            try:
+                for cam in self.camera_names:
+                    frame = self._sim.render(camera_name=cam, width=self.camera_size, height=self.camera_size)
+                    images[cam] = np.ascontiguousarray(frame[::-1])  # MuJoCo renders bottom row first
+            finally:
+                self._sim.data._data = live
         return Observation(
             tick=self._tick,
             sim_time_s=sim_time_of_tick(self._tick),
@@ -306,6 +334,26 @@ class LiberoEnv:
             raise RuntimeError(f"MuJoCo timestep {self._model.opt.timestep} s, expected {PHYSICS_DT_S} s")
         if not getattr(self._sim, "_lq_recording", False):
             self._wrap_sim_step()
+
+    def _wrap_observables(self) -> None:
+        """Keep a copy of the simulator's data whenever robosuite samples its observables.
+
+        robosuite samples proprioception and object poses (and, in the reference evaluations'
+        OffScreenRenderEnv, the camera images) inside its substep loop, not after the last substep.
+        Rendering from this copy gives the references' pixels for the same state, and reading it never
+        touches the simulation.
+        """
+        inner = self._env.env
+        update = inner._update_observables
+
+        def update_and_keep(force: bool = False) -> None:
+            probe = inner._observables.get("robot0_joint_pos")  # re-created on a hard reset
+            before = None if probe is None else probe._current_observed_value
+            update(force=force)
+            if probe is not None and probe._current_observed_value is not before:  # sampled just now
+                self._observed_data = copy.copy(inner.sim.data._data)  # the current MjSim (hard resets)
+
+        inner._update_observables = update_and_keep
 
     def _wrap_sim_step(self) -> None:
         """Integrate joint power after every physics substep (and record the substep when asked).
