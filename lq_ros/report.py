@@ -1,6 +1,6 @@
 """``lq report``: the paper's figures (Figs. 4-7) with 95 % CIs, tables, provenance, an HTML and a markdown page.
 
-Input is a sweep folder (its ``results/`` store, see lq_ros/sweep.py) or any folder of episode bags
+Input is a sweep folder (its ``results/`` store, see lq_ros/sweep/store.py) or any folder of episode bags
 (scored on the fly). Figures pool every task and init state of a (policy, mode, latency) cell; the
 per-task aggregate table is written beside them. Aggregation rules and CIs come from lq_ros/aggregate.py.
 """
@@ -25,9 +25,13 @@ import pandas as pd  # noqa: E402
 from lq_ros import aggregate as agg  # noqa: E402
 from lq_ros import episode_media as media  # noqa: E402
 from lq_ros import metrics  # noqa: E402
+from lq_ros.suites import CONTROL_DT_S  # noqa: E402
 
-#: Figures pool tasks and init states: one point per (policy, protocol, latency).
-FIGURE_KEYS = ("policy", "mode", "latency_s")
+#: Figures pool tasks and init states: one point per (policy, protocol, latency) at one sampling of the
+#: trajectory and energy metrics (rates never pool: jerk at 20 Hz and at 500 Hz differ ~4x).
+FIGURE_KEYS = ("policy", "mode", "latency_s", "trajectory_rate_hz", "energy_sampling")
+#: One line of a figure.
+SERIES_KEYS = ("policy", "mode", "trajectory_rate_hz", "energy_sampling")
 MODE_STYLE = {"sync": "--", "async": "-"}
 MODE_MARKER = {"sync": "s", "async": "o"}
 #: Stacked segments of Fig. 6: (per-episode column, label, colour).
@@ -104,9 +108,10 @@ def add_energy_parts_per_step(episodes: pd.DataFrame) -> pd.DataFrame:
 
 
 def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
-    """aggregate() pooled per (policy, mode, latency), plus the per-step energy parts of Fig. 6."""
+    """aggregate() pooled per FIGURE_KEYS, plus the per-step energy parts of Fig. 6 (over successful
+    episodes, like every energy and trajectory mean; see lq_ros/aggregate.py)."""
     pooled = agg.aggregate(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
-    with_outcome = episodes["status"].isin(["success", "failure"])
+    with_outcome = episodes["status"] == "success"
     for name in [c.replace("_j", "_per_step_j") for c, _, _ in ENERGY_PARTS] + ["energy_actuator_per_step_j"]:
         means, lows, highs = [], [], []
         for _, row in pooled.iterrows():
@@ -132,16 +137,33 @@ def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int =
 
 
 def _series(pooled: pd.DataFrame) -> list[tuple[str, str, pd.DataFrame]]:
-    """(policy, mode, rows sorted by latency) for every series present."""
+    """(policy label, mode, rows sorted by latency) for every series present. The policy label names
+    the sampling too when the report mixes samplings (the axis labels name it otherwise)."""
+    mixed = len(_samplings(pooled)) > 1
     out = []
-    for (policy, mode), rows in pooled.groupby(["policy", "mode"], sort=True):
-        out.append((str(policy), str(mode), rows.sort_values("latency_s")))
+    for key, rows in pooled.groupby(list(SERIES_KEYS), sort=True, dropna=False):
+        policy, mode = str(key[0]), str(key[1])
+        label = f"{policy} ({agg.sampling_label(rows.iloc[0])})" if mixed else policy
+        out.append((label, mode, rows.sort_values("latency_s")))
     return out
+
+
+def _samplings(pooled: pd.DataFrame) -> list[str]:
+    return sorted({agg.sampling_label(r) for _, r in pooled.iterrows()})
+
+
+def _degenerate_points(ax, rows: pd.DataFrame, y, scale: float = 1.0) -> None:
+    """Ring the points of cells where async chunks executed nothing fresh (see the summary's note)."""
+    bad = rows["n_degenerate"].fillna(0).to_numpy() > 0
+    if bad.any():
+        y = np.asarray(y, dtype=np.float64)[bad] * scale
+        ax.scatter(rows["latency_s"].to_numpy()[bad], y, s=160, facecolors="none", edgecolors="red", zorder=5)
 
 
 def _colours(pooled: pd.DataFrame) -> dict[str, str]:
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    return {p: cycle[i % len(cycle)] for i, p in enumerate(sorted(pooled["policy"].astype(str).unique()))}
+    labels = sorted({label for label, _, _ in _series(pooled)})
+    return {p: cycle[i % len(cycle)] for i, p in enumerate(labels)}
 
 
 def _ci_line(ax, x, mean, lo, hi, *, colour: str, mode: str, label: str, scale: float = 1.0) -> None:
@@ -150,10 +172,20 @@ def _ci_line(ax, x, mean, lo, hi, *, colour: str, mode: str, label: str, scale: 
     ax.fill_between(x, lo, hi, color=colour, alpha=0.15, linewidth=0)
 
 
+def _latency_ticks(pooled: pd.DataFrame) -> tuple[list[float], list[str]]:
+    """Applied latencies (s) and their labels with N, the ticks each inference occupies."""
+    values = sorted(pooled["latency_s"].astype(float).unique())
+    return values, [f"{v:g}\nN={round(v / CONTROL_DT_S)}" for v in values]
+
+
 def _latency_axis(ax, pooled: pd.DataFrame) -> None:
-    ax.set_xlabel("injected latency Δt_sim (s)")
-    ax.set_xticks(sorted(pooled["latency_s"].astype(float).unique()))
+    ax.set_xlabel(f"applied latency Δt_sim = N × {CONTROL_DT_S:g} s")
+    ax.set_xticks(*_latency_ticks(pooled))
     ax.grid(alpha=0.3)
+
+
+def _rate_note(pooled: pd.DataFrame) -> str:
+    return "; ".join(_samplings(pooled))
 
 
 def fig_success(pooled: pd.DataFrame) -> plt.Figure:
@@ -167,6 +199,7 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
                 continue
             _ci_line(ax, rows["latency_s"], rows["success_rate"], rows["success_ci_lo"], rows["success_ci_hi"],
                      colour=colours[policy], mode=mode, label=policy, scale=100.0)  # fmt: skip
+            _degenerate_points(ax, rows, rows["success_rate"], 100.0)
         ax.set_title(f"{mode} execution")
         ax.set_ylim(-2, 102)
         _latency_axis(ax, pooled)
@@ -178,7 +211,8 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
 
 
 def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 5: mean jerk, P90 jerk and EE oscillation vs latency, one line per (policy, protocol)."""
+    """Fig. 5: mean jerk, P90 jerk and EE oscillation vs latency, one line per (policy, protocol), over
+    successful episodes at the sampling named in the title."""
     panels = (("jerk_mean", "mean jerk (m/s³)"), ("jerk_p90", "P90 jerk (m/s³)"), ("ee_osc", "EE-Osc (mm)"))
     colours = _colours(pooled)
     fig, axes = plt.subplots(1, 3, figsize=(15.0, 4.0), squeeze=False)
@@ -190,7 +224,7 @@ def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
         ax.set_ylabel(f"{label} [95% CI]")
         _latency_axis(ax, pooled)
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(FIGURES["fig5_trajectory"])
+    fig.suptitle(f"{FIGURES['fig5_trajectory']} (successful episodes; {_rate_note(pooled)})")
     fig.tight_layout()
     return fig
 
@@ -217,7 +251,7 @@ def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> None:
         for xi in x:
             ax.annotate(f"{policy}\n{mode}", (xi, 0), xytext=(0, -26), textcoords="offset points", ha="center",
                         fontsize=6, annotation_clip=False)  # fmt: skip
-    ax.set_xticks(np.arange(len(latencies)), [f"{lat:g} s" for lat in latencies])
+    ax.set_xticks(np.arange(len(latencies)), [f"{lat:g} s (N={round(lat / CONTROL_DT_S)})" for lat in latencies])
     ax.tick_params(axis="x", pad=30)
     ax.set_xlabel("injected latency Δt_sim (bars: policy · protocol; hatched: sync)")
     ax.set_ylim(0, ax.get_ylim()[1] * 1.18)  # room for the legend above the bars
@@ -236,7 +270,7 @@ def fig_energy_decomposition(pooled: pd.DataFrame) -> plt.Figure:
     _stacked_bars(axes[0][1], pooled, ENERGY_PARTS[:2], "energy_actuator_per_step_j")
     axes[0][1].set_ylabel("energy per control step (J) [95% CI of sum]")
     axes[0][1].set_title("(b) actuators: mechanical + electrical loss")
-    fig.suptitle(FIGURES["fig6_energy_decomposition"])
+    fig.suptitle(f"{FIGURES['fig6_energy_decomposition']} (successful episodes; {_rate_note(pooled)})")
     fig.tight_layout()
     return fig
 
@@ -253,7 +287,7 @@ def fig_energy(pooled: pd.DataFrame) -> plt.Figure:
         ax.set_ylabel(f"{label} [95% CI]")
         _latency_axis(ax, pooled)
     axes[0][0].legend(fontsize=8)
-    fig.suptitle(FIGURES["fig7_energy"])
+    fig.suptitle(f"{FIGURES['fig7_energy']} (successful episodes; {_rate_note(pooled)})")
     fig.tight_layout()
     return fig
 
@@ -300,7 +334,8 @@ def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
 
 
 def _ci_text(row, metric: str, decimals: int, scale: float = 1.0) -> str:
-    mean = row.get(f"{metric}_mean") if metric != "success" else row.get("success_rate")
+    mean_key = {"success": "success_rate", "completion_time_rmst": "completion_time_rmst_s"}.get(metric)
+    mean = row.get(mean_key or f"{metric}_mean")
     lo = row.get(f"{metric}_ci_lo") if metric != "success" else row.get("success_ci_lo")
     hi = row.get(f"{metric}_ci_hi") if metric != "success" else row.get("success_ci_hi")
     if mean is None or not np.isfinite(mean):
@@ -311,22 +346,25 @@ def _ci_text(row, metric: str, decimals: int, scale: float = 1.0) -> str:
 #: (header, metric, decimals, scale) of the pooled summary table.
 SUMMARY_COLUMNS = (
     ("success %", "success", 0, 100.0),
-    ("time s", "completion_time_s", 2, 1.0),
-    ("jerk m/s³", "jerk_mean", 2, 1.0),
-    ("jerk P90", "jerk_p90", 2, 1.0),
-    ("EE-Osc mm", "ee_osc", 2, 1000.0),
-    ("J/step", "energy_per_step_j", 2, 1.0),
-    ("energy J", "energy_total_j", 0, 1.0),
+    ("time s (succ.)", "completion_time_s", 2, 1.0),
+    ("time s (KM)", "completion_time_rmst", 2, 1.0),
+    ("jerk m/s³ (succ.)", "jerk_mean", 2, 1.0),
+    ("jerk P90 (succ.)", "jerk_p90", 2, 1.0),
+    ("EE-Osc mm (succ.)", "ee_osc", 2, 1000.0),
+    ("J/step (succ.)", "energy_per_step_j", 2, 1.0),
+    ("energy J (succ.)", "energy_total_j", 0, 1.0),
+    ("actions/chunk", "actions_per_chunk_mean", 1, 1.0),
 )
 
 
 def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for _, r in pooled.sort_values(list(FIGURE_KEYS)).iterrows():
-        row = {"policy": r["policy"], "mode": r["mode"], "Δt_sim s": r["latency_s"], "n": int(r["n"]),
-               "errors": int(r["n_error"])}  # fmt: skip
+        row = {"policy": r["policy"], "mode": r["mode"], "Δt_sim s (N)": f"{r['latency_s']:g} ({r['latency_ticks']})",
+               "sampling": agg.sampling_label(r), "n": int(r["n"]), "errors": int(r["n_error"])}  # fmt: skip
         for header, metric, decimals, scale in SUMMARY_COLUMNS:
             row[header] = _ci_text(r, metric, decimals, scale)
+        row["note"] = f"⚠ degenerate in {int(r['n_degenerate'])} episodes" if r.get("n_degenerate") else ""
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -377,8 +415,14 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
 
 
 INTRO = (
-    "Pooled over tasks and init states per (policy, protocol, Δt_sim); mean [95% CI]. Success: Wilson interval "
-    "over episodes with an outcome (errors counted apart); other metrics: seeded bootstrap of the mean."
+    "Pooled over tasks and init states per (policy, protocol, applied Δt_sim = N × 0.05 s, sampling); mean [95% CI]. "
+    "Success: Wilson interval over episodes with an outcome (errors counted apart). Completion time, trajectory "
+    "quality and energy: over successful episodes (succ.), seeded bootstrap of the mean; time (KM) is the "
+    "Kaplan-Meier restricted mean up to the step budget over every episode with an outcome. The protocols differ in "
+    "their replan horizon, not only in blocking: sync executes replan_steps actions of each chunk, async the H - N "
+    "fresh ones (actions/chunk: measured). ⚠ / red rings: degenerate cells, where async chunks were no longer than N "
+    "and no fresh action ran. Sampling: the rate of the trajectory metrics and how energy was integrated "
+    "(docs/scoring.md)."
 )
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}
 table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}

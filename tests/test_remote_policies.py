@@ -391,9 +391,15 @@ def scene_256() -> tuple[Observation, dict, dict]:
         ours.reset(0, 7)
         obs = ours.observe()
         robosuite_now = {}
-        for cam in CAMERAS:  # robosuite's camera sensor (its image convention included) at the same state
-            sensors, _ = ours._env.env._create_camera_sensors(cam, 256, 256, False, None)
-            robosuite_now[cam] = sensors[0]({})
+        # robosuite's camera sensor (its image convention included) at the state the observation was
+        # sampled at (inside robosuite's substep loop; LiberoEnv keeps that MjData for rendering).
+        live, ours._sim.data._data = ours._sim.data._data, ours._observed_data
+        try:
+            for cam in CAMERAS:
+                sensors, _ = ours._env.env._create_camera_sensors(cam, 256, 256, False, None)
+                robosuite_now[cam] = sensors[0]({})
+        finally:
+            ours._sim.data._data = live
     finally:
         ours.close()
     bench = benchmark.get_benchmark_dict()["libero_spatial"]()
