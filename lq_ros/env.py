@@ -182,6 +182,7 @@ class LiberoEnv:
         self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
         #: The simulator's data when robosuite last sampled its observations (cameras render from it).
         self._observed_data = None
+        self._reset_before = False
         self._bind_sim()
         if self.camera_names:
             self._wrap_observables()
@@ -190,14 +191,29 @@ class LiberoEnv:
         self._success = False
 
     # -- stepping ---------------------------------------------------------------------------
-    def reset(self, init_index: int, seed: int) -> TickState:
-        """Reset to init state ``init_index`` and run the wait steps; returns the state at tick 0."""
+    def reset(self, init_index: int, seed: int, *, hard: bool | None = None) -> TickState:
+        """Reset to init state ``init_index`` and run the wait steps; returns the state at tick 0.
+
+        The first reset of an env is hard (robosuite rebuilds the MjSim, ~2 s); later ones are soft by
+        default (same MjSim, ~0.2 s with the wait steps): MuJoCo's data is reset in full (constraint
+        solver warm start included) and the one piece of robosuite state that survives a soft reset
+        is cleared, so an episode is bit-identical whichever reset preceded it (tests check it).
+        ``hard=True`` forces a rebuild.
+        """
         if not 0 <= init_index < len(self._init_states):
             raise ValueError(f"init state {init_index} out of range 0..{len(self._init_states) - 1}")
+        hard = not self._reset_before if hard is None else hard
+        self._env.env.hard_reset = hard
         self._env.seed(seed)
         np.random.seed(seed)
-        self._reset_robosuite()  # robosuite may build a new MjSim here (hard reset)
+        self._reset_robosuite()  # hard: robosuite builds a new MjSim here; soft: mj_resetData
         self._bind_sim()
+        if not hard:
+            for robot in self._env.env.robots:
+                # The gripper integrates its command (current_action += speed * sign(action)) and only a
+                # rebuilt gripper model starts from zero: carried over, it changes the first ticks.
+                robot.gripper.current_action = np.zeros(robot.gripper.dof)
+        self._reset_before = True
         self._env.set_init_state(self._init_states[init_index])
         for _ in range(NUM_WAIT_STEPS):
             self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))

@@ -165,3 +165,14 @@ def test_rows_carry_the_applied_latency_and_the_cpu_class(tmp_path, env):
     assert row["versions"]["cpu"]["model"]
     with pytest.raises(ValueError, match="nearest valid: 0.1 s or 0.15 s"):
         RunConfig(latency_s=0.125)
+
+
+def test_soft_reset_gives_the_episode_of_a_fresh_env(tmp_path, env):
+    """Reusing an env (soft reset: no MjSim rebuild) after other episodes changes nothing, bit for bit."""
+    from tests.bag_compare import comparable
+
+    cfg = RunConfig(policy="scripted", mode="async", latency_s=0.1, max_steps=60)
+    run_inprocess(RunConfig(policy="sine", init=3, max_steps=30), tmp_path / "other", env=env)  # dirty the sim
+    reused = run_inprocess(cfg, tmp_path / "reused", env=env)
+    fresh = run_inprocess(cfg, tmp_path / "fresh")  # its own env: a hard reset
+    assert comparable(reused.bag_path) == comparable(fresh.bag_path)
