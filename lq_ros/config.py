@@ -11,6 +11,7 @@ from importlib import metadata
 from pathlib import Path
 
 from lq_ros.executor import ExecutorConfig
+from lq_ros.latency import LatencyDist, parse_latency
 from lq_ros.suites import latency_ticks, step_budget
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -23,8 +24,14 @@ VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "camera_size")
 #: Camera render size when neither the run nor the policy names one, px.
 DEFAULT_CAMERA_SIZE_PX = 224
 #: What an aggregate row (and a figure's series point) is computed over: one policy variant, protocol,
-#: applied latency, task, and the sampling its trajectory and energy metrics were computed at.
-GROUP_KEYS = ("policy", "mode", "latency_s", "suite", "task", "trajectory_rate_hz", "energy_sampling")
+#: applied (mean) latency and its distribution, task, and the sampling its trajectory and energy metrics
+#: were computed at.
+GROUP_KEYS = (
+    "policy", "mode", "latency_s", "latency_dist", "suite", "task", "trajectory_rate_hz", "energy_sampling",
+)  # fmt: skip
+#: Fields added after results were first stored: left out of ``RunConfig.key()`` while at their default,
+#: so the keys (episode names, resumable sweeps) of configurations that do not use them never change.
+_KEY_OPTIONAL_FIELDS = {"latency_dist": ""}
 
 
 @dataclass(frozen=True)
@@ -36,7 +43,8 @@ class RunConfig:
     init: int = 0
     seed: int = 7
     mode: str = "sync"
-    #: Injected inference latency dt_sim, seconds.
+    #: Injected inference latency dt_sim, seconds (constant). With ``latency_dist`` set: its expected
+    #: applied value (set from it; lq_ros/latency.py).
     latency_s: float = 0.0
     replan_steps: int = 5
     hold: str = "stop"
@@ -51,9 +59,20 @@ class RunConfig:
     physics_rate: bool = False
     #: Policy-controlled tick budget; 0: the suite's budget.
     max_steps: int = 0
+    #: Latency distribution, one draw per inference (``uniform:LO:HI``, ``normal:MEAN:STD``,
+    #: ``lognormal:MEDIAN:SIGMA``, ``trace:FILE``; lq_ros/latency.py); empty: the constant ``latency_s``.
+    latency_dist: str = ""
 
     def __post_init__(self) -> None:
         step_budget(self.suite)  # validates the suite name
+        if self.latency_dist:
+            dist = parse_latency(self.latency_dist)
+            if dist.kind == "constant":  # "0.2" given as a distribution is the constant
+                object.__setattr__(self, "latency_s", dist.params[0])
+                object.__setattr__(self, "latency_dist", "")
+            else:
+                object.__setattr__(self, "latency_dist", dist.text)
+                object.__setattr__(self, "latency_s", dist.mean_s())
         self.executor_config()  # validates the protocol parameters
         if self.camera_size < 0 or self.max_steps < 0:
             raise ValueError(
@@ -61,8 +80,18 @@ class RunConfig:
             )
 
     @property
-    def latency_ticks(self) -> int:
-        return latency_ticks(self.latency_s)
+    def latency_ticks(self) -> int | None:
+        """N of a constant latency; None for a distribution (each inference draws its own)."""
+        return None if self.latency_dist else latency_ticks(self.latency_s)
+
+    def latency_model(self) -> LatencyDist:
+        """The latency every inference of this run draws from (a constant is a one-point distribution)."""
+        return parse_latency(self.latency_dist or self.latency_s)
+
+    @property
+    def latency_label(self) -> str:
+        """``constant`` or the distribution's label (rows, groups and plots carry it)."""
+        return self.latency_model().label
 
     @property
     def budget(self) -> int:
@@ -98,6 +127,8 @@ class RunConfig:
             hold=self.hold,
             request_threshold=None if self.request_threshold < 0 else self.request_threshold,
             merge=self.merge,
+            latency=self.latency_model(),
+            seed=self.seed,
         )
 
     def to_dict(self) -> dict:
@@ -105,12 +136,14 @@ class RunConfig:
 
     def key(self) -> str:
         """Stable hash of the configuration (for resumable sweeps and file names)."""
-        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:12]
+        fields = {k: v for k, v in self.to_dict().items() if _KEY_OPTIONAL_FIELDS.get(k, object()) != v}
+        return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
     def episode_name(self) -> str:
+        kind = f"{self.latency_model().kind}" if self.latency_dist else ""
         return (
             f"{self.suite}_t{self.task}_i{self.init}_s{self.seed}_{self.policy.replace(':', '.')}_{self.mode}_"
-            f"{round(self.latency_s * 1000)}ms_{self.key()}"
+            f"{kind}{round(self.latency_s * 1000)}ms_{self.key()}"
         )
 
 

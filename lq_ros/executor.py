@@ -12,7 +12,18 @@ drives each control tick ``m`` by calling :meth:`ExecutorCore.advance` until it 
 - :class:`Failed`: the episode must end as an error (the reason is given).
 
 Because a chunk requested at tick n is applied exactly at tick n + N whatever its wall-clock
-inference time, results never depend on the measured latency (lockstep determinism).
+inference time, results never depend on the measured latency (lockstep determinism). With a latency
+distribution (lq_ros/latency.py) each request draws its own N from (episode seed, request id).
+
+**One inference in flight.** A request is made only when no other is outstanding, as with a policy server
+that answers one request at a time (openpi, LeRobot's and OpenVLA's servers, this stack's policy node).
+Consequences: chunks can never arrive out of order (request k + 1 starts after chunk k took effect, so its
+due tick is later whatever the draws); a long draw delays every later request (the buffer may run dry:
+underrun ticks); and the old plan can overlap a new chunk only when H > 2N (a chunk of H rows lands with
+H - N fresh ones, and the next one needs N more ticks), whatever the request threshold.
+
+The async merge strategies are in lq_ros/merge.py; ``rtc``/``rtc_hard`` also hand the policy the executing
+prefix with the request (:attr:`Request.prefix`).
 """
 
 from __future__ import annotations
@@ -23,6 +34,18 @@ from enum import IntEnum, StrEnum
 
 import numpy as np
 
+from lq_ros.latency import LatencyDist, applied_seconds, request_latency
+from lq_ros.merge import (
+    ENSEMBLE_COEFF,
+    NEEDS_OVERLAP,
+    PREFIX_SCHEDULE,
+    PREFIX_STRATEGIES,
+    ActionPrefix,
+    Merge,
+    Planned,
+    apply_chunk,
+    default_threshold,
+)
 from lq_ros.suites import ACTION_DIM, ACTION_HIGH, ACTION_LOW, DUMMY_ACTION
 
 
@@ -34,11 +57,6 @@ class Mode(StrEnum):
 class Hold(StrEnum):
     STOP = "stop"  # zero arm delta, last gripper command
     REPEAT = "repeat"  # repeat the last applied action
-
-
-class Merge(StrEnum):
-    REPLACE = "replace"  # fresh actions replace the buffer (LeRobot RTC / ros2_control semantics)
-    BLEND = "blend"  # overlapping steps: weighted average of old and new (LeRobot weighted_average)
 
 
 class Source(IntEnum):
@@ -54,47 +72,74 @@ class Source(IntEnum):
 @dataclass(frozen=True)
 class ExecutorConfig:
     mode: Mode = Mode.SYNC
-    #: N = round(dt_sim / dt_c): ticks an inference occupies in sim time.
+    #: N = round(dt_sim / dt_c): ticks an inference occupies in sim time. With ``latency`` given this is
+    #: set to its nominal N (the expected applied N rounded up), which the default thresholds use.
     latency_ticks: int = 0
     #: sync: actions of each chunk executed before the next inference is requested.
     replan_steps: int = 5
     hold: Hold = Hold.STOP
     #: async: request the next chunk when at most this many actions remain buffered
-    #: (None: latency_ticks, so a chunk arrives just as the buffer empties).
+    #: (None: the merge strategy's default, lq_ros.merge.default_threshold; replace: N).
     request_threshold: int | None = None
     merge: Merge = Merge.REPLACE
-    #: async, merge=blend: weight of the new chunk on overlapping steps.
-    blend_new_weight: float = 0.7
+    #: async, merge=temporal_ensemble: ACT's m in w_i = exp(-m i).
+    ensemble_coeff: float = ENSEMBLE_COEFF
+    #: The latency distribution each request draws its N from (None: the constant ``latency_ticks``).
+    latency: LatencyDist | None = None
+    #: Episode seed: with ``latency``, request k's draw is seeded by (seed, k).
+    seed: int = 0
     #: Consecutive rejected chunks after which the episode ends as an error.
     max_consecutive_rejections: int = 3
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", Mode(self.mode))
         object.__setattr__(self, "hold", Hold(self.hold))
-        object.__setattr__(self, "merge", Merge(self.merge))
+        try:
+            object.__setattr__(self, "merge", Merge(self.merge))
+        except ValueError:
+            raise ValueError(f"unknown merge {self.merge!r}; known: {', '.join(m.value for m in Merge)}") from None
+        if self.latency is not None:
+            object.__setattr__(self, "latency_ticks", self.latency.nominal_ticks())
         if self.latency_ticks < 0:
             raise ValueError(f"latency_ticks must be >= 0, got {self.latency_ticks}")
         if self.replan_steps < 1:
             raise ValueError(f"replan_steps must be >= 1, got {self.replan_steps}")
         if self.request_threshold is not None and self.request_threshold < 0:
             raise ValueError(f"request_threshold must be >= 0, got {self.request_threshold}")
-        if not 0.0 <= self.blend_new_weight <= 1.0:
-            raise ValueError(f"blend_new_weight must be in [0, 1], got {self.blend_new_weight}")
-        if self.merge is not Merge.REPLACE:
-            # A merge rule acts only where the buffered rest of the old chunk overlaps the new one.
-            if self.mode is not Mode.ASYNC:
-                raise ValueError(f"merge {self.merge.value!r} applies to the async protocol only; use merge 'replace'")
-            if self.threshold <= self.latency_ticks:
-                raise ValueError(
-                    f"merge {self.merge.value!r} never sees overlapping chunks with request_threshold "
-                    f"{self.threshold} <= latency ticks N={self.latency_ticks} (the buffer is empty when the next "
-                    f"chunk lands, identical to 'replace'); set request_threshold > {self.latency_ticks} or "
-                    "use merge 'replace'"
-                )
+        if not self.ensemble_coeff >= 0.0:
+            raise ValueError(f"ensemble_coeff must be >= 0, got {self.ensemble_coeff}")
+        if self.merge is not Merge.REPLACE and self.mode is not Mode.ASYNC:
+            raise ValueError(f"merge {self.merge.value!r} applies to the async protocol only; use merge 'replace'")
+        same_as = NEEDS_OVERLAP.get(self.merge)
+        if same_as is not None and self.request_threshold is not None and self.request_threshold <= self.min_ticks:
+            # The buffered rest of the old plan overlaps the new chunk only if more than N actions were
+            # left when it was requested; otherwise the buffer is empty when it lands.
+            n = f"N={self.min_ticks}"
+            if self.latency is not None and self.latency.kind != "constant":
+                n = f"the smallest N={self.min_ticks} of {self.latency.text}"
+            raise ValueError(
+                f"merge {self.merge.value!r} never sees overlapping chunks with request_threshold "
+                f"{self.request_threshold} <= latency ticks {n} (the buffer is empty when the next chunk lands: "
+                f"identical to {same_as.value!r}); set request_threshold > {self.min_ticks}, leave it at the "
+                f"strategy's default (-1), or use merge {same_as.value!r}"
+            )
 
     @property
-    def threshold(self) -> int:
-        return self.latency_ticks if self.request_threshold is None else self.request_threshold
+    def min_ticks(self) -> int:
+        """The smallest N a request can draw."""
+        return self.latency_ticks if self.latency is None else self.latency.min_ticks()
+
+    def threshold(self, horizon: int | None = None) -> int:
+        """Request threshold (actions left): the run's, else the strategy's default for chunks of ``horizon``."""
+        if self.request_threshold is not None:
+            return self.request_threshold
+        return default_threshold(self.merge, self.latency_ticks, horizon)
+
+    def request_latency(self, request_id: int) -> tuple[int, float]:
+        """(N, applied Δt_sim s) of request ``request_id`` (lq_ros.latency.request_latency)."""
+        if self.latency is None:
+            return self.latency_ticks, applied_seconds(self.latency_ticks)
+        return request_latency(self.latency, self.seed, request_id)
 
 
 @dataclass(frozen=True)
@@ -102,6 +147,14 @@ class Request:
     request_id: int  # 1, 2, ... (0 means "none" on the wire)
     tick: int  # tick of the observation inference runs on
     due_tick: int  # tick at which the chunk is applied: tick + N
+    #: Applied Δt_sim of this inference, seconds (N dt_c; recorded as ActionChunk.injected_latency_s).
+    latency_s: float = 0.0
+    #: merge rtc/rtc_hard: the executing prefix the policy inpaints its chunk against (None otherwise).
+    prefix: ActionPrefix | None = field(default=None, compare=False)
+
+    @property
+    def latency_ticks(self) -> int:
+        return self.due_tick - self.tick
 
 
 @dataclass(frozen=True)
@@ -180,6 +233,7 @@ class ExecutorCore:
         self.error: str | None = None
         self._warnings: list[str] = []
         self._warned_no_fresh = False
+        self._warned_no_overlap = False
         self._next_request_id = 1
         self._outstanding: Request | None = None
         self._last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
@@ -189,9 +243,11 @@ class ExecutorCore:
         self._chunk: np.ndarray | None = None
         self._chunk_id = 0
         self._chunk_pos = 0
-        # async: buffered (action, request_id, chunk_index)
-        self._buffer: deque[tuple[np.ndarray, int, int]] = deque()
+        # async: the plan, one step per coming tick (lq_ros.merge.Planned)
+        self._buffer: deque[Planned] = deque()
         self._received_any = False
+        #: Rows of the last chunk applied (the strategies' default thresholds are relative to it).
+        self._horizon: int | None = None
         #: Last tick whose inference decision was taken (once per tick).
         self._planned_tick: int | None = None
 
@@ -214,16 +270,23 @@ class ExecutorCore:
 
     def _start_inference(self, tick: int) -> Request | None:
         if self._outstanding is not None:
-            return None
+            return None  # one inference in flight (see the module docstring)
         if self.config.mode is Mode.SYNC:
             need = self._chunk is None or self._chunk_pos >= min(self.config.replan_steps, len(self._chunk))
         else:
-            need = len(self._buffer) <= self.config.threshold
+            need = len(self._buffer) <= self.config.threshold(self._horizon)
         if not need:
             return None
         if self.config.mode is Mode.SYNC:
             self._chunk = None  # stop-and-go: nothing of the old chunk runs while inferring
-        req = Request(self._next_request_id, tick, tick + self.config.latency_ticks)
+        rid = self._next_request_id
+        n, latency_s = self.config.request_latency(rid)
+        prefix = None
+        if self.config.merge in PREFIX_STRATEGIES:
+            # The plan for ticks tick, tick + 1, ...: its first n rows execute while the policy infers.
+            plan = np.array([p.action for p in self._buffer]) if self._buffer else np.zeros((0, ACTION_DIM))
+            prefix = ActionPrefix(plan, n, PREFIX_SCHEDULE[self.config.merge])
+        req = Request(rid, tick, tick + n, latency_s, prefix)
         self._next_request_id += 1
         self._outstanding = req
         self.stats.inferences += 1
@@ -251,7 +314,7 @@ class ExecutorCore:
         if self.config.mode is Mode.SYNC:
             self._chunk, self._chunk_id, self._chunk_pos = arr, request_id, 0
         else:
-            self._merge(arr, request_id)
+            self._merge(arr, req)
         return None
 
     def take_warnings(self) -> list[str]:
@@ -259,24 +322,37 @@ class ExecutorCore:
         taken, self._warnings = self._warnings, []
         return taken
 
-    def _merge(self, chunk: np.ndarray, request_id: int) -> None:
+    def _merge(self, chunk: np.ndarray, req: Request) -> None:
         # Rows 0..N-1 were meant for the ticks that passed while inferring: stale, never executed.
-        stale = min(self.config.latency_ticks, len(chunk))
-        self.stats.stale_actions_dropped += stale
-        if stale == len(chunk) and not self._warned_no_fresh:
+        n = req.latency_ticks
+        constant = self.config.latency is None or self.config.latency.kind == "constant"
+        if len(chunk) <= n and not self._warned_no_fresh and constant:  # (one long draw is no protocol flaw)
             self._warned_no_fresh = True
             self._warnings.append(
-                f"async chunk of {len(chunk)} actions with N={self.config.latency_ticks} latency ticks: every "
+                f"async chunk of {len(chunk)} actions with N={n} latency ticks: every "
                 "action is stale on arrival, nothing fresh is executed (use a chunk longer than N)"
             )
-        fresh = [(chunk[i], request_id, i) for i in range(stale, len(chunk))]
-        if self.config.merge is Merge.BLEND:
-            w = self.config.blend_new_weight
-            old = list(self._buffer)
-            for k in range(min(len(old), len(fresh))):
-                action, rid, idx = fresh[k]
-                fresh[k] = (w * action + (1.0 - w) * old[k][0], rid, idx)
-        self._buffer = deque(fresh)
+        buffer, stale = apply_chunk(
+            self.config.merge, self._buffer, chunk, req.request_id, n, self.config.ensemble_coeff
+        )
+        self.stats.stale_actions_dropped += stale
+        self._buffer = deque(buffer)
+        self._horizon = len(chunk)
+        self._check_overlap_possible(len(chunk))
+
+    def _check_overlap_possible(self, horizon: int) -> None:
+        """Warn once when a strategy that needs overlap can never get it with chunks of ``horizon`` rows."""
+        if self._warned_no_overlap or self.config.merge not in NEEDS_OVERLAP:
+            return
+        n_min = self.config.min_ticks
+        # At a request at most min(threshold, H - N_prev) actions are buffered; overlap needs more than N.
+        if min(self.config.threshold(horizon), horizon - n_min) <= n_min:
+            self._warned_no_overlap = True
+            self._warnings.append(
+                f"merge {self.config.merge.value!r} can never see overlapping chunks: chunks of H={horizon} "
+                f"actions with one inference in flight and N >= {n_min} latency ticks leave no old plan when the "
+                f"next chunk lands (needs H > 2N); it runs identical to {NEEDS_OVERLAP[self.config.merge].value!r}"
+            )
 
     def _command(self, tick: int) -> Command:
         cmd = self._next_command(tick)
@@ -298,8 +374,8 @@ class ExecutorCore:
             source = Source.HOLD_REJECTED if self._last_rejected else Source.HOLD_INFERENCE
         else:
             if self._buffer:
-                action, rid, idx = self._buffer.popleft()
-                return Command(tick, action, Source.CHUNK, rid, idx)
+                step = self._buffer.popleft()
+                return Command(tick, step.action, Source.CHUNK, step.request_id, step.chunk_index)
             if self._last_rejected:
                 source = Source.HOLD_REJECTED
             else:

@@ -324,8 +324,10 @@ def _action_command(buf: memoryview) -> Layout:
     w = _Walker(buf)
     w.header()
     w.field("tick", "u4")
-    w.float64_sequence(None)  # action
+    w.float64_sequence("action")
     w.field("source", "u1")
+    w.field("request_id", "u4")
+    w.field("chunk_index", "u4")
     return w.done()
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from lq_ros.env import EnergyIntegrals, Observation, TaskInfo, TickState
 from lq_ros.executor import Command, Request
+from lq_ros.merge import ActionPrefix
 from lq_ros.suites import PHYSICS_DT_S
 
 MSG_DIR = Path(__file__).resolve().parents[1] / "msg_schemas" / "lq_msgs" / "msg"
@@ -44,6 +45,8 @@ OBSERVATION = Topic("/lq/observation", "lq_msgs/msg/Observation")
 ACTION_CHUNK = Topic("/lq/action_chunk", "lq_msgs/msg/ActionChunk")
 EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
 ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
+#: Executor -> policy, merge rtc/rtc_hard only (not recorded: the commands that follow contain it).
+ACTION_PREFIX = Topic("/lq/action_prefix", "lq_msgs/msg/ActionPrefix")
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 
 
@@ -221,6 +224,27 @@ def command_msg(t_ns: int, cmd: Command) -> bytes:
 def request_msg(t_ns: int, req: Request) -> bytes:
     msg = _cls(OBSERVATION_REQUEST.msgtype)(header=_header(t_ns), request_id=req.request_id, tick=req.tick)
     return serialize(msg, OBSERVATION_REQUEST.msgtype)
+
+
+def prefix_msg(t_ns: int, req: Request) -> bytes:
+    """The ActionPrefix of a request that carries one (merge rtc/rtc_hard)."""
+    prefix = req.prefix
+    msg = _cls(ACTION_PREFIX.msgtype)(
+        header=_header(t_ns),
+        request_id=req.request_id,
+        tick=req.tick,
+        delay=prefix.delay,
+        schedule=prefix.schedule,
+        horizon=prefix.actions.shape[0],
+        action_dim=prefix.actions.shape[1],
+        actions=_f64(prefix.actions.reshape(-1)),
+    )
+    return serialize(msg, ACTION_PREFIX.msgtype)
+
+
+def prefix_from_msg(msg) -> ActionPrefix:
+    actions = np.asarray(msg.actions, dtype=np.float64).reshape(msg.horizon, msg.action_dim)
+    return ActionPrefix(actions, int(msg.delay), msg.schedule)
 
 
 def observation_msg(obs: Observation, request_id: int) -> bytes:

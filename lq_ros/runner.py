@@ -81,6 +81,7 @@ def run_inprocess(
     A crash anywhere is recorded as an ERROR event: the episode is an error, never a failure.
     """
     policy = policy or make_policy(cfg.policy, **cfg.policy_args)
+    policy.check_merge(cfg.merge)  # e.g. rtc with a policy that cannot take a prefix: refused, no bag
     own_env = env is None
     if env is None:
         env = LiberoEnv(
@@ -115,10 +116,10 @@ def run_inprocess(
                 rec.put_at(m.camera_topic(cam), t_ns, m.image_msg(t_ns, cam, image))
             rec.put_at(m.OBSERVATION, t_ns, m.observation_msg(obs, req.request_id))
             started = time.perf_counter()
-            actions = policy.infer(obs)
+            actions = policy.infer(obs) if req.prefix is None else policy.infer(obs, prefix=req.prefix)
             inference_s = time.perf_counter() - started
             return m.chunk_msg(
-                t_ns, req.request_id, req.tick, cfg.latency_s, inference_s, actions, policy.name,
+                t_ns, req.request_id, req.tick, req.latency_s, inference_s, actions, policy.name,
                 timing=policy.last_timing,
             )  # fmt: skip
 

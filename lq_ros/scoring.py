@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lq_ros import mcap_stream, metrics
+from lq_ros import boundary, mcap_stream, metrics
 from lq_ros import messages as m
 from lq_ros.bag import read_run_metadata
 from lq_ros.config import VARIANT_FIELDS
 from lq_ros.executor import Source, validate_chunk
+from lq_ros.latency import label_of
 from lq_ros.mcap_stream import McapDamage, StreamingMcapReader
 from lq_ros.suites import CONTROL_DT_S, PHYSICS_DT_S, STEP_BUDGETS, latency_ticks
 
@@ -81,8 +82,12 @@ class EpisodeData:
     energy: Series = field(default_factory=Series)
     events: list = field(default_factory=list)  # (kind, tick, t_ns, reason)
     chunks: list = field(default_factory=list)  # (injected s, real s, error, horizon, valid)
+    #: The chunks themselves (boundary.Chunk), for the chunk-boundary metrics.
+    chunk_records: list = field(default_factory=list)
     chunk_timings: list[dict] = field(default_factory=list)  # the policy's own timing per chunk (ms)
     command_sources: list[int] = field(default_factory=list)
+    #: Decoded command groups: tick, action, source, request_id, chunk_index arrays.
+    command_groups: list[dict] = field(default_factory=list)
     requests: int = 0
     metadata: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
@@ -179,12 +184,22 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
                 actions = m.chunk_actions(msg)
                 valid = not msg.error and validate_chunk(actions) is None
                 data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), valid))
+                try:
+                    n = latency_ticks(msg.injected_latency_s)
+                except ValueError:
+                    n = None  # another tool's latency between ticks: no replay of its protocol
+                if n is not None:
+                    record = boundary.Chunk(msg.request_id, msg.observation_tick, n, actions if valid else None)
+                    data.chunk_records.append(record)
                 if getattr(msg, "timing_json", ""):  # bags from before the field existed have none
                     data.chunk_timings.append(json.loads(msg.timing_json))
     else:
         for group in mcap_stream.decode(batch):
             if role == "commands":
                 data.command_sources.extend(group["source"].tolist())
+                data.command_groups.append(
+                    {k: group[k] for k in ("tick", "action", "source", "request_id", "chunk_index")}
+                )
             elif role == "energy":
                 values = (group["duration_s"], group["positive_work_j"], group["torque_squared_integral"])
                 data.energy.add(group["stamp_ns"], np.column_stack(values))
@@ -324,6 +339,9 @@ def score_episode(
         else:
             _score_trajectory(row, pos, dt, osc_window, data, t0_ns, t1_ns, sampling)
 
+    # -- chunk boundaries -----------------------------------------------------------------------
+    _score_boundaries(row, data, cfg, t0_ns, t1_ns)
+
     # -- energy ---------------------------------------------------------------------------------
     _score_energy(row, data, energy_rate, ours, t0_ns, t1_ns, elec_coeff, overhead_w, warnings, name)
 
@@ -336,16 +354,31 @@ def score_episode(
 def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None:
     """Latency that was applied, inference timing, holds, and what each chunk contributed."""
     # Applied latency: N ticks and the effective N * dt_c (never the requested value if they differ).
-    n_ticks = meta.get("latency_ticks")
-    if n_ticks is None and cfg.get("latency_s") is not None:
-        n_ticks = latency_ticks(cfg["latency_s"])
-    row["latency_ticks"] = n_ticks
-    row["latency_s"] = None if n_ticks is None else round(n_ticks * CONTROL_DT_S, 9)
-    if n_ticks is None and data.chunks:
-        row["latency_s"] = data.chunks[0][0]
-    requested = cfg.get("latency_s")
-    if requested is not None and row["latency_s"] is not None and abs(requested - row["latency_s"]) > 1e-9:
-        row["latency_requested_s"] = requested
+    # A distribution: its label and expected applied Δt_sim (the configuration's latency_s), N per chunk.
+    distribution = cfg.get("latency_dist") or ""
+    row["latency_dist"] = label_of(distribution) if cfg else None
+    if distribution:
+        n_ticks = None
+        row["latency_ticks"] = None
+        row["latency_s"] = cfg.get("latency_s")
+    else:
+        n_ticks = meta.get("latency_ticks")
+        if n_ticks is None and cfg.get("latency_s") is not None:
+            n_ticks = latency_ticks(cfg["latency_s"])
+        row["latency_ticks"] = n_ticks
+        row["latency_s"] = None if n_ticks is None else round(n_ticks * CONTROL_DT_S, 9)
+        if n_ticks is None and data.chunks:
+            row["latency_s"] = data.chunks[0][0]
+        requested = cfg.get("latency_s")
+        if requested is not None and row["latency_s"] is not None and abs(requested - row["latency_s"]) > 1e-9:
+            row["latency_requested_s"] = requested
+    # Every applied chunk's own Δt_sim (constant or drawn): what the episode actually got.
+    chunk_ticks = [c.latency_ticks for c in data.chunk_records]
+    if chunk_ticks:
+        row["latency_sim_mean_s"] = round(float(np.mean(chunk_ticks)) * CONTROL_DT_S, 9)
+        row["latency_ticks_min"], row["latency_ticks_max"] = min(chunk_ticks), max(chunk_ticks)
+    else:
+        _null(row, ["latency_sim_mean_s", "latency_ticks_min", "latency_ticks_max"], "no action chunks in the bag")
     real = np.array([c[1] for c in data.chunks if not c[2]], dtype=np.float64)
     # Inferences started (a last one may still be in flight when the episode ends).
     row["num_inferences"] = data.requests or len(data.chunks)
@@ -379,7 +412,10 @@ def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None
         row["chunks_applied"] = len(applied)
         row["fresh_actions_executed"] = fresh
         async_mode = cfg.get("mode") == "async"
-        row["stale_actions_dropped"] = sum(min(n_ticks or 0, c[3]) for c in applied) if async_mode else 0
+        stale = [min(c.latency_ticks, len(c.actions)) for c in data.chunk_records if c.actions is not None]
+        if len(stale) != len(applied):  # chunks with a latency between ticks (another tool's bag)
+            stale = [min(n_ticks or 0, c[3]) for c in applied]
+        row["stale_actions_dropped"] = sum(stale) if async_mode else 0
         row["actions_per_chunk_mean"] = fresh / len(applied) if applied else None
     else:
         _null(row, ["hold_ticks", "underrun_ticks", "rejected_hold_ticks", *chunk_keys], "no command topic")
@@ -390,6 +426,38 @@ def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None
         degenerate = ["no fresh action of any chunk was executed"]
     row["degenerate_protocol"] = bool(degenerate)
     row["degenerate_reason"] = degenerate[0] if degenerate else None
+
+
+def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> None:
+    """Chunk-boundary quality (lq_ros/boundary.py): switches, command jumps and jerk near switches."""
+    keys = list(boundary.KEYS)
+    if not cfg or cfg.get("mode") not in ("sync", "async"):
+        return _null(row, keys, "not a bag of this stack's protocols (no run configuration)")
+    if not data.command_groups or not data.chunk_records:
+        return _null(row, keys, "no commands or action chunks in the bag")
+    cmds = boundary.Commands(**{k: np.concatenate([g[k] for g in data.command_groups]) for k in data.command_groups[0]})
+    try:
+        ticks, jumps, overlapping = boundary.switch_jumps(cfg["mode"], cfg.get("merge"), data.chunk_records, cmds)
+    except (boundary.ReplayMismatch, ValueError) as exc:
+        return _null(row, keys, f"chunk replay failed: {exc}")
+    row["chunk_switches"] = len(ticks)
+    row["chunks_overlapping"] = overlapping
+    if not len(ticks):
+        return _null(row, keys[1:-1], "no chunk switch")
+    row["chunk_switch_jump_mean"] = float(jumps.mean())
+    row["chunk_switch_jump_p90"] = float(np.percentile(jumps, 90))
+    row["chunk_switch_jump_max"] = float(jumps.max())
+    t_ee, pos = data.ee.arrays(t0_ns, t1_ns)  # the 20 Hz pose: one sample per tick
+    try:
+        if len(t_ee) < 2 or metrics.check_uniform(t_ee / 1e9, CONTROL_DT_S, _UNIFORM_TOL["control"]) is not None:
+            raise ValueError("no uniform 20 Hz EE pose series")
+        first = int(np.min(cmds.tick[cmds.source == Source.CHUNK]))
+        mean, ratio, why = boundary.jerk_near_switches(pos, ticks, CONTROL_DT_S, first)
+        row["chunk_switch_jerk_mean"], row["chunk_switch_jerk_ratio"] = mean, ratio
+        if why:
+            _null(row, ["chunk_switch_jerk_ratio"], why)
+    except ValueError as exc:
+        _null(row, ["chunk_switch_jerk_mean", "chunk_switch_jerk_ratio"], str(exc))
 
 
 def _score_trajectory(

@@ -29,6 +29,7 @@ class ExecutorNode(Node):
 
         self.command_pub = publisher(self, m.COMMAND)
         self.request_pub = publisher(self, m.OBSERVATION_REQUEST)
+        self.prefix_pub = publisher(self, m.ACTION_PREFIX)
         self.event_pub = publisher(self, m.EPISODE_EVENTS)
         raw_subscription(self, m.CLOCK, self.on_clock)
         raw_subscription(self, m.ACTION_CHUNK, self.on_chunk)
@@ -72,6 +73,8 @@ class ExecutorNode(Node):
             if isinstance(step, ObservationNeeded):
                 # Continue once the sim has captured the observation of this tick.
                 self.awaiting_observation = step.request.request_id
+                if step.request.prefix is not None:  # rtc: the policy inpaints against the executing plan
+                    self.prefix_pub.publish(m.prefix_msg(self.tick_ns, step.request))
                 self.request_pub.publish(m.request_msg(self.tick_ns, step.request))
             elif isinstance(step, ChunkDue):
                 if not self.deliver(step.request):

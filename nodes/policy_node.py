@@ -1,9 +1,11 @@
 """Policy node: answers observations with action chunks after the injected latency.
 
 A chunk computed from the observation at sim time t is published once /clock reaches
-t + N * dt_c (N = round(dt_sim / dt_c)), stamped with t, the request id, the injected latency
-dt_sim and the measured wall-clock inference latency dt_real. A policy that raises publishes a
-chunk carrying the error, which ends the episode as an error.
+t + N * dt_c, stamped with t, the request id, the injected latency dt_sim = N dt_c and the measured
+wall-clock inference latency dt_real. N is the request's own draw, computed by the same function the
+executor core uses (lq_ros.latency.request_latency of the run's distribution, seed and request id).
+With merge rtc/rtc_hard the policy also gets the executing prefix (/lq/action_prefix) of the request.
+A policy that raises publishes a chunk carrying the error, which ends the episode as an error.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from rclpy.node import Node
 
 from lq_ros import messages as m
 from lq_ros.env import TaskInfo
+from lq_ros.latency import request_latency
+from lq_ros.merge import PREFIX_STRATEGIES, Merge
 from lq_ros.policies import make_policy
 from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
 from lq_ros.suites import CONTROL_DT_S
@@ -27,14 +31,18 @@ class PolicyNode(Node):
     def __init__(self) -> None:
         super().__init__("lq_policy")
         cfg = declare_run_config(self)
-        self.latency_s = cfg.latency_s
-        self.delay_ns = m.to_ns(cfg.latency_ticks * CONTROL_DT_S)
+        self.latency = cfg.latency_model()
+        self.seed = cfg.seed
         self.policy = make_policy(cfg.policy, **cfg.policy_args)
+        self.policy.check_merge(cfg.merge)  # refused at start-up, before any episode
+        self.wants_prefix = Merge(cfg.merge) in PREFIX_STRATEGIES
 
         self.chunk_pub = publisher(self, m.ACTION_CHUNK)
         raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
         raw_subscription(self, m.OBSERVATION, self.on_observation)
         raw_subscription(self, m.CLOCK, self.on_clock)
+        if self.wants_prefix:
+            raw_subscription(self, m.ACTION_PREFIX, self.on_prefix)
         for cam in self.policy.camera_names:
             raw_subscription(self, m.camera_topic(cam), self.on_image)
 
@@ -44,6 +52,7 @@ class PolicyNode(Node):
         self.pending_obs: list = []  # observations waiting for the task or their images
         self.images: dict[int, dict[str, np.ndarray]] = {}  # stamp ns -> camera -> image
         self.outbox: list[tuple[int, bytes]] = []  # (due sim time ns, chunk bytes)
+        self.prefixes: dict[int, object] = {}  # request id -> ActionPrefix (merge rtc/rtc_hard)
 
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED:
@@ -64,6 +73,10 @@ class PolicyNode(Node):
         self.pending_obs.append(msg)
         self.try_infer()
 
+    def on_prefix(self, msg) -> None:
+        self.prefixes[msg.request_id] = m.prefix_from_msg(msg)
+        self.try_infer()
+
     def on_clock(self, msg) -> None:
         self.now_ns = m.stamp_ns(msg)
         self.flush()
@@ -75,27 +88,30 @@ class PolicyNode(Node):
             images = self.images.get(stamp, {})
             if any(cam not in images for cam in msg.camera_names):
                 return  # images still in flight
+            if self.wants_prefix and msg.request_id not in self.prefixes:
+                return  # the executing prefix still in flight
             self.pending_obs.pop(0)
             self.images.pop(stamp, None)
-            self.infer(msg, images)
+            self.infer(msg, images, self.prefixes.pop(msg.request_id, None))
 
-    def infer(self, msg, images: dict[str, np.ndarray]) -> None:
+    def infer(self, msg, images: dict[str, np.ndarray], prefix=None) -> None:
         obs = m.observation_from_msg(msg, images)
+        n_ticks, latency_s = request_latency(self.latency, self.seed, msg.request_id)
         started = time.perf_counter()
         actions, error = None, self.reset_error
         try:
             if not error:
-                actions = self.policy.infer(obs)
+                actions = self.policy.infer(obs) if prefix is None else self.policy.infer(obs, prefix=prefix)
         except Exception as exc:  # noqa: BLE001 - reported to the executor, which ends the episode
             error = f"{type(exc).__name__}: {exc}"
             self.get_logger().error(f"inference failed: {error}\n{traceback.format_exc()}")
         inference_s = time.perf_counter() - started
         stamp = m.stamp_ns(msg)
         data = m.chunk_msg(
-            stamp, msg.request_id, msg.tick, self.latency_s, inference_s, actions, self.policy.name, error,
+            stamp, msg.request_id, msg.tick, latency_s, inference_s, actions, self.policy.name, error,
             timing=None if error else self.policy.last_timing,
         )  # fmt: skip
-        self.outbox.append((stamp + self.delay_ns, data))
+        self.outbox.append((stamp + m.to_ns(n_ticks * CONTROL_DT_S), data))
         self.flush()
 
     def flush(self) -> None:

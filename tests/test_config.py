@@ -12,11 +12,27 @@ from lq_ros.launcher import node_parameters
 
 
 def test_ros_parameters_round_trip_with_their_declared_types():
-    cfg = RunConfig(mode="async", latency_s=0, request_threshold=6, merge="blend", policy_args={"chunk_size": 8})
+    cfg = RunConfig(
+        mode="async", latency_s=0, request_threshold=6, merge="weighted_average", policy_args={"chunk_size": 8}
+    )
     params = cfg.ros_parameters()
     assert params["latency_s"] == 0.0 and isinstance(params["latency_s"], float)  # a ROS double, not an int
     assert params["policy_args"] == '{"chunk_size": 8}'
     assert RunConfig.from_ros_parameters(params) == cfg
+    drawn = RunConfig(mode="async", latency_dist="uniform:0.075:0.275", merge="temporal_ensemble")
+    assert drawn.latency_s == 0.2 and drawn.latency_ticks is None  # the expected applied Δt_sim; N per inference
+    assert RunConfig.from_ros_parameters(drawn.ros_parameters()) == drawn
+
+
+def test_keys_of_configurations_without_a_distribution_are_unchanged():
+    # Keys from before latency_dist existed (stored sweeps, episode names) stay valid.
+    assert RunConfig(mode="async", latency_s=0.2).key() == "9a3c1c680023"
+    drawn = RunConfig(mode="async", latency_dist="uniform:0.075:0.275")
+    assert drawn.key() != RunConfig(mode="async", latency_s=0.2).key()
+    assert "_uniform200ms_" in drawn.episode_name()
+    assert RunConfig(latency_dist="0.1") == RunConfig(latency_s=0.1)  # a constant given as a distribution
+    with pytest.raises(ValueError, match="unknown distribution"):
+        RunConfig(latency_dist="poisson:3")
 
 
 def test_shipped_params_file_is_derived_from_run_config():

@@ -131,8 +131,8 @@ def test_async_zero_latency_threshold_zero_executes_whole_chunks():
     assert [r.tick for r in requests] == [0, 8, 16]
 
 
-def test_blend_merge_averages_overlap():
-    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=1, request_threshold=5, merge="blend"))
+def test_weighted_average_merge_averages_overlap():
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=1, request_threshold=5, merge="weighted_average"))
     old = np.full((8, 7), 0.1)
     new = np.full((8, 7), 0.5)
     req = core.advance(0).request
@@ -148,7 +148,7 @@ def test_blend_merge_averages_overlap():
     core.deliver(req.request_id, new)
     a = core.advance(4).action
     assert buffered == 7
-    assert a[0] == pytest.approx(0.7 * 0.5 + 0.3 * 0.1)
+    assert a[0] == 0.3 * 0.1 + 0.7 * 0.5  # LeRobot's weighted_average, exactly
 
 
 @pytest.mark.parametrize(
@@ -202,12 +202,41 @@ def test_invalid_config():
         ExecutorConfig(latency_ticks=-1)
 
 
-def test_merge_without_overlap_is_refused():
-    with pytest.raises(ValueError, match="never sees overlapping chunks"):
-        ExecutorConfig(mode="async", latency_ticks=3, merge="blend")  # threshold N: the buffer is empty
+@pytest.mark.parametrize(
+    "merge, same_as",
+    [
+        ("latest_only", "replace"),
+        ("weighted_average", "replace"),
+        ("average", "replace"),
+        ("conservative", "replace"),
+        ("temporal_ensemble", "replace"),
+        ("rtc", "rtc_hard"),
+    ],
+)
+def test_merge_without_overlap_is_refused(merge, same_as):
+    with pytest.raises(ValueError, match=f"never sees overlapping chunks.*identical to '{same_as}'"):
+        ExecutorConfig(mode="async", latency_ticks=3, request_threshold=3, merge=merge)  # the buffer is empty
     with pytest.raises(ValueError, match="async protocol only"):
-        ExecutorConfig(mode="sync", merge="blend")
-    ExecutorConfig(mode="async", latency_ticks=3, request_threshold=4, merge="blend")  # overlaps by one
+        ExecutorConfig(mode="sync", merge=merge)
+    ExecutorConfig(mode="async", latency_ticks=3, request_threshold=4, merge=merge)  # overlaps by one
+    ExecutorConfig(mode="async", latency_ticks=3, merge=merge)  # the strategy's default threshold overlaps
+
+
+def test_merge_refusal_uses_the_smallest_draw_of_a_distribution():
+    from lq_ros.latency import parse_latency
+
+    dist = parse_latency("uniform:0.075:0.275")  # N in 2..6
+    with pytest.raises(ValueError, match="smallest N=2 of uniform"):
+        ExecutorConfig(mode="async", latency=dist, request_threshold=2, merge="weighted_average")
+    cfg = ExecutorConfig(mode="async", latency=dist, request_threshold=3, merge="weighted_average")
+    assert cfg.latency_ticks == 4  # nominal: the expected applied N (exactly 4) rounded up
+
+
+def test_replace_and_rtc_hard_accept_any_threshold_and_blend_is_gone():
+    ExecutorConfig(mode="async", latency_ticks=3, request_threshold=0, merge="replace")
+    ExecutorConfig(mode="async", latency_ticks=3, request_threshold=3, merge="rtc_hard")
+    with pytest.raises(ValueError, match="unknown merge 'blend'; known: replace, latest_only, weighted_average"):
+        ExecutorConfig(mode="async", latency_ticks=1, request_threshold=4, merge="blend")
 
 
 def test_async_chunk_with_nothing_fresh_warns_once():

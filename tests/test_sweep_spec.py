@@ -36,7 +36,7 @@ def test_expansion_is_the_full_product_in_a_stable_order():
         "latencies_s": [0, 0.1, 0.2, 0.4],
         "modes": {
             "sync": {"replan_steps": [4, 8], "hold": "stop"},
-            "async": {"request_threshold": 9, "merge": ["replace", "blend"]},
+            "async": {"request_threshold": 9, "merge": ["replace", "weighted_average"]},
         },
         "max_steps": 30,
     }
@@ -45,7 +45,7 @@ def test_expansion_is_the_full_product_in_a_stable_order():
     assert len(spec.configs) == 2 * 4 * 4 * 2 * 2 * 2
     assert len({c.key() for c in spec.configs}) == len(spec.configs)
     assert {c.replan_steps for c in spec.configs if c.mode == "sync"} == {4, 8}
-    assert {c.merge for c in spec.configs if c.mode == "async"} == {"replace", "blend"}
+    assert {c.merge for c in spec.configs if c.mode == "async"} == {"replace", "weighted_average"}
     assert all(c.max_steps == 30 for c in spec.configs)
     assert [c.key() for c in sw.expand_spec(raw).configs] == [c.key() for c in spec.configs]
 
@@ -57,7 +57,34 @@ def test_latencies_between_ticks_and_merges_without_overlap_are_refused():
     rounded = sw.expand_spec(base | {"latencies_s": [0.075, 0.2], "latency_rounding": "nearest"})
     assert sorted({c.latency_s for c in rounded.configs}) == [0.05, 0.2]
     with pytest.raises(sw.SpecError, match="never sees overlapping chunks"):
-        sw.expand_spec(base | {"latencies_s": [0.2], "modes": {"async": {"merge": "blend"}}})
+        sw.expand_spec(base | {"latencies_s": [0.2], "modes": {"async": {"merge": "average", "request_threshold": 4}}})
+
+
+def test_latency_distributions_in_a_spec():
+    base = {"tasks": [0], "inits": [0], "policies": ["sine"], "modes": {"async": {"merge": ["replace", "rtc"]}}}
+    spec = sw.expand_spec(base | {"latencies_s": [0.2, "uniform:0.075:0.275", "lognormal:0.2:0.5"]})
+    assert len(spec.configs) == 2 * 3
+    assert {c.latency_dist for c in spec.configs} == {"", "uniform:0.075:0.275", "lognormal:0.2:0.5"}
+    assert {c.latency_s for c in spec.configs if c.latency_dist.startswith("uniform")} == {0.2}  # applied mean
+    sw.check_policies(spec.configs)  # sine inpaints a prefix in closed form: rtc is fine
+    with pytest.raises(sw.SpecError, match="listed twice"):
+        sw.expand_spec(base | {"latencies_s": ["uniform:0.1:0.3", "uniform:0.1:0.30"]})
+    with pytest.raises(sw.SpecError, match="unknown distribution 'gamma'"):
+        sw.expand_spec(base | {"latencies_s": ["gamma:1:2"]})
+
+
+def test_rtc_with_a_policy_that_takes_no_prefix_is_refused_before_running():
+    spec = sw.expand_spec(
+        {
+            "tasks": [0],
+            "inits": [0],
+            "policies": ["scripted"],
+            "latencies_s": [0.1],
+            "modes": {"async": {"merge": "rtc"}},
+        }
+    )
+    with pytest.raises(sw.SpecError, match="merge 'rtc' .* policy 'scripted' cannot"):
+        sw.check_policies(spec.configs)
 
 
 def test_tasks_all_and_shorthand_and_defaults():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 
+from lq_ros.merge import ActionPrefix
 from lq_ros.policies.base import Policy, PolicyError
 
 #: name -> "module:Class". Adding a policy is one new module and one line here.
@@ -18,13 +19,18 @@ REGISTRY: dict[str, str] = {
 }
 
 
-def make_policy(name: str, **params) -> Policy:
-    """Instantiate a registered policy, or any ``package.module:Class`` (a user's own policy)."""
+def policy_class(name: str) -> type[Policy]:
+    """The class of a registered policy, or of any ``package.module:Class``, without instantiating it."""
     target = REGISTRY.get(name, name)
     if ":" not in target:
         raise ValueError(f"unknown policy {name!r}; known: {', '.join(sorted(REGISTRY))} or 'module:Class'")
     module, cls = target.split(":")
-    return getattr(importlib.import_module(module), cls)(**params)
+    return getattr(importlib.import_module(module), cls)
 
 
-__all__ = ["Policy", "PolicyError", "REGISTRY", "make_policy"]
+def make_policy(name: str, **params) -> Policy:
+    """Instantiate a registered policy, or any ``package.module:Class`` (a user's own policy)."""
+    return policy_class(name)(**params)
+
+
+__all__ = ["ActionPrefix", "Policy", "PolicyError", "REGISTRY", "make_policy", "policy_class"]

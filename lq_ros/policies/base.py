@@ -7,6 +7,7 @@ import abc
 import numpy as np
 
 from lq_ros.env import Observation, TaskInfo
+from lq_ros.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
 
 
 class PolicyError(RuntimeError):
@@ -26,18 +27,37 @@ class Policy(abc.ABC):
     #: Timing the policy measured or was told for its last ``infer`` (e.g. a remote server's times, ms);
     #: recorded with that chunk in the bag. None: nothing beyond the wall-clock latency measured outside.
     last_timing: dict | None = None
+    #: True if ``infer`` accepts ``prefix`` (an :class:`ActionPrefix`: the actions that will execute while it
+    #: infers and the delay d) and makes its chunk consistent with it: real-time chunking, ``--merge rtc``.
+    supports_prefix: bool = False
 
     @abc.abstractmethod
     def reset(self, task: TaskInfo, seed: int) -> None:
         """Start an episode of ``task``."""
 
     @abc.abstractmethod
-    def infer(self, obs: Observation) -> np.ndarray:
-        """Action chunk (H, 7) computed from ``obs``; row 0 is meant for tick ``obs.tick``."""
+    def infer(self, obs: Observation, prefix: ActionPrefix | None = None) -> np.ndarray:
+        """Action chunk (H, 7) computed from ``obs``; row 0 is meant for tick ``obs.tick``.
+
+        ``prefix`` is given only to a policy with ``supports_prefix`` (merge ``rtc``/``rtc_hard``): the
+        executor's plan from tick ``obs.tick`` on, whose first ``prefix.delay`` rows execute while the
+        policy infers; rows 0..d-1 of the result are dropped as stale, the rest replace the plan.
+        """
 
     def params(self) -> dict:
         """Parameters recorded in the run metadata."""
         return {}
+
+    @classmethod
+    def check_merge(cls, merge: str) -> None:
+        """Refuse (ValueError) a merge strategy this policy cannot serve: the prefix strategies need
+        ``supports_prefix``. Called when a run is configured, before its episode starts."""
+        if Merge(merge) in PREFIX_STRATEGIES and not cls.supports_prefix:
+            raise ValueError(
+                f"merge {merge!r} (real-time chunking) needs a policy that conditions its chunk on the executing "
+                f"prefix; policy {cls.name!r} cannot (Policy.supports_prefix is False). Use another merge "
+                "strategy, or a policy that supports a prefix (flow)"
+            )
 
     def close(self) -> None:  # noqa: B027 - optional hook, most policies hold nothing
         """Release resources (connections, threads)."""

@@ -12,6 +12,7 @@ import yaml
 
 from lq_ros.config import PROTOCOL_FIELDS, RunConfig
 from lq_ros.episode import TRANSPORTS
+from lq_ros.latency import LatencyError, parse_latency
 from lq_ros.suites import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 
 MODES = ("sync", "async")
@@ -121,17 +122,33 @@ def _policies(raw: dict) -> list[tuple[str, dict]]:
     return out
 
 
-def _latencies(raw: dict) -> list[float]:
-    """Applied latencies (whole control ticks; ``latency_rounding: nearest`` rounds on purpose)."""
+def _latencies(raw: dict) -> list[dict]:
+    """RunConfig latency fields per entry: a constant in whole control ticks (``latency_rounding: nearest``
+    rounds on purpose) as ``latency_s``, or a distribution (lq_ros/latency.py) as ``latency_dist``."""
     if "latencies_s" not in raw:
-        raise SpecError("'latencies_s' is required (injected latencies, seconds)")
+        raise SpecError("'latencies_s' is required (injected latencies, seconds, or distributions)")
     rounding = raw.get("latency_rounding", "exact")
     if rounding not in ("exact", "nearest"):
         raise SpecError(f"latency_rounding: expected exact or nearest, got {rounding!r}")
-    out, by_ticks = [], {}
+    out, by_ticks, texts = [], {}, set()
     for v in _as_list(raw["latencies_s"], "latencies_s"):
+        if isinstance(v, str) and ":" in v:
+            try:
+                dist = parse_latency(v)
+            except LatencyError as exc:
+                raise SpecError(f"latencies_s: {exc}") from None
+            if dist.text in texts:
+                raise SpecError(f"latencies_s: {v!r} is listed twice")
+            texts.add(dist.text)
+            out.append({"latency_dist": dist.text})
+            continue
+        if isinstance(v, str):
+            try:
+                v = float(v)
+            except ValueError:
+                raise SpecError(f"latencies_s: expected seconds or a distribution, got {v!r}") from None
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            raise SpecError(f"latencies_s: expected non-negative seconds, got {v!r}")
+            raise SpecError(f"latencies_s: expected non-negative seconds or a distribution, got {v!r}")
         if rounding == "nearest":
             v = round_latency(float(v))
         try:
@@ -143,7 +160,7 @@ def _latencies(raw: dict) -> list[float]:
                 f"latencies_s: {by_ticks[n]} and {v} s are both N = {n} ticks of {CONTROL_DT_S} s (same episodes)"
             )
         by_ticks[n] = v
-        out.append(float(v))
+        out.append({"latency_s": float(v)})
     return out
 
 
@@ -195,11 +212,12 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
         for task, init, seed in itertools.product(tasks, inits, seeds):
             try:
                 cfg = RunConfig(
-                    suite=suite, task=task, init=init, seed=seed, latency_s=latency, policy=policy,
-                    policy_args=dict(args), **proto, **common,
+                    suite=suite, task=task, init=init, seed=seed, policy=policy,
+                    policy_args=dict(args), **latency, **proto, **common,
                 )  # fmt: skip
             except (TypeError, ValueError) as exc:
-                raise SpecError(f"{policy} {proto} latency {latency} s: {exc}") from exc
+                what = latency.get("latency_dist") or f"{latency['latency_s']} s"
+                raise SpecError(f"{policy} {proto} latency {what}: {exc}") from exc
             if cfg.key() in configs:
                 raise SpecError(f"the spec lists the same episode twice: {cfg.episode_name()}")
             configs[cfg.key()] = cfg
@@ -226,10 +244,16 @@ def load_spec(path: Path) -> SweepSpec:
 
 def check_policies(configs: tuple[RunConfig, ...] | list[RunConfig]) -> None:
     """Build each distinct policy once, so bad policy arguments fail before any episode runs."""
-    from lq_ros.policies import make_policy
+    from lq_ros.policies import make_policy, policy_class
 
-    seen = set()
+    seen, merges = set(), set()
     for cfg in configs:
+        if (cfg.policy, cfg.merge) not in merges:
+            merges.add((cfg.policy, cfg.merge))
+            try:
+                policy_class(cfg.policy).check_merge(cfg.merge)  # e.g. rtc with a policy that takes no prefix
+            except ValueError as exc:
+                raise SpecError(str(exc)) from exc
         ident = (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
         if ident in seen:
             continue
