@@ -2,7 +2,9 @@
 
 No ros2 launch exists for the PyPI wheels, so this is ours: parameters go in a ROS params YAML
 file per run, each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the run's
-ROS_DOMAIN_ID and, unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+ROS_DOMAIN_ID and, unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. A node killed
+with SIGKILL leaves Fast DDS files in /dev/shm: the launcher notes which files each node owns while
+it runs and removes the orphaned ones once every node has exited (lq_ros.procs.ShmTracker).
 """
 
 from __future__ import annotations
@@ -17,12 +19,13 @@ import sys
 import tempfile
 import time
 from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
 from lq_ros.config import RunConfig
-from lq_ros.procs import die_with_parent
+from lq_ros.procs import ShmTracker, die_with_parent
 
 NODES = ("sim", "policy", "executor", "metrics")
 #: Module of each node program: nodes/<name>_node.py, installed as the package lq_ros_nodes (setup.py).
@@ -30,11 +33,24 @@ NODE_MODULE = "lq_ros_nodes.{}_node"
 #: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
 DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
 DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
+#: Wall seconds between two looks at which /dev/shm files the nodes own.
+SHM_SAMPLE_PERIOD_S = 0.25
+
+
+@dataclass(frozen=True)
+class DomainReservation:
+    id: int
+    #: Descriptor of the lock file: a child started with it (``pass_fds``) keeps the domain reserved until it exits.
+    lock_fd: int
 
 
 @contextmanager
 def reserved_domain(domain_id: int | None = None):
-    """Hold an exclusive lock on a ROS domain id for the duration of a run."""
+    """Hold an exclusive lock on a ROS domain id for the duration of a run.
+
+    The lock (``flock``) belongs to the open lock file, so it lasts while any process holding that file
+    lives: the nodes inherit it, and a domain whose nodes outlive a killed launcher is not handed out again.
+    """
     DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
     candidates = [domain_id] if domain_id is not None else list(DOMAIN_IDS)
     for did in candidates:
@@ -45,10 +61,9 @@ def reserved_domain(domain_id: int | None = None):
             handle.close()
             continue
         try:
-            yield did
+            yield DomainReservation(did, handle.fileno())
         finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
-            handle.close()
+            handle.close()  # no LOCK_UN: that would release the lock for the nodes that still hold it too
         return
     raise RuntimeError(f"no free ROS domain id among {candidates} (another run holds each)")
 
@@ -101,14 +116,6 @@ def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
         raise RuntimeError("child processes survived SIGKILL")
 
 
-def _clean_shm_if_killed(procs: dict[str, subprocess.Popen], env: dict[str, str]) -> None:
-    """A SIGKILLed Fast DDS participant leaves files in /dev/shm; remove the unused ones."""
-    if any(p.returncode == -signal.SIGKILL for p in procs.values()):
-        tool = Path(sys.executable).parent / "fastdds"
-        if tool.exists():
-            subprocess.run([str(tool), "shm", "clean"], env=env, capture_output=True, timeout=30, check=False)
-
-
 def launch_nodes(
     cfg: RunConfig,
     out_dir: Path,
@@ -136,9 +143,10 @@ def launch_nodes(
     params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
     params_file.write_text(params_yaml(params))
     procs: dict[str, subprocess.Popen] = {}
+    shm = ShmTracker()
     reason = ""
-    with reserved_domain(domain_id) as did:
-        env = child_environment(did, work / "ros_logs")
+    with reserved_domain(domain_id) as domain:
+        env = child_environment(domain.id, work / "ros_logs")
         try:
             for name in NODES:
                 log = open(work / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
@@ -149,10 +157,15 @@ def launch_nodes(
                     stderr=subprocess.STDOUT,
                     stdin=subprocess.DEVNULL,
                     preexec_fn=die_with_parent,
+                    pass_fds=(domain.lock_fd,),
                 )
                 log.close()
             deadline = time.monotonic() + timeout_s
+            next_sample = 0.0
             while True:
+                if time.monotonic() >= next_sample:
+                    shm.sample(p.pid for p in procs.values() if p.returncode is None)
+                    next_sample = time.monotonic() + SHM_SAMPLE_PERIOD_S
                 if procs["metrics"].poll() is not None:
                     if procs["metrics"].returncode != 0:
                         reason = f"metrics node exited with code {procs['metrics'].returncode}"
@@ -166,8 +179,11 @@ def launch_nodes(
                     break
                 time.sleep(0.05)
         finally:
+            shm.sample(p.pid for p in procs.values() if p.returncode is None)
             _stop(procs)
-            _clean_shm_if_killed(procs, env)
+            removed = shm.cleanup()
+            if removed:
+                (work / "launcher.log").write_text(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
             _collect_logs(work, bag_path)
     return bag_path, reason
 

@@ -8,8 +8,12 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
+import os
 import signal
+import time
 from collections.abc import Callable
+from pathlib import Path
 from types import FrameType
 
 #: prctl option from <linux/prctl.h>.
@@ -34,3 +38,112 @@ def raise_keyboard_interrupt(*_) -> None:
 def sigterm_as_keyboard_interrupt() -> Callable[[int, FrameType | None], object] | int | None:
     """SIGTERM (a job runner, a parent stopping its workers) stops like Ctrl-C; returns the previous handler."""
     return signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
+
+
+#: Where Fast DDS keeps its shared-memory transport files (segments, ports, their locks and mutexes).
+SHM_DIR = Path("/dev/shm")
+_FASTDDS_PREFIXES = ("fastrtps_", "fastdds_")
+
+
+def fastdds_shm_owned(pid: int) -> set[str]:
+    """Fast DDS shared-memory files that process ``pid`` owns (``set()`` if it is gone).
+
+    Fast DDS holds an exclusive ``flock`` on ``<name>_el`` for every segment and port it created, for
+    as long as it lives: the open ``_el`` descriptors name exactly the process's own files.
+    """
+    owned = set()
+    fd_dir = Path(f"/proc/{pid}/fd")
+    try:
+        fds = list(fd_dir.iterdir())
+    except OSError:
+        return owned
+    for fd in fds:
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        name = target.removeprefix(f"{SHM_DIR}/")
+        if name != target and name.endswith("_el") and name.startswith(_FASTDDS_PREFIXES):
+            owned.add(name[: -len("_el")])
+    return owned
+
+
+class ShmTracker:
+    """Remembers the Fast DDS shared-memory files of some processes and removes those they left behind.
+
+    A participant killed with SIGKILL leaves its segment and its ports (with their ``_el`` lock files and
+    ``sem.*_mutex``) in /dev/shm; its peers, even when they exit cleanly, then keep their port files
+    (without ``_el``), since the dead peer still counts as a user. ``sample`` the processes while they
+    run; once they have exited, ``cleanup`` removes each remembered file that no live process owns. It
+    takes the file's ``_el`` lock first (creating it if missing), so a file that a live participant owns
+    or is taking over is never touched.
+    """
+
+    def __init__(self) -> None:
+        self.names: set[str] = set()
+
+    def sample(self, pids) -> None:
+        for pid in pids:
+            self.names |= fastdds_shm_owned(pid)
+
+    def cleanup(self) -> list[str]:
+        """Remove the orphaned files; returns their names."""
+        removed = []
+        for name in sorted(self.names):
+            files = (SHM_DIR / name, SHM_DIR / f"sem.{name}_mutex")
+            lock_path = SHM_DIR / f"{name}_el"
+            if not lock_path.exists() and not any(f.exists() for f in files):
+                continue  # Fast DDS removed them itself (a clean exit)
+            try:
+                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError:
+                continue
+            try:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    continue  # a live participant owns it
+                for path in (*files, lock_path):
+                    with contextlib.suppress(FileNotFoundError):
+                        path.unlink()
+                        removed.append(path.name)
+            finally:
+                os.close(fd)
+        return removed
+
+
+def process_group_members(pgid: int) -> list[int]:
+    """Live (non-zombie) processes whose process group is ``pgid``."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        # pid (comm) state ppid pgrp ...: comm may hold spaces and parentheses, so split after the last ')'.
+        fields = stat[stat.rindex(")") + 2 :].split()
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            out.append(int(entry.name))
+    return out
+
+
+def wait_process_group_gone(pgid: int, timeout_s: float = 30.0, kill_after_s: float = 20.0) -> bool:
+    """Wait until no process of group ``pgid`` is left (SIGKILL to the group after ``kill_after_s``).
+
+    A sweep worker leads its own group, so the ROS nodes it launched can be waited for after the worker
+    itself was killed. Returns whether the group is gone.
+    """
+    started = time.monotonic()
+    killed = False
+    while process_group_members(pgid):
+        elapsed = time.monotonic() - started
+        if elapsed > timeout_s:
+            return False
+        if elapsed > kill_after_s and not killed:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(pgid, signal.SIGKILL)
+            killed = True
+        time.sleep(0.1)
+    return True

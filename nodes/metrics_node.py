@@ -1,6 +1,8 @@
 """Metrics node: records the episode topics to a rosbag2 MCAP bag, then scores it offline.
 
-Messages are written exactly as received (serialized CDR) with their sim-time log stamps. Once a
+Messages are written exactly as received (serialized CDR) with their sim-time log stamps. The bag is
+crash-safe (lq_ros.bag): killed with SIGKILL, it keeps all but the last 0.5 s of sim time, and its
+metadata.yaml (with the run metadata) exists from the start. Once a
 terminal event (success, timeout, error) has arrived and the topics have been quiet for a moment,
 the bag is closed, scored with lq_ros.scoring and the score written next to it (score.json).
 Stopped early (Ctrl-C), it records a STOPPED event so the episode scores as an error, not a failure.
@@ -40,12 +42,13 @@ class MetricsNode(Node):
         self.bag_path = Path(self.get_parameter("bag_path").value)
 
         self.topics = episode_topics(self.cfg, cameras)
+        self.versions = versions()
         self.writer = EpisodeBagWriter(self.bag_path, self.topics)
+        self.writer.set_run_metadata(self._run_metadata(self.versions))
         for topic in self.topics:
             self.create_subscription(
                 msg_class(topic.msgtype), topic.name, self._recorder(topic), LOSSLESS_QOS, raw=True
             )
-        self.versions = versions()
         self.started_detail: dict = {}
         self.last_message = time.monotonic()
         self.terminal_seen = False
@@ -70,6 +73,7 @@ class MetricsNode(Node):
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED:
             self.started_detail = json.loads(event.detail_json)
+            self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
         elif event.kind in m.EventKind.TERMINAL:
             self.terminal_seen = True
 
@@ -77,12 +81,19 @@ class MetricsNode(Node):
         if self.terminal_seen and not self.finished and time.monotonic() - self.last_message > self.quiet_period_s:
             self.finish()
 
-    def finish(self) -> None:
-        self.finished = True
+    def _env_versions(self) -> dict:
+        """The simulator's versions (from its STARTED event), with this node's rclpy."""
         env_versions = dict(self.started_detail.get("versions") or self.versions)
         env_versions["rclpy"] = self.versions["rclpy"]
+        return env_versions
+
+    def _run_metadata(self, env_versions: dict) -> dict:
         camera_size_px = self.get_parameter("camera_size_px").value if self.cameras else None
-        self.writer.set_run_metadata(run_metadata(self.cfg, self.policy_params, "ros", env_versions, camera_size_px))
+        return run_metadata(self.cfg, self.policy_params, "ros", env_versions, camera_size_px)
+
+    def finish(self) -> None:
+        self.finished = True
+        self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
         self.writer.close()
         row = score_bag(self.bag_path)
         (self.bag_path / SCORE_FILE).write_text(to_json(row) + "\n")

@@ -11,14 +11,17 @@ import time
 from pathlib import Path
 
 from lq_ros.config import RunConfig
-from lq_ros.procs import die_with_parent, sigterm_as_keyboard_interrupt
+from lq_ros.procs import die_with_parent, sigterm_as_keyboard_interrupt, wait_process_group_gone
 from lq_ros.sweep.worker import EpisodeWorker
 
 
 def _local_worker_main(slot: int, transport: str, bags_dir: str, timeout_s, tasks, results) -> None:
     die_with_parent()  # a worker must not outlive the sweep (kill -9 of the sweep included)
-    # Ctrl-C reaches the whole process group: the parent decides when workers stop. A no-op handler,
-    # not SIG_IGN, since an ignored SIGINT would be inherited by the ROS nodes a worker launches.
+    # Its own process group, which the ROS nodes it launches join: if this worker is killed, the sweep
+    # waits for them (they stop on PR_SET_PDEATHSIG) before the episode's bag is kept and retried.
+    os.setpgid(0, 0)
+    # The parent decides when workers stop (SIGTERM); a stray SIGINT is ignored. A no-op handler, not
+    # SIG_IGN, since an ignored SIGINT would be inherited by the ROS nodes a worker launches.
     signal.signal(signal.SIGINT, lambda *_: None)
     # Stopped by the parent (SIGTERM): unwind like Ctrl-C, so a launcher stops its nodes cleanly.
     sigterm_as_keyboard_interrupt()
@@ -82,6 +85,7 @@ class LocalPool:
             p = self._procs[slot]
             if not p.is_alive():
                 code = p.exitcode
+                wait_process_group_gone(p.pid)  # its nodes are still closing the episode's bag
                 out.append((slot, {"status": "error", "reason": f"worker process died (exit code {code})",
                                    "row": None, "bag": None, "wall_s": None}))  # fmt: skip
                 self._start(slot)
