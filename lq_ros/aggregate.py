@@ -52,6 +52,14 @@ CONTINUOUS_METRICS: dict[str, str] = {
     "energy_overhead_j": BY_OUTCOME,
     "energy_total_j": BY_OUTCOME,
     "energy_per_step_j": BY_OUTCOME,
+    # Chunk-boundary quality (lq_ros/boundary.py): like jerk, over successes with failures and all beside.
+    "chunk_switches": BY_OUTCOME,
+    "chunk_switch_jump_mean": BY_OUTCOME,
+    "chunk_switch_jump_p90": BY_OUTCOME,
+    "chunk_switch_jump_max": BY_OUTCOME,
+    "chunk_switch_jerk_mean": BY_OUTCOME,
+    "chunk_switch_jerk_ratio": BY_OUTCOME,
+    "latency_sim_mean_s": WITH_OUTCOME,
     "latency_real_mean_s": WITH_OUTCOME,
     "latency_real_p90_s": WITH_OUTCOME,
     "num_inferences": WITH_OUTCOME,
@@ -115,11 +123,16 @@ def episodes_frame(rows: Iterable[dict], references: pd.DataFrame | None = None)
     for key in (*GROUP_KEYS, "episode", "status", "success", "traj_length"):
         if key not in frame:
             frame[key] = None
+    # Rows scored before latency distributions existed had a constant latency.
+    frame["latency_dist"] = frame["latency_dist"].where(
+        frame["latency_dist"].notna() | frame["latency_s"].isna(), "constant"
+    )
     return add_relative_efficiency(label_variants(frame), references)
 
 
-def _variant_label(row: pd.Series) -> str | None:
-    """``name`` for a policy run with default settings, else ``name [k=v, ...]`` with what differs."""
+def _variant_label(row: pd.Series, without: tuple[str, ...] = ()) -> str | None:
+    """``name`` for a policy run with default settings, else ``name [k=v, ...]`` with what differs
+    (fields in ``without`` left out, e.g. ``merge`` for a figure with one line per merge strategy)."""
     name = row.get("policy")
     if name is None or (isinstance(name, float) and math.isnan(name)):
         return None
@@ -130,9 +143,16 @@ def _variant_label(row: pd.Series) -> str | None:
     if isinstance(args, dict):
         parts += [f"{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in sorted(args.items())]
     for key in VARIANT_FIELDS[1:]:
+        if key in without:
+            continue
         value = row.get(key)
         if value is not None and not (isinstance(value, float) and math.isnan(value)) and value != _DEFAULTS[key]:
             parts.append(f"{key}={int(value) if isinstance(value, float) else value}")
+    # A latency distribution is a condition of its own: its kind keeps the series apart from the constant one
+    # (the full distribution is the group key latency_dist, its applied mean latency_s).
+    dist = row.get("latency_dist")
+    if isinstance(dist, str) and dist and dist != "constant" and "latency_dist" not in without:
+        parts.append(f"latency={dist.split(':')[0]}")
     return f"{name} [{', '.join(parts)}]" if parts else str(name)
 
 
@@ -328,6 +348,7 @@ _MARKDOWN_METRICS = (
     ("length m (succ.)", "traj_length", 3),
     ("energy J (succ.)", "energy_total_j", 0),
     ("J/step (succ.)", "energy_per_step_j", 2),
+    ("switch jump (succ.)", "chunk_switch_jump_mean", 3),
 )
 
 
@@ -352,6 +373,7 @@ def markdown_table(aggregates: pd.DataFrame) -> str:
             "policy": agg["policy"],
             "mode": agg["mode"],
             "Δt_sim s": agg["latency_s"],
+            "latency": agg.get("latency_dist"),
             "suite": agg["suite"],
             "task": agg["task"],
             "n": int(agg["n"]),

@@ -24,12 +24,12 @@ import pandas as pd  # noqa: E402
 
 from lq_ros import aggregate as agg  # noqa: E402
 from lq_ros import episode_media as media  # noqa: E402
-from lq_ros import metrics  # noqa: E402
+from lq_ros import metrics, report_async  # noqa: E402
 from lq_ros.suites import CONTROL_DT_S  # noqa: E402
 
 #: Figures pool tasks and init states: one point per (policy, protocol, latency) at one sampling of the
 #: trajectory and energy metrics (rates never pool: jerk at 20 Hz and at 500 Hz differ ~4x).
-FIGURE_KEYS = ("policy", "mode", "latency_s", "trajectory_rate_hz", "energy_sampling")
+FIGURE_KEYS = ("policy", "mode", "latency_s", "latency_dist", "trajectory_rate_hz", "energy_sampling")
 #: One line of a figure.
 SERIES_KEYS = ("policy", "mode", "trajectory_rate_hz", "energy_sampling")
 MODE_STYLE = {"sync": "--", "async": "-"}
@@ -45,6 +45,7 @@ FIGURES = {
     "fig5_trajectory": "Fig. 5 - trajectory quality vs injected latency",
     "fig6_energy_decomposition": "Fig. 6 - per-step energy decomposition",
     "fig7_energy": "Fig. 7 - per-step and total energy",
+    report_async.NAME: report_async.TITLE,
 }
 
 
@@ -486,7 +487,7 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     pooled_csv = out_dir / "aggregates_pooled.csv"
     pooled.to_csv(pooled_csv, index=False)
     files["aggregates_pooled.csv"] = pooled_csv
-    figures = make_figures(pooled)
+    figures = make_figures(pooled) | report_async.make_boundary_figures(episodes, n_boot=n_boot, seed=seed)
     for name, fig in figures.items():
         path = out_dir / f"{name}.png"
         fig.savefig(path, dpi=110)

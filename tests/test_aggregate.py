@@ -148,14 +148,41 @@ def test_policy_and_protocol_variants_are_not_pooled():
         _episode("success", policy="oft", policy_args='{"chunk_size": 8}'),
         _episode("failure", policy="oft", policy_args='{"chunk_size": 1}', replan_steps=1),
         _episode("success", policy="oft", policy_args="{}", replan_steps=5, merge="replace"),  # all defaults
-        _episode("success", policy="scripted", policy_args={}, mode="async", merge="blend"),
+        _episode("success", policy="scripted", policy_args={}, mode="async", merge="weighted_average"),
     ]
     frame = episodes_frame(rows)
     assert frame["policy"].tolist() == [
         "oft [chunk_size=8]",
         "oft [chunk_size=1, replan_steps=1]",
         "oft",
-        "scripted [merge=blend]",
+        "scripted [merge=weighted_average]",
     ]
     assert frame["policy_name"].tolist() == ["oft", "oft", "oft", "scripted"]
     assert len(aggregate(frame)) == 4
+
+
+def test_latency_distributions_are_kept_apart_and_labelled():
+    rows = [
+        _episode("success", latency=0.2, latency_dist="constant"),
+        _episode("success", latency=0.2, latency_dist="uniform:0.075:0.275"),
+        _episode("success", latency=0.2, latency_dist="uniform:0.15:0.225"),  # same mean, another spread
+    ]
+    frame = episodes_frame(rows)
+    assert frame["policy"].tolist() == ["p", "p [latency=uniform]", "p [latency=uniform]"]
+    agg = aggregate(frame)
+    assert len(agg) == 3 and set(agg["latency_dist"]) == {"constant", "uniform:0.075:0.275", "uniform:0.15:0.225"}
+    assert "uniform:0.075:0.275" in markdown_table(agg)
+
+
+def test_chunk_boundary_metrics_are_over_successes_with_failures_beside():
+    rows = [
+        _episode("success", chunk_switch_jump_mean=0.1, chunk_switch_jerk_ratio=1.5, chunk_switches=10),
+        _episode("success", chunk_switch_jump_mean=0.3, chunk_switch_jerk_ratio=2.5, chunk_switches=12, init=1),
+        _episode("failure", chunk_switch_jump_mean=0.9, chunk_switch_jerk_ratio=None, chunk_switches=30, init=2),
+    ]
+    agg = aggregate(episodes_frame(rows), n_boot=200).iloc[0]
+    assert agg["chunk_switch_jump_mean_mean"] == pytest.approx(0.2)
+    assert agg["chunk_switch_jump_mean_failure_mean"] == pytest.approx(0.9)
+    assert agg["chunk_switch_jump_mean_all_mean"] == pytest.approx(1.3 / 3)
+    assert agg["chunk_switch_jerk_ratio_mean"] == pytest.approx(2.0) and agg["chunk_switch_jerk_ratio_all_n"] == 2
+    assert agg["chunk_switches_mean"] == pytest.approx(11.0)
