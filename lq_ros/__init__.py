@@ -4,4 +4,29 @@ Pure-Python cores live here (executor protocols, env wrapper, policies, metrics,
 rclpy node programs in ``nodes/`` only wire them to topics.
 """
 
+import os as _os
+
+
+def _pin_openblas_kernels() -> None:
+    """Pin OpenBLAS to its Haswell kernels on every x86-64 CPU that has them (AVX2 + FMA).
+
+    OpenBLAS picks its kernels by CPU model, and the choice changes results: a virtualised Intel Xeon
+    whose model OpenBLAS 0.3.23 does not know runs the generic Prescott kernels, an AMD EPYC the Zen
+    (Haswell) ones, and the demo's sync 0 s episode took 111 and 109 ticks on them. With the Haswell
+    kernels pinned, the Xeon gives the EPYC's 109. This must happen before numpy loads OpenBLAS, hence
+    here; a user's own OPENBLAS_CORETYPE wins, and every result records the kernels actually used.
+    """
+    if "OPENBLAS_CORETYPE" in _os.environ:
+        return
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            flags = next((line.split(":", 1)[1].split() for line in cpuinfo if line.startswith("flags")), [])
+    except OSError:
+        return
+    if "avx2" in flags and "fma" in flags:
+        _os.environ["OPENBLAS_CORETYPE"] = "Haswell"
+
+
+_pin_openblas_kernels()
+
 __version__ = "0.1.0"

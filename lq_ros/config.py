@@ -176,26 +176,35 @@ _SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw"
 
 
 def cpu_info() -> dict:
-    """CPU model, its SIMD flags and the class within which lockstep results are bit-identical.
+    """CPU vendor, model, SIMD flags and the class within which lockstep results are bit-identical.
 
-    MuJoCo guarantees identical results only on the same architecture; AVX-512 and AVX2-only x86 CPUs
-    take different code paths and can diverge (mujoco issue #2659), so the class is the widest vector
-    extension present.
+    MuJoCo documents exact reproducibility only on the same architecture, and numerical libraries pick
+    code paths by vendor and vector extension. Measured: the demo's sync 0 s episode took 109 ticks on
+    an AMD EPYC and 111 on an Intel Xeon, both with AVX-512. So the class is architecture, vendor and
+    the widest vector extension; results are compared within one class.
     """
-    model, flags = platform.processor() or platform.machine(), set()
+    model, vendor, flags = platform.processor() or platform.machine(), "", set()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             key, _, value = line.partition(":")
-            if key.strip() == "model name" and model in ("", platform.machine(), platform.processor()):
+            key = key.strip()
+            if key == "vendor_id" and not vendor:
+                vendor = value.strip()
+            elif key == "model name" and model in ("", platform.machine(), platform.processor()):
                 model = value.strip()
-            elif key.strip() == "flags":
+            elif key == "flags":
                 flags = set(value.split())
                 break
     except OSError:
         pass
     simd = [f for f in _SIMD_FLAGS if f in flags]
     widest = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "AVX" if "avx" in flags else "SSE"
-    return {"model": model, "simd": simd, "class": f"{platform.machine()} {widest}"}
+    return {
+        "model": model,
+        "vendor": vendor or "unknown",
+        "simd": simd,
+        "class": f"{platform.machine()} {vendor or 'unknown'} {widest}",
+    }
 
 
 def versions() -> dict:
@@ -215,4 +224,25 @@ def versions() -> dict:
         "python": platform.python_version(),
         "git_commit": git_commit(),
         "cpu": cpu_info(),
+        "openblas_core": openblas_core(),
     }
+
+
+def openblas_core() -> str | None:
+    """The OpenBLAS kernels numpy runs on (e.g. Haswell); they change results (see lq_ros.__init__)."""
+    import ctypes
+    import glob
+
+    import numpy
+
+    for lib in sorted(glob.glob(str(Path(numpy.__file__).parent.parent / "numpy.libs" / "libopenblas*"))):
+        try:
+            so = ctypes.CDLL(lib)
+        except OSError:
+            continue
+        for name in ("openblas_get_corename64_", "openblas_get_corename"):
+            get = getattr(so, name, None)
+            if get is not None:
+                get.restype = ctypes.c_char_p
+                return get().decode()
+    return None
