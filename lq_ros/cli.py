@@ -55,6 +55,26 @@ class Transport(StrEnum):
     inprocess = "inprocess"
 
 
+def _refuse(message: str) -> None:
+    """A mistake in the user's input: one line on stderr, exit code 2, nothing started."""
+    from rich.markup import escape
+
+    console.print(f"[red]error:[/red] {escape(' '.join(message.split()))}", soft_wrap=True, highlight=False)
+    raise typer.Exit(2)
+
+
+def _make_room(bag: Path, overwrite: bool) -> None:
+    """The episode's bag folder must be new: refuse a rerun into the same --out, or replace it on request."""
+    import shutil
+
+    leftovers = [p for p in (bag, bag.with_name(bag.name + ".logs")) if p.exists()]
+    if leftovers and not overwrite:
+        _refuse(f"bag folder {bag} already exists (this configuration already ran into this --out); "
+                "pass --overwrite to replace it, or choose another --out")  # fmt: skip
+    for path in leftovers:
+        shutil.rmtree(path)
+
+
 def _parse_policy_args(items: list[str]) -> dict:
     """``key=value`` pairs; values are JSON when they parse as JSON (numbers, lists), else strings."""
     args = {}
@@ -113,6 +133,9 @@ def run(
     physics_rate: Annotated[bool, typer.Option(help="Also record 500 Hz poses and joint states.")] = _RUN.physics_rate,
     max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = _RUN.max_steps,
     out: Path = Path("bags"),
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace the episode's bag folder if the same configuration already ran into --out.")
+    ] = False,
     transport: Transport = Transport.ros,
     domain_id: Annotated[int | None, typer.Option(help="ROS_DOMAIN_ID; default: a free one.")] = None,
     timeout: Annotated[float | None, typer.Option(help="Wall-clock limit of the run, seconds.")] = None,
@@ -131,8 +154,12 @@ def run(
             policy=policy, policy_args=_parse_policy_args(policy_arg), camera_size=camera_size,
             physics_rate=physics_rate, max_steps=max_steps,
         )  # fmt: skip
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
+        from lq_ros import validate
+
+        validate.check_run(cfg)  # task and init ranges, the policy and its arguments: before anything starts
+    except ValueError as exc:  # validate.InputError included
+        _refuse(str(exc))
+    _make_room(out / cfg.episode_name(), overwrite)
     # LIBERO prints progress on stdout; with --json stdout must hold nothing but the row.
     with contextlib.redirect_stdout(sys.stderr) if as_json else contextlib.nullcontext():
         row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
@@ -163,14 +190,21 @@ def demo(
     task: int = 0,
     transport: Transport = Transport.ros,
 ) -> None:
-    """LIBERO-Spatial task 0 through the four-node stack: sync and async at 0 and 0.2 s latency."""
+    """LIBERO-Spatial task 0 through the four-node stack: sync and async at 0 and 0.2 s latency (a rerun
+    replaces the demo's episodes in OUT)."""
+    from lq_ros import validate
 
+    configs = [RunConfig(suite="libero_spatial", task=task, mode=mode, latency_s=latency, policy=policy)
+               for mode in ("sync", "async") for latency in (0.0, 0.2)]  # fmt: skip
+    try:
+        validate.check_run(configs[0])
+    except ValueError as exc:
+        _refuse(str(exc))
     rows = []
-    for mode in ("sync", "async"):
-        for latency in (0.0, 0.2):
-            cfg = RunConfig(suite="libero_spatial", task=task, mode=mode, latency_s=latency, policy=policy)
-            console.print(f"running {mode} Δt_sim={latency} s ...")
-            rows.append(run_episode(cfg, out, transport))
+    for cfg in configs:
+        console.print(f"running {cfg.mode} Δt_sim={cfg.latency_s} s ...")
+        _make_room(out / cfg.episode_name(), overwrite=True)
+        rows.append(run_episode(cfg, out, transport))
     print_rows(rows, title=f"LIBERO-LQ demo · libero_spatial task {task} · {policy} · {transport.value}")
     console.print(f"bags: {out}/  (score again with: lq score {out})")
     if any(r.get("status") == "error" for r in rows):
@@ -296,8 +330,7 @@ def sweep(
         sweep_spec = sw.load_spec(spec)
         sw.check_policies(sweep_spec.configs)
     except sw.SpecError as exc:
-        console.print(f"[red]{exc}[/red]")
-        raise typer.Exit(2) from exc
+        _refuse(str(exc) if str(exc).startswith(str(spec)) else f"{spec}: {exc}")
     out = out or Path("bags/sweeps") / sweep_spec.name
     summary = _run_sweep_with_progress(
         sweep_spec, out, workers=workers, transport=transport.value if transport else None,
@@ -425,6 +458,27 @@ def replay(
         raise typer.Exit(1)
 
 
+@app.command()
+def reindex(
+    bags: Annotated[list[Path], typer.Argument(help="Bag folders whose metadata.yaml is rebuilt from the .mcap.")],
+) -> None:
+    """Rebuild the metadata.yaml of bags from their .mcap (like ros2 bag reindex), e.g. after the recorder was
+    killed; the run metadata is kept, the .mcap is not modified. Exits 1 if any .mcap is damaged."""
+    from lq_ros.bag import reindex as reindex_bag
+
+    damaged = False
+    for bag in bags:
+        try:
+            result = reindex_bag(bag)
+        except FileNotFoundError as exc:
+            _refuse(str(exc))
+        state = "; ".join(result.damage) if result.damage else "complete"
+        console.print(f"{bag}: {result.messages} messages ({state})", soft_wrap=True, highlight=False, markup=False)
+        damaged |= bool(result.damage)
+    if damaged:
+        raise typer.Exit(1)
+
+
 # Learned policies: demonstrations and training (lq_ros/learned/cli.py).
 from lq_ros.learned import cli as _learned_cli  # noqa: E402
 
@@ -432,8 +486,32 @@ app.command()(_learned_cli.collect)
 app.command()(_learned_cli.train)
 
 
-def main() -> None:
-    app()
+def main() -> int:
+    """``lq``: a usage mistake is one line on stderr and exit code 2 (no usage panel, no traceback)."""
+    try:
+        from typer._click import exceptions  # typer vendors click (0.2x)
+    except ImportError:  # pragma: no cover - an older typer on click
+        from click import exceptions
+
+    try:
+        return app(standalone_mode=False) or 0
+    except exceptions.NoArgsIsHelpError as exc:
+        exc.show()
+        return exc.exit_code
+    except exceptions.UsageError as exc:
+        from rich.markup import escape
+
+        where = exc.ctx.command_path if exc.ctx is not None else "lq"
+        message = " ".join(exc.format_message().split())
+        console.print(f"[red]error:[/red] {escape(f'{where}: {message} (see {where} --help)')}", soft_wrap=True,
+                      highlight=False)  # fmt: skip
+        return exc.exit_code
+    except exceptions.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except typer.Abort:
+        console.print("Aborted!")
+        return 1
 
 
 if __name__ == "__main__":

@@ -243,22 +243,21 @@ def load_spec(path: Path) -> SweepSpec:
 
 
 def check_policies(configs: tuple[RunConfig, ...] | list[RunConfig]) -> None:
-    """Build each distinct policy once, so bad policy arguments fail before any episode runs."""
-    from lq_ros.policies import make_policy, policy_class
+    """Check and build each distinct policy once, so bad policy arguments fail before any episode runs
+    (lq_ros.validate: an argument the policy does not take or of the wrong type, a value it refuses)."""
+    from lq_ros.validate import InputError, check_policy, policy_class
 
     seen, merges = set(), set()
     for cfg in configs:
-        if (cfg.policy, cfg.merge) not in merges:
-            merges.add((cfg.policy, cfg.merge))
-            try:
-                policy_class(cfg.policy).check_merge(cfg.merge)  # e.g. rtc with a policy that takes no prefix
-            except ValueError as exc:
-                raise SpecError(str(exc)) from exc
-        ident = (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
-        if ident in seen:
-            continue
-        seen.add(ident)
         try:
-            make_policy(cfg.policy, **cfg.policy_args).close()
-        except Exception as exc:  # noqa: BLE001 - any construction failure is a spec problem
-            raise SpecError(f"policy {cfg.policy} with args {cfg.policy_args}: {type(exc).__name__}: {exc}") from exc
+            if (cfg.policy, cfg.merge) not in merges:
+                merges.add((cfg.policy, cfg.merge))
+                policy_class(cfg.policy).check_merge(cfg.merge)  # e.g. rtc with a policy that takes no prefix
+            ident = (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
+            if ident not in seen:
+                seen.add(ident)
+                check_policy(cfg.policy, cfg.policy_args)
+        except InputError as exc:
+            raise SpecError(f"policies: {exc}") from None
+        except ValueError as exc:
+            raise SpecError(str(exc)) from exc

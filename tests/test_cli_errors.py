@@ -1,0 +1,126 @@
+"""A user's mistake is one line naming the problem and the valid values, exit code 2, no traceback, no bag.
+
+Every case runs the real ``lq`` command line in a subprocess, as a user would.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def lq(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lq_ros.cli", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)  # fmt: skip
+
+
+def assert_refused(result: subprocess.CompletedProcess, *expected: str) -> str:
+    """Exit code 2 and exactly one line on stderr that contains every ``expected`` piece."""
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stdout + result.stderr
+    for piece in expected:
+        assert piece in lines[0], (piece, lines[0])
+    return lines[0]
+
+
+# -- lq run --------------------------------------------------------------------------------------------------
+
+RUN_CASES = {
+    "unknown suite": (["--suite", "libero_nosuch"], ["unknown suite 'libero_nosuch'", "libero_spatial", "libero_90"]),
+    "task out of range": (["--task", "12"], ["task 12", "libero_spatial has tasks 0..9"]),
+    "task of libero_90": (["--suite", "libero_90", "--task", "90"], ["task 90", "libero_90 has tasks 0..89"]),
+    "negative task": (["--task", "-1"], ["task -1", "0..9"]),
+    "init out of range": (["--init", "999"], ["init state 999", "0..49"]),
+    "unknown policy": (["--policy", "nosuch"], ["unknown policy 'nosuch'", "scripted", "sine", "module:Class"]),
+    "policy module missing": (["--policy", "nosuch_pkg.mod:Cls"], ["cannot import module 'nosuch_pkg.mod'"]),
+    "argument not taken": (
+        ["--policy", "sine", "--policy-arg", "chunk=4"],
+        ["policy 'sine' takes no argument 'chunk'", "chunk_size: int = 8"],
+    ),
+    "argument of the wrong type": (
+        ["--policy", "sine", "--policy-arg", "chunk_size=abc"],
+        ["chunk_size='abc' is a str, not int", "chunk_size: int = 8"],
+    ),
+    "argument value refused": (
+        ["--policy", "sine", "--policy-arg", "chunk_size=0"],
+        ["policy 'sine' refuses chunk_size=0", "chunk_size must be >= 1"],
+    ),
+    "malformed policy argument": (["--policy-arg", "chunk_size"], ["--policy-arg expects key=value"]),
+    "not an integer": (["--task", "abc"], ["Invalid value for '--task'"]),
+    "unknown option": (["--tsk", "1"], ["No such option: --tsk"]),
+    "latency between ticks": (["--latency", "0.075"], ["not a whole number", "0.05 s or 0.1 s"]),
+}
+
+
+@pytest.mark.parametrize("case", list(RUN_CASES))
+def test_lq_run_refuses_in_one_line(tmp_path, case):
+    args, expected = RUN_CASES[case]
+    out = tmp_path / "bags"
+    assert_refused(lq("run", *args, "--transport", "inprocess", "--out", str(out)), *expected)
+    assert not out.exists(), "nothing may start: no bag folder"
+
+
+@pytest.mark.slow
+def test_rerun_into_the_same_out_is_refused_unless_overwrite(tmp_path):
+    args = ["run", "--policy", "sine", "--max-steps", "3", "--transport", "inprocess", "--out", str(tmp_path)]
+    first = lq(*args)
+    assert first.returncode == 0, first.stderr[-2000:]
+    (bag,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    (bag / "marker").write_text("first run")
+    line = assert_refused(lq(*args), "already exists", str(bag), "--overwrite")
+    assert "another --out" in line
+    assert (bag / "marker").exists(), "the refused rerun must not touch the first bag"
+    again = lq(*args, "--overwrite")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert not (bag / "marker").exists() and (bag / "metadata.yaml").exists()  # a fresh episode folder
+
+
+# -- lq sweep ------------------------------------------------------------------------------------------------
+
+GOOD_SPEC = {"transport": "inprocess", "tasks": [0], "inits": [0], "policies": ["sine"], "latencies_s": [0.1],
+             "modes": ["async"], "max_steps": 4}  # fmt: skip
+SWEEP_CASES = {
+    "unknown suite": ({"suite": "libero_nosuch"}, ["unknown suite", "libero_spatial"]),
+    "task out of range": ({"tasks": [10]}, ["tasks: 10 is outside 0..9"]),
+    "init out of range": ({"inits": [50]}, ["inits: 50 is outside 0..49"]),
+    "unknown policy": ({"policies": ["nosuch"]}, ["unknown policy 'nosuch'", "sine"]),
+    "argument not taken": (
+        {"policies": [{"name": "sine", "args": {"chunk": 4}}]},
+        ["policy 'sine' takes no argument 'chunk'", "chunk_size: int = 8"],
+    ),
+    "argument of the wrong type": (
+        {"policies": [{"name": "sine", "args": {"chunk_size": "abc"}}]},
+        ["chunk_size='abc' is a str, not int"],
+    ),
+    "unknown key": ({"latency": [0.1]}, ["unknown key(s) ['latency']"]),
+}
+
+
+@pytest.mark.parametrize("case", list(SWEEP_CASES))
+def test_lq_sweep_refuses_a_bad_spec_in_one_line(tmp_path, case):
+    change, expected = SWEEP_CASES[case]
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(yaml.safe_dump({**GOOD_SPEC, **change}))
+    out = tmp_path / "sweep"
+    assert_refused(lq("sweep", str(spec), "--out", str(out)), str(spec), *expected)
+    assert not out.exists()
+
+
+def test_lq_sweep_refuses_an_unreadable_spec(tmp_path):
+    assert_refused(lq("sweep", str(tmp_path / "missing.yaml")), "missing.yaml: cannot read")
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("policies: [sine\n  latencies_s: {")
+    assert_refused(lq("sweep", str(broken), "--out", str(tmp_path / "o")), "broken.yaml: not valid YAML")
+    assert not (tmp_path / "o").exists()
+
+
+def test_lq_reindex_of_a_folder_without_a_bag_is_refused(tmp_path):
+    assert_refused(lq("reindex", str(tmp_path)), "no .mcap file")
