@@ -28,6 +28,7 @@ ROW_COLUMNS = [
     ("status", "status"),
     ("mode", "mode"),
     ("latency_s", "Δt_sim s"),
+    ("latency_dist", "latency"),
     ("completion_steps", "steps"),
     ("completion_time_s", "time s"),
     ("jerk_mean", "jerk m/s³"),
@@ -38,6 +39,7 @@ ROW_COLUMNS = [
     ("energy_per_step_j", "J/step"),
     ("hold_ticks", "holds"),
     ("underrun_ticks", "underruns"),
+    ("chunk_switch_jump_mean", "switch jump"),
 ]
 
 
@@ -114,17 +116,27 @@ def run(
     seed: int = _RUN.seed,
     mode: Annotated[str, typer.Option(help="sync (hold while inferring) or async (buffer).")] = _RUN.mode,
     latency: Annotated[
-        float, typer.Option(help="Injected inference latency Δt_sim, seconds: a whole number of 0.05 s ticks.")
-    ] = _RUN.latency_s,
+        str,
+        typer.Option(
+            help="Injected inference latency Δt_sim: seconds (a whole number of 0.05 s ticks), or a distribution "
+            "drawn per inference: uniform:LO:HI, normal:MEAN:STD, lognormal:MEDIAN:SIGMA, trace:FILE (docs/async.md)."
+        ),
+    ] = f"{_RUN.latency_s:g}",
     latency_rounding: Annotated[
         LatencyRounding, typer.Option(help="exact: refuse a latency between ticks; nearest: round it to N·0.05 s.")
     ] = LatencyRounding.exact,
     replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = _RUN.replan_steps,
     hold: Annotated[str, typer.Option(help="sync hold: stop or repeat.")] = _RUN.hold,
     request_threshold: Annotated[
-        int, typer.Option(help="async: request at this buffer size; -1: N.")
+        int, typer.Option(help="async: request at this buffer size; -1: the merge strategy's default (replace: N).")
     ] = _RUN.request_threshold,
-    merge: Annotated[str, typer.Option(help="async merge: replace or blend.")] = _RUN.merge,
+    merge: Annotated[
+        str,
+        typer.Option(
+            help="async merge: replace, latest_only, weighted_average, average, conservative, temporal_ensemble, "
+            "rtc, rtc_hard (docs/async.md)."
+        ),
+    ] = _RUN.merge,
     policy: str = _RUN.policy,
     policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
     camera_size: Annotated[
@@ -144,12 +156,19 @@ def run(
     """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task)."""
     from lq_ros.suites import round_latency
 
-    if latency_rounding is LatencyRounding.nearest and latency >= 0 and round_latency(latency) != latency:
-        console.print(f"latency {latency:g} s rounded to {round_latency(latency):g} s (--latency-rounding nearest)")
-        latency = round_latency(latency)
+    latency_fields: dict = {"latency_dist": latency}  # a distribution (RunConfig parses and checks it)
+    if ":" not in latency:
+        try:
+            seconds = float(latency)
+        except ValueError:
+            _refuse(f"--latency {latency!r}: expected seconds or a distribution (docs/async.md)")
+        if latency_rounding is LatencyRounding.nearest and seconds >= 0 and round_latency(seconds) != seconds:
+            console.print(f"latency {seconds:g} s rounded to {round_latency(seconds):g} s (--latency-rounding nearest)")
+            seconds = round_latency(seconds)
+        latency_fields = {"latency_s": seconds}
     try:
         cfg = RunConfig(
-            suite=suite, task=task, init=init, seed=seed, mode=mode, latency_s=latency,
+            suite=suite, task=task, init=init, seed=seed, mode=mode, **latency_fields,
             replan_steps=replan_steps, hold=hold, request_threshold=request_threshold, merge=merge,
             policy=policy, policy_args=_parse_policy_args(policy_arg), camera_size=camera_size,
             physics_rate=physics_rate, max_steps=max_steps,
@@ -157,6 +176,9 @@ def run(
         from lq_ros import validate
 
         validate.check_run(cfg)  # task and init ranges, the policy and its arguments: before anything starts
+        from lq_ros.policies import policy_class
+
+        policy_class(cfg.policy).check_merge(cfg.merge)  # rtc needs a policy that takes the executing prefix
     except ValueError as exc:  # validate.InputError included
         _refuse(str(exc))
     _make_room(out / cfg.episode_name(), overwrite)
@@ -332,10 +354,13 @@ def sweep(
     except sw.SpecError as exc:
         _refuse(str(exc) if str(exc).startswith(str(spec)) else f"{spec}: {exc}")
     out = out or Path("bags/sweeps") / sweep_spec.name
-    summary = _run_sweep_with_progress(
-        sweep_spec, out, workers=workers, transport=transport.value if transport else None,
-        backend=backend, address=address, retry_errors=retry_errors,
-    )  # fmt: skip
+    try:
+        summary = _run_sweep_with_progress(
+            sweep_spec, out, workers=workers, transport=transport.value if transport else None,
+            backend=backend, address=address, retry_errors=retry_errors,
+        )  # fmt: skip
+    except sw.RayConnectError as exc:  # a wrong --address or authentication token
+        _refuse(str(exc))
     c = summary.counts
     console.print(
         f"{summary.ran} episodes run in {summary.wall_s:.0f} s ({c['success']} success, {c['failure']} failure, "

@@ -25,7 +25,7 @@ exists; anything else (a half-written file, a bag without a record) is run again
 from lq_ros.episode import TRANSPORTS
 from lq_ros.sweep.local import LocalPool
 from lq_ros.sweep.orchestrator import BACKENDS, MAX_ATTEMPTS, Job, Scheduler, SweepSummary, prepare, run_sweep
-from lq_ros.sweep.ray_pool import RayPool, ray_init_local
+from lq_ros.sweep.ray_pool import RayConnectError, RayPool, ray_connect, ray_init_local
 from lq_ros.sweep.spec import SpecError, SweepSpec, check_policies, expand_spec, load_spec
 from lq_ros.sweep.store import ResultStore, atomic_write_text
 from lq_ros.sweep.worker import EpisodeWorker, default_workers, env_key
@@ -37,6 +37,7 @@ __all__ = [
     "EpisodeWorker",
     "Job",
     "LocalPool",
+    "RayConnectError",
     "RayPool",
     "ResultStore",
     "Scheduler",
@@ -50,6 +51,7 @@ __all__ = [
     "expand_spec",
     "load_spec",
     "prepare",
+    "ray_connect",
     "ray_init_local",
     "run_sweep",
 ]

@@ -186,6 +186,8 @@ def _finish(store: ResultStore, job: Job, result: dict, transport: str, sweep_na
         "wall_s": result.get("wall_s"),
         "finished_at": _now(),
     }
+    if result.get("node"):  # a Ray worker: the node that ran it
+        attempt["node"] = result["node"]
     if result["status"] == "error" and job.attempt < MAX_ATTEMPTS:
         store.keep_failed_attempt(job.key, attempt, bag if bag is not None else store.bags / job.cfg.episode_name())
         return None
