@@ -283,9 +283,11 @@ class ExecutorCore:
         n, latency_s = self.config.request_latency(rid)
         prefix = None
         if self.config.merge in PREFIX_STRATEGIES:
-            # The plan for ticks tick, tick + 1, ...: its first n rows execute while the policy infers.
+            # The plan for ticks tick, tick + 1, ...: its first d rows execute while the policy infers. A policy
+            # cannot know its own latency in advance, so d is the expected N (rounded up), not this draw's n:
+            # the same as n for a constant latency; with a distribution the n stale rows are dropped as always.
             plan = np.array([p.action for p in self._buffer]) if self._buffer else np.zeros((0, ACTION_DIM))
-            prefix = ActionPrefix(plan, n, PREFIX_SCHEDULE[self.config.merge])
+            prefix = ActionPrefix(plan, self.config.latency_ticks, PREFIX_SCHEDULE[self.config.merge])
         req = Request(rid, tick, tick + n, latency_s, prefix)
         self._next_request_id += 1
         self._outstanding = req
