@@ -66,3 +66,14 @@ def test_rtc_with_a_policy_that_takes_no_prefix_is_refused_before_the_episode(tm
     with pytest.raises(ValueError, match="policy 'scripted' cannot"):
         run_inprocess(cfg, tmp_path)
     assert not (tmp_path / cfg.episode_name()).exists()
+
+
+def test_trace_latency_replays_the_file_in_order(tmp_path):
+    trace = tmp_path / "server_dt.txt"
+    trace.write_text("0.087\n0.12\n0.31\n")  # measured Δt_real of a server: 2, 3, 7 ticks
+    cfg = RunConfig(policy="sine", mode="async", latency_dist=f"trace:{trace}", max_steps=40)
+    assert cfg.latency_dist.endswith("@sha256:" + cfg.latency_model().trace_sha)
+    outcome = run_inprocess(cfg, tmp_path / "bags")
+    ticks = [round(c.injected_latency_s / CONTROL_DT_S) for c in _chunks(outcome.bag_path)]
+    assert ticks == [[2, 3, 7][(c.request_id - 1) % 3] for c in _chunks(outcome.bag_path)]
+    assert score_bag(outcome.bag_path)["latency_dist"] == "trace:server_dt.txt"
