@@ -413,7 +413,6 @@ def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
         signal.signal(signal.SIGTERM, previous)
 
 
-
 @app.command()
 def report(
     results_dir: Path,
