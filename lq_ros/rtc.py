@@ -16,15 +16,21 @@ decaying to 0 at L, 0 beyond (no plan there); ``linear``: c_i; ``hard`` (hard ma
 ablation, kinetix ``zeros``): 1 for i < d, 0 elsewhere; ``ones``: 1 for i < L.
 
 The module is torch-only at call time and knows nothing of a model: it takes the velocity function and the
-Euler schedule, so any flow policy can use it (lq_ros/policies/flow.py does).
+Euler schedule, so any flow policy can use it. :func:`inpaint_chunk` is the one call a flow policy needs: it
+normalises the executor's prefix (lq_ros.merge.ActionPrefix, in action units) like the policy's training
+actions and samples the guided chunk.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from lq_ros.merge import ActionPrefix
 
 #: Maximum guidance weight β (real-time-chunking-kinetix's default; LeRobot's RTC uses 10).
 MAX_GUIDANCE = 5.0
@@ -98,3 +104,29 @@ def guided_sample(
             (correction,) = torch.autograd.grad(x1, xg, grad_outputs=err)
         x = (xg + dt * (v + guidance_weight(t, max_guidance) * correction)).detach()
     return x
+
+
+def inpaint_chunk(
+    velocity: Callable,
+    noise,
+    steps: int,
+    prefix: ActionPrefix,
+    action_mean,
+    action_std,
+    max_guidance: float = MAX_GUIDANCE,
+):
+    """The normalised chunk (1, H, D) a flow policy samples under real-time chunking.
+
+    ``prefix.actions`` (L, D) in action units become the target (a - mean) / std of rows 0..min(L, H)-1,
+    weighted by ``prefix_weights(prefix.delay, L, H, prefix.schedule)``; ``velocity(x, t)`` and ``noise``
+    (1, H, D) are the policy's, in its normalised units. An empty prefix gives the unguided chunk.
+    """
+    import torch
+
+    horizon = noise.shape[1]
+    n = min(len(prefix.actions), horizon)
+    target = np.zeros(tuple(noise.shape[1:]), dtype=np.float64)
+    target[:n] = (prefix.actions[:n] - np.asarray(action_mean, dtype=np.float64)) / np.asarray(action_std, np.float64)
+    weights = prefix_weights(prefix.delay, n, horizon, prefix.schedule)
+    y = torch.as_tensor(target, dtype=noise.dtype)[None]
+    return guided_sample(velocity, noise, steps, y, weights, max_guidance)

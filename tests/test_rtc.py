@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from lq_ros.rtc import MAX_GUIDANCE, guidance_weight, guided_sample, prefix_weights
+from lq_ros.merge import ActionPrefix
+from lq_ros.rtc import MAX_GUIDANCE, guidance_weight, guided_sample, inpaint_chunk, prefix_weights
 
 torch = pytest.importorskip("torch")
 H = 8
@@ -86,3 +87,16 @@ def test_more_guidance_pulls_harder():
     w = prefix_weights(2, 4, H, "exp")
     errs = [float((guided_sample(velocity, noise, 10, target, w, g)[0, :2, 0] - 1.5).abs().max()) for g in (0.5, 5.0)]
     assert errs[1] < errs[0]
+
+
+def test_inpaint_chunk_works_in_action_units():
+    """A policy whose training actions have mean 0.5 and std 2 per dimension: the prefix is given in action
+    units, the flow runs in normalised ones; the denormalised chunk follows the prefix."""
+    velocity = gaussian_flow()
+    noise = torch.randn((1, H, 7), generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    mean, std = np.full(7, 0.5), np.full(7, 2.0)
+    prefix = ActionPrefix(np.full((5, 7), 3.5), delay=3)  # 3.5 in action units = 1.5 normalised
+    out = inpaint_chunk(velocity, noise, 10, prefix, mean, std)
+    assert float((out[0] * 2.0 + 0.5 - 3.5).abs().max()) < 0.6
+    free = inpaint_chunk(velocity, noise, 10, ActionPrefix(np.zeros((0, 7)), 3), mean, std)
+    assert torch.equal(free, euler(velocity, noise, 10))
