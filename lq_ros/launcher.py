@@ -4,7 +4,10 @@ No ros2 launch exists for the PyPI wheels, so this is ours: parameters go in a R
 file per run, each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the run's
 ROS_DOMAIN_ID and, unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. A node killed
 with SIGKILL leaves Fast DDS files in /dev/shm: the launcher notes which files each node owns while
-it runs and removes the orphaned ones once every node has exited (lq_ros.procs.ShmTracker).
+it runs and removes the orphaned ones once every node has exited (lq_ros.procs.ShmTracker). Choosing
+Fast DDS's UDP transport alone (FASTDDS_BUILTIN_TRANSPORTS=UDPv4) would not avoid them: with
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, rmw_fastrtps (Jazzy, 8.4) installs its own shared-memory and
+UDP transports and ignores that variable.
 """
 
 from __future__ import annotations
