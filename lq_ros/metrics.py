@@ -141,6 +141,16 @@ def jerk_p90(pos: ArrayLike, dt_s: float) -> float:
     return float(np.percentile(jerk_norms(pos, dt_s), 90.0))
 
 
+def _osc_tail(pos: ArrayLike, window: int) -> NDArray[np.float64]:
+    """The last ``window`` positions (all of them if fewer); ValueError for an empty series or window < 1."""
+    p = _as_positions(pos)
+    if window < 1:
+        raise ValueError(f"EE-Osc window must be >= 1 sample, got {window}")
+    if p.shape[0] == 0:
+        raise ValueError("EE-Osc needs at least one position sample, got none")
+    return p[-window:]
+
+
 def ee_oscillation(pos: ArrayLike, window: int = DEFAULT_OSC_WINDOW) -> float:
     """End-effector oscillation EE-Osc (paper A.3), metres.
 
@@ -154,12 +164,7 @@ def ee_oscillation(pos: ArrayLike, window: int = DEFAULT_OSC_WINDOW) -> float:
     Raises:
         ValueError: if ``pos`` is empty or ``window`` < 1.
     """
-    p = _as_positions(pos)
-    if window < 1:
-        raise ValueError(f"EE-Osc window must be >= 1 sample, got {window}")
-    if p.shape[0] == 0:
-        raise ValueError("EE-Osc needs at least one position sample, got none")
-    tail = p[-window:]
+    tail = _osc_tail(pos, window)
     return float(np.mean(np.linalg.norm(tail - tail.mean(axis=0), axis=1)))
 
 
@@ -175,12 +180,7 @@ def ee_oscillation_detrended(pos: ArrayLike, window: int = DEFAULT_OSC_WINDOW) -
     Raises:
         ValueError: if ``pos`` is empty or ``window`` < 1.
     """
-    p = _as_positions(pos)
-    if window < 1:
-        raise ValueError(f"EE-Osc window must be >= 1 sample, got {window}")
-    if p.shape[0] == 0:
-        raise ValueError("EE-Osc needs at least one position sample, got none")
-    tail = p[-window:]
+    tail = _osc_tail(pos, window)
     k = np.arange(len(tail), dtype=np.float64)
     design = np.column_stack([np.ones_like(k), k])
     coef, *_ = np.linalg.lstsq(design, tail, rcond=None)
