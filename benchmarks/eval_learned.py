@@ -1,11 +1,13 @@
-"""Zero-latency success and inference latency of the learned chunk policies on LIBERO-Spatial (no ROS).
+"""Zero-latency success (per task, Wilson 95% intervals) and inference latency of the learned chunk policies.
 
 Runs the conventional LIBERO loop (``run_conventional``: infer, execute ``replan_steps`` actions,
-repeat; Δt_sim = 0) for each policy on each task over the first N init states, and times every
-``infer`` call. Each policy executes the number of actions per chunk stored with its weights
-(oft chunk 8: 8, oft chunk 1: 1, flow chunk 10: 5) unless --replan-steps overrides it.
+repeat; Δt_sim = 0, no ROS) for each policy on each task of each suite over init states
+``--init-start`` .. ``--init-start + --inits - 1``, and times every ``infer`` call. Each policy executes
+the number of actions per chunk stored with its weights (oft chunk 8: 8, oft chunk 1: 1, flow chunk
+10: 5) unless --replan-steps overrides it. The policies load the shipped weights of each suite.
 
-Usage: python benchmarks/eval_learned.py [--inits 10] [--tasks 0 1 ...] [--workers 2] [--json out.json]
+Usage: python benchmarks/eval_learned.py [--suite libero_spatial --suite libero_object] [--inits 10]
+       [--tasks 0 1 ...] [--workers 2] [--json out.json]
        [--policy oft --policy oft:chunk_size=1 --policy flow]   (name[:key=value,...], repeatable)
        python benchmarks/eval_learned.py --merge a.json b.json   (one table from runs split by task/policy)
 """
@@ -24,10 +26,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lq_ros.env import LiberoEnv, Observation, TaskInfo
+from lq_ros.metrics import wilson_interval
 from lq_ros.policies import Policy, make_policy
 from lq_ros.runner import run_conventional
 
-SUITE = "libero_spatial"
+SUITES = ("libero_spatial", "libero_object")
 SEED = 7
 DEFAULT_POLICIES = ("oft", "oft:chunk_size=1", "flow")
 
@@ -65,16 +68,18 @@ class Timed(Policy):
         return out
 
 
-def eval_task(job: tuple[int, list[str], range, int]) -> list[dict]:
+def eval_task(job: tuple[str, int, list[str], range, int]) -> list[dict]:
     """All policies on one task (one env), over the init states ``inits``."""
-    task_id, specs, inits, replan_override = job
-    env = LiberoEnv(SUITE, task_id)
+    suite, task_id, specs, inits, replan_override = job
+    env = LiberoEnv(suite, task_id)
     rows = []
     try:
         for spec in specs:
             name, kwargs = parse_spec(spec)
             policy = Timed(make_policy(name, **kwargs))
-            replan = replan_override or int(policy.inner.meta["inference"]["replan_steps"])
+            policy.reset(env.task, SEED)  # loads the suite's weights: their replan_steps
+            replan = replan_override or int(policy.inner.replan_steps)
+            weights = policy.inner.weights_path.name
             for init in inits:
                 t0 = time.perf_counter()
                 try:
@@ -82,20 +87,21 @@ def eval_task(job: tuple[int, list[str], range, int]) -> list[dict]:
                     status, ticks = ("success" if res.success else "failure"), res.ticks
                 except Exception as exc:  # noqa: BLE001 - counted as an error, never as a failure
                     status, ticks = f"error: {type(exc).__name__}: {exc}", 0
-                rows.append({"policy": spec, "task": task_id, "init": init, "status": status, "ticks": ticks,
-                             "replan_steps": replan, "wall_s": round(time.perf_counter() - t0, 2)})  # fmt: skip
-                print(f"{spec:18s} task {task_id} init {init}: {status} {ticks}", file=sys.stderr, flush=True)
-            rows.append({"policy": spec, "task": task_id, "infer_s": policy.times_s})
+                rows.append({"suite": suite, "policy": spec, "task": task_id, "init": init, "status": status,
+                             "ticks": ticks, "replan_steps": replan, "weights": weights,
+                             "wall_s": round(time.perf_counter() - t0, 2)})  # fmt: skip
+                print(f"{suite} {spec:18s} task {task_id} init {init}: {status} {ticks}", file=sys.stderr, flush=True)
+            rows.append({"suite": suite, "policy": spec, "task": task_id, "infer_s": policy.times_s})
     finally:
         env.close()
     return rows
 
 
-def isolated_latency_ms(spec: str, repeats: int = 200) -> dict:
-    """infer() on one real observation, repeated (after warm-up): the model's own cost."""
+def isolated_latency_ms(spec: str, suite: str, repeats: int = 200) -> dict:
+    """infer() on one real observation (task 0, init 0), repeated after warm-up: the model's own cost."""
     name, kwargs = parse_spec(spec)
     policy = make_policy(name, **kwargs)
-    env = LiberoEnv(SUITE, 0)
+    env = LiberoEnv(suite, 0)
     try:
         env.reset(0, SEED)
         policy.reset(env.task, SEED)
@@ -113,49 +119,89 @@ def isolated_latency_ms(spec: str, repeats: int = 200) -> dict:
     return {"mean": float(t.mean()), "p50": float(np.median(t)), "p95": float(np.percentile(t, 95))}
 
 
-def report(rows: list[dict], specs: list[str], tasks: list[int], inits, isolated: bool) -> dict:
-    """Print the per-task success table and latency of ``rows``; returns the summary."""
+def cell(ok: int, n: int) -> str:
+    """``k/n [lo-hi]`` with the Wilson 95% interval in percent."""
+    if n == 0:
+        return "-"
+    lo, hi = wilson_interval(ok, n)
+    return f"{ok}/{n} [{100 * lo:.0f}-{100 * hi:.0f}]"
+
+
+def report(rows: list[dict], specs: list[str], isolated: bool) -> dict:
+    """Print, per suite, the per-task success table (Wilson 95% CIs) and latency; returns the summary."""
     episodes = [r for r in rows if "status" in r]
-    print(f"suite={SUITE} seed={SEED} inits={list(inits)} tasks={tasks} Δt_sim=0 (conventional loop)")
-    print("policy             replan " + " ".join(f"t{t:<3d}" for t in tasks) + "  total       steps(ok)  infer ms")
-    summary = {}
-    for spec in specs:
-        mine = [r for r in episodes if r["policy"] == spec]
-        cells = []
-        for t in tasks:
-            ok = sum(r["status"] == "success" for r in mine if r["task"] == t)
-            cells.append(f"{ok}/{sum(r['task'] == t for r in mine):<2d}")
-        n_ok = sum(r["status"] == "success" for r in mine)
-        n_err = sum(r["status"].startswith("error") for r in mine)
-        steps = [r["ticks"] for r in mine if r["status"] == "success"]
-        infer = np.concatenate([r["infer_s"] for r in rows if r.get("policy") == spec and "infer_s" in r]) * 1e3
-        summary[spec] = {
-            "success": n_ok,
-            "episodes": len(mine),
-            "errors": n_err,
-            "mean_steps_success": float(np.mean(steps)) if steps else None,
-            "infer_ms_in_loop_mean": float(infer.mean()),
-            "infer_ms_in_loop_p95": float(np.percentile(infer, 95)),
-            "replan_steps": mine[0]["replan_steps"] if mine else None,
-        }
+    summary: dict = {}
+    for suite in sorted({r["suite"] for r in episodes}, key=lambda s: (s not in SUITES, s)):
+        mine = [r for r in episodes if r["suite"] == suite]
+        tasks = sorted({r["task"] for r in mine})
+        inits = sorted({r["init"] for r in mine})
         print(
-            f"{spec:18s} {summary[spec]['replan_steps']!s:6s} " + " ".join(f"{c:4s}" for c in cells)
-            + f"  {n_ok}/{len(mine)} = {100 * n_ok / max(len(mine), 1):3.0f}%"
-            + f"  {summary[spec]['mean_steps_success'] or float('nan'):6.1f}"
-            + f"     {infer.mean():.2f} (p95 {np.percentile(infer, 95):.2f}, n={len(infer)})"
-            + (f"  errors: {n_err}" if n_err else "")
-        )  # fmt: skip
-    if isolated:
-        print("isolated infer latency (same observation, 200 calls after warm-up, 1 torch thread):")
+            f"\n{suite}: seed={SEED} inits={inits[0]}-{inits[-1]} ({len(inits)} per task) Δt_sim=0 (conventional loop)"
+        )
+        print("success k/n [Wilson 95% interval, %]")
+        width = 19
+        print("task   " + "".join(f"{s:>{width}s}" for s in specs))
+        for t in tasks:
+            line = f"t{t:<6d}"
+            for spec in specs:
+                sel = [r for r in mine if r["policy"] == spec and r["task"] == t]
+                line += f"{cell(sum(r['status'] == 'success' for r in sel), len(sel)):>{width}s}"
+            print(line)
+        line = "total  "
         for spec in specs:
-            lat = isolated_latency_ms(spec)
-            summary[spec]["infer_ms_isolated"] = lat
-            print(f"  {spec:18s} mean {lat['mean']:.2f} ms  p50 {lat['p50']:.2f}  p95 {lat['p95']:.2f}")
+            sel = [r for r in mine if r["policy"] == spec]
+            line += f"{cell(sum(r['status'] == 'success' for r in sel), len(sel)):>{width}s}"
+        print(line)
+        summary[suite] = {}
+        for spec in specs:
+            sel = [r for r in mine if r["policy"] == spec]
+            if not sel:
+                continue
+            n_ok = sum(r["status"] == "success" for r in sel)
+            n_err = sum(r["status"].startswith("error") for r in sel)
+            steps = [r["ticks"] for r in sel if r["status"] == "success"]
+            infer = np.concatenate(
+                [r["infer_s"] for r in rows if r.get("policy") == spec and r.get("suite") == suite and "infer_s" in r]
+            )
+            infer_ms = infer * 1e3
+            lo, hi = wilson_interval(n_ok, len(sel))
+            s = summary[suite][spec] = {
+                "success": n_ok,
+                "episodes": len(sel),
+                "wilson95": [lo, hi],
+                "errors": n_err,
+                "per_task": {
+                    t: [sum(r["status"] == "success" for r in sel if r["task"] == t), sum(r["task"] == t for r in sel)]
+                    for t in tasks
+                },
+                "mean_steps_success": float(np.mean(steps)) if steps else None,
+                "infer_ms_in_loop_mean": float(infer_ms.mean()) if len(infer_ms) else None,
+                "infer_ms_in_loop_p50": float(np.median(infer_ms)) if len(infer_ms) else None,
+                "infer_calls": len(infer_ms),
+                "replan_steps": sel[0]["replan_steps"],
+                "weights": sel[0].get("weights"),
+            }
+            print(
+                f"  {spec:18s} {s['weights'] or ''}: replan {s['replan_steps']}, {100 * n_ok / len(sel):.0f}%"
+                f" [{100 * lo:.0f}-{100 * hi:.0f}],"
+                f" mean steps (successes) {s['mean_steps_success'] or float('nan'):.1f},"
+                f" infer in loop mean {s['infer_ms_in_loop_mean']:.2f} ms p50 {s['infer_ms_in_loop_p50']:.2f}"
+                f" (n={len(infer_ms)})" + (f", errors: {n_err}" if n_err else "")
+            )
+        if isolated:
+            print("  isolated infer latency (task 0 init 0 observation, 200 calls after warm-up, 1 torch thread):")
+            for spec in specs:
+                if spec not in summary[suite]:
+                    continue
+                lat = isolated_latency_ms(spec, suite)
+                summary[suite][spec]["infer_ms_isolated"] = lat
+                print(f"  {spec:18s} mean {lat['mean']:.2f} ms  p50 {lat['p50']:.2f}  p95 {lat['p95']:.2f}")
     return summary
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--suite", action="append", choices=SUITES, help="repeatable; default: both")
     ap.add_argument("--inits", type=int, default=10, help="N init states per task")
     ap.add_argument("--init-start", type=int, default=0, help="first init state (to split a run; see --merge)")
     ap.add_argument("--tasks", type=int, nargs="*", default=list(range(10)))
@@ -170,14 +216,13 @@ def main() -> None:
     if args.merge:
         rows = [r for path in args.merge for r in json.loads(path.read_text())["rows"]]
         specs = list(dict.fromkeys(r["policy"] for r in rows))
-        tasks = sorted({r["task"] for r in rows})
-        inits = sorted({r["init"] for r in rows if "init" in r})
-        report(rows, specs, tasks, inits, isolated=not args.no_isolated)
+        report(rows, specs, isolated=not args.no_isolated)
         return
     specs = args.policy or list(DEFAULT_POLICIES)
+    suites = args.suite or list(SUITES)
     started = time.perf_counter()
     inits = range(args.init_start, args.init_start + args.inits)
-    jobs = [(t, specs, inits, args.replan_steps) for t in args.tasks]
+    jobs = [(s, t, specs, inits, args.replan_steps) for s in suites for t in args.tasks]
     if args.workers > 1 and len(jobs) > 1:
         with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
             results = pool.map(eval_task, jobs, chunksize=1)
@@ -187,7 +232,7 @@ def main() -> None:
     wall = time.perf_counter() - started
     if args.json:
         args.json.write_text(json.dumps({"rows": rows}, indent=1))
-    summary = report(rows, specs, args.tasks, inits, isolated=not args.no_isolated)
+    summary = report(rows, specs, isolated=not args.no_isolated)
     print(f"wall time {wall:.0f} s with {args.workers} workers (episodes only)")
     if args.json:
         args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))

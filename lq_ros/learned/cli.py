@@ -23,19 +23,45 @@ def _ints(spec: str) -> tuple[int, ...]:
     return tuple(out)
 
 
+def _driver(spec: str) -> dict:
+    """``name[:key=value,...]`` -> CollectConfig driver fields; values parsed as JSON when possible."""
+    if not spec:
+        return {}
+    name, _, rest = spec.partition(":")
+    args = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise typer.BadParameter(f"bad driver {spec!r}: expected name:key=value,...")
+        try:
+            args[key] = json.loads(value)
+        except json.JSONDecodeError:
+            args[key] = value
+    return {"driver": name, "driver_args": args}
+
+
 def collect(
     out: Annotated[Path, typer.Option(help="Dataset folder (data/frames.parquet + meta/).")],
     suite: str = "libero_spatial",
     tasks: Annotated[str, typer.Option(help="Task ids, e.g. '0-9' or '0,3'.")] = "0-9",
     inits: Annotated[str, typer.Option(help="Init states (one episode each); 0-9 are the evaluation set.")] = "10-29",
-    noise: Annotated[str, typer.Option(help="Arm action-noise std per episode, cycled, e.g. '0,0.15,0.3'.")] = (
-        "0,0.15,0.3"
+    noise: Annotated[str, typer.Option(help="Arm action-noise std per episode, cycled, e.g. '0,0.1,0.2'.")] = (
+        "0,0.1,0.2"
     ),
+    repeats: Annotated[int, typer.Option(help="Episodes per init state (own noise draw each).")] = 1,
+    fresh: Annotated[
+        bool, typer.Option(help="--inits are seeds of new random object placements, not shipped init states.")
+    ] = False,
     seed: int = 7,
     expert: str = "scripted",
     chunk_rows: Annotated[int, typer.Option(help="Rows of the expert's plan stored per frame.")] = 16,
     max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's.")] = 0,
     workers: Annotated[int, typer.Option(help="Processes (one task each at a time).")] = 2,
+    driver: Annotated[
+        str, typer.Option(help="DAgger: policy driving the robot, 'name[:key=value,...]'; the expert labels.")
+    ] = "",
+    driver_replan: Annotated[int, typer.Option(help="Actions of each driver chunk run open loop.")] = 8,
+    keep_failures: Annotated[bool, typer.Option(help="Keep unsuccessful episodes too (DAgger).")] = False,
 ) -> None:
     """Collect expert demonstrations with DART-style action noise; keeps the successful episodes."""
     from lq_ros.learned.collect import CollectConfig
@@ -44,15 +70,20 @@ def collect(
     try:
         levels = tuple(float(x) for x in noise.split(","))
         cfg = CollectConfig(
-            suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, seed=seed, expert=expert,
-            chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
+            suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, repeats=repeats, fresh=fresh,
+            seed=seed, expert=expert, chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
+            driver_replan=driver_replan, keep_failures=keep_failures, **_driver(driver),
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     info = run_collect(cfg, out)
     stats = info["collection"]["per_task"]
     for task, s in stats.items():
-        print(f"task {task}: kept {s['successes']}/{s['attempts']} ({s['frames']} frames, {s['errors']} errors)")
+        print(
+            f"task {task}: {s['successes']}/{s['attempts']} successful ({s['frames']} frames kept,"
+            f" {s['errors']} errors;"
+            f" successes by noise std {s.get('kept_by_noise', {})})"
+        )
     wall_s = info["collection"]["wall_s"]
     print(f"{out}: {info['total_episodes']} episodes, {info['total_frames']} frames, {wall_s:.0f} s")
 
@@ -70,6 +101,8 @@ def train(
     seed: int = 0,
     dropout: float = 0.0,
     feature_noise: Annotated[float, typer.Option(help="Input noise std (normalised units) in training.")] = 0.0,
+    ema: Annotated[float, typer.Option(help="EMA decay of the saved weights per step (0: off).")] = 0.0,
+    joint_velocity: Annotated[bool, typer.Option(help="Joint velocities as inputs (off: see the docs).")] = False,
     target: Annotated[str, typer.Option(help="plan (expert's plan per frame) | future (next H labels).")] = "plan",
     replan_steps: Annotated[int, typer.Option(help="Actions run per chunk (default); 0: H//2 flow, H oft.")] = 0,
     flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = 10,
@@ -85,8 +118,8 @@ def train(
     try:
         cfg = TrainConfig(
             policy=policy, horizon=horizon, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
-            seed=seed, dropout=dropout, feature_noise=feature_noise, target=target, replan_steps=replan,
-            flow_steps=flow_steps, threads=threads, name=name,
+            seed=seed, dropout=dropout, feature_noise=feature_noise, ema=ema, joint_velocity=joint_velocity,
+            target=target, replan_steps=replan, flow_steps=flow_steps, threads=threads, name=name,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-FPS = 20
+from lq_ros.suites import FPS
+
 CODEBASE_VERSION = "v2.1"
 DATA_FILE = "data/frames.parquet"
 

@@ -14,17 +14,26 @@ import numpy as np
 
 from lq_ros.env import Observation
 
-#: observation.state: eef_pos (3, m), eef_quat_xyzw (4), gripper_qpos (2, m), joint_pos (7, rad).
+#: observation.state: eef_pos (3, m), eef_quat_xyzw (4), gripper_qpos (2, m), joint_pos (7, rad),
+#: joint_vel (7, rad/s).
 STATE_NAMES: tuple[str, ...] = (
     *(f"eef_pos_{a}" for a in "xyz"),
     *(f"eef_quat_{a}" for a in "xyzw"),
     "gripper_qpos_l",
     "gripper_qpos_r",
     *(f"joint_pos_{i}" for i in range(7)),
+    *(f"joint_vel_{i}" for i in range(7)),
 )
 STATE_DIM = len(STATE_NAMES)
 #: Per object in observation.environment_state: position (3, m) + quaternion xyzw (4).
 OBJECT_POSE_DIM = 7
+#: Feature blocks: proprio (EE pos 3 + EE rot6 6 + fingers 2 + joint pos 7 [+ joint vel 7 if the layout
+#: asks]); per object (pos - EE 3 + rot6 6 + present 1); goal (object - EE 3, target - EE 3, target -
+#: object 3, object rot6 6, 2 flags); then the task one-hot.
+PROPRIO_DIM = 18
+JOINT_VEL_DIM = 7
+PER_OBJECT_DIM = 10
+GOAL_DIM = 17
 
 
 @dataclass(frozen=True)
@@ -34,6 +43,9 @@ class FeatureLayout:
     suite: str
     objects: tuple[str, ...]
     num_tasks: int
+    #: Joint velocities as inputs. Off in the shipped layouts: with them the open-loop chunk policies kept
+    #: doing what they were doing at phase changes (they read the action off the motion; see the docs).
+    joint_velocity: bool = False
 
     @property
     def env_state_dim(self) -> int:
@@ -41,24 +53,52 @@ class FeatureLayout:
 
     @property
     def feature_dim(self) -> int:
-        # proprio (3 pos + 6 rot + 2 gripper + 7 joints) + per object (3 pos + 6 rot + 1 present)
-        # + goal geometry (3 + 3 + 3 + 2 flags) + task one-hot
-        return 18 + 10 * len(self.objects) + 11 + self.num_tasks
+        vel = JOINT_VEL_DIM if self.joint_velocity else 0
+        return PROPRIO_DIM + vel + PER_OBJECT_DIM * len(self.objects) + GOAL_DIM + self.num_tasks
 
     def to_dict(self) -> dict:
-        return {"suite": self.suite, "objects": list(self.objects), "num_tasks": self.num_tasks}
+        return {
+            "suite": self.suite,
+            "objects": list(self.objects),
+            "num_tasks": self.num_tasks,
+            "joint_velocity": self.joint_velocity,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> FeatureLayout:
-        return cls(suite=str(d["suite"]), objects=tuple(d["objects"]), num_tasks=int(d["num_tasks"]))
+        return cls(
+            suite=str(d["suite"]),
+            objects=tuple(d["objects"]),
+            num_tasks=int(d["num_tasks"]),
+            joint_velocity=bool(d.get("joint_velocity", False)),
+        )
 
 
 #: One layout per suite. LIBERO-Spatial: the same five movable objects in all ten tasks (checked on
 #: every task's init state 0); the fixtures (cabinet, stove) do not move and are implied by the task id.
+#: LIBERO-Object: the union of the eleven objects of its ten scenes (seven per scene; the others are
+#: absent, presence flag 0), the basket in every one.
 LAYOUTS: dict[str, FeatureLayout] = {
     "libero_spatial": FeatureLayout(
         suite="libero_spatial",
         objects=("akita_black_bowl_1", "akita_black_bowl_2", "cookies_1", "glazed_rim_porcelain_ramekin_1", "plate_1"),
+        num_tasks=10,
+    ),
+    "libero_object": FeatureLayout(
+        suite="libero_object",
+        objects=(
+            "alphabet_soup_1",
+            "basket_1",
+            "bbq_sauce_1",
+            "butter_1",
+            "chocolate_pudding_1",
+            "cream_cheese_1",
+            "ketchup_1",
+            "milk_1",
+            "orange_juice_1",
+            "salad_dressing_1",
+            "tomato_sauce_1",
+        ),  # fmt: skip
         num_tasks=10,
     ),
 }
@@ -82,13 +122,19 @@ def _quat_to_rot6(q_xyzw: np.ndarray) -> np.ndarray:
     return np.concatenate([c0, c1], axis=-1)
 
 
+def _slot(layout: FeatureLayout, name: str) -> int:
+    """Layout index of an object, or of the object a region belongs to (``basket_1_contain_region``)."""
+    if name in layout.objects:
+        return layout.objects.index(name)
+    owners = [i for i, obj in enumerate(layout.objects) if name.startswith(obj + "_")]
+    return max(owners, key=lambda i: len(layout.objects[i])) if owners else -1
+
+
 def goal_slots(layout: FeatureLayout, goal: list[list[str]]) -> tuple[int, int]:
     """Layout indices of the first binary goal predicate's object and target (-1: not a tracked object)."""
     for pred in goal:
         if len(pred) == 3:
-            obj, target = pred[1], pred[2]
-            idx = {name: i for i, name in enumerate(layout.objects)}
-            return idx.get(obj, -1), idx.get(target, -1)
+            return _slot(layout, pred[1]), _slot(layout, pred[2])
     return -1, -1
 
 
@@ -97,7 +143,8 @@ def raw_from_observation(layout: FeatureLayout, obs: Observation) -> tuple[np.nd
 
     An object of the layout missing from the observation is stored as NaN (its presence flag becomes 0).
     """
-    state = np.concatenate([obs.eef_pos, obs.eef_quat_xyzw, obs.gripper_qpos, obs.joint_pos]).astype(np.float32)
+    state = np.concatenate([obs.eef_pos, obs.eef_quat_xyzw, obs.gripper_qpos, obs.joint_pos, obs.joint_vel])
+    state = state.astype(np.float32)
     env = np.full((len(layout.objects), OBJECT_POSE_DIM), np.nan, dtype=np.float32)
     for i, name in enumerate(layout.objects):
         if name in obs.objects:
@@ -136,18 +183,24 @@ def features(
     tgt_ok = (tgt_i >= 0) & present[rows, np.maximum(tgt_i, 0)]
     obj_pos = env[rows, np.maximum(obj_i, 0), :3]
     tgt_pos = env[rows, np.maximum(tgt_i, 0), :3]
+    obj_quat = quat[rows, np.maximum(obj_i, 0)]
     goal = np.concatenate(
         [
             np.where(obj_ok[:, None], obj_pos - eef, 0.0),
             np.where(tgt_ok[:, None], tgt_pos - eef, 0.0),
             np.where((obj_ok & tgt_ok)[:, None], tgt_pos - obj_pos, 0.0),
+            # The grasp depends on the goal object's orientation: give it directly, not only by slot.
+            np.where(obj_ok[:, None], _quat_to_rot6(obj_quat), 0.0),
             obj_ok[:, None],
             tgt_ok[:, None],
         ],
         axis=-1,
     )
     gripper = state[:, 7:9]
-    proprio = np.concatenate([eef, _quat_to_rot6(state[:, 3:7]), gripper, state[:, 9:16]], axis=-1)
+    parts = [eef, _quat_to_rot6(state[:, 3:7]), gripper, state[:, 9:16]]
+    if layout.joint_velocity:
+        parts.append(state[:, 16:23])
+    proprio = np.concatenate(parts, axis=-1)
     onehot = np.eye(layout.num_tasks)[task_index]
     out = np.concatenate([proprio, per_obj, goal, onehot], axis=-1).astype(np.float32)
     assert out.shape[1] == layout.feature_dim, (out.shape, layout.feature_dim)

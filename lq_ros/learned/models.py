@@ -3,17 +3,28 @@
 * ``ChunkRegressor`` (OFT-like): one MLP decodes all H actions of a chunk in parallel; trained with L1.
 * ``FlowChunkModel`` (pi0-like): a velocity field over the whole (H, 7) chunk, conditioned on the
   features and the flow time; trained with flow matching (x_t = (1-t) noise + t actions, target
-  actions - noise), sampled with a few Euler steps from seeded Gaussian noise.
+  actions - noise), sampled with a few Euler steps from seeded Gaussian noise (``integrate``; an
+  optional per-step hook can steer the integration, e.g. real-time-chunking guidance towards a given
+  action prefix).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import nn
 
-ACTION_DIM = 7
+from lq_ros.suites import ACTION_DIM
+
+#: Version of the ``<name>.json`` + ``<name>.pt`` checkpoint pair (train.py writes it, policy.py checks it).
+#: 2: observation.state with joint velocities, the goal object's orientation in the goal features.
+CHECKPOINT_FORMAT = 2
+
+#: ``hook(x, t, v) -> x``: called after every Euler step with the chunk ``x`` (B, H, 7) reached at flow
+#: time ``t`` (float) and the velocity ``v`` just used; returns the chunk to continue from.
+FlowHook = Callable[[torch.Tensor, float, torch.Tensor], torch.Tensor]
 
 
 class _Block(nn.Module):
@@ -78,14 +89,38 @@ class FlowChunkModel(nn.Module):
         return ((self.velocity(feats, x_t, t) - (actions - noise)) ** 2).mean()
 
     @torch.no_grad()
-    def sample(self, feats: torch.Tensor, noise: torch.Tensor, steps: int) -> torch.Tensor:
-        """Euler integration from ``noise`` (B, H, 7) at t=0 to the chunk at t=1 in ``steps`` steps."""
-        x = noise
-        dt = 1.0 / steps
-        for k in range(steps):
-            t = torch.full((x.shape[0],), k * dt)
-            x = x + dt * self.velocity(feats, x, t)
-        return x
+    def sample(
+        self, feats: torch.Tensor, noise: torch.Tensor, steps: int, hook: FlowHook | None = None
+    ) -> torch.Tensor:
+        """Chunk (B, H, 7) at t=1 integrated from ``noise`` at t=0 (see ``integrate``)."""
+        return integrate(self.velocity, feats, noise, steps, hook)
+
+
+def integrate(
+    velocity: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+    feats: torch.Tensor,
+    noise: torch.Tensor,
+    steps: int,
+    hook: FlowHook | None = None,
+) -> torch.Tensor:
+    """Euler integration of ``velocity(feats, x_t, t)`` from ``noise`` (B, H, 7) at t=0 to t=1 in ``steps`` steps.
+
+    The single place a flow chunk is generated. ``hook`` (optional) sees the chunk after every step and
+    may replace it; this is where real-time-chunking guidance (pulling the already-committed prefix of
+    the chunk towards the actions still being executed) would go. Without a hook the result depends
+    only on (feats, noise, steps).
+    """
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    x = noise
+    dt = 1.0 / steps
+    for k in range(steps):
+        t = torch.full((x.shape[0],), k * dt)
+        v = velocity(feats, x, t)
+        x = x + dt * v
+        if hook is not None:
+            x = hook(x, (k + 1) * dt, v)
+    return x
 
 
 MODELS = {"oft": ChunkRegressor, "flow": FlowChunkModel}

@@ -2,7 +2,8 @@
 
 The JSON holds everything needed to use the weights: model kind and size, chunk length H, the
 feature layout, the normalisation statistics, inference defaults, plus the training configuration,
-dataset provenance and the logged losses.
+dataset provenance and the logged losses. The loss curves are also written next to the weights as
+``<name>.loss.csv`` and ``<name>.loss.png``.
 """
 
 from __future__ import annotations
@@ -11,15 +12,14 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from lq_ros.learned.dataset import read_frames
 from lq_ros.learned.features import FeatureLayout, features, goal_slots
-
-CHECKPOINT_FORMAT = 1
+from lq_ros.suites import ACTION_DIM
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,11 @@ class TrainConfig:
     #: normalised feature units) added to the training inputs.
     dropout: float = 0.0
     feature_noise: float = 0.0
+    #: Exponential moving average of the weights (decay per step; 0: off). The averaged weights are the
+    #: ones validated and saved.
+    ema: float = 0.0
+    #: Joint velocities as inputs (overrides the dataset's layout; see features.FeatureLayout).
+    joint_velocity: bool = False
     seed: int = 0
     #: Fraction of episodes held out for the validation loss.
     val_fraction: float = 0.05
@@ -58,13 +63,15 @@ class TrainConfig:
             raise ValueError(f"target must be 'plan' or 'future', got {self.target!r}")
         if not 1 <= self.replan_steps <= self.horizon:
             raise ValueError(f"replan_steps must be in 1..horizon={self.horizon}, got {self.replan_steps}")
+        if not 0.0 <= self.ema < 1.0:
+            raise ValueError(f"ema must be in [0, 1), got {self.ema}")
         for key in ("horizon", "width", "depth", "steps", "batch_size", "flow_steps", "threads", "log_every"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
 
-    @property
-    def run_name(self) -> str:
-        return self.name or f"{self.policy}_c{self.horizon}"
+    def run_name(self, suite: str) -> str:
+        """Checkpoint name: ``--name``, else ``<policy>_c<H>_<suite>`` (the shipped naming)."""
+        return self.name or f"{self.policy}_c{self.horizon}_{suite}"
 
 
 def _log(msg: str) -> None:
@@ -72,10 +79,12 @@ def _log(msg: str) -> None:
 
 
 def _prepare_one(
-    data: Path, horizon: int, target: str
+    data: Path, horizon: int, target: str, joint_velocity: bool | None
 ) -> tuple[dict, FeatureLayout, np.ndarray, np.ndarray, np.ndarray]:
     info, cols = read_frames(data)
     layout = FeatureLayout.from_dict(info["layout"])
+    if joint_velocity is not None:
+        layout = replace(layout, joint_velocity=joint_velocity)
     goals = {int(k): v for k, v in info["goals"].items()}
     task = cols["task_index"].astype(np.int64)
     slot_of = {t: goal_slots(layout, g) for t, g in goals.items()}
@@ -88,7 +97,7 @@ def _prepare_one(
         targets = plan[:, :horizon]
     else:
         ep, actions = cols["episode_index"], cols["action"]
-        targets = np.empty((len(actions), horizon, 7), np.float32)
+        targets = np.empty((len(actions), horizon, ACTION_DIM), np.float32)
         starts = np.flatnonzero(np.r_[True, ep[1:] != ep[:-1]])
         ends = np.r_[starts[1:], len(ep)]
         for s, e in zip(starts, ends):
@@ -98,14 +107,17 @@ def _prepare_one(
 
 
 def prepare(
-    data: list[Path], horizon: int, target: str
+    data: list[Path], horizon: int, target: str, joint_velocity: bool | None = None
 ) -> tuple[list[dict], FeatureLayout, np.ndarray, np.ndarray, np.ndarray]:
-    """(infos, layout, features (N, F), chunk targets (N, H, 7), episode id (N,)) of one or more datasets."""
+    """(infos, layout, features (N, F), chunk targets (N, H, 7), episode id (N,)) of one or more datasets.
+
+    ``joint_velocity`` overrides the datasets' layout flag (None: keep it).
+    """
     if not data:
         raise ValueError("no dataset given")
     infos, parts, layout, offset = [], [], None, 0
     for d in data:
-        info, lay, feats, targets, episode = _prepare_one(Path(d), horizon, target)
+        info, lay, feats, targets, episode = _prepare_one(Path(d), horizon, target, joint_velocity)
         if layout is not None and lay != layout:
             raise ValueError(f"{d}: feature layout {lay} differs from {layout} of {data[0]}")
         layout = lay
@@ -129,19 +141,21 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     import torch
 
     from lq_ros.config import versions
-    from lq_ros.learned.models import build_model
+    from lq_ros.learned.models import CHECKPOINT_FORMAT, build_model
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     t_start = time.perf_counter()
-    infos, layout, feats, targets, episode = prepare([Path(d) for d in data], cfg.horizon, cfg.target)
+    infos, layout, feats, targets, episode = prepare(
+        [Path(d) for d in data], cfg.horizon, cfg.target, cfg.joint_velocity
+    )
     rng = np.random.default_rng(cfg.seed)
     episodes = np.unique(episode)
     n_val = int(round(cfg.val_fraction * len(episodes))) if len(episodes) > 1 else 0
     val_eps = rng.choice(episodes, size=n_val, replace=False) if n_val else np.array([], np.int64)
     is_val = np.isin(episode, val_eps)
     f_mean, f_std = _stats(feats[~is_val], 1e-4)
-    flat = targets[~is_val].reshape(-1, 7)
+    flat = targets[~is_val].reshape(-1, ACTION_DIM)
     a_mean, a_std = _stats(flat, 1e-4)
     x = torch.from_numpy((feats - f_mean) / f_std)
     y = torch.from_numpy((targets - a_mean) / a_std)
@@ -161,15 +175,20 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
 
     gen = torch.Generator().manual_seed(cfg.seed)
     val_gen_seed = cfg.seed + 1
+    # The averaged copy (or the model itself without EMA) is what is validated and saved.
+    averaged = torch.optim.swa_utils.AveragedModel(
+        model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(cfg.ema)
+    ) if cfg.ema > 0 else None  # fmt: skip
+    final = averaged.module if averaged is not None else model
 
     def val_loss() -> float | None:
         if len(val_idx) == 0:
             return None
-        model.eval()
+        final.eval()
         g = torch.Generator().manual_seed(val_gen_seed)  # the same noise every time: comparable numbers
         with torch.no_grad():
             losses = [
-                model.loss(x[val_idx[i : i + 4096]], y[val_idx[i : i + 4096]], g).item()
+                final.loss(x[val_idx[i : i + 4096]], y[val_idx[i : i + 4096]], g).item()
                 for i in range(0, len(val_idx), 4096)
             ]
         model.train()
@@ -189,6 +208,8 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
+        if averaged is not None:
+            averaged.update_parameters(model)
         running.append(loss.item())
         if (step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps:
             entry = {"step": step + 1, "train_loss": float(np.mean(running)), "val_loss": val_loss(),
@@ -199,8 +220,10 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    weights = out / f"{cfg.run_name}.pt"
-    torch.save(model.state_dict(), weights)
+    name = cfg.run_name(layout.suite)
+    weights = out / f"{name}.pt"
+    torch.save(final.state_dict(), weights)
+    write_loss_curves(out / name, log, f"{name}: {cfg.policy}, H={cfg.horizon}, {n_params} parameters")
     meta = {
         "format": CHECKPOINT_FORMAT,
         "kind": cfg.policy,
@@ -235,6 +258,33 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         },
         "versions": versions(),
     }
-    (out / f"{cfg.run_name}.json").write_text(json.dumps(meta, indent=1))
+    (out / f"{name}.json").write_text(json.dumps(meta, indent=1))
     _log(f"wrote {weights} ({weights.stat().st_size / 1e6:.2f} MB, {n_params} parameters)")
     return meta
+
+
+def write_loss_curves(stem: Path, log: list[dict], title: str) -> None:
+    """``<stem>.loss.csv`` (step, train_loss, val_loss, wall_s) and ``<stem>.loss.png`` (log-scale plot)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = ("step", "train_loss", "val_loss", "wall_s")
+    lines = [",".join(keys)] + [",".join("" if e[k] is None else f"{e[k]:.6g}" for k in keys) for e in log]
+    stem.with_name(stem.name + ".loss.csv").write_text("\n".join(lines) + "\n")
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=80)
+    steps = [e["step"] for e in log]
+    marker = "o" if len(log) < 10 else None  # a short log is a few points: show them
+    ax.plot(steps, [e["train_loss"] for e in log], label="train", marker=marker)
+    if any(e["val_loss"] is not None for e in log):
+        ax.plot(steps, [e["val_loss"] for e in log], label="validation (held-out episodes)", marker=marker)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss (normalised units)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(stem.with_name(stem.name + ".loss.png"))
+    plt.close(fig)

@@ -7,7 +7,11 @@ from lq_ros.learned.policy import LearnedChunkPolicy
 
 
 class OFTPolicy(LearnedChunkPolicy):
-    """One forward pass -> (H, 7). ``chunk_size`` 8 (default) or 1 picks the shipped weights."""
+    """One forward pass -> (H, 7), executed open loop.
+
+    ``chunk_size`` 8 (default) or 1 picks the shipped weights (``oft_c8`` / ``oft_c1``, per suite); the two
+    differ only in the chunk length they were trained for.
+    """
 
     name = "oft"
     kind = "oft"
