@@ -205,6 +205,16 @@ def test_collection_turns_off_the_experts_inflight_replay():
     assert not expert.expert.commit_inflight
 
 
+def test_shard_written_before_a_setting_existed_is_reused():
+    """A shard's saved configuration without a newer setting counts as that setting's default."""
+    from lq_ros.learned.collect import CollectConfig, _shard_key
+
+    cfg = CollectConfig(suite="libero_object", tasks=(0, 1), inits=(10, 11), repeats=2, workers=2)
+    old = {k: v for k, v in cfg.to_dict().items() if k not in ("fresh", "driver", "keep_failures")}
+    assert _shard_key({**old, "tasks": [0], "workers": 1}) == _shard_key(cfg.to_dict())
+    assert _shard_key({**old, "repeats": 1}) != _shard_key(cfg.to_dict())
+
+
 # --- models --------------------------------------------------------------------------------------------
 def test_model_shapes_flow_determinism_and_hook():
     torch.manual_seed(0)

@@ -17,7 +17,7 @@ import pickle
 import shutil
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -222,8 +222,18 @@ def _shard_path(out: Path, task_id: int) -> Path:
 
 
 def _shard_key(cfg: dict) -> dict:
-    """What a task's episodes depend on (not which other tasks ran, nor how many workers)."""
-    return {k: v for k, v in cfg.items() if k not in ("tasks", "workers")}
+    """What a task's episodes depend on (not which other tasks ran, nor how many workers).
+
+    A setting missing from ``cfg`` takes its default: a shard written before the setting existed was
+    collected as the default does it, so it stays reusable.
+    """
+    defaults = {
+        f.name: f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
+        for f in fields(CollectConfig)
+        if f.default is not MISSING or f.default_factory is not MISSING
+    }
+    full = {k: (list(v) if isinstance(v, tuple) else v) for k, v in {**defaults, **cfg}.items()}
+    return {k: v for k, v in full.items() if k not in ("tasks", "workers")}
 
 
 def _collect_task_star(args: tuple[CollectConfig, int, Path]):
