@@ -170,6 +170,19 @@ def _write_metadata(bag: Path, document: dict) -> None:
 # -- the writer ---------------------------------------------------------------------------------------------
 
 
+#: Topics written to chunks of their own (lane name): 25x the control data, which the default scoring skips.
+_PHYSICS_LANE_TOPICS = frozenset({m.JOINT_STATES_PHYSICS.name, m.EE_POSE_PHYSICS.name})
+_IMAGE_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
+
+
+def _chunk_lane(topic: m.Topic) -> str | None:
+    if topic.name in _PHYSICS_LANE_TOPICS:
+        return "physics"
+    if topic.msgtype in _IMAGE_TYPES:
+        return "images"
+    return None
+
+
 class EpisodeBagWriter:
     """Writes one episode to ``path`` (a new rosbag2 folder: metadata.yaml + .mcap), crash-safe.
 
@@ -198,6 +211,9 @@ class EpisodeBagWriter:
         self._channels: dict[str, int] = {}
         self._custom: dict[str, str] = {BAG_STATE_KEY: "recording"}
         self._chunk_start_ns: int | None = None  # log-time watermark when the pending chunk got its first message
+        # Bulky lanes (physics-rate topics, images) wait here and go to chunks of their own at each flush,
+        # so a reader that wants only the control-rate topics skips their chunks undecompressed.
+        self._lanes: dict[str, list[tuple[int, int, bytes]]] = {}
         self._watermark_ns = 0
         self.messages_written = 0
         self.closed = False
@@ -224,7 +240,11 @@ class EpisodeBagWriter:
             self._write_provisional()
 
     def write(self, topic: m.Topic, log_ns: int, data: bytes) -> None:
-        self._writer.add_message(self._channels[topic.name], log_time=log_ns, data=data, publish_time=log_ns)
+        lane = _chunk_lane(topic)
+        if lane is None:
+            self._writer.add_message(self._channels[topic.name], log_time=log_ns, data=data, publish_time=log_ns)
+        else:
+            self._lanes.setdefault(lane, []).append((self._channels[topic.name], log_ns, data))
         self._stats.add(topic.name, log_ns)
         self.messages_written += 1
         self._watermark_ns = max(self._watermark_ns, log_ns)
@@ -234,8 +254,12 @@ class EpisodeBagWriter:
             self.flush()
 
     def flush(self) -> None:
-        """Write the pending chunk out (to the OS: it survives a SIGKILL of this process)."""
+        """Write the pending chunks out (to the OS: they survive a SIGKILL of this process)."""
         self._writer.flush()
+        for lane in sorted(self._lanes):
+            for channel_id, log_ns, data in self._lanes.pop(lane):
+                self._writer.add_message(channel_id, log_time=log_ns, data=data, publish_time=log_ns)
+            self._writer.flush()
         self._chunk_start_ns = None
 
     def set_run_metadata(self, metadata: dict) -> None:
@@ -261,7 +285,7 @@ class EpisodeBagWriter:
         import yaml
 
         # Like rosbag2, the MCAP also carries the bag's metadata (for tools that read only the .mcap).
-        self._writer.flush()
+        self.flush()
         info = yaml.safe_dump(document["rosbag2_bagfile_information"], sort_keys=False)
         self._writer.add_metadata("rosbag2", {"serialized_metadata": info})
         self._writer.finish()

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lq_ros import metrics
-from lq_ros.executor import Source, validate_chunk
+from lq_ros.executor import Source
 from lq_ros.merge import ENSEMBLE_COEFF, Merge, apply_chunk
 
 #: Arm dimensions of the 7-D action (OSC position and rotation deltas); the gripper is the last.
@@ -66,7 +66,9 @@ class Chunk:
     request_id: int
     observation_tick: int
     latency_ticks: int
-    actions: np.ndarray | None  # None: the policy failed or the chunk was malformed (never executed)
+    #: None: the policy failed or the chunk was malformed (never executed); the caller validates
+    #: (executor.validate_chunk) when it builds the record.
+    actions: np.ndarray | None
 
     @property
     def due_tick(self) -> int:
@@ -94,7 +96,7 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
     if len(ticks) and not np.array_equal(ticks, np.arange(len(ticks))):
         raise ReplayMismatch("the command ticks are not 0, 1, 2, ... (a gap or a duplicate)")
     strategy = _ALIASES.get(merge) or Merge(merge or "replace")
-    valid = {c.request_id: c for c in chunks if c.actions is not None and validate_chunk(c.actions) is None}
+    valid = {c.request_id: c for c in chunks if c.actions is not None}
     due: dict[int, list[Chunk]] = {}
     for c in sorted(valid.values(), key=lambda c: c.request_id):
         due.setdefault(c.due_tick, []).append(c)
@@ -102,6 +104,7 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
     sync_chunk: Chunk | None = None
     old_plan_at: dict[int, np.ndarray | None] = {}  # tick -> the old plan's action for it (None: exhausted)
     overlapping = 0
+    last_row: tuple[int, int] | None = None  # (request id, row) of the last chunk command before tick t
     # (tick, replayed action, request id, row) of every chunk command, compared with the bag at once below
     # (a comparison per tick was two thirds of an episode's scoring time).
     replayed: list[tuple[int, np.ndarray, int, int]] = []
@@ -122,10 +125,10 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
     for t in range(len(ticks)):
         for c in due.get(t, []):
             if mode == "sync":
-                last = _last_chunk_row(rids[:t], idxs[:t], sources[:t])
                 nxt = None
-                if sync_chunk is not None and last is not None and last[0] == sync_chunk.request_id:
-                    nxt = sync_chunk.actions[last[1] + 1] if last[1] + 1 < len(sync_chunk.actions) else None
+                if sync_chunk is not None and last_row is not None and last_row[0] == sync_chunk.request_id:
+                    row = last_row[1] + 1
+                    nxt = sync_chunk.actions[row] if row < len(sync_chunk.actions) else None
                 old_plan_at[t] = nxt
                 sync_chunk = c
             else:
@@ -136,6 +139,7 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
             if mode != "sync" and buffer:
                 raise mismatch(f"tick {t}: a hold was recorded while the replayed buffer held actions")
             continue
+        last_row = (rid_list[t], idx_list[t])
         if mode == "sync":
             chunk = valid.get(rid_list[t])
             if chunk is None or idx_list[t] >= len(chunk.actions):
@@ -174,14 +178,6 @@ def _first_mismatch(replayed, actions, rids, idxs) -> tuple[int, int, int] | Non
         return None
     k = int(np.flatnonzero(bad)[0])
     return int(ts[k]), int(ids[k, 0]), int(ids[k, 1])
-
-
-def _last_chunk_row(rids, idxs, sources) -> tuple[int, int] | None:
-    chunk_rows = np.flatnonzero(sources == Source.CHUNK)
-    if not len(chunk_rows):
-        return None
-    k = chunk_rows[-1]
-    return int(rids[k]), int(idxs[k])
 
 
 def jerk_near_switches(

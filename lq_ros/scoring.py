@@ -147,6 +147,7 @@ def read_episode(
     for file in files:
         reader = StreamingMcapReader(file, roles)
         checked: set[int] = set()
+        pending = _PendingBulk(data, reader, roles)
         try:
             for batch in reader.batches():
                 channel = batch.channel
@@ -158,10 +159,11 @@ def read_episode(
                             f"({channel.message_encoding}); the scorer needs {msgtype} (cdr)"
                         )
                     checked.add(channel.id)
-                try:
-                    _collect(data, role, batch)
-                except (ValueError, struct.error) as exc:
-                    reader.damage.append(f"undecodable {channel.topic} message ({exc}); batch skipped")
+                if role in _BULK_ROLES:
+                    pending.add(batch)
+                else:
+                    _collect_or_report(data, reader, role, batch)
+            pending.flush()
         except McapDamage as exc:
             raise BagError(str(exc)) from exc
         except OSError as exc:
@@ -170,6 +172,49 @@ def read_episode(
             data.damaged = True
             data.warnings.append(f"{file}: {'; '.join(reader.damage)}; scores are partial (damaged data skipped)")
     return data
+
+
+#: Fixed-layout per-tick types: decoded in bulk, a file's worth per channel (decoding has a fixed cost per call).
+_BULK_ROLES = frozenset({"ee", "joints", "commands", "energy", "ee_physics", "joints_physics"})
+#: Packed bytes a channel may hold before it is decoded (bounds memory on long physics-rate bags).
+_BULK_FLUSH_BYTES = 4 << 20
+
+
+class _PendingBulk:
+    """Batches of the bulk roles (packed by the reader), decoded together per channel."""
+
+    def __init__(self, data: EpisodeData, reader: StreamingMcapReader, roles: dict) -> None:
+        self.data, self.reader, self.roles = data, reader, roles
+        self.batches: dict[int, list[mcap_stream.Batch]] = {}
+        self.bytes: dict[int, int] = {}
+
+    def add(self, batch: mcap_stream.Batch) -> None:
+        cid = batch.channel.id
+        self.batches.setdefault(cid, []).append(batch)
+        self.bytes[cid] = self.bytes.get(cid, 0) + int(batch.payload_lengths.sum())
+        if self.bytes[cid] > _BULK_FLUSH_BYTES:
+            self._flush(cid)
+
+    def flush(self) -> None:
+        for cid in list(self.batches):
+            self._flush(cid)
+
+    def _flush(self, cid: int) -> None:
+        parts = self.batches.pop(cid)
+        self.bytes.pop(cid)
+        role = self.roles[parts[0].channel.topic][0]
+        try:
+            _collect(self.data, role, mcap_stream.concat(parts) if len(parts) > 1 else parts[0])
+        except (ValueError, struct.error):
+            for part in parts:  # find the undecodable batch, keep the others
+                _collect_or_report(self.data, self.reader, role, part)
+
+
+def _collect_or_report(data: EpisodeData, reader: StreamingMcapReader, role: str, batch: mcap_stream.Batch) -> None:
+    try:
+        _collect(data, role, batch)
+    except (ValueError, struct.error) as exc:
+        reader.damage.append(f"undecodable {batch.channel.topic} message ({exc}); batch skipped")
 
 
 def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:

@@ -230,6 +230,52 @@ def test_a_corrupt_chunk_is_caught_by_its_crc_and_reading_goes_on(tmp_path):
     assert row["status"] == "success"  # the outcome is in a later, intact chunk
 
 
+def test_physics_rate_topics_go_to_chunks_the_default_scoring_never_decompresses(tmp_path, monkeypatch):
+    from mcap.reader import make_reader
+
+    from lq_ros import mcap_stream
+
+    writer = EpisodeBagWriter(tmp_path / "ep", [*m.CORE_TOPICS, m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS])
+    writer.set_run_metadata(RUN_META)
+    physics_written = 0
+    for tick in range(60):
+        for k in range(25):  # the tick's 25 physics substeps, then its control-rate messages
+            t = T0_NS + tick * TICK_NS - (24 - k) * 2_000_000
+            writer.write(m.JOINT_STATES_PHYSICS, t, m.joint_state_msg(t, [], np.full(7, 0.1), np.full(7, 2.0)))
+            writer.write(m.EE_POSE_PHYSICS, t, m.ee_pose_msg(t, [0.1, 0.0, 1.0], [0, 0, 0, 1]))
+            physics_written += 2
+        for item in tick_messages(tick):
+            writer.write(*item)
+    t_end = T0_NS + 59 * TICK_NS
+    writer.write(m.EPISODE_EVENTS, t_end, m.event_msg(t_end, m.EventKind.SUCCESS, 59))
+    writer.close()
+    (mcap,) = (tmp_path / "ep").glob("*.mcap")
+    with mcap.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    physics_ids = {cid for cid, c in summary.channels.items() if c.topic.endswith("_physics")}
+    lanes = [set(index.message_index_offsets) for index in summary.chunk_indexes]
+    assert all(ids <= physics_ids or not ids & physics_ids for ids in lanes), lanes
+    physics_chunks = sum(ids <= physics_ids for ids in lanes)
+    assert physics_chunks >= 5  # one per half second of sim time
+
+    decompressed = []
+    real_chunk_data = mcap_stream.StreamingMcapReader._chunk_data
+    monkeypatch.setattr(
+        mcap_stream.StreamingMcapReader, "_chunk_data",
+        lambda self, at, record: decompressed.append(at) or real_chunk_data(self, at, record),
+    )  # fmt: skip
+    default = score_bag(tmp_path / "ep")
+    assert len(decompressed) == len(lanes) - physics_chunks
+    decompressed.clear()
+    physics = score_bag(tmp_path / "ep", rate="physics", energy_rate="physics")
+    assert len(decompressed) == len(lanes)
+    assert default["status"] == physics["status"] == "success"
+    assert physics["completion_steps"] == default["completion_steps"]
+    from lq_ros.scoring import read_episode
+
+    assert len(read_episode(tmp_path / "ep", physics=True).joints_physics) == physics_written // 2
+
+
 def test_an_existing_folder_is_never_overwritten(tmp_path):
     (tmp_path / "ep").mkdir()
     with pytest.raises(FileExistsError, match="already exists"):
