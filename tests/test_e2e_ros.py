@@ -15,6 +15,7 @@ from lq_ros import messages as m
 from lq_ros.bag import read_run_metadata
 from lq_ros.config import RunConfig
 from lq_ros.episode import run_episode
+from lq_ros.procs import fastdds_shm_owned
 from lq_ros.runner import run_inprocess
 from tests.bag_compare import bag_messages, comparable
 
@@ -27,9 +28,27 @@ def shm_files() -> set[str]:
     return {f for f in os.listdir("/dev/shm") if "fastrtps" in f or "fastdds" in f}
 
 
-def node_processes(marker: str) -> list[str]:
-    out = subprocess.run(["ps", "-eww", "-o", "pid,args"], capture_output=True, text=True).stdout
-    return [line for line in out.splitlines() if "nodes." in line and marker in line]
+def node_descendants(root_pid: int) -> list[int]:
+    """PIDs of the node programs below ``root_pid`` in the process tree."""
+    out = subprocess.run(["ps", "-eww", "-o", "pid=,ppid=,args="], capture_output=True, text=True).stdout
+    children: dict[int, list[tuple[int, str]]] = {}
+    for line in out.splitlines():
+        pid, ppid, *args = line.split(None, 2)
+        children.setdefault(int(ppid), []).append((int(pid), args[0] if args else ""))
+    found, todo = [], [root_pid]
+    while todo:
+        for pid, args in children.get(todo.pop(), []):
+            todo.append(pid)
+            if "_node" in args and "nodes." in args:
+                found.append(pid)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except OSError:
+        return False
 
 
 def test_four_node_episode_bag_and_scores(tmp_path):
@@ -101,23 +120,25 @@ def test_policy_reset_failure_is_an_error_with_its_reason(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
 def test_no_process_or_shm_file_outlives_a_killed_cli(tmp_path, sig):
-    before = shm_files()
     cli = subprocess.Popen(
         [sys.executable, "-m", "lq_ros.cli", "run", "--policy", "sine", "--out", str(tmp_path)],
         stdout=subprocess.DEVNULL,
         stderr=open(tmp_path / "cli.log", "wb"),  # noqa: SIM115
         cwd=REPO,
     )
-    marker = "lq_run_"  # the params file of every child lives in a temp dir named so
+    # Only this CLI's nodes and their files: other ROS runs may share the machine (and /dev/shm).
     deadline = time.monotonic() + 60
-    while len(node_processes(marker)) < 4 and time.monotonic() < deadline:
+    while len(nodes := node_descendants(cli.pid)) < 4 and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert len(node_processes(marker)) == 4, (tmp_path / "cli.log").read_text()
+    assert len(nodes) >= 4, (tmp_path / "cli.log").read_text()  # sim, policy, executor, metrics (+ helpers)
     time.sleep(8.0)  # let the episode get going
+    owned = set().union(*(fastdds_shm_owned(pid) for pid in nodes))
+    assert owned, "the nodes hold no Fast DDS file: nothing to check"
     cli.send_signal(sig)
     cli.wait(timeout=60)
     deadline = time.monotonic() + 30
-    while node_processes(marker) and time.monotonic() < deadline:
+    while any(_alive(pid) for pid in nodes) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert node_processes(marker) == []
-    assert shm_files() <= before
+    assert not [pid for pid in nodes if _alive(pid)]
+    left = {f for f in shm_files() if f.removesuffix("_el") in owned}
+    assert not left, left
