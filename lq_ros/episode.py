@@ -18,6 +18,7 @@ from lq_ros.config import RunConfig
 
 if TYPE_CHECKING:  # imported when an episode runs: `lq run --help` and sweep specs stay light
     from lq_ros.env import LiberoEnv
+    from lq_ros.launcher import RosStack
     from lq_ros.policies import Policy
 
 TRANSPORTS = ("ros", "inprocess")
@@ -40,12 +41,14 @@ def run_episode(
     policy: Policy | None = None,
     domain_id: int | None = None,
     timeout_s: float | None = None,
+    stack: RosStack | None = None,
 ) -> tuple[EpisodeOutcome, dict]:
     """Run ``cfg`` once into ``out_dir / cfg.episode_name()`` and score its bag; returns (outcome, row).
 
     In process, ``env`` and ``policy`` may be instances reused from an earlier episode; through ROS,
-    ``domain_id`` and ``timeout_s`` go to the launcher. Task failures and run errors are outcomes;
-    an exception means the episode could not be started or recorded at all.
+    ``stack`` is a long-lived node stack to run it on (else a stack of its own, on ``domain_id``), and
+    ``timeout_s`` goes to the launcher. Task failures and run errors are outcomes; an exception means the
+    episode could not be started or recorded at all.
     """
     if transport == "inprocess":
         from lq_ros.runner import run_inprocess
@@ -55,7 +58,10 @@ def run_episode(
     elif transport == "ros":
         from lq_ros.launcher import launch_nodes
 
-        bag_path, launch_error = launch_nodes(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)
+        if stack is not None:
+            bag_path, launch_error = stack.run_episode(cfg, out_dir, timeout_s)
+        else:
+            bag_path, launch_error = launch_nodes(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)
         row = scored_row(bag_path)
         if launch_error:
             row["status"], row["success"] = "error", None

@@ -1,10 +1,17 @@
-"""Launch the four nodes as OS processes for one episode, and stop every one of them afterwards.
+"""Launch the ROS stack as OS processes, drive it through episodes, and stop every process afterwards.
 
-No ros2 launch exists for the PyPI wheels, so this is ours: parameters go in a ROS params YAML
-file per run, each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the run's
-ROS_DOMAIN_ID and, unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. A node killed
-with SIGKILL leaves Fast DDS files in /dev/shm: the launcher notes which files each node owns while
-it runs and removes the orphaned ones once every node has exited (lq_ros.procs.ShmTracker). Choosing
+No ros2 launch exists for the PyPI wheels, so this is ours. A :class:`RosStack` starts the four managed
+nodes (sim, policy, executor, metrics) and a lifecycle manager (nodes/manager_node.py) once, then runs any
+number of episodes on them: per episode it hands the manager the episode's parameters, and the manager
+moves the nodes through the standard lifecycle (configure, activate, deactivate, cleanup, shutdown;
+docs/lifecycle.md). ``lq run`` uses a stack for one episode; a sweep worker keeps one for all its episodes.
+This process never initialises rclpy: a launcher killed with SIGKILL leaves no Fast DDS file behind.
+
+Each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the stack's ROS_DOMAIN_ID and,
+unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. A node that dies mid-episode ends that
+episode as an error naming it; the stack restarts it and configures it again for the next episode. A
+node killed with SIGKILL leaves Fast DDS files in /dev/shm: the launcher notes which files each node owns
+while it runs and removes the orphaned ones (lq_ros.procs.ShmTracker). Choosing
 Fast DDS's UDP transport alone (FASTDDS_BUILTIN_TRANSPORTS=UDPv4) would not avoid them: with
 ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, rmw_fastrtps (Jazzy, 8.4) installs its own shared-memory and
 UDP transports and ignores that variable.
@@ -12,9 +19,11 @@ UDP transports and ignores that variable.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
+import select
 import shutil
 import signal
 import subprocess
@@ -31,6 +40,8 @@ from lq_ros.config import RunConfig
 from lq_ros.procs import ShmTracker, die_with_parent
 
 NODES = ("sim", "policy", "executor", "metrics")
+#: The lifecycle manager's program (nodes/manager_node.py), started with the nodes.
+MANAGER = "manager"
 #: Module of each node program: nodes/<name>_node.py, installed as the package lq_ros_nodes (setup.py).
 NODE_MODULE = "lq_ros_nodes.{}_node"
 #: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
@@ -119,6 +130,251 @@ def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
         raise RuntimeError("child processes survived SIGKILL")
 
 
+class StackDead(RuntimeError):
+    """The lifecycle manager died: the stack cannot run another episode (start a new one)."""
+
+
+def reconfigure_key(cfg: RunConfig) -> tuple:
+    """What the nodes load at configure (the task's simulator, the policy): a change needs cleanup + configure."""
+    return (cfg.suite, cfg.task, cfg.policy, json.dumps(cfg.policy_args, sort_keys=True), cfg.camera_size,
+            cfg.physics_rate)  # fmt: skip
+
+
+class RosStack:
+    """The four managed nodes and their lifecycle manager, kept up for any number of episodes.
+
+    Use as a context manager (or call :meth:`close`): the domain id is reserved and the processes run
+    until then. :meth:`run_episode` never raises for a broken episode; it returns the reason instead.
+    """
+
+    def __init__(self, domain_id: int | None = None) -> None:
+        self._exit = contextlib.ExitStack()
+        self.domain = self._exit.enter_context(reserved_domain(domain_id))
+        self.work = Path(tempfile.mkdtemp(prefix="lq_run_"))
+        self.params_file = self.work / "params.yaml"
+        self.env = child_environment(self.domain.id, self.work / "ros_logs")
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.shm = ShmTracker()
+        self._replies = b""
+        self._key: tuple | None = None  # reconfigure_key of the configured episode
+        self.episodes = 0
+        self.restarts: dict[str, int] = {}
+        self.closed = False
+
+    def __enter__(self) -> RosStack:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- processes -----------------------------------------------------------------------------------
+    def _spawn(self, name: str) -> None:
+        log = open(self.work / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        manager = name == MANAGER
+        self.procs[name] = subprocess.Popen(
+            [sys.executable, "-m", NODE_MODULE.format(name), "--ros-args", "--params-file", str(self.params_file)]
+            if not manager
+            else [sys.executable, "-m", NODE_MODULE.format(name)],
+            env=self.env,
+            stdout=subprocess.PIPE if manager else log,
+            stderr=log if manager else subprocess.STDOUT,
+            stdin=subprocess.PIPE if manager else subprocess.DEVNULL,
+            preexec_fn=die_with_parent,
+            pass_fds=(self.domain.lock_fd,),
+        )
+        log.close()
+        if manager:
+            self._replies = b""
+
+    def _ensure_processes(self) -> None:
+        """Start whatever is not running (the first episode: all; after a crash: the dead node)."""
+        for name in (*NODES, MANAGER):
+            p = self.procs.get(name)
+            if p is not None and p.poll() is None:
+                continue
+            if p is not None:
+                self.restarts[name] = self.restarts.get(name, 0) + 1
+                if name != MANAGER:
+                    self._key = None  # a fresh node is unconfigured: configure all with this episode
+            self._spawn(name)
+
+    def _dead(self) -> list[str]:
+        return [n for n, p in self.procs.items() if p.poll() is not None]
+
+    def _send(self, op: dict) -> None:
+        manager = self.procs[MANAGER]
+        try:
+            manager.stdin.write((json.dumps(op) + "\n").encode())
+            manager.stdin.flush()
+        except (BrokenPipeError, ValueError):
+            pass  # noticed as a dead manager by the caller
+
+    def _await(
+        self, events: tuple[str, ...], deadline: float | None, tolerate: tuple[str, ...] = ()
+    ) -> tuple[dict | None, str]:
+        """Wait for a manager reply in ``events``; returns (reply, "") or (None, why not: crash or timeout).
+
+        A process in ``tolerate`` (known dead already) is no reason to stop waiting; the manager is.
+        """
+        manager = self.procs[MANAGER]
+        fd = manager.stdout.fileno()
+        next_sample = 0.0
+        while True:
+            while b"\n" in self._replies:
+                line, self._replies = self._replies.split(b"\n", 1)
+                reply = json.loads(line)
+                if reply.get("event") in events or reply.get("event") == "failed":
+                    return reply, ""
+            if time.monotonic() >= next_sample:
+                self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
+                next_sample = time.monotonic() + SHM_SAMPLE_PERIOD_S
+            dead = [n for n in self._dead() if n not in tolerate or n == MANAGER]
+            if dead:
+                return None, ", ".join(f"{_label(n)} exited with code {self.procs[n].returncode}" for n in dead)
+            if deadline is not None and time.monotonic() > deadline:
+                return None, "timeout"
+            readable, _, _ = select.select([fd], [], [], 0.05)
+            if readable:
+                chunk = os.read(fd, 65536)
+                if chunk:
+                    self._replies += chunk
+
+    # -- episodes ------------------------------------------------------------------------------------
+    def run_episode(self, cfg: RunConfig, out_dir: Path, timeout_s: float | None = None) -> tuple[Path, str]:
+        """Run one episode into ``out_dir / cfg.episode_name()``; returns its bag folder and the error ("" if none).
+
+        The run (not the task) failed when a node dies, refuses a transition, or the episode does not end
+        within ``timeout_s`` wall seconds (default: 120 s + 1 s per tick of budget, from the request).
+        """
+        from lq_ros.policies import make_policy
+
+        if self.closed:
+            raise StackDead("the stack was closed")
+        bag_path = Path(out_dir) / cfg.episode_name()
+        # This process's own instance only tells cameras and parameters (the policy node builds its own).
+        probe = make_policy(cfg.policy, **cfg.policy_args)
+        cameras, policy_params = probe.camera_names, probe.params()
+        camera_size_px = cfg.camera_size_for(probe.render_size)
+        probe.close()
+        timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
+        params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
+        self.params_file.write_text(params_yaml(params))  # what a (re)started node starts with
+        log_marks = self._log_sizes()
+        try:
+            self._ensure_processes()
+            key = reconfigure_key(cfg)
+            per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
+            reconfigure = self._key is not None and key != self._key
+            self._send({"op": "episode", "params": per_node, "reconfigure": reconfigure})
+            deadline = time.monotonic() + timeout_s
+            reply, reason = self._await(("active",), deadline)
+            if reply is not None and reply["event"] == "failed":
+                reason = self._failure_reason(reply)
+                self._key = None  # configure everything again next time
+            elif reply is not None:
+                self._key = key
+                reply, reason = self._await(("done",), deadline)
+            if reason == "timeout":
+                reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"
+            if reason:
+                self._end_broken_episode()
+        except BaseException:  # Ctrl-C, SIGTERM of a sweep worker: the nodes stop, the recorder closes its bag
+            self.close(logs_to=(bag_path, log_marks))
+            raise
+        self.episodes += 1
+        self._collect_logs(bag_path, log_marks)
+        return bag_path, reason
+
+    def _failure_reason(self, reply: dict) -> str:
+        node, transition, why = reply["node"], reply["transition"], reply["reason"]
+        detail = self._last_log_line(node, f"{transition} failed:") if node in NODES else ""
+        return f"{node} node: {transition} failed: {detail or why}"
+
+    def _last_log_line(self, name: str, marker: str) -> str:
+        """The last line of a node's log containing ``marker``, from the marker on (a refused transition's reason)."""
+        try:
+            lines = (self.work / f"{name}.log").read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        for line in reversed(lines):
+            if marker in line:
+                return line.split(marker, 1)[1].strip()
+        return ""
+
+    def _end_broken_episode(self) -> None:
+        """Deactivate the live nodes (the recorder closes its bag with a STOPPED event); keep the stack.
+
+        Dead nodes are restarted (and configured) with the next episode; the manager's death ends the stack.
+        """
+        dead = tuple(self._dead())
+        if MANAGER not in dead:
+            self._send({"op": "stop", "skip": list(dead)})
+            self._await(("stopped",), time.monotonic() + 60.0, tolerate=dead)
+        if MANAGER in self._dead():
+            self.close()
+            return
+        if self._dead():
+            self.shm.cleanup()  # the dead nodes' orphaned /dev/shm files (a live node's are never touched)
+
+    def _log_sizes(self) -> dict[str, int]:
+        return {n: (self.work / f"{n}.log").stat().st_size if (self.work / f"{n}.log").exists() else 0
+                for n in (*NODES, MANAGER)}  # fmt: skip
+
+    def _collect_logs(self, bag_path: Path, marks: dict[str, int]) -> None:
+        """Keep this episode's part of every node log inside the bag folder (or beside it when no bag was written)."""
+        dest = bag_path / "logs" if bag_path.exists() else bag_path.with_name(bag_path.name + ".logs")
+        dest.mkdir(parents=True, exist_ok=True)
+        for name, offset in marks.items():
+            src = self.work / f"{name}.log"
+            if src.exists():
+                with open(src, "rb") as f:
+                    f.seek(offset if src.stat().st_size >= offset else 0)
+                    (dest / f"{name}.log").write_bytes(f.read())
+        launcher_log = self.work / "launcher.log"
+        if launcher_log.exists():
+            shutil.copy(launcher_log, dest / "launcher.log")
+
+    # -- shutdown ------------------------------------------------------------------------------------
+    def close(self, logs_to: tuple[Path, dict[str, int]] | None = None) -> None:
+        """Shut the nodes down through the lifecycle, stop whatever is left, remove orphaned /dev/shm files.
+
+        ``logs_to``: (bag folder, log offsets) of an interrupted episode, whose logs are kept with its bag.
+        """
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            manager = self.procs.get(MANAGER)
+            if manager is not None and manager.poll() is None:
+                dead = tuple(self._dead())
+                self._send({"op": "shutdown", "skip": list(dead)})
+                self._await(("shutdown",), time.monotonic() + 30.0, tolerate=dead)
+                for p in self.procs.values():
+                    with suppress(subprocess.TimeoutExpired):
+                        p.wait(timeout=10.0)
+        finally:
+            self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
+            _stop(self.procs)
+            removed = self.shm.cleanup()
+            if removed:
+                with open(self.work / "launcher.log", "a") as f:
+                    f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
+            for p in self.procs.values():
+                for pipe in (p.stdin, p.stdout):
+                    if pipe is not None:
+                        with suppress(OSError):
+                            pipe.close()
+            if logs_to is not None:
+                with suppress(OSError):
+                    self._collect_logs(*logs_to)
+            self._exit.close()
+            shutil.rmtree(self.work, ignore_errors=True)
+
+
+def _label(name: str) -> str:
+    return "lifecycle manager" if name == MANAGER else f"{name} node"
+
+
 def launch_nodes(
     cfg: RunConfig,
     out_dir: Path,
@@ -126,75 +382,9 @@ def launch_nodes(
     domain_id: int | None = None,
     timeout_s: float | None = None,
 ) -> tuple[Path, str]:
-    """Run one episode through the four-node stack; returns its bag folder and the launch error ("" if none).
+    """Run one episode on a stack of its own (``lq run``); returns its bag folder and the launch error ("" if none).
 
-    The launch (not the task) failed when a node crashes or the episode does not end within
-    ``timeout_s`` wall seconds. Scoring and the outcome are ``lq_ros.episode.run_episode``'s.
+    Scoring and the outcome are ``lq_ros.episode.run_episode``'s.
     """
-    from lq_ros.policies import make_policy
-
-    out_dir = Path(out_dir)
-    bag_path = out_dir / cfg.episode_name()
-    # The policy node builds its own instance; this one only tells cameras and parameters.
-    probe = make_policy(cfg.policy, **cfg.policy_args)
-    cameras, policy_params = probe.camera_names, probe.params()
-    camera_size_px = cfg.camera_size_for(probe.render_size)
-    probe.close()
-    timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
-    work = Path(tempfile.mkdtemp(prefix="lq_run_"))
-    params_file = work / "params.yaml"
-    params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
-    params_file.write_text(params_yaml(params))
-    procs: dict[str, subprocess.Popen] = {}
-    shm = ShmTracker()
-    reason = ""
-    with reserved_domain(domain_id) as domain:
-        env = child_environment(domain.id, work / "ros_logs")
-        try:
-            for name in NODES:
-                log = open(work / f"{name}.log", "wb")  # noqa: SIM115 - closed with the process
-                procs[name] = subprocess.Popen(
-                    [sys.executable, "-m", NODE_MODULE.format(name), "--ros-args", "--params-file", str(params_file)],
-                    env=env,
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                    stdin=subprocess.DEVNULL,
-                    preexec_fn=die_with_parent,
-                    pass_fds=(domain.lock_fd,),
-                )
-                log.close()
-            deadline = time.monotonic() + timeout_s
-            next_sample = 0.0
-            while True:
-                if time.monotonic() >= next_sample:
-                    shm.sample(p.pid for p in procs.values() if p.returncode is None)
-                    next_sample = time.monotonic() + SHM_SAMPLE_PERIOD_S
-                if procs["metrics"].poll() is not None:
-                    if procs["metrics"].returncode != 0:
-                        reason = f"metrics node exited with code {procs['metrics'].returncode}"
-                    break
-                crashed = [n for n, p in procs.items() if p.poll() is not None]
-                if crashed:
-                    reason = ", ".join(f"{n} node exited with code {procs[n].returncode}" for n in crashed)
-                    break
-                if time.monotonic() > deadline:
-                    reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"
-                    break
-                time.sleep(0.05)
-        finally:
-            shm.sample(p.pid for p in procs.values() if p.returncode is None)
-            _stop(procs)
-            removed = shm.cleanup()
-            if removed:
-                (work / "launcher.log").write_text(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
-            _collect_logs(work, bag_path)
-    return bag_path, reason
-
-
-def _collect_logs(work: Path, bag_path: Path) -> None:
-    """Keep the node logs inside the bag folder (or beside it when no bag was written)."""
-    dest = bag_path / "logs" if bag_path.exists() else bag_path.with_name(bag_path.name + ".logs")
-    dest.mkdir(parents=True, exist_ok=True)
-    for log in work.glob("*.log"):
-        shutil.copy(log, dest / log.name)
-    shutil.rmtree(work, ignore_errors=True)
+    with RosStack(domain_id) as stack:
+        return stack.run_episode(cfg, out_dir, timeout_s)

@@ -4,6 +4,9 @@ Each /clock message starts a control tick. Per tick (see lq_ros.executor): apply
 (waiting for it if needed), maybe request an observation (and wait until the sim has captured it,
 so the observation is of this tick), then publish the one command for the tick. Malformed chunks
 are rejected with a CHUNK_REJECTED event and never published as commands.
+
+Managed node: activate builds a fresh protocol core from the episode's parameters (mode, latency,
+merge... may change between episodes); deactivate stops it.
 """
 
 from __future__ import annotations
@@ -11,38 +14,44 @@ from __future__ import annotations
 import sys
 import time
 
-from rclpy.node import Node
-
 from lq_ros import messages as m
+from lq_ros.config import RunConfig
 from lq_ros.env import tick_of_sim_time
 from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
-from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+from lq_ros.ros_util import EpisodeNode, run_managed
 
 
-class ExecutorNode(Node):
+class ExecutorNode(EpisodeNode):
     def __init__(self) -> None:
         super().__init__("lq_executor")
-        self.core = ExecutorCore(declare_run_config(self).executor_config())
         # Wall-clock seconds to wait for a due chunk before ending the episode as an error.
         self.declare_parameter("chunk_timeout_s", 60.0)
+        self.finished = False
+
+    def activate(self, cfg: RunConfig) -> None:
+        """A fresh protocol core and fresh endpoints per episode (the protocol may change between episodes)."""
+        self.core = ExecutorCore(cfg.executor_config())
         self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
-
-        self.command_pub = publisher(self, m.COMMAND)
-        self.request_pub = publisher(self, m.OBSERVATION_REQUEST)
-        self.prefix_pub = publisher(self, m.ACTION_PREFIX)
-        self.event_pub = publisher(self, m.EPISODE_EVENTS)
-        raw_subscription(self, m.CLOCK, self.on_clock)
-        raw_subscription(self, m.ACTION_CHUNK, self.on_chunk)
-        raw_subscription(self, m.OBSERVATION, self.on_observation)
-        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
-        self.create_timer(1.0, self.check_chunk_timeout)
-
         self.finished = False
         self.tick: int | None = None  # tick waiting for its command
         self.tick_ns = 0
         self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
         self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
         self.waiting_since: float | None = None
+
+        self.command_pub = self.episode_publisher(m.COMMAND)
+        self.request_pub = self.episode_publisher(m.OBSERVATION_REQUEST)
+        self.prefix_pub = self.episode_publisher(m.ACTION_PREFIX)
+        self.event_pub = self.episode_publisher(m.EPISODE_EVENTS)
+        self.episode_subscription(m.CLOCK, self.on_clock)
+        self.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
+        self.episode_subscription(m.OBSERVATION, self.on_observation)
+        self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
+        self.episode_timer(1.0, self.check_chunk_timeout)
+
+    def deactivate(self) -> None:
+        self.finished = True
+        self.waiting_since = None
 
     # -- callbacks --------------------------------------------------------------------------
     def on_clock(self, msg) -> None:
@@ -119,7 +128,7 @@ class ExecutorNode(Node):
 
 
 def main() -> None:
-    sys.exit(run(ExecutorNode, stay_alive=True))
+    sys.exit(run_managed(ExecutorNode))
 
 
 if __name__ == "__main__":

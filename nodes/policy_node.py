@@ -6,6 +6,10 @@ wall-clock inference latency dt_real. N is the request's own draw, computed by t
 executor core uses (lq_ros.latency.request_latency of the run's distribution, seed and request id).
 With merge rtc/rtc_hard the policy also gets the executing prefix (/lq/action_prefix) of the request.
 A policy that raises publishes a chunk carrying the error, which ends the episode as an error.
+
+Managed node: configure builds the policy (``policy``, ``policy_args``); activate checks it can run the
+episode's protocol (merge) and resets the episode state; the policy itself is reset for the task and
+seed when the sim announces the episode (STARTED).
 """
 
 from __future__ import annotations
@@ -16,43 +20,53 @@ import time
 import traceback
 
 import numpy as np
-from rclpy.node import Node
 
 from lq_ros import messages as m
+from lq_ros.config import RunConfig
 from lq_ros.env import TaskInfo
 from lq_ros.latency import request_latency
 from lq_ros.merge import PREFIX_STRATEGIES, Merge
-from lq_ros.policies import make_policy
-from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+from lq_ros.policies import Policy, make_policy
+from lq_ros.ros_util import EpisodeNode, run_managed
 from lq_ros.suites import CONTROL_DT_S
 
 
-class PolicyNode(Node):
+class PolicyNode(EpisodeNode):
+    CONFIGURE_FIELDS = ("policy", "policy_args")
+
     def __init__(self) -> None:
         super().__init__("lq_policy")
-        cfg = declare_run_config(self)
+        self.policy: Policy | None = None
+
+    def configure(self, cfg: RunConfig) -> None:
+        self.policy = make_policy(cfg.policy, **cfg.policy_args)
+
+    def activate(self, cfg: RunConfig) -> None:
+        self.policy.check_merge(cfg.merge)  # refused before the episode starts
         self.latency = cfg.latency_model()
         self.seed = cfg.seed
-        self.policy = make_policy(cfg.policy, **cfg.policy_args)
-        self.policy.check_merge(cfg.merge)  # refused at start-up, before any episode
         self.wants_prefix = Merge(cfg.merge) in PREFIX_STRATEGIES
-
-        self.chunk_pub = publisher(self, m.ACTION_CHUNK)
-        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
-        raw_subscription(self, m.OBSERVATION, self.on_observation)
-        raw_subscription(self, m.CLOCK, self.on_clock)
-        if self.wants_prefix:
-            raw_subscription(self, m.ACTION_PREFIX, self.on_prefix)
-        for cam in self.policy.camera_names:
-            raw_subscription(self, m.camera_topic(cam), self.on_image)
-
-        self.ready = False  # policy reset for the episode
+        self.ready = False  # policy reset for the episode (on STARTED)
         self.reset_error = ""  # why reset failed: every request is then answered with this error
         self.now_ns = 0
         self.pending_obs: list = []  # observations waiting for the task or their images
         self.images: dict[int, dict[str, np.ndarray]] = {}  # stamp ns -> camera -> image
         self.outbox: list[tuple[int, bytes]] = []  # (due sim time ns, chunk bytes)
         self.prefixes: dict[int, object] = {}  # request id -> ActionPrefix (merge rtc/rtc_hard)
+
+        self.chunk_pub = self.episode_publisher(m.ACTION_CHUNK)
+        self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
+        self.episode_subscription(m.OBSERVATION, self.on_observation)
+        self.episode_subscription(m.CLOCK, self.on_clock)
+        if self.wants_prefix:
+            self.episode_subscription(m.ACTION_PREFIX, self.on_prefix)
+        for cam in self.policy.camera_names:
+            self.episode_subscription(m.camera_topic(cam), self.on_image)
+
+    def cleanup(self) -> None:
+        if self.policy is not None:
+            self.policy.close()
+            self.policy = None
 
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED:
@@ -121,12 +135,9 @@ class PolicyNode(Node):
         for _, data in due:
             self.chunk_pub.publish(data)
 
-    def close(self) -> None:
-        self.policy.close()
-
 
 def main() -> None:
-    sys.exit(run(PolicyNode, stay_alive=True))
+    sys.exit(run_managed(PolicyNode))
 
 
 if __name__ == "__main__":

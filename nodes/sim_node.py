@@ -4,6 +4,10 @@ Publishes /clock, /joint_states (effort = arm torque), /ee_pose, /lq/energy_inte
 (and per physics substep on /joint_states_physics, /ee_pose_physics when enabled), the observation
 and camera images only when asked (/lq/observation_request), and episode events. Tick m is stepped only once the command
 for tick m has arrived, so sim time never depends on wall-clock timing.
+
+Managed node (lq_ros.ros_util.EpisodeNode): configure creates the task's env (hard reset); activate
+resets it to the episode's init state and seed (soft: same MjSim, bit-identical to a rebuild) and
+starts the episode once every peer is connected; deactivate stops stepping.
 """
 
 from __future__ import annotations
@@ -11,51 +15,64 @@ from __future__ import annotations
 import sys
 import traceback
 
-from rclpy.node import Node
-
 from lq_ros import messages as m
-from lq_ros.config import versions
+from lq_ros.config import RunConfig, versions
 from lq_ros.env import LiberoEnv, sim_time_of_tick
-from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+from lq_ros.ros_util import EpisodeNode, run_managed
 
 
-class SimNode(Node):
+class SimNode(EpisodeNode):
+    CONFIGURE_FIELDS = ("suite", "task", "cameras", "camera_size_px", "physics_rate")
+
     def __init__(self) -> None:
         super().__init__("lq_sim")
-        cfg = declare_run_config(self)
         # What the policy needs rendered (the launcher asks the policy).
         self.declare_parameter("cameras", [""])
-        self.declare_parameter("camera_size_px", cfg.camera_size_for(None))
+        self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
         # Subscribers each topic needs before the episode starts (so no node misses tick 0).
         self.declare_parameter("min_subscribers", 1)
         self.declare_parameter("min_clock_subscribers", 3)
-        p = {name: self.get_parameter(name).value for name in ("cameras", "camera_size_px", "min_subscribers",
-                                                                "min_clock_subscribers")}  # fmt: skip
-        self.init_index, self.seed = cfg.init, cfg.seed
-        self.physics_rate = cfg.physics_rate
-        self.budget = cfg.budget
-        self.min_subscribers, self.min_clock_subscribers = p["min_subscribers"], p["min_clock_subscribers"]
-        cameras = tuple(c for c in p["cameras"] if c)
-
-        self.pubs = {
-            t.name: publisher(self, t)
-            for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
-            + ((m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ())
-            + tuple(m.camera_topic(c) for c in cameras)
-        }
-        self.command_sub = raw_subscription(self, m.COMMAND, self.on_command)
-        self.request_sub = raw_subscription(self, m.OBSERVATION_REQUEST, self.on_request)
-        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
-
+        self.env: LiberoEnv | None = None
         self.finished = False
         self.started = False
         self.versions = versions()
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def configure(self, cfg: RunConfig) -> None:
+        cameras = tuple(c for c in self.get_parameter("cameras").value if c)
+        self.physics_rate = cfg.physics_rate
         self.get_logger().info(f"creating {cfg.suite} task {cfg.task} (cameras: {cameras or 'none'})")
         self.env = LiberoEnv(
-            cfg.suite, cfg.task, camera_names=cameras, camera_size=p["camera_size_px"], record_physics=self.physics_rate
-        )
-        self.state = self.env.reset(self.init_index, self.seed)
-        self.start_timer = self.create_timer(0.05, self.start_when_ready)
+            cfg.suite, cfg.task, camera_names=cameras, camera_size=self.get_parameter("camera_size_px").value,
+            record_physics=self.physics_rate,
+        )  # fmt: skip
+        self.state = self.env.reset(cfg.init, cfg.seed)  # the hard reset (MjSim built) belongs to configure
+
+    def activate(self, cfg: RunConfig) -> None:
+        self.init_index, self.seed, self.budget = cfg.init, cfg.seed, cfg.budget
+        self.min_subscribers = self.get_parameter("min_subscribers").value
+        self.min_clock_subscribers = self.get_parameter("min_clock_subscribers").value
+        self.finished = False
+        self.started = False
+        self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.env)
+        self.pubs = {
+            t.name: self.episode_publisher(t)
+            for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
+            + ((m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ())
+            + tuple(m.camera_topic(c) for c in self.env.camera_names)
+        }
+        self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
+        self.request_sub = self.episode_subscription(m.OBSERVATION_REQUEST, self.on_request)
+        self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
+        self.start_timer = self.episode_timer(0.05, self.start_when_ready)
+
+    def deactivate(self) -> None:
+        self.finished = True
+
+    def cleanup(self) -> None:
+        if self.env is not None:
+            self.env.close()
+            self.env = None
 
     # -- episode start ----------------------------------------------------------------------
     def start_when_ready(self) -> None:
@@ -127,14 +144,9 @@ class SimNode(Node):
         self.get_logger().error(reason)
         self.end(m.EventKind.ERROR, reason, {"traceback": trace, "node": "sim"})
 
-    def close(self) -> None:
-        self.env.close()
-
 
 def main() -> None:
-    # Stay alive after the episode ends so late subscribers still get the transient-local history;
-    # the launcher stops this node once the metrics node has written the bag.
-    sys.exit(run(SimNode, stay_alive=True))
+    sys.exit(run_managed(SimNode))
 
 
 if __name__ == "__main__":

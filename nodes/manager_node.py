@@ -1,0 +1,219 @@
+"""Lifecycle manager: moves the four managed nodes through their lifecycle, one episode at a time.
+
+The role of nav2's lifecycle_manager or ros2_control's controller manager: it calls each node's standard
+services, ``~/set_parameters`` (rcl_interfaces), ``~/change_state`` and ``~/get_state`` (lifecycle_msgs),
+nothing else. The launcher (lq_ros/launcher.py, which keeps rclpy out of its own process so a killed
+launcher leaves no Fast DDS file behind) sends it one JSON object per line on stdin and reads one per line
+on stdout:
+
+- ``{"op": "episode", "params": {node: {name: value}}, "reconfigure": bool}``: every node to inactive with
+  the episode's parameters (configured if it was not, cleaned up and configured again if ``reconfigure``),
+  then activated, recorder first, simulator last. Answers ``{"event": "active"}`` or ``{"event": "failed",
+  "node", "transition", "reason"}``; later ``{"event": "done"}``, once the recorder has deactivated itself
+  (its bag is closed and scored) and the other nodes were deactivated.
+- ``{"op": "stop", "skip": [node, ...]}``: deactivate every active node (simulator first, recorder last,
+  which then records a STOPPED event); ``skip`` names dead nodes. Answers ``{"event": "stopped"}``.
+- ``{"op": "shutdown", "skip": [...]}``: the shutdown transition for every node (they exit), then this
+  process exits. Answers ``{"event": "shutdown"}``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import sys
+
+import rclpy
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rcl_interfaces.srv import SetParameters
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+#: Launcher name -> ROS node name.
+NODE_NAMES = {"sim": "lq_sim", "policy": "lq_policy", "executor": "lq_executor", "metrics": "lq_metrics"}
+#: Activation order: the recorder before anything is published, the simulator (which starts the episode) last.
+ACTIVATE_ORDER = ("metrics", "policy", "executor", "sim")
+#: Deactivation order of a stop: stepping ends first, the recorder closes its bag last.
+STOP_ORDER = ("sim", "executor", "policy", "metrics")
+#: Wall seconds: a node's services to appear (a cold process imports MuJoCo, torch...), a configure (creates
+#: the task's simulator or loads a policy), any other transition or call.
+SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
+#: Wall seconds between two looks at the recorder's state during an episode.
+POLL_PERIOD_S = 0.1
+
+
+class TransitionFailed(Exception):
+    def __init__(self, node: str, transition: str, reason: str) -> None:
+        super().__init__(f"{node} {transition}: {reason}")
+        self.node, self.transition, self.reason = node, transition, reason
+
+
+class LifecycleManager(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_manager")
+        self.change = {n: self.create_client(ChangeState, f"/{r}/change_state") for n, r in NODE_NAMES.items()}
+        self.get = {n: self.create_client(GetState, f"/{r}/get_state") for n, r in NODE_NAMES.items()}
+        self.set_params = {n: self.create_client(SetParameters, f"/{r}/set_parameters") for n, r in NODE_NAMES.items()}
+
+    # -- service calls --------------------------------------------------------------------------------
+    def _wait(self, node: str, what: str, futures_timeout_s: float, *futures) -> list:
+        rclpy.spin_until_future_complete(self, _all(futures), timeout_sec=futures_timeout_s)
+        if not all(f.done() for f in futures):
+            raise TransitionFailed(node, what, f"no answer within {futures_timeout_s:.0f} s")
+        return [f.result() for f in futures]
+
+    def _ready(self, node: str, client, what: str, wait_s: float) -> None:
+        if not client.wait_for_service(timeout_sec=wait_s):
+            raise TransitionFailed(node, what, f"service {client.srv_name} not available within {wait_s:.0f} s")
+
+    def state(self, node: str, wait_s: float = SERVICE_WAIT_S) -> str:
+        self._ready(node, self.get[node], "get_state", wait_s)
+        (resp,) = self._wait(node, "get_state", CALL_S, self.get[node].call_async(GetState.Request()))
+        return resp.current_state.label
+
+    def transition(self, nodes: list[str], label: str, timeout_s: float = CALL_S, wait_s: float = SERVICE_WAIT_S):
+        """Transition ``label`` for ``nodes`` at once (they run it concurrently); TransitionFailed if one refuses."""
+        futures = []
+        for node in nodes:
+            self._ready(node, self.change[node], label, wait_s)
+            futures.append(self.change[node].call_async(ChangeState.Request(transition=Transition(label=label))))
+        for node, future in zip(nodes, futures, strict=True):
+            (resp,) = self._wait(node, label, timeout_s, future)
+            if not resp.success:
+                raise TransitionFailed(node, label, "refused (see the node's log)")
+
+    def set_parameters(self, node: str, values: dict) -> None:
+        self._ready(node, self.set_params[node], "set_parameters", SERVICE_WAIT_S)
+        req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+        (resp,) = self._wait(node, "set_parameters", CALL_S, self.set_params[node].call_async(req))
+        bad = [f"{p}: {r.reason}" for p, r in zip(values, resp.results, strict=True) if not r.successful]
+        if bad:
+            raise TransitionFailed(node, "set_parameters", "; ".join(bad))
+
+    # -- operations ----------------------------------------------------------------------------------
+    def episode(self, params: dict[str, dict], reconfigure: bool) -> None:
+        to_configure = []
+        for node in ACTIVATE_ORDER:
+            state = self.state(node)
+            if state == "active":
+                self.transition([node], "deactivate")
+                state = "inactive"
+            if state == "inactive" and reconfigure:
+                self.transition([node], "cleanup")
+                state = "unconfigured"
+            if state not in ("inactive", "unconfigured"):
+                raise TransitionFailed(node, "configure", f"node is {state}")
+            self.set_parameters(node, params.get(node, {}))
+            if state == "unconfigured":
+                to_configure.append(node)
+        if to_configure:
+            self.transition(to_configure, "configure", CONFIGURE_S)  # concurrently: env creation, policy loading
+        for node in ACTIVATE_ORDER:
+            self.transition([node], "activate")
+
+    def stop(self, skip: set[str]) -> None:
+        for node in STOP_ORDER:
+            if node in skip:
+                continue
+            try:
+                if self.state(node, wait_s=5.0) == "active":
+                    self.transition([node], "deactivate", wait_s=5.0)
+            except TransitionFailed as exc:
+                self.get_logger().error(str(exc))
+
+    def shutdown(self, skip: set[str]) -> None:
+        for node in STOP_ORDER:
+            if node in skip:
+                continue
+            try:
+                self.transition([node], "shutdown", wait_s=5.0)
+            except TransitionFailed as exc:
+                self.get_logger().error(str(exc))
+
+
+def _all(futures):
+    """A future done when all of ``futures`` are (spin_until_future_complete takes one)."""
+    from rclpy.task import Future
+
+    combined = Future()
+
+    def check(_=None) -> None:
+        if all(f.done() for f in futures) and not combined.done():
+            combined.set_result(True)
+
+    for f in futures:
+        f.add_done_callback(check)
+    check()
+    return combined
+
+
+def serve(manager: LifecycleManager, replies) -> None:
+    """Answer the launcher's operations until shutdown or until the launcher goes away (stdin closed)."""
+    buffer = b""
+    running = False  # an episode is active: watch the recorder
+
+    def reply(obj: dict) -> None:
+        replies.write(json.dumps(obj) + "\n")
+        replies.flush()
+
+    while rclpy.ok():
+        readable, _, _ = select.select([sys.stdin.fileno()], [], [], POLL_PERIOD_S)
+        if readable:
+            chunk = os.read(sys.stdin.fileno(), 65536)
+            if not chunk:
+                return  # the launcher is gone
+            buffer += chunk
+        while b"\n" in buffer:
+            line, buffer = buffer.split(b"\n", 1)
+            op = json.loads(line)
+            skip = set(op.get("skip", ()))
+            if op["op"] == "episode":
+                try:
+                    manager.episode(op["params"], op.get("reconfigure", False))
+                except TransitionFailed as exc:
+                    reply({"event": "failed", "node": exc.node, "transition": exc.transition, "reason": exc.reason})
+                    continue
+                running = True
+                reply({"event": "active"})
+            elif op["op"] == "stop":
+                running = False
+                manager.stop(skip)
+                reply({"event": "stopped"})
+            elif op["op"] == "shutdown":
+                manager.shutdown(skip)
+                reply({"event": "shutdown"})
+                return
+        if running and not readable:
+            try:
+                recorded = manager.state("metrics", wait_s=5.0) != "active"
+            except TransitionFailed as exc:
+                manager.get_logger().error(str(exc))  # the launcher notices a dead node and stops the episode
+                continue
+            if recorded:
+                running = False
+                manager.stop(set())
+                reply({"event": "done"})
+
+
+def main() -> None:
+    # Replies go to the launcher on the original stdout; everything else (rclpy's console log) to stderr.
+    replies = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)
+    try:
+        rclpy.init()
+        manager = LifecycleManager()
+        try:
+            serve(manager, replies)
+        finally:
+            manager.destroy_node()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
