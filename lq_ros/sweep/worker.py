@@ -52,7 +52,9 @@ class EpisodeWorker:
 
     In-process transport: the LiberoEnv and the policy of the previous episode are reused when the
     next one has the same task, policy and camera setup (env creation dominates a short episode;
-    tests/test_sweep.py checks a reused env gives the same bag as a fresh one).
+    tests/test_sweep.py checks a reused env gives the same bag as a fresh one). ROS transport: one
+    long-lived node stack (lq_ros.launcher.RosStack, its own ROS_DOMAIN_ID) runs every episode of the
+    worker; the nodes are reconfigured between episodes, and a node that died is restarted.
     """
 
     def __init__(self, transport: str, bags_dir: Path, timeout_s: float | None = None) -> None:
@@ -62,6 +64,7 @@ class EpisodeWorker:
         self.bags_dir = Path(bags_dir)
         self.timeout_s = timeout_s
         self._cached: tuple | None = None  # (env key, env, policy)
+        self._stack = None  # ROS transport: the worker's RosStack
 
     def run(self, cfg: RunConfig, log_path: Path) -> dict:
         """Run ``cfg`` once; returns {status, reason, row, bag, wall_s}. Never raises for episode failures."""
@@ -74,7 +77,7 @@ class EpisodeWorker:
                     env, policy = self._env_policy(cfg)
                     outcome, row = run_episode(cfg, self.bags_dir, "inprocess", env=env, policy=policy)
                 else:
-                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s)
+                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s, stack=self._ros())
                 status, reason = outcome.status, outcome.reason
                 if status == "error" and outcome.reason:
                     print(f"episode error: {outcome.reason}", flush=True)
@@ -89,6 +92,14 @@ class EpisodeWorker:
             "bag": str(bag) if (bag / "metadata.yaml").exists() else None,
             "wall_s": time.monotonic() - started,
         }
+
+    def _ros(self):
+        """The worker's node stack: started with its first episode, replaced if its lifecycle manager died."""
+        from lq_ros.launcher import RosStack
+
+        if self._stack is None or self._stack.closed:
+            self._stack = RosStack()
+        return self._stack
 
     def _env_policy(self, cfg: RunConfig):
         from lq_ros.env import LiberoEnv
@@ -106,6 +117,9 @@ class EpisodeWorker:
         return self._cached[1], self._cached[2]
 
     def close(self) -> None:
+        if self._stack is not None:
+            stack, self._stack = self._stack, None
+            stack.close()
         if self._cached is not None:
             _, env, policy = self._cached
             self._cached = None

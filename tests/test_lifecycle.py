@@ -1,0 +1,178 @@
+"""Managed nodes and the long-lived stack, on real processes (rclpy, Fast DDS on loopback, MuJoCo).
+
+The lifecycle is driven here exactly as a user drives it (``ros2 lifecycle set``, ``ros2 param set``):
+through the nodes' standard services from another process.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+from lq_ros.config import RunConfig
+from lq_ros.launcher import NODE_MODULE, RosStack, child_environment, launch_nodes, reserved_domain
+from lq_ros.procs import die_with_parent
+from lq_ros.runner import run_inprocess
+from tests.bag_compare import comparable
+from tests.test_faults import SHM, alive, orphaned_shm, wait_for
+
+pytestmark = pytest.mark.slow
+
+
+class LifecycleClient:
+    """The calls ``ros2 lifecycle get/set`` and ``ros2 param set`` make, from a test process of its own domain."""
+
+    def __init__(self, domain_id: int, node: str) -> None:
+        import rclpy
+        import rclpy.executors
+        from lifecycle_msgs.srv import ChangeState, GetState
+        from rcl_interfaces.srv import SetParameters
+
+        self.rclpy = rclpy
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node("lq_test_client", context=self.context)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.change = self.node.create_client(ChangeState, f"/{node}/change_state")
+        self.get = self.node.create_client(GetState, f"/{node}/get_state")
+        self.params = self.node.create_client(SetParameters, f"/{node}/set_parameters")
+        self.types = ChangeState, GetState, SetParameters
+
+    def _call(self, client, request):
+        assert client.wait_for_service(timeout_sec=120), client.srv_name
+        future = client.call_async(request)
+        self.executor.spin_until_future_complete(future, timeout_sec=60)
+        assert future.done(), client.srv_name
+        return future.result()
+
+    def state(self) -> str:
+        return self._call(self.get, self.types[1].Request()).current_state.label
+
+    def set_state(self, label: str) -> bool:
+        from lifecycle_msgs.msg import Transition
+
+        return self._call(self.change, self.types[0].Request(transition=Transition(label=label))).success
+
+    def set_param(self, name: str, value) -> tuple[bool, str]:
+        from rclpy.parameter import Parameter
+
+        req = self.types[2].Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        (result,) = self._call(self.params, req).results
+        return result.successful, result.reason
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.rclpy.try_shutdown(context=self.context)
+
+
+def test_lifecycle_transitions_through_the_standard_services(tmp_path):
+    """configure, activate, parameters refused while active, deactivate, cleanup, shutdown: the process exits."""
+    before_shm = set(os.listdir(SHM))
+    with reserved_domain() as domain:
+        env = child_environment(domain.id, tmp_path / "ros_logs")
+        with open(tmp_path / "executor.log", "wb") as log:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", NODE_MODULE.format("executor")], env=env, stdout=log,
+                stderr=subprocess.STDOUT, preexec_fn=die_with_parent, pass_fds=(domain.lock_fd,),
+            )  # fmt: skip
+        client = LifecycleClient(domain.id, "lq_executor")
+        try:
+            assert client.state() == "unconfigured"
+            assert client.set_param("mode", "async") == (True, "")
+            assert client.set_state("configure") and client.state() == "inactive"
+            assert client.set_param("latency_s", 0.2) == (True, "")  # an episode parameter, between episodes
+            assert client.set_state("activate") and client.state() == "active"
+            ok, reason = client.set_param("latency_s", 0.1)
+            assert not ok and "deactivate first" in reason
+            assert client.set_state("deactivate") and client.state() == "inactive"
+            assert not client.set_state("configure")  # not a transition of the inactive state
+            assert client.set_param("merge", "no_such_merge") == (True, "")
+            assert not client.set_state("activate") and client.state() == "inactive"  # refused, with its reason
+            assert (
+                "activate failed: ValueError: unknown merge 'no_such_merge'" in (tmp_path / "executor.log").read_text()
+            )
+            assert client.set_state("cleanup") and client.state() == "unconfigured"
+            assert client.set_state("shutdown")
+            assert proc.wait(timeout=30) == 0  # finalized: the program ends by itself
+        finally:
+            client.close()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert orphaned_shm(before_shm) == []
+
+
+#: One long-lived stack runs these in sequence: the protocol, latency, init state, seed and task change
+#: between episodes (a task change cleans up and configures again; the rest only reset the env, soft).
+SEQUENCE = (
+    RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=25, replan_steps=3),
+    RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=25, init=1, seed=3),
+    RunConfig(policy="scripted", mode="sync", latency_s=0.0, max_steps=25, task=1),
+    RunConfig(policy="sine", mode="async", latency_s=0.0, max_steps=25, replan_steps=3),
+    RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=25, replan_steps=3),  # = the first
+)
+
+
+def test_long_lived_stack_is_bit_identical_to_in_process_and_to_a_fresh_stack(tmp_path):
+    before_shm = set(os.listdir(SHM))
+    bags, pids = [], []
+    with RosStack() as stack:
+        for k, cfg in enumerate(SEQUENCE):
+            bag, reason = stack.run_episode(cfg, tmp_path / f"stack{k}")
+            assert reason == "", reason
+            bags.append(bag)
+            pids.append({n: p.pid for n, p in stack.procs.items()})
+            assert pids[k] == pids[0], "no process was restarted"
+        procs = list(stack.procs.values())
+    assert all(p.returncode == 0 for p in procs), [p.returncode for p in procs]  # shut down through the lifecycle
+    for k, (cfg, bag) in enumerate(zip(SEQUENCE, bags, strict=True)):
+        local = run_inprocess(cfg, tmp_path / f"local{k}")
+        assert comparable(bag) == comparable(local.bag_path), f"episode {k}: {cfg}"
+    # The last episode again, on a stack of its own: the stack's history changes nothing.
+    fresh, reason = launch_nodes(SEQUENCE[-1], tmp_path / "fresh")
+    assert reason == ""
+    assert comparable(fresh) == comparable(bags[-1]) == comparable(bags[0])
+    # The task was created once per configure: episode 1 reused episode 0's env (soft reset).
+    assert "creating libero_spatial task 0" not in (bags[1] / "logs" / "sim.log").read_text()
+    assert "creating libero_spatial task 1" in (bags[2] / "logs" / "sim.log").read_text()
+    assert orphaned_shm(before_shm) == []
+
+
+def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_path):
+    before_shm = set(os.listdir(SHM))
+    long_cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=220)
+    next_cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=20, init=2)
+    seen: set[int] = set()
+    with RosStack() as stack:
+        for victim in ("sim", "policy"):
+            stack._ensure_processes()
+            seen |= {p.pid for p in stack.procs.values()}
+            pid = stack.procs[victim].pid
+
+            def kill_when_running(pid=pid, out=tmp_path / victim):
+                wait_for(lambda: any(out.glob("*/*.mcap")), 120, "the episode's bag")
+                time.sleep(2.0)
+                os.kill(pid, signal.SIGKILL)
+
+            killer = threading.Thread(target=kill_when_running)
+            killer.start()
+            bag, reason = stack.run_episode(long_cfg, tmp_path / victim)
+            killer.join()
+            assert reason == f"{victim} node exited with code -9"
+            assert (bag / "metadata.yaml").exists()  # the recorder was deactivated: a closed bag
+            after, reason = stack.run_episode(next_cfg, tmp_path / f"{victim}_next")
+            assert reason == "", reason
+            assert stack.procs[victim].pid != pid and stack.restarts[victim] == 1
+            seen |= {p.pid for p in stack.procs.values()}
+            local = run_inprocess(next_cfg, tmp_path / f"{victim}_local")
+            assert comparable(after) == comparable(local.bag_path)
+    wait_for(lambda: not any(alive(p) for p in seen), 60, "every process of the stack to exit")
+    assert orphaned_shm(before_shm) == []
