@@ -23,6 +23,7 @@ import json
 import os
 import select
 import sys
+import time
 
 import rclpy
 from lifecycle_msgs.msg import Transition
@@ -41,8 +42,8 @@ STOP_ORDER = ("sim", "executor", "policy", "metrics")
 #: Wall seconds: a node's services to appear (a cold process imports MuJoCo, torch...), a configure (creates
 #: the task's simulator or loads a policy), any other transition or call.
 SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
-#: Wall seconds between two looks at the recorder's state during an episode.
-POLL_PERIOD_S = 0.1
+#: Wall seconds between two looks at the recorder's state during an episode; between get_state attempts.
+POLL_PERIOD_S, RETRY_S = 0.1, 2.0
 
 
 class TransitionFailed(Exception):
@@ -70,9 +71,26 @@ class LifecycleManager(Node):
             raise TransitionFailed(node, what, f"service {client.srv_name} not available within {wait_s:.0f} s")
 
     def state(self, node: str, wait_s: float = SERVICE_WAIT_S) -> str:
-        self._ready(node, self.get[node], "get_state", wait_s)
-        (resp,) = self._wait(node, "get_state", CALL_S, self.get[node].call_async(GetState.Request()))
-        return resp.current_state.label
+        """The node's state label, asked again every RETRY_S until ``wait_s``.
+
+        A node restarted after a SIGKILL is still in the graph under its old participant for a while
+        (its lease has not expired), so its service looks ready before the new process serves it and a
+        request can go unanswered; get_state is safe to repeat, and once it answers, the calls that are
+        not (change_state) reach the live process.
+        """
+        deadline = time.monotonic() + wait_s
+        client = self.get[node]
+        while True:
+            self._ready(node, client, "get_state", max(0.0, deadline - time.monotonic()))
+            future = client.call_async(GetState.Request())
+            rclpy.spin_until_future_complete(
+                self, future, timeout_sec=min(RETRY_S, max(0.0, deadline - time.monotonic()))
+            )
+            if future.done():
+                return future.result().current_state.label
+            client.remove_pending_request(future)
+            if time.monotonic() >= deadline:
+                raise TransitionFailed(node, "get_state", f"no answer within {wait_s:.0f} s")
 
     def transition(self, nodes: list[str], label: str, timeout_s: float = CALL_S, wait_s: float = SERVICE_WAIT_S):
         """Transition ``label`` for ``nodes`` at once (they run it concurrently); TransitionFailed if one refuses."""
