@@ -61,7 +61,9 @@ def run_metadata(
         "camera_size_px": camera_size_px,
         "policy_params": policy_params,
         "transport": transport,
-        "lockstep": True,
+        "lockstep": cfg.clock == "lockstep",
+        # Real-time runs depend on wall-clock timing (lq_ros/realtime.py): never bit-identical on a rerun.
+        "bit_reproducible": cfg.clock == "lockstep",
         "latency_ticks": cfg.latency_ticks,
         "versions": env_versions,
     }

@@ -20,7 +20,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 PROTOCOL_FIELDS = ("replan_steps", "hold", "request_threshold", "merge")
 #: Run configuration fields besides the group keys that tell variants of a policy or protocol apart.
 #: Every parameter that changes outcomes is one: results that differ in any of them never pool.
-VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "camera_size")
+VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "camera_size", "clock", "robot")
 #: Camera render size when neither the run nor the policy names one, px.
 DEFAULT_CAMERA_SIZE_PX = 224
 #: What an aggregate row (and a figure's series point) is computed over: one policy variant, protocol,
@@ -31,7 +31,7 @@ GROUP_KEYS = (
 )  # fmt: skip
 #: Fields added after results were first stored: left out of ``RunConfig.key()`` while at their default,
 #: so the keys (episode names, resumable sweeps) of configurations that do not use them never change.
-_KEY_OPTIONAL_FIELDS = {"latency_dist": ""}
+_KEY_OPTIONAL_FIELDS = {"latency_dist": "", "clock": "lockstep", "robot": ""}
 
 
 @dataclass(frozen=True)
@@ -62,9 +62,19 @@ class RunConfig:
     #: Latency distribution, one draw per inference (``uniform:LO:HI``, ``normal:MEAN:STD``,
     #: ``lognormal:MEDIAN:SIGMA``, ``trace:FILE``; lq_ros/latency.py); empty: the constant ``latency_s``.
     latency_dist: str = ""
+    #: ``lockstep`` (deterministic: the sim steps when the tick's command exists) or ``realtime`` (wall-clock
+    #: ticks, real inference time plus the injected latency; not bit-reproducible; lq_ros/realtime.py).
+    clock: str = "lockstep"
+    #: Robot interface YAML (a shipped name such as ``standin`` or a path; lq_ros/robot_config.py): the
+    #: episode runs against a robot's standard topics through the bridge instead of the sim node (real time).
+    robot: str = ""
 
     def __post_init__(self) -> None:
         step_budget(self.suite)  # validates the suite name
+        if self.clock not in ("lockstep", "realtime"):
+            raise ValueError(f"clock must be lockstep or realtime, got {self.clock!r}")
+        if self.robot and self.clock != "realtime":
+            raise ValueError("a robot runs on wall-clock time: --robot needs --clock realtime")
         if self.latency_dist:
             dist = parse_latency(self.latency_dist)
             if dist.kind == "constant":  # "0.2" given as a distribution is the constant

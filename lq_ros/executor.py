@@ -319,6 +319,17 @@ class ExecutorCore:
             self._merge(arr, req)
         return None
 
+    def late(self, tick: int) -> None:
+        """Real time only: the chunk due at ``tick`` has not arrived in time; it takes effect at a later tick.
+
+        The tick then holds (sync) or runs on the buffer (async). When the chunk finally arrives, its
+        latency ticks are the ones that really passed, so async drops exactly the rows that went stale.
+        """
+        req = self._outstanding
+        if req is None or req.due_tick != tick:
+            raise RuntimeError(f"no chunk due at tick {tick} (outstanding: {req})")
+        self._outstanding = Request(req.request_id, req.tick, tick + 1, req.latency_s, req.prefix)
+
     def take_warnings(self) -> list[str]:
         """Protocol warnings since the last call, for the transport to publish (one WARNING event each)."""
         taken, self._warnings = self._warnings, []

@@ -30,6 +30,9 @@ class Policy(abc.ABC):
     #: True if ``infer`` accepts ``prefix`` (an :class:`ActionPrefix`: the actions that will execute while it
     #: infers and the delay d) and makes its chunk consistent with it: real-time chunking, ``--merge rtc``.
     supports_prefix: bool = False
+    #: True if ``infer`` reads privileged object poses (``Observation.objects``): on a robot they must come from
+    #: a tracker's pose topics, else the run is refused at configure time (lq_ros/obs_builder.py).
+    needs_object_poses: bool = False
 
     @abc.abstractmethod
     def reset(self, task: TaskInfo, seed: int) -> None:

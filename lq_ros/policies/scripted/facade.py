@@ -92,6 +92,7 @@ class ScriptedExpert(Policy):
     """``--policy scripted``: LIBERO-Spatial, LIBERO-Object and 7 of 10 LIBERO-Goal tasks (docs/scripted_experts.md)."""
 
     name = "scripted"
+    needs_object_poses = True  # privileged state: plans on the objects' poses
     camera_names = ()
 
     def __init__(self, **params) -> None:
