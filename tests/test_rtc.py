@@ -100,3 +100,32 @@ def test_inpaint_chunk_works_in_action_units():
     assert float((out[0] * 2.0 + 0.5 - 3.5).abs().max()) < 0.6
     free = inpaint_chunk(velocity, noise, 10, ActionPrefix(np.zeros((0, 7)), 3), mean, std)
     assert torch.equal(free, euler(velocity, noise, 10))
+
+
+def test_the_shipped_flow_policy_samples_under_rtc():
+    """flow with a prefix: the executing rows follow the old plan; no prefix or an empty one is exactly the
+    unguided chunk; the same prefix gives the same chunk (seeded noise)."""
+    from lq_ros.env import LiberoEnv
+    from lq_ros.policies import make_policy
+
+    env = LiberoEnv("libero_spatial", 0)
+    try:
+        env.reset(0, seed=7)
+        obs = env.observe(with_images=False)
+        task = env.task
+    finally:
+        env.close()
+    policy = make_policy("flow")
+    assert policy.supports_prefix
+    # The old plan: the same policy's chunk from other noise (RTC's case: a plan the policy itself could
+    # make; guidance cannot take a flow outside what it learned, so a far-fetched plan is not the test).
+    policy.reset(task, seed=8)
+    plan = policy.infer(obs)[:6]
+    policy.reset(task, seed=7)
+    unguided = policy.infer(obs)
+    assert np.array_equal(policy.infer(obs, prefix=ActionPrefix(np.zeros((0, 7)), 2)), unguided)
+    guided = policy.infer(obs, prefix=ActionPrefix(plan, delay=2))
+    assert np.array_equal(policy.infer(obs, prefix=ActionPrefix(plan, delay=2)), guided)
+    arm = slice(0, 6)
+    guided_error = np.abs(guided[:2, arm] - plan[:2, arm]).mean()
+    assert guided_error < 0.5 * np.abs(unguided[:2, arm] - plan[:2, arm]).mean()

@@ -2,26 +2,32 @@
 
 from __future__ import annotations
 
+import numpy as np
+
+from lq_ros import rtc
 from lq_ros.env import Observation
 from lq_ros.learned.models import FlowHook
 from lq_ros.learned.policy import LearnedChunkPolicy
+from lq_ros.merge import ActionPrefix
 from lq_ros.suites import ACTION_DIM
 
 
 class FlowPolicy(LearnedChunkPolicy):
     """Integrates the learned velocity field from seeded noise; the noise depends only on (seed, tick).
 
-    ``sample(x, noise, hook)`` is the one sampling path (``infer`` uses it with ``hook=None``): a
-    real-time-chunking variant would pass a hook that steers the prefix of the chunk towards the
-    actions still in flight (in normalised units: ``(a - action_mean) / action_std``).
+    Real-time chunking (merge ``rtc`` / ``rtc_hard``): ``infer(obs, prefix)`` samples the same noise with
+    guidance towards the actions still in flight (``rtc.inpaint_chunk``, in the policy's normalised units);
+    an empty prefix gives exactly the unguided chunk.
     """
 
     name = "flow"
     kind = "flow"
+    supports_prefix = True
 
     def __init__(self, weights: str = "flow_c10", steps: int = 0, threads: int = 1) -> None:
         super().__init__(weights, threads)
         self._steps = int(steps)
+        self._prefix: ActionPrefix | None = None  # set for the duration of one infer()
         if self._steps < 0:
             raise ValueError(f"steps must be >= 1 (0: the checkpoint's), got {self._steps}")
 
@@ -43,5 +49,20 @@ class FlowPolicy(LearnedChunkPolicy):
         """Normalised chunk (1, H, 7) integrated from ``noise`` for features ``x``; ``hook`` see models.integrate."""
         return self.model.sample(x, noise, self.steps, hook)
 
+    def infer(self, obs: Observation, prefix: ActionPrefix | None = None) -> np.ndarray:
+        self._prefix = prefix
+        try:
+            return super().infer(obs)
+        finally:
+            self._prefix = None
+
     def _decode(self, x, obs: Observation):
-        return self.sample(x, self.noise(obs))
+        prefix = self._prefix
+        if prefix is None or not len(prefix.actions):
+            return self.sample(x, self.noise(obs))
+        torch = self._torch
+
+        def velocity(x_t, t: float):
+            return self.model.velocity(x, x_t, torch.full((x_t.shape[0],), t))
+
+        return rtc.inpaint_chunk(velocity, self.noise(obs), self.steps, prefix, self.ckpt.a_mean, self.ckpt.a_std)
