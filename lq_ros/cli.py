@@ -144,6 +144,20 @@ def run(
     ] = _RUN.camera_size,
     physics_rate: Annotated[bool, typer.Option(help="Also record 500 Hz poses and joint states.")] = _RUN.physics_rate,
     max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = _RUN.max_steps,
+    clock: Annotated[
+        str,
+        typer.Option(
+            help="lockstep (deterministic) or realtime (wall-clock ticks, real inference time + Δt_sim; "
+            "not bit-reproducible; docs/real_robot.md)."
+        ),
+    ] = _RUN.clock,
+    robot: Annotated[
+        str,
+        typer.Option(
+            help="Run against a robot's standard topics through the bridge: a robot YAML or a shipped name "
+            "(standin: the LIBERO stand-in, started with the run; franka_ros2). Needs --clock realtime."
+        ),
+    ] = _RUN.robot,
     out: Path = Path("bags"),
     overwrite: Annotated[
         bool, typer.Option(help="Replace the episode's bag folder if the same configuration already ran into --out.")
@@ -171,14 +185,29 @@ def run(
             suite=suite, task=task, init=init, seed=seed, mode=mode, **latency_fields,
             replan_steps=replan_steps, hold=hold, request_threshold=request_threshold, merge=merge,
             policy=policy, policy_args=_parse_policy_args(policy_arg), camera_size=camera_size,
-            physics_rate=physics_rate, max_steps=max_steps,
+            physics_rate=physics_rate, max_steps=max_steps, clock=clock, robot=robot,
         )  # fmt: skip
+        if cfg.clock == "realtime" and transport is not Transport.ros:
+            raise ValueError("--clock realtime runs through ROS only (--transport ros)")
+        if cfg.robot:
+            from lq_ros.robot_config import load_robot_config
+
+            load_robot_config(cfg.robot)  # a bad robot YAML: one line naming the entry
         from lq_ros import validate
 
         validate.check_run(cfg)  # task and init ranges, the policy and its arguments: before anything starts
         from lq_ros.policies import policy_class
 
         policy_class(cfg.policy).check_merge(cfg.merge)  # rtc needs a policy that takes the executing prefix
+        if cfg.robot:  # a policy that needs what the robot does not publish: refused before anything starts
+            from lq_ros.policies import make_policy
+            from lq_ros.realtime_launch import check_robot
+
+            probe = make_policy(cfg.policy, **cfg.policy_args)
+            try:
+                check_robot(cfg, probe)
+            finally:
+                probe.close()
     except ValueError as exc:  # validate.InputError included
         _refuse(str(exc))
     _make_room(out / cfg.episode_name(), overwrite)

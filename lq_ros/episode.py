@@ -58,7 +58,11 @@ def run_episode(
     elif transport == "ros":
         from lq_ros.launcher import launch_nodes
 
-        if stack is not None:
+        if cfg.clock == "realtime":  # wall-clock sim or a robot: programs of their own (lq_ros/realtime_launch.py)
+            from lq_ros.realtime_launch import launch_realtime
+
+            bag_path, launch_error = launch_realtime(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)
+        elif stack is not None:
             bag_path, launch_error = stack.run_episode(cfg, out_dir, timeout_s)
         else:
             bag_path, launch_error = launch_nodes(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)

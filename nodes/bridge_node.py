@@ -1,0 +1,224 @@
+"""Bridge node: the one node that speaks a robot's standard topics (names in a robot YAML).
+
+Robot -> stack: keeps the latest arm/finger joint states, EE pose, object poses and images
+(lq_ros/obs_builder.py) and answers each /lq/observation_request with an /lq/observation (+ camera
+images) built from them, stamped with the robot's EE-pose stamp. Stack -> robot: each /lq/command (the
+executor's 7-D LIBERO delta) becomes an absolute EE target ``PoseStamped`` and a gripper width
+``Float64MultiArray`` (lq_ros/bridge.py: LIBERO's OSC scaling), applied by the robot when it arrives.
+
+Episode: STARTED (task from the run configuration) once every input the policy needs has arrived and
+every peer is connected; SUCCESS when the robot's success topic (an operator or a detector; the
+stand-in's goal check) says true; TIMEOUT once the step budget's wall time has passed. Ticks run on this
+machine's wall clock (``tick0_wall_ns``); every episode event is stamped with the robot's latest EE-pose
+stamp (the robot's clock), so the recorded pose series spans the episode exactly.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import Bool, Float64MultiArray
+
+from lq_ros import messages as m
+from lq_ros.bridge import DeltaToTarget
+from lq_ros.config import versions
+from lq_ros.env import load_task
+from lq_ros.obs_builder import ObservationBuilder, Requirements, missing_task_objects
+from lq_ros.realtime import PERIOD_NS, TickClock
+from lq_ros.robot_config import load_robot_config
+from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+
+#: Latest-sample subscriptions: best effort matches any publisher (a robot driver's QoS is its own).
+SENSOR_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+)  # fmt: skip
+COMMAND_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)  # fmt: skip
+
+
+def _ns(header) -> int:
+    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+class BridgeNode(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_bridge")
+        cfg = declare_run_config(self)
+        # What the policy needs (the launcher asks the policy and refuses a robot that lacks it).
+        self.declare_parameter("cameras", [""])
+        self.declare_parameter("needs_object_poses", False)
+        # Subscribers each robot topic needs before the episode starts (this node and the recorder).
+        self.declare_parameter("min_robot_subscribers", 2)
+        self.cfg = cfg
+        self.robot = load_robot_config(cfg.robot)
+        cams = tuple(c for c in self.get_parameter("cameras").value if c)
+        self.req = Requirements(cameras=cams, objects=bool(self.get_parameter("needs_object_poses").value))
+        self.min_robot_subs = self.get_parameter("min_robot_subscribers").value
+        self.builder = ObservationBuilder(self.robot, self.req)
+        self.task, _, _ = load_task(cfg.suite, cfg.task)
+        gc = self.robot.gripper_command
+        self.converter = DeltaToTarget(*((gc.open_width_m, gc.closed_width_m) if gc else ()))
+
+        r = self.robot
+        self.create_subscription(JointState, r.joint_states.topic, self.on_joints, SENSOR_QOS)
+        self.create_subscription(PoseStamped, r.ee_pose.topic, self.on_ee, SENSOR_QOS)
+        if r.gripper_state:
+            self.create_subscription(JointState, r.gripper_state.topic, self.on_fingers, SENSOR_QOS)
+        for cam in self.req.cameras:
+            self.create_subscription(Image, r.cameras[cam].topic, lambda msg, c=cam: self.on_image(c, msg), SENSOR_QOS)
+        if r.success:
+            self.create_subscription(Bool, r.success.topic, self.on_success, SENSOR_QOS)
+        self.object_subs: dict[str, object] = {}
+        if self.req.objects and r.objects and r.objects.names:
+            for name in r.objects.names:
+                self._subscribe_object(name)
+        self.target_pub = self.create_publisher(PoseStamped, r.ee_target.topic, COMMAND_QOS)
+        self.gripper_pub = self.create_publisher(Float64MultiArray, gc.topic, COMMAND_QOS) if gc else None
+
+        self.pubs = {t.name: publisher(self, t) for t in (m.OBSERVATION, m.EPISODE_EVENTS)}
+        self.pubs.update({m.camera_topic(c).name: publisher(self, m.camera_topic(c)) for c in cams})
+        self.request_sub = raw_subscription(self, m.OBSERVATION_REQUEST, self.on_request)
+        self.command_sub = raw_subscription(self, m.COMMAND, self.on_command)
+        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
+
+        self.clock: TickClock | None = None
+        self.finished = False
+        self.last_tick = -1  # last commanded tick
+        self.commands = 0
+        self.versions = versions()
+        self.start_timer = self.create_timer(0.05, self.start_when_ready)
+        self.create_timer(0.01, self.check_timeout)
+        self._waiting_logged = 0.0
+
+    # -- robot inputs ----------------------------------------------------------------------------------
+    def on_joints(self, msg: JointState) -> None:
+        self.builder.on_joint_state(msg, _ns(msg.header))
+
+    def on_ee(self, msg: PoseStamped) -> None:
+        self.builder.on_ee_pose(msg, _ns(msg.header))
+
+    def on_fingers(self, msg: JointState) -> None:
+        self.builder.on_gripper_state(msg, _ns(msg.header))
+
+    def on_image(self, camera: str, msg: Image) -> None:
+        img = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.width, -1)
+        self.builder.on_image(camera, img, _ns(msg.header))
+
+    def _subscribe_object(self, name: str) -> None:
+        topic = self.robot.objects.topic(name)
+        self.object_subs[name] = self.create_subscription(
+            PoseStamped, topic, lambda msg, n=name: self.builder.on_object_pose(n, msg, _ns(msg.header)), SENSOR_QOS
+        )
+
+    def on_success(self, msg: Bool) -> None:
+        if msg.data and self.clock is not None and not self.finished:
+            self.end(m.EventKind.SUCCESS, "", {"source": self.robot.success.topic})
+
+    # -- episode start -----------------------------------------------------------------------------------
+    def discover_objects(self) -> None:
+        """``names: auto``: subscribe to every <prefix>/<name>/pose topic on the graph."""
+        objects = self.robot.objects
+        if not (self.req.objects and objects and objects.names is None):
+            return
+        for topic, _types in self.get_topic_names_and_types():
+            name = objects.name_of(topic)
+            if name and name not in self.object_subs:
+                self._subscribe_object(name)
+
+    def start_when_ready(self) -> None:
+        self.discover_objects()
+        waiting = list(self.builder.missing())
+        if self.req.objects:
+            waiting += [
+                self.robot.objects.topic(n) for n in missing_task_objects(self.task.goal, set(self.builder.objects))
+            ]
+        robot_topics = [self.robot.joint_states.topic, self.robot.ee_pose.topic]
+        waiting += [f"recorder on {t}" for t in robot_topics if self.count_subscribers(t) < self.min_robot_subs]
+        peers_ok = self.command_sub.get_publisher_count() > 0 and self.request_sub.get_publisher_count() > 0
+        # This node, the policy, the executor and the recorder: STARTED must reach all of them at once.
+        subs_ok = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count() >= 4
+        subs_ok = subs_ok and self.pubs[m.OBSERVATION.name].get_subscription_count() >= 2  # policy, recorder
+        if waiting or not peers_ok or not subs_ok:
+            if time.monotonic() - self._waiting_logged > 5.0:
+                self._waiting_logged = time.monotonic()
+                self.get_logger().info(f"waiting for {', '.join(waiting) or 'the executor, policy and recorder'}")
+            return
+        self.start_timer.cancel()
+        # Ticks run on this machine's wall clock; the event carries the robot's stamp of the state it starts
+        # from (the two clocks differ by the robot's transport delay, or more if its clock is its own).
+        self.clock = TickClock(time.time_ns())
+        detail = m.started_detail(self.task, self.cfg.init, self.cfg.seed, self.versions)
+        detail.update(tick0_wall_ns=self.clock.tick0_ns, clock="realtime", robot=self.robot.to_dict())
+        detail["robot_clock_offset_ms"] = round((self.clock.tick0_ns - self.builder.ee.stamp_ns) / 1e6, 3)
+        self.publish_event(self.builder.ee.stamp_ns, m.EventKind.STARTED, 0, "", detail)
+        self.get_logger().info(f"episode started (robot {self.robot.name!r}): {detail['robot_clock_offset_ms']} ms "
+                               "between this wall clock and the robot's last EE stamp")  # fmt: skip
+
+    # -- stack requests and commands ---------------------------------------------------------------------
+    def on_request(self, req) -> None:
+        if self.finished or self.clock is None:
+            return
+        obs = self.builder.build(req.tick)
+        t_ns = m.to_ns(obs.sim_time_s)
+        for cam, image in obs.images.items():
+            self.pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))
+        self.pubs[m.OBSERVATION.name].publish(m.observation_msg(obs, req.request_id))
+
+    def on_command(self, cmd) -> None:
+        if self.finished or self.clock is None:
+            return
+        pos, quat = self.builder.ee.values
+        target = self.converter.target(np.asarray(cmd.action), pos, quat)
+        msg = PoseStamped()
+        now = time.time_ns()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = now // 1_000_000_000, now % 1_000_000_000
+        msg.header.frame_id = self.robot.frame_id
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in target.pos)
+        o = msg.pose.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in target.quat_xyzw)
+        self.target_pub.publish(msg)
+        if self.gripper_pub is not None:
+            self.gripper_pub.publish(Float64MultiArray(data=[target.gripper_width_m]))
+        self.last_tick = max(self.last_tick, cmd.tick)
+        self.commands += 1
+
+    def check_timeout(self) -> None:
+        if self.clock is None or self.finished:
+            return
+        if time.time_ns() >= self.clock.tick_ns(self.cfg.budget):
+            self.end(
+                m.EventKind.TIMEOUT, f"step budget {self.cfg.budget} reached ({self.cfg.budget * PERIOD_NS / 1e9:g} s)"
+            )
+
+    def on_event(self, event) -> None:
+        if event.kind in m.EventKind.TERMINAL and not self.finished:
+            self.get_logger().info(f"episode ended by a peer: {m.EventKind.NAMES[event.kind]} {event.reason}")
+            self.finished = True
+
+    # -- helpers ----------------------------------------------------------------------------------------
+    def publish_event(self, t_ns: int, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:
+        self.pubs[m.EPISODE_EVENTS.name].publish(m.event_msg(t_ns, kind, tick, reason, detail))
+
+    def end(self, kind: int, reason: str, detail: dict | None = None) -> None:
+        # Ticks whose command the robot had: the tick count of the outcome (as the sim's state.tick).
+        tick = self.cfg.budget if kind == m.EventKind.TIMEOUT else self.last_tick + 1
+        detail = dict(detail or {}, commands_received=self.commands)
+        self.publish_event(self.builder.ee.stamp_ns, kind, tick, reason, detail)
+        self.finished = True
+
+
+def main() -> None:
+    sys.exit(run(BridgeNode, stay_alive=True))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,153 @@
+"""Real-time executor: the sync hold / async buffer protocol (lq_ros/executor.py) on a wall-clock timer.
+
+The lockstep executor (executor_node.py) waits for each tick's /clock and for every due chunk; this one
+waits for nothing (lq_ros/realtime.py). Tick m starts at ``tick0 + m * 50 ms`` (``tick0_wall_ns`` from the
+STARTED event); the core's answer for the tick is worked out at once: an observation request goes out
+without waiting for the observation, a due chunk that is already here is applied, and one that has not
+arrived ``COMMAND_DEADLINE_S`` into the tick is declared late (``ExecutorCore.late``): the tick holds or
+runs on the buffer, and the chunk applies at the first tick after it arrives, its stale rows (the ticks
+that really passed) dropped. Ticks whose command went out more than one period after the tick's
+scheduled start are overruns; the count and the worst lateness are published on /lq/realtime_stats
+(std_msgs/String, JSON) when the episode ends.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from lq_ros import messages as m
+from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.realtime import COMMAND_DEADLINE_S, OverrunCounter, TickClock
+from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
+
+STATS_TOPIC = "/lq/realtime_stats"
+
+
+class RealtimeExecutorNode(Node):
+    def __init__(self) -> None:
+        super().__init__("lq_executor")
+        self.core = ExecutorCore(declare_run_config(self).executor_config())
+        # Wall-clock seconds to wait for a requested chunk before ending the episode as an error.
+        self.declare_parameter("chunk_timeout_s", 60.0)
+        self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
+        self.command_pub = publisher(self, m.COMMAND)
+        self.request_pub = publisher(self, m.OBSERVATION_REQUEST)
+        self.prefix_pub = publisher(self, m.ACTION_PREFIX)
+        self.event_pub = publisher(self, m.EPISODE_EVENTS)
+        self.stats_pub = self.create_publisher(String, STATS_TOPIC, LOSSLESS_QOS)
+        raw_subscription(self, m.ACTION_CHUNK, self.on_chunk)
+        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
+        self.create_timer(0.002, self.poll)  # 2 ms: tick starts and deadlines are met to a few ms
+
+        self.clock: TickClock | None = None
+        self.finished = False
+        self.next_tick = 0
+        self.tick: int | None = None  # tick whose command is being decided
+        self.tick_start_ns = 0
+        self.waiting_due = False
+        self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
+        self.requested_at: dict[int, float] = {}  # request id -> monotonic time of the request
+        self.overruns = OverrunCounter()
+        self.late_chunks = 0
+
+    # -- callbacks --------------------------------------------------------------------------------------
+    def on_event(self, event) -> None:
+        if event.kind == m.EventKind.STARTED and self.clock is None:
+            self.clock = TickClock(json.loads(event.detail_json)["tick0_wall_ns"])
+        elif event.kind in m.EventKind.TERMINAL and not self.finished:
+            self.finish()
+
+    def on_chunk(self, msg) -> None:
+        self.chunks[msg.request_id] = msg
+        self.requested_at.pop(msg.request_id, None)
+        if self.tick is not None and self.waiting_due:
+            self.advance()
+
+    def poll(self) -> None:
+        if self.finished or self.clock is None:
+            return
+        now = time.time_ns()
+        if self.tick is None and now >= self.clock.tick_ns(self.next_tick):
+            self.tick, self.tick_start_ns = self.next_tick, now
+            self.next_tick += 1
+            self.advance()
+        elif (
+            self.tick is not None
+            and self.waiting_due
+            and now >= self.clock.tick_ns(self.tick) + COMMAND_DEADLINE_S * 1e9
+        ):
+            self.core.late(self.tick)
+            self.late_chunks += 1
+            self.waiting_due = False
+            self.advance()
+        stuck = [rid for rid, t in self.requested_at.items() if time.monotonic() - t > self.chunk_timeout_s]
+        if stuck and not self.finished:
+            self.end_with_error(f"no chunk from the policy within {self.chunk_timeout_s} s (wall clock)")
+
+    # -- the tick -----------------------------------------------------------------------------------------
+    def advance(self) -> None:
+        """Work out the current tick's command without waiting (see the module docstring)."""
+        while not self.finished and self.tick is not None:
+            step = self.core.advance(self.tick)
+            if isinstance(step, ObservationNeeded):
+                t_ns = self.clock.tick_ns(self.tick)
+                if step.request.prefix is not None:
+                    self.prefix_pub.publish(m.prefix_msg(t_ns, step.request))
+                self.request_pub.publish(m.request_msg(t_ns, step.request))
+                self.requested_at[step.request.request_id] = time.monotonic()
+            elif isinstance(step, ChunkDue):
+                msg = self.chunks.pop(step.request.request_id, None)
+                if msg is None:
+                    self.waiting_due = True  # until it arrives or the deadline passes (poll)
+                    return
+                self.waiting_due = False
+                self.deliver(step.request, msg)
+            elif isinstance(step, Failed):
+                self.end_with_error(step.reason)
+            else:
+                self.command_pub.publish(m.command_msg(self.clock.tick_ns(self.tick), step))
+                now = time.time_ns()
+                scheduled = self.clock.tick_ns(self.tick)
+                self.overruns.record(self.tick, self.tick_start_ns - scheduled, now - self.tick_start_ns)
+                self.tick = None
+
+    def deliver(self, due, msg) -> None:
+        if msg.error:
+            self.end_with_error(f"policy failed on request {due.request_id}: {msg.error}")
+            return
+        reason = self.core.deliver(due.request_id, m.chunk_actions(msg))
+        if reason is not None:
+            self.get_logger().error(f"chunk of request {due.request_id} rejected: {reason}")
+            self.event(m.EventKind.CHUNK_REJECTED, reason, {"request_id": due.request_id})
+        for warning in self.core.take_warnings():
+            self.get_logger().warning(warning)
+            self.event(m.EventKind.WARNING, warning, {"request_id": due.request_id})
+
+    def event(self, kind: int, reason: str, detail: dict | None = None) -> None:
+        tick = self.tick if self.tick is not None else self.next_tick
+        t_ns = self.clock.tick_ns(tick) if self.clock else 0
+        self.event_pub.publish(m.event_msg(t_ns, kind, tick, reason, detail))
+
+    def end_with_error(self, reason: str) -> None:
+        self.get_logger().error(reason)
+        self.event(m.EventKind.ERROR, reason, {"node": "executor"})
+        self.finish()
+
+    def finish(self) -> None:
+        self.finished = True
+        stats = dict(self.overruns.summary(), late_chunks=self.late_chunks, node="executor")
+        self.stats_pub.publish(String(data=json.dumps(stats, sort_keys=True)))
+        self.get_logger().info(f"real-time executor: {stats}")
+
+
+def main() -> None:
+    sys.exit(run(RealtimeExecutorNode, stay_alive=True))
+
+
+if __name__ == "__main__":
+    main()

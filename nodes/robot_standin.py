@@ -1,0 +1,196 @@
+"""A robot stand-in: a LIBERO scene in MuJoCo on wall-clock time, speaking only standard topics.
+
+Not our sim node: no /clock, no lq_msgs, no episode events, no lockstep. It behaves like a robot with a
+Cartesian impedance controller (lq_ros/standin.py): the physics runs one 2 ms substep after another in
+step with the wall clock, and it publishes, at its own rates and with the names of a robot YAML
+(``robot_config``, default config/robots/standin.yaml):
+
+- arm ``sensor_msgs/JointState`` (positions, velocities, efforts) at ``joint_states.rate_hz`` (500 Hz: every substep),
+- the end-effector ``geometry_msgs/PoseStamped`` and the finger ``JointState`` at ``ee_pose.rate_hz`` (100 Hz),
+- one ``PoseStamped`` per object (``<prefix>/<name>/pose``) and the task's goal check (``std_msgs/Bool``) at
+  ``objects.rate_hz`` (20 Hz),
+- camera ``sensor_msgs/Image`` s at ``camera_rate_hz`` when the YAML lists cameras (rendering is slow on a CPU).
+
+It takes only the bridge's commands: an absolute EE target ``PoseStamped`` and a gripper width
+``std_msgs/Float64MultiArray``. Stamps are the robot's clock: ``epoch + k * 2 ms`` for substep k, with the
+epoch read from the wall clock at start, so every series is exactly periodic; if the physics falls behind
+the wall clock (a slow CPU), the lag is logged and counted, as a robot's controller would report overruns.
+
+Parameters: suite, task, init, seed, robot_config, camera_rate_hz, camera_size_px.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import Bool, Float64MultiArray
+
+from lq_ros.bridge import width_to_gripper_action
+from lq_ros.robot_config import load_robot_config
+from lq_ros.ros_util import run
+from lq_ros.standin import StandinRobot
+from lq_ros.suites import PHYSICS_DT_S
+
+#: What a robot driver typically offers: reliable, volatile (no history for late joiners).
+ROBOT_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)  # fmt: skip
+SUBSTEP_NS = round(PHYSICS_DT_S * 1e9)
+#: Substeps run per timer call at most (keeps command callbacks responsive while catching up).
+MAX_BATCH = 25
+LAG_LIMIT_NS = 20_000_000
+
+
+PARAMETERS = {"suite": "libero_spatial", "task": 0, "init": 0, "seed": 7, "robot_config": "standin",
+              "camera_rate_hz": 5.0, "camera_size_px": 128}  # fmt: skip
+
+
+def _every(rate_hz: float) -> int:
+    """Substeps between two samples of a topic published at ``rate_hz`` (at most every substep)."""
+    return max(1, round(1.0 / (max(rate_hz, 1e-3) * PHYSICS_DT_S)))
+
+
+def _stamp(msg, t_ns: int) -> None:
+    msg.header.stamp.sec, msg.header.stamp.nanosec = t_ns // 1_000_000_000, t_ns % 1_000_000_000
+
+
+class RobotStandin(Node):
+    def __init__(self) -> None:
+        super().__init__("robot_standin")
+        for name, default in PARAMETERS.items():
+            self.declare_parameter(name, default)
+        p = {n: self.get_parameter(n).value for n in PARAMETERS}
+        self.robot_cfg = rc = load_robot_config(p["robot_config"])
+        self.frame = rc.frame_id
+        self.get_logger().info(f"creating {p['suite']} task {p['task']} init {p['init']} as robot {rc.name!r}")
+        self.robot = StandinRobot(p["suite"], p["task"], cameras=tuple(rc.cameras), camera_size=p["camera_size_px"])
+        self.robot.reset(p["init"], p["seed"])
+        self.joint_names = list(rc.joint_states.joints)
+        self.finger_names = list(rc.gripper_state.joints) if rc.gripper_state else []
+        self.js_pub = self.create_publisher(JointState, rc.joint_states.topic, ROBOT_QOS)
+        self.ee_pub = self.create_publisher(PoseStamped, rc.ee_pose.topic, ROBOT_QOS)
+        self.finger_pub = (
+            self.create_publisher(JointState, rc.gripper_state.topic, ROBOT_QOS) if rc.gripper_state else None
+        )
+        self.object_pubs = {}
+        if rc.objects is not None:
+            names = rc.objects.names if rc.objects.names is not None else tuple(self.robot.object_poses())
+            self.object_pubs = {n: self.create_publisher(PoseStamped, rc.objects.topic(n), ROBOT_QOS) for n in names}
+        self.success_pub = self.create_publisher(Bool, rc.success.topic, ROBOT_QOS) if rc.success else None
+        self.camera_pubs = {c: self.create_publisher(Image, s.topic, ROBOT_QOS) for c, s in rc.cameras.items()}
+        # Publishing periods in substeps, from the YAML's rates (500 Hz: every substep).
+        self.joints_every = _every(rc.joint_states.rate_hz)
+        self.pose_every = _every(rc.ee_pose.rate_hz)
+        self.slow_every = _every(rc.objects.rate_hz if rc.objects else 20.0)
+        self.camera_every = _every(p["camera_rate_hz"])
+        self.create_subscription(PoseStamped, rc.ee_target.topic, self.on_target, ROBOT_QOS)
+        self.gripper_cmd = rc.gripper_command
+        if self.gripper_cmd:
+            self.create_subscription(Float64MultiArray, self.gripper_cmd.topic, self.on_gripper, ROBOT_QOS)
+        self.slow_slots = 0  # timer calls after which the physics was > LAG_LIMIT_NS behind the wall clock
+        self.epoch_ns = time.time_ns()
+        self.create_timer(0.01, self.loop)
+        self.get_logger().info(f"running on wall-clock time from {self.epoch_ns} ns")
+
+    # -- commands -------------------------------------------------------------------------------
+    def on_target(self, msg: PoseStamped) -> None:
+        if msg.header.frame_id and msg.header.frame_id != self.frame:
+            self.get_logger().error(f"target in frame {msg.header.frame_id!r} ignored; this robot takes {self.frame!r}")
+            return
+        p, q = msg.pose.position, msg.pose.orientation
+        self.robot.set_target(np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w]))
+
+    def on_gripper(self, msg: Float64MultiArray) -> None:
+        if len(msg.data) != 1:
+            self.get_logger().error(f"gripper command with {len(msg.data)} values ignored; expected [width_m]")
+            return
+        g = self.gripper_cmd
+        self.robot.set_gripper_action(width_to_gripper_action(msg.data[0], g.open_width_m, g.closed_width_m))
+
+    # -- the controller loop ------------------------------------------------------------------------
+    def loop(self) -> None:
+        start = time.time_ns()
+        due = (start - self.epoch_ns) // SUBSTEP_NS  # substeps the wall clock says have passed
+        first = self.robot.substeps
+        while self.robot.substeps < min(due, first + MAX_BATCH):
+            s = self.robot.substep()
+            k = self.robot.substeps
+            t_ns = self.epoch_ns + k * SUBSTEP_NS
+            if k % self.joints_every == 0:
+                self.publish_joints(t_ns, s)
+            if k % self.pose_every == 0:
+                self.publish_pose(t_ns)
+            if k % self.slow_every == 0:
+                self.publish_slow(t_ns)
+            if self.camera_pubs and k % self.camera_every == 0:
+                self.publish_images(t_ns)
+        behind_ns = time.time_ns() - (self.epoch_ns + self.robot.substeps * SUBSTEP_NS)
+        if behind_ns > LAG_LIMIT_NS:
+            self.slow_slots += 1
+            if self.slow_slots in (1, 10, 100) or self.slow_slots % 1000 == 0:
+                self.get_logger().warning(
+                    f"physics {behind_ns / 1e6:.1f} ms behind the wall clock ({self.slow_slots} slow timer slots)"
+                )
+
+    def publish_joints(self, t_ns: int, s) -> None:
+        msg = JointState()
+        _stamp(msg, t_ns)
+        msg.name = self.joint_names
+        msg.position, msg.velocity, msg.effort = s.joint_pos.tolist(), s.joint_vel.tolist(), s.joint_torque.tolist()
+        self.js_pub.publish(msg)
+
+    def publish_pose(self, t_ns: int) -> None:
+        pos, quat = self.robot.ee_pose()
+        self.ee_pub.publish(self._pose(t_ns, pos, quat))
+        if self.finger_pub is not None:
+            msg = JointState()
+            _stamp(msg, t_ns)
+            msg.name = self.finger_names
+            msg.position = self.robot.finger_positions().tolist()
+            msg.velocity = self.robot.finger_velocities().tolist()
+            self.finger_pub.publish(msg)
+
+    def publish_slow(self, t_ns: int) -> None:
+        poses = self.robot.object_poses()
+        for name, pub in self.object_pubs.items():
+            if name in poses:
+                pub.publish(self._pose(t_ns, *poses[name]))
+        if self.success_pub is not None:
+            self.success_pub.publish(Bool(data=self.robot.success()))
+
+    def publish_images(self, t_ns: int) -> None:
+        for cam, pub in self.camera_pubs.items():
+            img = self.robot.render(cam)
+            msg = Image(height=img.shape[0], width=img.shape[1], encoding="rgb8", step=img.shape[1] * 3)
+            _stamp(msg, t_ns)
+            msg.header.frame_id = cam
+            msg.data = img.tobytes()
+            pub.publish(msg)
+
+    def _pose(self, t_ns: int, pos, quat) -> PoseStamped:
+        msg = PoseStamped()
+        _stamp(msg, t_ns)
+        msg.header.frame_id = self.frame
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in pos)
+        o = msg.pose.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in quat)
+        return msg
+
+    def close(self) -> None:
+        self.get_logger().info(f"stopping; physics fell > 20 ms behind the wall clock in {self.slow_slots} slots")
+        self.robot.close()
+
+
+def main() -> None:
+    sys.exit(run(RobotStandin, stay_alive=True))
+
+
+if __name__ == "__main__":
+    main()
