@@ -197,10 +197,22 @@ def _state(pid: int) -> str:
 
 @pytest.mark.slow
 def test_ros_transport_sweep_runs_the_four_node_stack(tmp_path):
-    spec = sw.expand_spec(small_spec(transport="ros", latencies_s=[0.1], modes=["async"], max_steps=10))
+    """One worker, four episodes (sync and async): one long-lived stack runs them all, nothing is left after."""
+    from lq_ros.runner import run_inprocess
+    from tests.test_faults import orphaned_shm
+
+    before_shm = set(os.listdir("/dev/shm"))
+    spec = sw.expand_spec(small_spec(transport="ros", latencies_s=[0.1], inits=[0, 1], max_steps=10))
     summary = sw.run_sweep(spec, tmp_path, workers=1)
-    assert summary.counts == {"failure": 1}, [r["row"].get("error_reason") for r in sw.ResultStore(tmp_path).records()]
-    (record,) = sw.ResultStore(tmp_path).records()
-    assert record["transport"] == "ros" and record["row"]["transport"] == "ros"
-    assert record["row"]["completion_steps"] == 10
-    assert (tmp_path / record["bag"] / "logs" / "sim.log").exists()  # node logs kept with the bag
+    records = sw.ResultStore(tmp_path).records()
+    assert summary.counts == {"failure": 4}, [r["row"].get("error_reason") for r in records]
+    sim_logs = []
+    for record in records:
+        assert record["transport"] == "ros" and record["row"]["transport"] == "ros"
+        assert record["row"]["completion_steps"] == 10
+        sim_logs.append((tmp_path / record["bag"] / "logs" / "sim.log").read_text())  # node logs kept per bag
+        local = run_inprocess(RunConfig(**record["config"]), tmp_path / "local")
+        assert comparable(tmp_path / record["bag"]) == comparable(local.bag_path)
+    # The task's env was created once: the stack outlived the first episode.
+    assert sum("creating libero_spatial task 0" in log for log in sim_logs) == 1
+    assert orphaned_shm(before_shm) == []
