@@ -6,6 +6,7 @@ through the nodes' standard services from another process.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -175,4 +176,51 @@ def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_pa
             local = run_inprocess(next_cfg, tmp_path / f"{victim}_local")
             assert comparable(after) == comparable(local.bag_path)
     wait_for(lambda: not any(alive(p) for p in seen), 60, "every process of the stack to exit")
+    assert orphaned_shm(before_shm) == []
+
+
+def test_a_refused_activation_is_the_episode_error_with_its_reason_and_the_stack_goes_on(tmp_path):
+    # The scripted expert cannot inpaint against an executing prefix: its node refuses to activate for rtc.
+    refused = RunConfig(policy="scripted", mode="async", latency_s=0.2, merge="rtc", max_steps=10)
+    fine = RunConfig(policy="scripted", mode="async", latency_s=0.2, max_steps=10)
+    with RosStack() as stack:
+        bag, reason = stack.run_episode(refused, tmp_path)
+        assert reason.startswith("policy node: activate failed: ValueError: merge 'rtc' (real-time chunking)"), reason
+        # The recorder was already active: its bag says the episode was stopped, an error.
+        assert json.loads((bag / "score.json").read_text())["status"] == "error"
+        bag, reason = stack.run_episode(fine, tmp_path)
+        assert reason == "" and (bag / "score.json").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL])
+def test_an_interrupted_ros_sweep_leaves_no_process_and_no_shm_file(tmp_path, sig):
+    import yaml
+
+    from tests.test_faults import descendants
+
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(yaml.safe_dump({"name": "stop", "transport": "ros", "tasks": [0], "inits": [0, 1, 2],
+                                    "policies": ["sine"], "latencies_s": [0.1], "modes": ["async"],
+                                    "max_steps": 60}))  # fmt: skip
+    before_shm = set(os.listdir(SHM))
+    out = tmp_path / "out"
+    with open(tmp_path / "sweep.log", "wb") as log:
+        sweep = subprocess.Popen(
+            [sys.executable, "-m", "lq_ros.cli", "sweep", str(spec), "--workers", "1", "--out", str(out)],
+            stdout=log, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+    seen: set[int] = set()
+    try:
+        # The second episode runs on the stack of the first: interrupt it there.
+        wait_for(lambda: len(list((out / "results").glob("*.json"))) >= 1, 300, "the first episode")
+        seen |= descendants(sweep.pid)
+        time.sleep(3.0)
+        seen |= descendants(sweep.pid)
+        assert len(seen) >= 6, seen  # worker, manager and the four nodes (at least)
+        sweep.send_signal(sig)
+        sweep.wait(timeout=120)
+    finally:
+        if sweep.poll() is None:
+            sweep.kill()
+    wait_for(lambda: not any(alive(p) for p in seen), 90, "every process of the sweep to exit")
     assert orphaned_shm(before_shm) == []
