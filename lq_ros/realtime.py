@@ -26,11 +26,11 @@ from lq_ros.suites import CONTROL_DT_S
 
 PERIOD_NS = round(CONTROL_DT_S * 1e9)
 #: The real-time sim starts tick 0 this long after it announces the episode (STARTED reaches every node first).
-START_DELAY_S = 0.5
+START_DELAY_S = 1.0
 #: A chunk due at tick m that has not arrived this long after tick m started applies at a later tick.
-COMMAND_DEADLINE_S = 0.02
+COMMAND_DEADLINE_S = 0.025
 #: The real-time sim steps tick m this long after tick m started (the executor's command is due by then).
-SIM_STEP_OFFSET_S = 0.03
+SIM_STEP_OFFSET_S = 0.04
 CLOCKS = ("lockstep", "realtime")
 
 
