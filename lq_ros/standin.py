@@ -88,7 +88,8 @@ class StandinRobot:
         """One 2 ms physics step under the current target (robosuite's env.step, one iteration)."""
         from robosuite.utils import transform_utils as T
 
-        self._sim.forward()
+        # No sim.forward() first (robosuite's env.step has one): the controller's update runs mj_forward
+        # itself before it reads the state, so a second one only cost time (~25% of a substep).
         if self._new_target:
             pos, quat = self._target
             self._robot.controller.set_goal(np.r_[pos, 0.0, 0.0, 0.0], set_pos=pos, set_ori=T.quat2mat(quat))

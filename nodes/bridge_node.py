@@ -30,7 +30,7 @@ from lq_ros.bridge import DeltaToTarget
 from lq_ros.config import versions
 from lq_ros.env import load_task
 from lq_ros.obs_builder import ObservationBuilder, Requirements, missing_task_objects
-from lq_ros.realtime import PERIOD_NS, TickClock
+from lq_ros.realtime import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.robot_config import load_robot_config
 from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
 
@@ -153,13 +153,18 @@ class BridgeNode(Node):
                 self.get_logger().info(f"waiting for {', '.join(waiting) or 'the executor, policy and recorder'}")
             return
         self.start_timer.cancel()
-        # Ticks run on this machine's wall clock; the event carries the robot's stamp of the state it starts
-        # from (the two clocks differ by the robot's transport delay, or more if its clock is its own).
-        self.clock = TickClock(time.time_ns())
+        # Ticks run on this machine's wall clock, from START_DELAY_S on (every node has STARTED by then). The
+        # event is stamped in the robot's clock: the EE sample expected at tick 0 (the robot's EE stamps are
+        # periodic at its rate), so the recorded pose series starts exactly with the episode.
+        now = time.time_ns()
+        self.clock = TickClock(now + round(START_DELAY_S * 1e9))
+        ee_ns, rate = self.builder.ee.stamp_ns, self.robot.ee_pose.rate_hz
+        period_ns = round(1e9 / rate) if rate else 0
+        t0_robot_ns = ee_ns + (round(START_DELAY_S * 1e9 / period_ns) * period_ns if period_ns else 0)
         detail = m.started_detail(self.task, self.cfg.init, self.cfg.seed, self.versions)
         detail.update(tick0_wall_ns=self.clock.tick0_ns, clock="realtime", robot=self.robot.to_dict())
-        detail["robot_clock_offset_ms"] = round((self.clock.tick0_ns - self.builder.ee.stamp_ns) / 1e6, 3)
-        self.publish_event(self.builder.ee.stamp_ns, m.EventKind.STARTED, 0, "", detail)
+        detail["robot_clock_offset_ms"] = round((now - ee_ns) / 1e6, 3)
+        self.publish_event(t0_robot_ns, m.EventKind.STARTED, 0, "", detail)
         self.get_logger().info(f"episode started (robot {self.robot.name!r}): {detail['robot_clock_offset_ms']} ms "
                                "between this wall clock and the robot's last EE stamp")  # fmt: skip
 
