@@ -2,8 +2,8 @@
 
 In ``--clock realtime`` runs (and against a robot) nothing waits for anything. Control tick m starts at
 wall time ``tick0_ns + m * 50 ms`` on this machine's clock; ``tick0_wall_ns`` travels in the STARTED
-event's detail (the real-time sim sets it :data:`START_DELAY_S` after it publishes STARTED, so every node
-has it before tick 0; the bridge sets it when it publishes STARTED). The executor decides tick m's
+event's detail (the real-time sim and the bridge set it :data:`START_DELAY_S` after they publish STARTED, so
+every node has it before tick 0). The executor decides tick m's
 command when the tick starts, giving a due chunk until :data:`COMMAND_DEADLINE_S` into the tick to
 arrive (else the tick holds and the chunk applies at a later tick). The real-time sim steps tick m at
 :data:`SIM_STEP_OFFSET_S` into the tick with the command of tick m if it has arrived, else the stop hold
