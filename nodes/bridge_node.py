@@ -63,6 +63,9 @@ class BridgeNode(Node):
         cams = tuple(c for c in self.get_parameter("cameras").value if c)
         self.req = Requirements(cameras=cams, objects=bool(self.get_parameter("needs_object_poses").value))
         self.min_robot_subs = self.get_parameter("min_robot_subscribers").value
+        # Wall seconds to wait for the robot's topics and the peers before the episode ends as an error.
+        self.declare_parameter("start_timeout_s", 60.0)
+        self.start_deadline = time.monotonic() + self.get_parameter("start_timeout_s").value
         self.builder = ObservationBuilder(self.robot, self.req)
         self.task, _, _ = load_task(cfg.suite, cfg.task)
         gc = self.robot.gripper_command
@@ -148,9 +151,19 @@ class BridgeNode(Node):
         subs_ok = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count() >= 4
         subs_ok = subs_ok and self.pubs[m.OBSERVATION.name].get_subscription_count() >= 2  # policy, recorder
         if waiting or not peers_ok or not subs_ok:
+            what = ", ".join(waiting) or "the executor, policy and recorder"
+            if time.monotonic() > self.start_deadline and subs_ok:  # the recorder hears it: end as an error
+                self.start_timer.cancel()
+                timeout = self.get_parameter("start_timeout_s").value
+                robot = f"robot {self.robot.name!r} ({self.robot.source})"
+                reason = f"{robot} not ready after {timeout:g} s: no message on {what}"
+                self.get_logger().error(reason)
+                self.publish_event(time.time_ns(), m.EventKind.ERROR, 0, reason, {"node": "bridge"})
+                self.finished = True
+                return
             if time.monotonic() - self._waiting_logged > 5.0:
                 self._waiting_logged = time.monotonic()
-                self.get_logger().info(f"waiting for {', '.join(waiting) or 'the executor, policy and recorder'}")
+                self.get_logger().info(f"waiting for {what}")
             return
         self.start_timer.cancel()
         # Ticks run on this machine's wall clock, from START_DELAY_S on (every node has STARTED by then). The

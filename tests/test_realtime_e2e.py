@@ -106,3 +106,18 @@ def test_refusals_before_anything_starts(tmp_path):
     assert "unknown robot" in refused("--clock", "realtime", "--robot", "nope")
     assert "clock must be" in refused("--clock", "fast")
     assert not any(tmp_path.iterdir())
+
+
+def test_silent_robot_is_a_run_error_naming_its_topics(tmp_path):
+    """A robot that publishes nothing (wrong names, not running): an error that names what never came."""
+    yaml_text = (Path(__file__).resolve().parents[1] / "config/robots/standin.yaml").read_text()
+    silent = tmp_path / "silent.yaml"
+    silent.write_text(yaml_text.replace("name: libero_standin", "name: silent"))  # not started by the launcher
+    before_shm = set(os.listdir(SHM))
+    cfg = RunConfig(clock="realtime", robot=str(silent), max_steps=10)
+    bag, error = launch_realtime(cfg, tmp_path / "out", node_parameters={"lq_bridge": {"start_timeout_s": 5.0}})
+    assert error == ""
+    row = json.loads((bag / "score.json").read_text())
+    assert row["status"] == "error" and "not ready after 5 s" in row["error_reason"]
+    assert "/robot/joint_states" in row["error_reason"] and "/robot/ee_pose" in row["error_reason"]
+    assert orphaned_shm(before_shm) == []
