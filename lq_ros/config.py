@@ -151,9 +151,12 @@ class RunConfig:
 
     def episode_name(self) -> str:
         kind = f"{self.latency_model().kind}" if self.latency_dist else ""
+        # Real-time and robot runs say so in their names (lockstep names are unchanged).
+        clock = "" if self.clock == "lockstep" else f"{self.clock}_"
+        robot = f"{Path(self.robot).stem}_" if self.robot else ""
         return (
             f"{self.suite}_t{self.task}_i{self.init}_s{self.seed}_{self.policy.replace(':', '.')}_{self.mode}_"
-            f"{kind}{round(self.latency_s * 1000)}ms_{self.key()}"
+            f"{kind}{round(self.latency_s * 1000)}ms_{clock}{robot}{self.key()}"
         )
 
 

@@ -50,6 +50,8 @@ def run_episode(
     ``timeout_s`` goes to the launcher. Task failures and run errors are outcomes; an exception means the
     episode could not be started or recorded at all.
     """
+    if cfg.clock == "realtime" and transport != "ros":
+        raise ValueError("--clock realtime runs through ROS only (transport ros)")
     if transport == "inprocess":
         from lq_ros.runner import run_inprocess
 
