@@ -157,6 +157,7 @@ class RosStack:
         self.shm = ShmTracker()
         self._replies = b""
         self._key: tuple | None = None  # reconfigure_key of the configured episode
+        self._probe: tuple | None = None  # (policy key, cameras, params, render size) of the last policy
         self.episodes = 0
         self.restarts: dict[str, int] = {}
         self.closed = False
@@ -251,11 +252,15 @@ class RosStack:
         if self.closed:
             raise StackDead("the stack was closed")
         bag_path = Path(out_dir) / cfg.episode_name()
-        # This process's own instance only tells cameras and parameters (the policy node builds its own).
-        probe = make_policy(cfg.policy, **cfg.policy_args)
-        cameras, policy_params = probe.camera_names, probe.params()
-        camera_size_px = cfg.camera_size_for(probe.render_size)
-        probe.close()
+        policy_key = (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
+        if self._probe is None or self._probe[0] != policy_key:
+            # This process's own instance only tells cameras and parameters (the policy node builds its own);
+            # kept while the policy stays the same (a learned policy loads its weights to answer).
+            probe = make_policy(cfg.policy, **cfg.policy_args)
+            self._probe = (policy_key, probe.camera_names, probe.params(), probe.render_size)
+            probe.close()
+        _, cameras, policy_params, render_size = self._probe
+        camera_size_px = cfg.camera_size_for(render_size)
         timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
         params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
         self.params_file.write_text(params_yaml(params))  # what a (re)started node starts with
@@ -264,7 +269,9 @@ class RosStack:
             self._ensure_processes()
             key = reconfigure_key(cfg)
             per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
-            reconfigure = self._key is not None and key != self._key
+            # None after a refused transition or a restarted node: configure everything again (cleanup of an
+            # unconfigured node is skipped, so a fresh stack just configures).
+            reconfigure = key != self._key
             self._send({"op": "episode", "params": per_node, "reconfigure": reconfigure})
             deadline = time.monotonic() + timeout_s
             reply, reason = self._await(("active",), deadline)
