@@ -3,7 +3,9 @@
 The robot publishes at its own rates; :class:`ObservationBuilder` keeps the latest sample of each topic
 (arm ``JointState``, EE ``PoseStamped``, finger ``JointState``, object ``PoseStamped`` s, ``Image`` s) and, when
 the executor asks, assembles the same :class:`lq_ros.env.Observation` the simulator would give, stamped
-with the robot's EE-pose stamp. :func:`check_requirements` refuses, when a run is configured, a policy
+with the robot's EE-pose stamp. The EE orientation is turned into the frame the policy's observations
+use (``ee_pose.observation_rotation_xyzw``; LIBERO reports robosuite's hand body, 90 deg about z from the
+grip site that OSC and the bridge work in). :func:`check_requirements` refuses, when a run is configured, a policy
 that needs something the robot does not publish (cameras, object poses, finger state), naming it.
 """
 
@@ -13,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lq_ros.bridge import matrix_to_quat, quat_to_matrix
 from lq_ros.env import Observation
 from lq_ros.robot_config import RobotConfig
 
@@ -139,6 +142,9 @@ class ObservationBuilder:
             raise RuntimeError(f"no sample yet on {', '.join(self.missing())}")
         pos, vel = self.joints.values
         ee_pos, ee_quat = self.ee.values
+        offset = self.robot.ee_pose.observation_rotation_xyzw
+        if offset != (0.0, 0.0, 0.0, 1.0):  # the policy's EE frame (e.g. LIBERO's hand body, not the grip site)
+            ee_quat = matrix_to_quat(quat_to_matrix(ee_quat) @ quat_to_matrix(np.asarray(offset)))
         gripper = self.gripper.values[0] if self.gripper.stamp_ns >= 0 else np.zeros(2)
         return Observation(
             tick=tick,

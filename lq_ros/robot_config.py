@@ -38,6 +38,9 @@ class StreamSpec:
     type: str
     rate_hz: float = 0.0  # the robot's publishing rate (0: on change / not periodic)
     joints: tuple[str, ...] = ()
+    #: ee_pose only: fixed rotation (x y z w, body-fixed: R_obs = R_ee @ R) from the published EE frame (the
+    #: one the impedance controller tracks) to the frame the policy's observations were trained in.
+    observation_rotation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -154,6 +157,12 @@ def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
     if len(joint_states.joints) != 7:
         raise RobotConfigError(f"{where}: 'joint_states.joints' lists {len(joint_states.joints)} joints; a 7-DoF arm")
     ee_pose = _stream(raw, "ee_pose", POSE_STAMPED, where)
+    rot = raw["ee_pose"].get("observation_rotation_xyzw", [0.0, 0.0, 0.0, 1.0])
+    if not (isinstance(rot, list) and len(rot) == 4 and all(isinstance(v, int | float) for v in rot)) or not (
+        abs(sum(v * v for v in rot) - 1.0) < 1e-3
+    ):
+        raise RobotConfigError(f"{where}: 'ee_pose.observation_rotation_xyzw' must be a unit quaternion [x, y, z, w]")
+    ee_pose = StreamSpec(ee_pose.topic, ee_pose.type, ee_pose.rate_hz, (), tuple(float(v) for v in rot))
     gripper_state = (
         _stream(raw, "gripper_state", JOINT_STATE, where, need_joints=True) if "gripper_state" in raw else None
     )

@@ -71,3 +71,19 @@ def test_missing_task_objects() -> None:
     goal = [["on", "akita_black_bowl_1", "plate_1"]]
     assert missing_task_objects(goal, {"plate_1"}) == ["akita_black_bowl_1"]
     assert missing_task_objects(goal, {"plate_1", "akita_black_bowl_1", "x"}) == []
+
+
+def test_observation_rotation_turns_the_ee_frame_into_the_policy_frame() -> None:
+    """The stand-in publishes the grip site (OSC's frame); LIBERO policies saw the hand body, +90 deg about z."""
+    robot = load_robot_config("standin")
+    assert robot.ee_pose.observation_rotation_xyzw[2] == pytest.approx(np.sqrt(0.5))
+    b = ObservationBuilder(robot, Requirements(gripper=False))
+    t = 10
+    b.on_joint_state(
+        m.deserialize(m.joint_state_msg(t, np.zeros(7), np.zeros(7), np.zeros(7)), m.JOINT_STATES.msgtype), t
+    )
+    b.on_ee_pose(m.deserialize(m.ee_pose_msg(t, [0, 0, 1], [0, 0, 0, 1]), m.EE_POSE.msgtype), t)
+    assert np.allclose(b.build(0).eef_quat_xyzw, [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    franka = ObservationBuilder(load_robot_config(ROBOTS_DIR / "franka_ros2.yaml"), Requirements(gripper=False))
+    franka.joints, franka.ee = b.joints, b.ee
+    assert np.allclose(franka.build(0).eef_quat_xyzw, [0, 0, 0, 1])  # identity: unchanged

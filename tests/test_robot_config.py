@@ -38,6 +38,7 @@ def test_object_topic_names() -> None:
         (lambda d: d.update(extra=1), "unknown entries ['extra']"),
         (lambda d: d["command"]["gripper"].update(closed_width_m=0.1), "open_width_m > closed_width_m"),
         (lambda d: d["objects"].update(names="all"), "'objects.names'"),
+        (lambda d: d["ee_pose"].update(observation_rotation_xyzw=[0, 0, 1, 1]), "unit quaternion"),
     ],
 )
 def test_mistakes_are_one_line(change, needle) -> None:
