@@ -33,7 +33,7 @@ POLICIES = [("oft", {}, "oft_c8", 8), ("oft", {"chunk_size": 1}, "oft_c1", 1), (
 #: Suites each checkpoint base name is shipped for (docs/learned_policies.md: what is not shipped yet).
 SHIPPED_SUITES: dict[str, tuple[str, ...]] = {
     "oft_c8": ("libero_spatial",),
-    "oft_c1": (),
+    "oft_c1": ("libero_spatial",),
     "flow_c10": ("libero_spatial",),
 }
 #: Every shipped (suite, policy name, policy args, base name, chunk length).
