@@ -35,3 +35,49 @@ def test_absolute_targets_from_deltas_equal_libero_delta_control():
     assert set(robot.object_poses()) >= {"akita_black_bowl_1", "plate_1"} and not robot.success()
     robot.close()
     env.close()
+
+
+def _msg(msgtype: str, data: bytes):
+    from lq_ros import messages as m
+
+    return m.deserialize(data, msgtype)
+
+
+def test_scripted_expert_on_the_standin_through_the_observation_builder_with_ideal_timing():
+    """The whole robot path but the transport: observations built from the robot's topics (EE frame turned
+    into LIBERO's), sync protocol every 5 actions, targets from the bridge. Succeeds like lockstep LIBERO."""
+    from lq_ros import messages as m
+    from lq_ros.obs_builder import ObservationBuilder, Requirements
+    from lq_ros.policies import make_policy
+    from lq_ros.robot_config import load_robot_config
+
+    rc = load_robot_config("standin")
+    robot = StandinRobot("libero_spatial", 0)
+    robot.reset(0, 7)
+    policy = make_policy("scripted")
+    policy.reset(robot.task, 7)
+    builder = ObservationBuilder(rc, Requirements.of(policy))
+    conv = DeltaToTarget(0.08, 0.0)
+    chunk, row, outcome = None, 0, None
+    for tick in range(220):
+        t = tick * 50_000_000
+        pos, quat = robot.ee_pose()
+        builder.on_ee_pose(_msg(m.EE_POSE.msgtype, m.ee_pose_msg(t, pos, quat)), t)
+        js = m.joint_state_msg(t, robot._data.qpos[robot._qpos], robot._data.qvel[robot._qvel], np.zeros(7))
+        builder.on_joint_state(_msg(m.JOINT_STATES.msgtype, js), t)
+        builder.gripper.stamp_ns, builder.gripper.values = t, (robot.finger_positions(),)
+        for name, (p, q) in robot.object_poses().items():
+            builder.on_object_pose(name, _msg(m.EE_POSE.msgtype, m.ee_pose_msg(t, p, q)), t)
+        if chunk is None or row >= 5:
+            chunk, row = policy.infer(builder.build(tick)), 0
+        target = conv.target(chunk[row], pos, quat)
+        row += 1
+        robot.set_target(target.pos, target.quat_xyzw)
+        robot.set_gripper_action(width_to_gripper_action(target.gripper_width_m, 0.08, 0.0))
+        for _ in range(SUBSTEPS_PER_TICK):
+            robot.substep()
+        if robot.success():
+            outcome = tick + 1
+            break
+    robot.close()
+    assert outcome is not None and outcome <= 130, outcome  # lockstep LIBERO: 109 ticks
