@@ -184,7 +184,12 @@ class RobotStandin(Node):
         return msg
 
     def close(self) -> None:
-        self.get_logger().info(f"stopping; physics fell > 20 ms behind the wall clock in {self.slow_slots} slots")
+        wall_s = (time.time_ns() - self.epoch_ns) / 1e9
+        physics_s = self.robot.substeps * PHYSICS_DT_S
+        self.get_logger().info(
+            f"stopping; {physics_s:.2f} s of physics in {wall_s:.2f} s of wall time (real-time factor "
+            f"{physics_s / wall_s:.2f}); > 20 ms behind the wall clock after {self.slow_slots} timer slots"
+        )
         self.robot.close()
 
 
