@@ -34,9 +34,10 @@ from lq_ros.realtime import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.robot_config import load_robot_config
 from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
 
-#: Latest-sample subscriptions: best effort matches any publisher (a robot driver's QoS is its own).
+#: Latest-sample subscriptions: best effort matches any publisher (a robot driver's QoS is its own); depth 1:
+#: a busy bridge skips stale samples instead of working through a 500 Hz backlog.
 SENSOR_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
+    history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
     durability=DurabilityPolicy.VOLATILE,
 )  # fmt: skip
 COMMAND_QOS = QoSProfile(
@@ -79,7 +80,8 @@ class BridgeNode(Node):
         for cam in self.req.cameras:
             self.create_subscription(Image, r.cameras[cam].topic, lambda msg, c=cam: self.on_image(c, msg), SENSOR_QOS)
         if r.success:
-            self.create_subscription(Bool, r.success.topic, self.on_success, SENSOR_QOS)
+            # Reliable: an operator's single `true` must not be lost (ros2 topic pub is reliable by default).
+            self.create_subscription(Bool, r.success.topic, self.on_success, COMMAND_QOS)
         self.object_subs: dict[str, object] = {}
         if self.req.objects and r.objects and r.objects.names:
             for name in r.objects.names:

@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -121,3 +122,35 @@ def test_silent_robot_is_a_run_error_naming_its_topics(tmp_path):
     assert row["status"] == "error" and "not ready after 5 s" in row["error_reason"]
     assert "/robot/joint_states" in row["error_reason"] and "/robot/ee_pose" in row["error_reason"]
     assert orphaned_shm(before_shm) == []
+
+
+def test_robot_killed_mid_episode_ends_the_run_cleanly(tmp_path):
+    """kill -9 of the robot (the stand-in): the run ends as an error naming it; no process or /dev/shm file left."""
+    import signal
+
+    before_shm = set(os.listdir(SHM))
+    t_start = time.time()
+    cmd = [sys.executable, "-m", "lq_ros.cli", "run", "--out", str(tmp_path), "--json", "--clock", "realtime",
+           "--robot", "standin", "--max-steps", "200"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    seen: set[int] = set()
+    deadline = time.monotonic() + 240
+    killed = False
+    while proc.poll() is None and time.monotonic() < deadline:
+        seen.update(node_descendants(proc.pid))
+        logs = [p for p in Path(tempfile.gettempdir()).glob("lq_rt_*/bridge.log") if p.stat().st_ctime >= t_start]
+        started = any("episode started" in p.read_text(errors="replace") for p in logs if p.exists())
+        if started and not killed:
+            time.sleep(1.0)
+            out = subprocess.run(["ps", "-eww", "-o", "pid=,args="], capture_output=True, text=True).stdout
+            robots = [int(line.split()[0]) for line in out.splitlines() if "lq_ros_nodes.robot_standin" in line]
+            robots = [p for p in robots if p in seen]
+            assert robots, "the stand-in was not found"
+            os.kill(robots[0], signal.SIGKILL)
+            killed = True
+        time.sleep(0.3)
+    out = proc.communicate(timeout=120)[0]
+    assert killed and proc.returncode == 1, out
+    row = json.loads(out)
+    assert row["status"] == "error" and "robot node exited with code -9" in row["error_reason"]
+    _assert_nothing_left(sorted(seen), before_shm)
