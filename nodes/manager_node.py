@@ -43,7 +43,7 @@ STOP_ORDER = ("sim", "executor", "policy", "metrics")
 #: the task's simulator or loads a policy), any other transition or call.
 SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
 #: Wall seconds between two looks at the recorder's state during an episode; between get_state attempts.
-POLL_PERIOD_S, RETRY_S = 0.1, 2.0
+POLL_PERIOD_S, RETRY_S = 0.05, 2.0
 
 
 class TransitionFailed(Exception):
@@ -172,10 +172,18 @@ def serve(manager: LifecycleManager, replies) -> None:
     """Answer the launcher's operations until shutdown or until the launcher goes away (stdin closed)."""
     buffer = b""
     running = False  # an episode is active: watch the recorder
+    poll = None  # (get_state future of the recorder, when it was sent)
+    recorder = manager.get["metrics"]
 
     def reply(obj: dict) -> None:
         replies.write(json.dumps(obj) + "\n")
         replies.flush()
+
+    def forget_poll() -> None:
+        nonlocal poll
+        if poll is not None and not poll[0].done():
+            recorder.remove_pending_request(poll[0])
+        poll = None
 
     while rclpy.ok():
         readable, _, _ = select.select([sys.stdin.fileno()], [], [], POLL_PERIOD_S)
@@ -188,6 +196,8 @@ def serve(manager: LifecycleManager, replies) -> None:
             line, buffer = buffer.split(b"\n", 1)
             op = json.loads(line)
             skip = set(op.get("skip", ()))
+            running = False
+            forget_poll()
             if op["op"] == "episode":
                 try:
                     manager.episode(op["params"], op.get("reconfigure", False))
@@ -197,23 +207,28 @@ def serve(manager: LifecycleManager, replies) -> None:
                 running = True
                 reply({"event": "active"})
             elif op["op"] == "stop":
-                running = False
                 manager.stop(skip)
                 reply({"event": "stopped"})
             elif op["op"] == "shutdown":
                 manager.shutdown(skip)
                 reply({"event": "shutdown"})
                 return
-        if running and not readable:
-            try:
-                recorded = manager.state("metrics", wait_s=5.0) != "active"
-            except TransitionFailed as exc:
-                manager.get_logger().error(str(exc))  # the launcher notices a dead node and stops the episode
-                continue
+        if not running:
+            continue
+        # Never block here: a stop from the launcher (a node died) must be handled at once, even when the
+        # recorder is the node that died and will never answer.
+        rclpy.spin_once(manager, timeout_sec=0.0)
+        if poll is None:
+            poll = (recorder.call_async(GetState.Request()), time.monotonic())
+        elif poll[0].done():
+            recorded = poll[0].result().current_state.label != "active"
+            poll = None
             if recorded:
                 running = False
                 manager.stop(set())
                 reply({"event": "done"})
+        elif time.monotonic() - poll[1] > RETRY_S:
+            forget_poll()  # asked again on the next pass
 
 
 def main() -> None:
