@@ -9,18 +9,20 @@ step with the wall clock, and it publishes, at its own rates and with the names 
 - the end-effector ``geometry_msgs/PoseStamped`` and the finger ``JointState`` at ``ee_pose.rate_hz`` (100 Hz),
 - one ``PoseStamped`` per object (``<prefix>/<name>/pose``) and the task's goal check (``std_msgs/Bool``) at
   ``objects.rate_hz`` (20 Hz),
-- camera ``sensor_msgs/Image`` s at ``camera_rate_hz`` when the YAML lists cameras (rendering is slow on a CPU).
+- camera ``sensor_msgs/Image`` s (rgb8, upright) at each camera's ``rate_hz`` when the YAML lists cameras
+  (LIBERO names: agentview, robot0_eye_in_hand; rendering costs 50-125 ms per image on a CPU).
 
 It takes only the bridge's commands: an absolute EE target ``PoseStamped`` and a gripper width
 ``std_msgs/Float64MultiArray``. Stamps are the robot's clock: ``epoch + k * 2 ms`` for substep k, with the
 epoch read from the wall clock at start, so every series is exactly periodic; if the physics falls behind
 the wall clock (a slow CPU), the lag is logged and counted, as a robot's controller would report overruns.
 
-Parameters: suite, task, init, seed, robot_config, camera_rate_hz, camera_size_px.
+Parameters: suite, task, init, seed, robot_config, camera_size_px.
 """
 
 from __future__ import annotations
 
+import array
 import sys
 import time
 
@@ -49,7 +51,7 @@ LAG_LIMIT_NS = 20_000_000
 
 
 PARAMETERS = {"suite": "libero_spatial", "task": 0, "init": 0, "seed": 7, "robot_config": "standin",
-              "camera_rate_hz": 5.0, "camera_size_px": 128}  # fmt: skip
+              "camera_size_px": 128}  # fmt: skip
 
 
 def _every(rate_hz: float) -> int:
@@ -89,7 +91,7 @@ class RobotStandin(Node):
         self.joints_every = _every(rc.joint_states.rate_hz)
         self.pose_every = _every(rc.ee_pose.rate_hz)
         self.slow_every = _every(rc.objects.rate_hz if rc.objects else 20.0)
-        self.camera_every = _every(p["camera_rate_hz"])
+        self.camera_every = {c: _every(spec.rate_hz or 5.0) for c, spec in rc.cameras.items()}
         self.create_subscription(PoseStamped, rc.ee_target.topic, self.on_target, ROBOT_QOS)
         self.gripper_cmd = rc.gripper_command
         if self.gripper_cmd:
@@ -129,8 +131,9 @@ class RobotStandin(Node):
                 self.publish_pose(t_ns)
             if k % self.slow_every == 0:
                 self.publish_slow(t_ns)
-            if self.camera_pubs and k % self.camera_every == 0:
-                self.publish_images(t_ns)
+            for cam, every in self.camera_every.items():
+                if k % every == 0:
+                    self.publish_image(cam, t_ns)
         behind_ns = time.time_ns() - (self.epoch_ns + self.robot.substeps * SUBSTEP_NS)
         if behind_ns > LAG_LIMIT_NS:
             self.slow_slots += 1
@@ -165,14 +168,13 @@ class RobotStandin(Node):
         if self.success_pub is not None:
             self.success_pub.publish(Bool(data=self.robot.success()))
 
-    def publish_images(self, t_ns: int) -> None:
-        for cam, pub in self.camera_pubs.items():
-            img = self.robot.render(cam)
-            msg = Image(height=img.shape[0], width=img.shape[1], encoding="rgb8", step=img.shape[1] * 3)
-            _stamp(msg, t_ns)
-            msg.header.frame_id = cam
-            msg.data = img.tobytes()
-            pub.publish(msg)
+    def publish_image(self, cam: str, t_ns: int) -> None:
+        img = self.robot.render(cam)
+        msg = Image(height=img.shape[0], width=img.shape[1], encoding="rgb8", step=img.shape[1] * 3)
+        _stamp(msg, t_ns)
+        msg.header.frame_id = cam
+        msg.data = array.array("B", img.tobytes())  # fast path (a numpy or bytes value is converted slowly)
+        self.camera_pubs[cam].publish(msg)
 
     def _pose(self, t_ns: int, pos, quat) -> PoseStamped:
         msg = PoseStamped()

@@ -154,3 +154,18 @@ def test_robot_killed_mid_episode_ends_the_run_cleanly(tmp_path):
     row = json.loads(out)
     assert row["status"] == "error" and "robot node exited with code -9" in row["error_reason"]
     _assert_nothing_left(sorted(seen), before_shm)
+
+
+def test_camera_images_from_the_robot_reach_the_policy(tmp_path):
+    """A policy that needs a camera gets the robot's sensor_msgs/Image through the bridge (checked per chunk)."""
+    text = (Path(__file__).resolve().parents[1] / "config/robots/standin.yaml").read_text()
+    cams = "cameras:\n  agentview: {topic: /robot/camera/agentview/image_raw, rate_hz: 4}"
+    robot = tmp_path / "standin_camera.yaml"
+    robot.write_text("\n".join(cams if line.startswith("cameras:") else line for line in text.splitlines()))
+    cfg = RunConfig(policy="tests.rt_policies:CameraSine", clock="realtime", robot=str(robot), max_steps=20)
+    bag, error = launch_realtime(cfg, tmp_path / "out")
+    assert error == ""
+    row = json.loads((bag / "score.json").read_text())
+    assert row["status"] == "failure", row.get("error_reason")  # the sine never solves the task; no error
+    assert row["num_inferences"] >= 2
+    assert "/camera/agentview/image_raw" in (bag / "metadata.yaml").read_text()  # recorded as the policy saw it
