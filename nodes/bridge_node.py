@@ -187,7 +187,11 @@ class BridgeNode(Node):
     def on_request(self, req) -> None:
         if self.finished or self.clock is None:
             return
-        obs = self.builder.build(req.tick)
+        try:
+            obs = self.builder.build(req.tick)
+        except RuntimeError as exc:  # an input went missing: the episode cannot go on
+            self.end(m.EventKind.ERROR, f"observation for request {req.request_id}: {exc}", {"node": "bridge"})
+            return
         t_ns = m.to_ns(obs.sim_time_s)
         for cam, image in obs.images.items():
             self.pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))
