@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from lq_ros.bag import read_run_metadata
 from lq_ros.config import RunConfig
@@ -169,3 +170,22 @@ def test_camera_images_from_the_robot_reach_the_policy(tmp_path):
     assert row["status"] == "failure", row.get("error_reason")  # the sine never solves the task; no error
     assert row["num_inferences"] >= 2
     assert "/camera/agentview/image_raw" in (bag / "metadata.yaml").read_text()  # recorded as the policy saw it
+
+
+def test_same_stack_under_franka_ros2_topic_names(tmp_path):
+    """The swap is the YAML: the stand-in publishes under franka_ros2's names and frame, the stack follows."""
+    raw = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/robots/franka_ros2.yaml").read_text())
+    raw.update(name="libero_standin", cameras={})  # started by the launcher; no camera rendering
+    raw["objects"]["names"] = "auto"
+    robot = tmp_path / "franka_names.yaml"
+    robot.write_text(yaml.safe_dump(raw))
+    cfg = RunConfig(policy="sine", clock="realtime", robot=str(robot), max_steps=20)
+    bag, error = launch_realtime(cfg, tmp_path / "out")
+    assert error == ""
+    row = json.loads((bag / "score.json").read_text())
+    assert row["status"] == "failure" and row["jerk_mean"] is not None, row.get("null_reasons")
+    assert row["trajectory_rate_hz"] == 500.0  # the YAML's 1 kHz, capped at the stand-in's 500 Hz physics
+    meta = (bag / "metadata.yaml").read_text()
+    for topic in ("/franka_robot_state_broadcaster/current_pose", "/cartesian_impedance_example_controller/"
+                  "equilibrium_pose", "/fr3_gripper/joint_states"):  # fmt: skip
+        assert topic in meta
