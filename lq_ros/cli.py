@@ -241,7 +241,7 @@ def demo(
     task: int = 0,
     transport: Transport = Transport.ros,
 ) -> None:
-    """LIBERO-Spatial task 0 through the four-node stack: sync and async at 0 and 0.2 s latency (a rerun
+    """LIBERO-Spatial task 0 through one four-node stack: sync and async at 0 and 0.2 s latency (a rerun
     replaces the demo's episodes in OUT)."""
     from lq_ros import validate
 
@@ -252,10 +252,17 @@ def demo(
     except ValueError as exc:
         _refuse(str(exc))
     rows = []
-    for cfg in configs:
-        console.print(f"running {cfg.mode} Δt_sim={cfg.latency_s} s ...")
-        _make_room(out / cfg.episode_name(), overwrite=True)
-        rows.append(run_episode(cfg, out, transport))
+    with contextlib.ExitStack() as keep:
+        # One long-lived node stack for the four episodes (docs/lifecycle.md), as a sweep worker keeps one.
+        stack = None
+        if transport is Transport.ros:
+            from lq_ros.launcher import RosStack
+
+            stack = keep.enter_context(RosStack())
+        for cfg in configs:
+            console.print(f"running {cfg.mode} Δt_sim={cfg.latency_s} s ...")
+            _make_room(out / cfg.episode_name(), overwrite=True)
+            rows.append(run_episode(cfg, out, transport, **({"stack": stack} if stack else {})))
     print_rows(rows, title=f"LIBERO-LQ demo · libero_spatial task {task} · {policy} · {transport.value}")
     console.print(f"bags: {out}/  (score again with: lq score {out})")
     if any(r.get("status") == "error" for r in rows):

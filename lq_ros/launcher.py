@@ -134,10 +134,16 @@ class StackDead(RuntimeError):
     """The lifecycle manager died: the stack cannot run another episode (start a new one)."""
 
 
-def reconfigure_key(cfg: RunConfig) -> tuple:
-    """What the nodes load at configure (the task's simulator, the policy): a change needs cleanup + configure."""
-    return (cfg.suite, cfg.task, cfg.policy, json.dumps(cfg.policy_args, sort_keys=True), cfg.camera_size,
-            cfg.physics_rate)  # fmt: skip
+def configure_keys(cfg: RunConfig, params: dict) -> dict[str, tuple]:
+    """Per node, what it loads at configure (the CONFIGURE_FIELDS of nodes/*_node.py): a change needs cleanup +
+    configure of that node only (a new policy on the same task keeps the simulator)."""
+    sim = params["lq_sim"]
+    return {
+        "sim": (cfg.suite, cfg.task, cfg.physics_rate, tuple(sim["cameras"]), sim["camera_size_px"]),
+        "policy": (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True)),
+        "executor": (),
+        "metrics": (),
+    }
 
 
 class RosStack:
@@ -156,7 +162,7 @@ class RosStack:
         self.procs: dict[str, subprocess.Popen] = {}
         self.shm = ShmTracker()
         self._replies = b""
-        self._key: tuple | None = None  # reconfigure_key of the configured episode
+        self._keys: dict[str, tuple] | None = None  # configure_keys of the configured nodes
         self._probe: tuple | None = None  # (policy key, cameras, params, render size) of the last policy
         self.episodes = 0
         self.restarts: dict[str, int] = {}
@@ -196,7 +202,7 @@ class RosStack:
             if p is not None:
                 self.restarts[name] = self.restarts.get(name, 0) + 1
                 if name != MANAGER:
-                    self._key = None  # a fresh node is unconfigured: configure all with this episode
+                    self._keys = None  # a fresh node is unconfigured: configure all with this episode
             self._spawn(name)
 
     def _dead(self) -> list[str]:
@@ -267,19 +273,19 @@ class RosStack:
         log_marks = self._log_sizes()
         try:
             self._ensure_processes()
-            key = reconfigure_key(cfg)
+            keys = configure_keys(cfg, params)
             per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
-            # None after a refused transition or a restarted node: configure everything again (cleanup of an
-            # unconfigured node is skipped, so a fresh stack just configures).
-            reconfigure = key != self._key
+            # All after a refused transition or a restarted node (None): configure everything again (cleanup of
+            # an unconfigured node is skipped, so a fresh stack just configures).
+            reconfigure = [n for n in NODES if self._keys is None or keys[n] != self._keys[n]]
             self._send({"op": "episode", "params": per_node, "reconfigure": reconfigure})
             deadline = time.monotonic() + timeout_s
             reply, reason = self._await(("active",), deadline)
             if reply is not None and reply["event"] == "failed":
                 reason = self._failure_reason(reply)
-                self._key = None  # configure everything again next time
+                self._keys = None  # configure everything again next time
             elif reply is not None:
-                self._key = key
+                self._keys = keys
                 reply, reason = self._await(("done",), deadline)
             if reason == "timeout":
                 reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"

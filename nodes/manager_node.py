@@ -6,8 +6,8 @@ nothing else. The launcher (lq_ros/launcher.py, which keeps rclpy out of its own
 launcher leaves no Fast DDS file behind) sends it one JSON object per line on stdin and reads one per line
 on stdout:
 
-- ``{"op": "episode", "params": {node: {name: value}}, "reconfigure": bool}``: every node to inactive with
-  the episode's parameters (configured if it was not, cleaned up and configured again if ``reconfigure``),
+- ``{"op": "episode", "params": {node: {name: value}}, "reconfigure": [node, ...]}``: every node to inactive
+  with the episode's parameters (configured if it was not, cleaned up and configured again if named),
   then activated, recorder first, simulator last. Answers ``{"event": "active"}`` or ``{"event": "failed",
   "node", "transition", "reason"}``; later ``{"event": "done"}``, once the recorder has deactivated itself
   (its bag is closed and scored) and the other nodes were deactivated.
@@ -112,14 +112,14 @@ class LifecycleManager(Node):
             raise TransitionFailed(node, "set_parameters", "; ".join(bad))
 
     # -- operations ----------------------------------------------------------------------------------
-    def episode(self, params: dict[str, dict], reconfigure: bool) -> None:
+    def episode(self, params: dict[str, dict], reconfigure: list[str]) -> None:
         to_configure = []
         for node in ACTIVATE_ORDER:
             state = self.state(node)
             if state == "active":
                 self.transition([node], "deactivate")
                 state = "inactive"
-            if state == "inactive" and reconfigure:
+            if state == "inactive" and node in reconfigure:
                 self.transition([node], "cleanup")
                 state = "unconfigured"
             if state not in ("inactive", "unconfigured"):
@@ -200,7 +200,7 @@ def serve(manager: LifecycleManager, replies) -> None:
             forget_poll()
             if op["op"] == "episode":
                 try:
-                    manager.episode(op["params"], op.get("reconfigure", False))
+                    manager.episode(op["params"], op.get("reconfigure", []))
                 except TransitionFailed as exc:
                     reply({"event": "failed", "node": exc.node, "transition": exc.transition, "reason": exc.reason})
                     continue
