@@ -5,7 +5,8 @@ Usage: python benchmarks/validate_realtime.py [--latencies 0.1 0.2] [--modes syn
 For each L, protocol and init state of LIBERO-Spatial task ``--task`` (seed 7):
 
 - real time (``--clock realtime``, four processes on the wall clock): the scripted expert whose inference
-  takes L of wall time (``lq_ros.policies.sleepy:SleepyPolicy sleep_s=L``), no injected latency;
+  takes L of wall time (``lq_ros.policies.sleepy:SleepyPolicy sleep_s=L``), no injected latency; async
+  requests the next chunk with N = L / 50 ms actions left, as lockstep's default does;
 - lockstep (in process, bit-identical to the ROS stack): the scripted expert at Δt_sim = L.
 
 Episodes are stored under their configuration, so a rerun resumes. Prints success (Wilson 95% CI) and,
@@ -41,7 +42,11 @@ def configs(latencies: list[float], modes: list[str], inits: int, task: int):
         for mode in modes:
             for init in range(inits):
                 common = dict(suite="libero_spatial", task=task, init=init, seed=7, mode=mode)
-                yield lat, RunConfig(**common, clock="realtime", policy=SLEEPY, policy_args={"sleep_s": lat})
+                # Same protocol as lockstep at N = L / 50 ms: async asks for the next chunk when N actions are
+                # left (replace's default threshold is the *injected* N, which is 0 here).
+                threshold = round(lat / 0.05) if mode == "async" else -1
+                yield lat, RunConfig(**common, clock="realtime", policy=SLEEPY, policy_args={"sleep_s": lat},
+                                     request_threshold=threshold)  # fmt: skip
                 yield lat, RunConfig(**common, latency_s=lat)
 
 
