@@ -290,12 +290,13 @@ class RosStack:
             if reason == "timeout":
                 reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"
             if reason:
-                self._end_broken_episode()
+                self._end_broken_episode(logs_to=(bag_path, log_marks))
         except BaseException:  # Ctrl-C, SIGTERM of a sweep worker: the nodes stop, the recorder closes its bag
             self.close(logs_to=(bag_path, log_marks))
             raise
         self.episodes += 1
-        self._collect_logs(bag_path, log_marks)
+        if not self.closed:  # (closed: collected already)
+            self._collect_logs(bag_path, log_marks)
         return bag_path, reason
 
     def _failure_reason(self, reply: dict) -> str:
@@ -314,7 +315,7 @@ class RosStack:
                 return line.split(marker, 1)[1].strip()
         return ""
 
-    def _end_broken_episode(self) -> None:
+    def _end_broken_episode(self, logs_to: tuple[Path, dict[str, int]]) -> None:
         """Deactivate the live nodes (the recorder closes its bag with a STOPPED event); keep the stack.
 
         Dead nodes are restarted (and configured) with the next episode; the manager's death ends the stack.
@@ -324,7 +325,7 @@ class RosStack:
             self._send({"op": "stop", "skip": list(dead)})
             self._await(("stopped",), time.monotonic() + 60.0, tolerate=dead)
         if MANAGER in self._dead():
-            self.close()
+            self.close(logs_to)
             return
         if self._dead():
             self.shm.cleanup()  # the dead nodes' orphaned /dev/shm files (a live node's are never touched)

@@ -226,3 +226,31 @@ def test_an_interrupted_ros_sweep_leaves_no_process_and_no_shm_file(tmp_path, si
             sweep.kill()
     wait_for(lambda: not any(alive(p) for p in seen), 90, "every process of the sweep to exit")
     assert orphaned_shm(before_shm) == []
+
+
+def test_a_killed_lifecycle_manager_ends_the_episode_and_the_stack(tmp_path):
+    before_shm = set(os.listdir(SHM))
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=220)
+    stack = RosStack()
+    try:
+        stack._ensure_processes()
+        pids = {p.pid for p in stack.procs.values()}
+        pid = stack.procs["manager"].pid
+
+        def kill_when_running() -> None:
+            wait_for(lambda: any(tmp_path.glob("*/*.mcap")), 120, "the episode's bag")
+            time.sleep(2.0)
+            os.kill(pid, signal.SIGKILL)
+
+        killer = threading.Thread(target=kill_when_running)
+        killer.start()
+        bag, reason = stack.run_episode(cfg, tmp_path)
+        killer.join()
+        assert reason == "lifecycle manager exited with code -9"
+        assert stack.closed  # a sweep worker starts a new stack for its next episode
+        assert json.loads((bag / "score.json").read_text())["status"] == "error"  # recorder stopped by SIGINT
+        assert (bag / "logs" / "manager.log").exists()
+    finally:
+        stack.close()
+    wait_for(lambda: not any(alive(p) for p in pids), 60, "every process of the stack to exit")
+    assert orphaned_shm(before_shm) == []
