@@ -103,7 +103,8 @@ def process_stats(pid: int) -> dict:
 
 
 def long_lived() -> dict[str, int]:
-    """The sweep's own long-lived processes: this one, its workers and multiprocessing's resource tracker."""
+    """The sweep's long-lived processes: this one, its workers, multiprocessing's resource tracker, and each
+    worker's ROS stack (four nodes and the lifecycle manager; a node restarted after a kill shows a new PID)."""
     out = {"sweep": os.getpid()}
     for pid in children(os.getpid()):
         cmd = cmdline(pid)
@@ -111,6 +112,10 @@ def long_lived() -> dict[str, int]:
             out["resource tracker"] = pid
         elif "spawn_main" in cmd:
             out[f"worker {pid}"] = pid
+            for node in descendants(pid):
+                name = next((n for n in (*NODE_NAMES, "manager") if f"lq_ros_nodes.{n}_node" in cmdline(node)), None)
+                if name:
+                    out[f" {name} {node}"] = node
     return out
 
 
