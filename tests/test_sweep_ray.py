@@ -9,6 +9,8 @@ from pathlib import Path
 import pytest
 
 from lq_ros import sweep as sw
+from lq_ros.bag import read_run_metadata
+from lq_ros.config import openblas_core
 
 pytestmark = pytest.mark.slow
 
@@ -133,6 +135,8 @@ def two_node_cluster(tmp_path, monkeypatch):
     monkeypatch.setenv("RAY_AUTH_TOKEN_PATH", str(token))
     monkeypatch.delenv("RAY_AUTH_TOKEN", raising=False)
     monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    # Nodes started by `ray start` from a plain shell know nothing of lq_ros's OpenBLAS pin.
+    monkeypatch.delenv("OPENBLAS_CORETYPE", raising=False)
     from lq_ros.sweep.ray_pool import _loopback_only
 
     _loopback_only()  # both nodes on 127.0.0.1 only
@@ -178,6 +182,8 @@ def test_ray_backend_on_a_two_node_cluster_spreads_episodes_and_gathers_bags(tmp
         assert record["row"]["completion_steps"] == 15 and record["row"]["transport"] == "ros"
         assert record["row"]["partial"] is False
         assert (out / record["attempts"][-1]["log"]).exists()
+        # A Ray worker imports lq_ros (which pins the kernels) before numpy: same kernels as a local run.
+        assert read_run_metadata(bag)["versions"]["openblas_core"] == openblas_core()
     assert seen and all(addrs <= LOOPBACK for addrs in seen.values()), seen
     import ray
 
