@@ -111,6 +111,7 @@ class RealtimeSimNode(Node):
         start = time.time_ns()
         if start < scheduled:
             return
+        self.drain_commands()
         action = self.commands.pop(tick, None)
         if action is None:
             self.missed.append(tick)
@@ -129,6 +130,21 @@ class RealtimeSimNode(Node):
             self.end(m.EventKind.SUCCESS, "")
         elif self.state.tick >= self.cfg.budget:
             self.end(m.EventKind.TIMEOUT, f"step budget {self.cfg.budget} reached")
+
+    def drain_commands(self) -> None:
+        """Take every command that has arrived before stepping.
+
+        rclpy's executor runs ready timers before subscriptions and takes one message per subscription per
+        wait. A sim that has fallen behind has this timer always ready, so it would step each tick just
+        before the tick's command is taken, and miss every command (seen: 220 of 220).
+        """
+        sub = self.command_sub
+        while True:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            if taken is None:
+                return
+            self.on_command(m.deserialize(taken[0], m.COMMAND.msgtype))
 
     def publish_state(self) -> None:
         for topic, _t, data in tick_state_msgs(self.state, self.clock):

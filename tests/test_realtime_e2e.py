@@ -84,12 +84,14 @@ def test_realtime_sim_episode(tmp_path):
 
 
 def test_overruns_are_counted(tmp_path):
-    """A step that takes longer than the 50 ms period: every tick overruns, and commands are missed."""
+    """A step that takes longer than the 50 ms period: every tick overruns."""
     cfg = RunConfig(policy="sine", clock="realtime", max_steps=12)
     bag, error = launch_realtime(cfg, tmp_path, node_parameters={"lq_sim": {"step_delay_s": 0.07}})
     assert error == ""
     sim = read_run_metadata(bag)["realtime"]["sim"]
     assert sim["ticks"] == 12 and sim["overrun_ticks"] >= 10 and sim["max_work_ms"] >= 70
+    # Behind its schedule, the sim still finds the commands that have arrived (all but the first few).
+    assert sim["missed_commands"] <= 3, sim
     row = json.loads((bag / "score.json").read_text())
     assert row["status"] == "failure" and row["clock"] == "realtime"
 
