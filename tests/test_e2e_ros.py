@@ -18,6 +18,7 @@ from lq_ros.episode import run_episode
 from lq_ros.procs import fastdds_shm_owned
 from lq_ros.runner import run_inprocess
 from tests.bag_compare import bag_messages, comparable
+from tests.test_lifecycle import wait_until_recording
 
 pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[1]
@@ -131,9 +132,10 @@ def test_no_process_or_shm_file_outlives_a_killed_cli(tmp_path, sig):
     while len(nodes := node_descendants(cli.pid)) < 4 and time.monotonic() < deadline:
         time.sleep(0.2)
     assert len(nodes) >= 4, (tmp_path / "cli.log").read_text()  # sim, policy, executor, metrics (+ helpers)
-    time.sleep(8.0)  # let the episode get going
+    wait_until_recording(tmp_path)  # the episode is under way
     owned = set().union(*(fastdds_shm_owned(pid) for pid in nodes))
     assert owned, "the nodes hold no Fast DDS file: nothing to check"
+    assert cli.poll() is None, "the run ended before it could be interrupted"
     cli.send_signal(sig)
     cli.wait(timeout=60)
     deadline = time.monotonic() + 30

@@ -162,8 +162,7 @@ def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_pa
             pid = stack.procs[victim].pid
 
             def kill_when_running(pid=pid, out=tmp_path / victim):
-                wait_for(lambda: any(out.glob("*/*.mcap")), 120, "the episode's bag")
-                time.sleep(2.0)
+                wait_until_recording(out)
                 os.kill(pid, signal.SIGKILL)
 
             killer = threading.Thread(target=kill_when_running)
@@ -234,6 +233,21 @@ def test_an_interrupted_ros_sweep_leaves_no_process_and_no_shm_file(tmp_path, si
     assert [f for f in orphaned_shm(before_shm) if not f.startswith("sem.mp-")] == []
 
 
+def wait_until_recording(out: Path) -> None:
+    """Until the episode's bag below ``out`` has grown twice: the STARTED event's chunk, then the first
+    0.5 s of sim time (the sim is stepping, ~10 ticks into a 220-tick episode). A fixed sleep after the bag
+    appeared was a race: on idle cores a 220-tick sine episode ends within 2 s."""
+    sizes: list[int] = []
+
+    def grown_twice() -> bool:
+        size = max((f.stat().st_size for f in out.glob("*/*.mcap")), default=0)
+        if size and (not sizes or size > sizes[-1]):
+            sizes.append(size)
+        return len(sizes) >= 3  # header, STARTED chunk, first data chunk
+
+    wait_for(grown_twice, 120, "the episode's first data chunk")
+
+
 def mapped_semaphores(pids: set[int]) -> set[str]:
     """Python multiprocessing semaphores (/dev/shm/sem.mp-*) that the processes ``pids`` have mapped."""
     out = set()
@@ -256,8 +270,7 @@ def test_a_killed_lifecycle_manager_ends_the_episode_and_the_stack(tmp_path):
         pid = stack.procs["manager"].pid
 
         def kill_when_running() -> None:
-            wait_for(lambda: any(tmp_path.glob("*/*.mcap")), 120, "the episode's bag")
-            time.sleep(2.0)
+            wait_until_recording(tmp_path)
             os.kill(pid, signal.SIGKILL)
 
         killer = threading.Thread(target=kill_when_running)
