@@ -150,37 +150,6 @@ def test_long_lived_stack_is_bit_identical_to_in_process_and_to_a_fresh_stack(tm
     assert orphaned_shm(before_shm) == []
 
 
-def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_path):
-    before_shm = set(os.listdir(SHM))
-    long_cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=220)
-    next_cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=20, init=2)
-    seen: set[int] = set()
-    with RosStack() as stack:
-        for victim in ("sim", "policy"):
-            stack._ensure_processes()
-            seen |= {p.pid for p in stack.procs.values()}
-            pid = stack.procs[victim].pid
-
-            def kill_when_running(pid=pid, out=tmp_path / victim):
-                wait_until_recording(out)
-                os.kill(pid, signal.SIGKILL)
-
-            killer = threading.Thread(target=kill_when_running)
-            killer.start()
-            bag, reason = stack.run_episode(long_cfg, tmp_path / victim)
-            killer.join()
-            assert reason == f"{victim} node exited with code -9"
-            assert (bag / "metadata.yaml").exists()  # the recorder was deactivated: a closed bag
-            after, reason = stack.run_episode(next_cfg, tmp_path / f"{victim}_next")
-            assert reason == "", reason
-            assert stack.procs[victim].pid != pid and stack.restarts[victim] == 1
-            seen |= {p.pid for p in stack.procs.values()}
-            local = run_inprocess(next_cfg, tmp_path / f"{victim}_local")
-            assert comparable(after) == comparable(local.bag_path)
-    wait_for(lambda: not any(alive(p) for p in seen), 60, "every process of the stack to exit")
-    assert orphaned_shm(before_shm) == []
-
-
 def test_a_refused_activation_is_the_episode_error_with_its_reason_and_the_stack_goes_on(tmp_path):
     # The scripted expert cannot inpaint against an executing prefix: its node refuses to activate for rtc.
     refused = RunConfig(policy="scripted", mode="async", latency_s=0.2, merge="rtc", max_steps=10)
