@@ -161,6 +161,7 @@ class RosStack:
         self.env = child_environment(self.domain.id, self.work / "ros_logs")
         self.procs: dict[str, subprocess.Popen] = {}
         self.shm = ShmTracker()
+        ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
         self._replies = b""
         self._keys: dict[str, tuple] | None = None  # configure_keys of the configured nodes
         self._probe: tuple | None = None  # (policy key, cameras, params, render size) of the last policy

@@ -86,6 +86,25 @@ class ShmTracker:
         for pid in pids:
             self.names |= fastdds_shm_owned(pid)
 
+    @classmethod
+    def stale_segments(cls, min_age_s: float = 60.0) -> ShmTracker:
+        """A tracker of every Fast DDS data segment in /dev/shm older than ``min_age_s``.
+
+        For runs that died all at once (a machine-wide SIGKILL leaves nobody to clean up): their segments
+        stay forever. A segment has exactly one owner, which holds its ``_el`` lock while it lives, so
+        ``cleanup`` removes only the dead ones. Port files are shared between participants and left alone.
+        """
+        tracker = cls()
+        now = time.time()
+        for path in SHM_DIR.glob("fastrtps_*_el"):
+            name = path.name.removesuffix("_el")
+            if name.startswith("fastrtps_port"):
+                continue
+            with contextlib.suppress(FileNotFoundError):
+                if now - path.stat().st_mtime >= min_age_s:
+                    tracker.names.add(name)
+        return tracker
+
     def cleanup(self) -> list[str]:
         """Remove the orphaned files; returns their names."""
         removed = []

@@ -370,3 +370,27 @@ def test_killed_sweep_worker_is_replaced_and_its_episode_retried(tmp_path):
     assert second["status"] == "failure"
     # The crashed attempt is kept with its bag, which the scorer reads (the recorder was stopped, not killed).
     assert (out / first["bag"] / "metadata.yaml").exists()
+
+
+def test_stale_segments_of_dead_runs_are_removed_and_live_ones_kept(tmp_path):
+    """A run killed all at once leaves its segments with nobody to clean up; the next stack removes them."""
+    import fcntl
+
+    from lq_ros.procs import ShmTracker
+
+    dead, live = "fastrtps_00lqtestdead0000", "fastrtps_00lqtestlive0000"
+    old = time.time() - 3600
+    for name in (dead, live):
+        for path in (SHM / name, SHM / f"{name}_el"):
+            path.write_bytes(b"")
+            os.utime(path, (old, old))
+    holder = os.open(SHM / f"{live}_el", os.O_RDWR)
+    fcntl.flock(holder, fcntl.LOCK_EX)  # a live participant holds its segment's lock
+    try:
+        removed = ShmTracker.stale_segments().cleanup()
+        assert {dead, f"{dead}_el"} <= set(removed)
+        assert not (SHM / dead).exists() and (SHM / live).exists()
+    finally:
+        os.close(holder)
+        for path in (SHM / live, SHM / f"{live}_el"):
+            path.unlink(missing_ok=True)
