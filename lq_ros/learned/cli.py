@@ -8,6 +8,16 @@ from typing import Annotated
 
 import typer
 
+from lq_ros.learned.recipe import KIND_RECIPE, TrainConfig
+
+#: TrainConfig's defaults (the shipped recipe): `lq train`'s option defaults, so the two cannot drift apart.
+_D = TrainConfig
+#: "oft 8, flow 10" per kind-dependent field, for the help texts.
+_RECIPE_HELP = {
+    key: ", ".join(f"{kind} {values[key]:g}" for kind, values in KIND_RECIPE.items())
+    for key in ("horizon", "steps", "ema")
+}
+
 
 def _ints(spec: str) -> tuple[int, ...]:
     """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers."""
@@ -92,34 +102,50 @@ def train(
     policy: Annotated[str, typer.Option(help="oft | flow")],
     data: Annotated[list[Path], typer.Option(help="Dataset folder from `lq collect` (repeatable).")],
     out: Annotated[Path, typer.Option(help="Folder for <name>.pt + <name>.json.")],
-    chunk: Annotated[int, typer.Option(help="Chunk length H; default 8 (oft) / 10 (flow).")] = 0,
-    steps: int = 8000,
-    batch_size: int = 256,
-    lr: float = 1e-3,
-    width: int = 256,
-    depth: int = 3,
-    seed: int = 0,
-    dropout: float = 0.0,
-    feature_noise: Annotated[float, typer.Option(help="Input noise std (normalised units) in training.")] = 0.0,
-    ema: Annotated[float, typer.Option(help="EMA decay of the saved weights per step (0: off).")] = 0.0,
-    joint_velocity: Annotated[bool, typer.Option(help="Joint velocities as inputs (off: see the docs).")] = False,
-    target: Annotated[str, typer.Option(help="plan (expert's plan per frame) | future (next H labels).")] = "plan",
-    replan_steps: Annotated[int, typer.Option(help="Actions run per chunk (default); 0: H//2 flow, H oft.")] = 0,
-    flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = 10,
-    threads: Annotated[int, typer.Option(help="torch threads.")] = 1,
-    name: Annotated[str, typer.Option(help="Checkpoint name; default <policy>_c<H>.")] = "",
+    chunk: Annotated[int, typer.Option(help=f"Chunk length H; 0: the recipe's ({_RECIPE_HELP['horizon']}).")] = (
+        _D.horizon
+    ),
+    steps: Annotated[int, typer.Option(help=f"Optimiser steps; 0: the recipe's ({_RECIPE_HELP['steps']}).")] = (
+        _D.steps
+    ),
+    batch_size: int = _D.batch_size,
+    lr: float = _D.lr,
+    width: int = _D.width,
+    depth: int = _D.depth,
+    seed: int = _D.seed,
+    dropout: float = _D.dropout,
+    feature_noise: Annotated[float, typer.Option(help="Input noise std (normalised units) in training.")] = (
+        _D.feature_noise
+    ),
+    ema: Annotated[
+        float | None,
+        typer.Option(
+            help=f"EMA decay of the saved weights per step (0: off); default the recipe's ({_RECIPE_HELP['ema']})."
+        ),
+    ] = _D.ema,
+    joint_velocity: Annotated[bool, typer.Option(help="Joint velocities as inputs (off: see the docs).")] = (
+        _D.joint_velocity
+    ),
+    target: Annotated[str, typer.Option(help="future (next H labels) | plan (expert's plan per frame).")] = _D.target,
+    replan_steps: Annotated[int, typer.Option(help="Actions run per chunk (default); 0: H oft, H//2 flow.")] = (
+        _D.replan_steps
+    ),
+    flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = _D.flow_steps,
+    threads: Annotated[int, typer.Option(help="torch threads.")] = _D.threads,
+    name: Annotated[str, typer.Option(help="Checkpoint name; default <policy>_c<H>_<suite>.")] = _D.name,
 ) -> None:
-    """Train a chunk policy on collected demonstrations (seeded; logs losses as JSON lines on stderr)."""
-    from lq_ros.learned.train import TrainConfig
+    """Train a chunk policy on collected demonstrations (seeded; logs losses as JSON lines on stderr).
+
+    Every default is the shipped weights' recipe (lq_ros/learned/recipe.py): with no other option,
+    `lq train --policy oft --chunk 8` trains with the configuration the shipped oft_c8 weights record.
+    """
     from lq_ros.learned.train import train as run_train
 
-    horizon = chunk or (10 if policy == "flow" else 8)
-    replan = replan_steps or (max(horizon // 2, 1) if policy == "flow" else horizon)
     try:
         cfg = TrainConfig(
-            policy=policy, horizon=horizon, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
+            policy=policy, horizon=chunk, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
             seed=seed, dropout=dropout, feature_noise=feature_noise, ema=ema, joint_velocity=joint_velocity,
-            target=target, replan_steps=replan, flow_steps=flow_steps, threads=threads, name=name,
+            target=target, replan_steps=replan_steps, flow_steps=flow_steps, threads=threads, name=name,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

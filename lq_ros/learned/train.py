@@ -3,7 +3,8 @@
 The JSON holds everything needed to use the weights: model kind and size, chunk length H, the
 feature layout, the normalisation statistics, inference defaults, plus the training configuration,
 dataset provenance and the logged losses. The loss curves are also written next to the weights as
-``<name>.loss.csv`` and ``<name>.loss.png``.
+``<name>.loss.csv`` and ``<name>.loss.png``. The configuration and its defaults (the shipped recipe) are
+in lq_ros/learned/recipe.py.
 """
 
 from __future__ import annotations
@@ -12,66 +13,15 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from lq_ros.learned.dataset import read_frames
 from lq_ros.learned.features import FeatureLayout, features, goal_slots
+from lq_ros.learned.recipe import TrainConfig
 from lq_ros.suites import ACTION_DIM
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    policy: str = "oft"  # "oft" | "flow"
-    horizon: int = 8
-    width: int = 256
-    depth: int = 3
-    steps: int = 20000
-    batch_size: int = 256
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    warmup_steps: int = 200
-    #: Regularisation against the small dataset: dropout in the MLP blocks, and Gaussian noise (std in
-    #: normalised feature units) added to the training inputs.
-    dropout: float = 0.0
-    feature_noise: float = 0.0
-    #: Exponential moving average of the weights (decay per step; 0: off). The averaged weights are the
-    #: ones validated and saved.
-    ema: float = 0.0
-    #: Joint velocities as inputs (overrides the dataset's layout; see features.FeatureLayout).
-    joint_velocity: bool = False
-    seed: int = 0
-    #: Fraction of episodes held out for the validation loss.
-    val_fraction: float = 0.05
-    #: Chunk targets: "plan" (the expert's open-loop plan from that frame) or "future" (the expert's
-    #: labels of the next H frames, padded with the last one).
-    target: str = "plan"
-    #: Inference defaults stored with the weights: actions executed per chunk, flow integration steps.
-    replan_steps: int = 8
-    flow_steps: int = 10
-    #: torch threads; 1 is fastest when other processes share the cores.
-    threads: int = 1
-    log_every: int = 500
-    name: str = ""
-
-    def __post_init__(self) -> None:
-        if self.policy not in ("oft", "flow"):
-            raise ValueError(f"policy must be 'oft' or 'flow', got {self.policy!r}")
-        if self.target not in ("plan", "future"):
-            raise ValueError(f"target must be 'plan' or 'future', got {self.target!r}")
-        if not 1 <= self.replan_steps <= self.horizon:
-            raise ValueError(f"replan_steps must be in 1..horizon={self.horizon}, got {self.replan_steps}")
-        if not 0.0 <= self.ema < 1.0:
-            raise ValueError(f"ema must be in [0, 1), got {self.ema}")
-        for key in ("horizon", "width", "depth", "steps", "batch_size", "flow_steps", "threads", "log_every"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
-
-    def run_name(self, suite: str) -> str:
-        """Checkpoint name: ``--name``, else ``<policy>_c<H>_<suite>`` (the shipped naming)."""
-        return self.name or f"{self.policy}_c{self.horizon}_{suite}"
 
 
 def _log(msg: str) -> None:
@@ -239,7 +189,7 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
             "action_std": a_std.tolist(),
         },
         "inference": {"replan_steps": cfg.replan_steps, "flow_steps": cfg.flow_steps},
-        "train_config": asdict(cfg),
+        "train_config": cfg.to_dict(),
         "metrics": {
             "params": n_params,
             "train_wall_s": round(time.perf_counter() - t_start, 1),
