@@ -30,6 +30,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -134,13 +135,23 @@ class StackDead(RuntimeError):
     """The lifecycle manager died: the stack cannot run another episode (start a new one)."""
 
 
-def configure_keys(cfg: RunConfig, params: dict) -> dict[str, tuple]:
-    """Per node, what it loads at configure (the CONFIGURE_FIELDS of nodes/*_node.py): a change needs cleanup +
-    configure of that node only (a new policy on the same task keeps the simulator)."""
-    sim = params["lq_sim"]
+def policy_key(cfg: RunConfig) -> tuple:
+    """What the policy node loads at configure (its CONFIGURE_FIELDS): the policy and its arguments."""
+    return (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
+
+
+def configure_keys(cfg: RunConfig, cameras: Sequence[str], camera_size_px: int) -> dict[str, tuple]:
+    """Per node, what it loads at configure (the CONFIGURE_FIELDS of nodes/*_node.py); ``cameras`` and
+    ``camera_size_px`` are those the policy asks for. A changed key means cleanup + configure of that node
+    (a rebuilt env, a reloaded policy); anything else changes with a soft reset at activation. A new policy
+    on the same task keeps the simulator; a new task keeps the policy.
+
+    The single source of that decision: the launcher reconfigures nodes by it and the in-process sweep
+    worker rebuilds its env and policy by it (lq_ros.sweep.worker).
+    """
     return {
-        "sim": (cfg.suite, cfg.task, cfg.physics_rate, tuple(sim["cameras"]), sim["camera_size_px"]),
-        "policy": (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True)),
+        "sim": (cfg.suite, cfg.task, cfg.physics_rate, tuple(c for c in cameras if c), camera_size_px),
+        "policy": policy_key(cfg),
         "executor": (),
         "metrics": (),
     }
@@ -259,12 +270,11 @@ class RosStack:
         if self.closed:
             raise StackDead("the stack was closed")
         bag_path = Path(out_dir) / cfg.episode_name()
-        policy_key = (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
-        if self._probe is None or self._probe[0] != policy_key:
+        if self._probe is None or self._probe[0] != policy_key(cfg):
             # This process's own instance only tells cameras and parameters (the policy node builds its own);
             # kept while the policy stays the same (a learned policy loads its weights to answer).
             probe = make_policy(cfg.policy, **cfg.policy_args)
-            self._probe = (policy_key, probe.camera_names, probe.params(), probe.render_size)
+            self._probe = (policy_key(cfg), probe.camera_names, probe.params(), probe.render_size)
             probe.close()
         _, cameras, policy_params, render_size = self._probe
         camera_size_px = cfg.camera_size_for(render_size)
@@ -274,7 +284,7 @@ class RosStack:
         log_marks = self._log_sizes()
         try:
             self._ensure_processes()
-            keys = configure_keys(cfg, params)
+            keys = configure_keys(cfg, cameras, camera_size_px)
             per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
             # All after a refused transition or a restarted node (None): configure everything again (cleanup of
             # an unconfigured node is skipped, so a fresh stack just configures).

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import sys
 import time
@@ -13,6 +12,7 @@ from pathlib import Path
 
 from lq_ros.config import RunConfig
 from lq_ros.episode import TRANSPORTS, run_episode
+from lq_ros.launcher import configure_keys, policy_key
 
 
 def default_workers() -> int:
@@ -21,9 +21,10 @@ def default_workers() -> int:
 
 
 def env_key(cfg: RunConfig) -> tuple:
-    """Episodes with equal keys can share one worker's env and policy instance."""
-    return (cfg.suite, cfg.task, cfg.policy, json.dumps(cfg.policy_args, sort_keys=True), cfg.camera_size,
-            cfg.physics_rate)  # fmt: skip
+    """Episodes with equal keys can share one worker's env and policy: lq_ros.launcher.configure_keys, the
+    one rule for what a node (or this worker) must rebuild, known before any policy is built. The policy's
+    key stands for the cameras it asks for, the run's camera_size for the render size it resolves to."""
+    return tuple(configure_keys(cfg, cameras=(), camera_size_px=cfg.camera_size).values())
 
 
 @contextlib.contextmanager
@@ -50,8 +51,9 @@ def _capture_output(log_path: Path) -> Iterator[None]:
 class EpisodeWorker:
     """Runs episodes one after another, like one sweep worker process (local or a Ray actor).
 
-    In-process transport: the LiberoEnv and the policy of the previous episode are reused when the
-    next one has the same task, policy and camera setup (env creation dominates a short episode;
+    In-process transport: the LiberoEnv and the policy of the previous episode are reused by the rule the
+    ROS stack reconfigures its nodes by (lq_ros.launcher.configure_keys): the env while the task and camera
+    setup stay, the policy while it and its arguments stay (env creation dominates a short episode;
     tests/test_sweep.py checks a reused env gives the same bag as a fresh one). ROS transport: one
     long-lived node stack (lq_ros.launcher.RosStack, its own ROS_DOMAIN_ID) runs every episode of the
     worker; the nodes are reconfigured between episodes, and a node that died is restarted.
@@ -63,7 +65,7 @@ class EpisodeWorker:
         self.transport = transport
         self.bags_dir = Path(bags_dir)
         self.timeout_s = timeout_s
-        self._cached: tuple | None = None  # (env key, env, policy)
+        self._cached: tuple | None = None  # (configure_keys, env, policy)
         self._stack = None  # ROS transport: the worker's RosStack
 
     def run(self, cfg: RunConfig, log_path: Path) -> dict:
@@ -102,19 +104,33 @@ class EpisodeWorker:
         return self._stack
 
     def _env_policy(self, cfg: RunConfig):
+        """The env and policy for ``cfg``, each rebuilt only when its configure key changed (as the ROS
+        stack reconfigures its sim and policy nodes): a new policy on the same task keeps the env."""
         from lq_ros.env import LiberoEnv
         from lq_ros.policies import make_policy
 
-        key = env_key(cfg)
-        if self._cached is None or self._cached[0] != key:
-            self.close()
-            policy = make_policy(cfg.policy, **cfg.policy_args)
-            env = LiberoEnv(
-                cfg.suite, cfg.task, camera_names=policy.camera_names,
-                camera_size=cfg.camera_size_for(policy.render_size), record_physics=cfg.physics_rate,
-            )  # fmt: skip
-            self._cached = (key, env, policy)
-        return self._cached[1], self._cached[2]
+        keys, env, policy = self._cached or ({}, None, None)
+        self._cached = None
+        try:
+            if policy is None or keys["policy"] != policy_key(cfg):
+                _close_quietly(policy)
+                policy = None  # not closed twice if make_policy raises
+                policy = make_policy(cfg.policy, **cfg.policy_args)
+            camera_size = cfg.camera_size_for(policy.render_size)
+            new_keys = configure_keys(cfg, policy.camera_names, camera_size)
+            if env is None or keys["sim"] != new_keys["sim"]:
+                _close_quietly(env)
+                env = None
+                env = LiberoEnv(
+                    cfg.suite, cfg.task, camera_names=policy.camera_names, camera_size=camera_size,
+                    record_physics=cfg.physics_rate,
+                )  # fmt: skip
+        except BaseException:  # a half-built pair must not be reused
+            _close_quietly(policy)
+            _close_quietly(env)
+            raise
+        self._cached = (new_keys, env, policy)
+        return env, policy
 
     def close(self) -> None:
         if self._stack is not None:
@@ -123,7 +139,12 @@ class EpisodeWorker:
         if self._cached is not None:
             _, env, policy = self._cached
             self._cached = None
-            with contextlib.suppress(Exception):
-                policy.close()
-            with contextlib.suppress(Exception):
-                env.close()
+            _close_quietly(policy)
+            _close_quietly(env)
+
+
+def _close_quietly(thing) -> None:
+    """Close an env or policy (if any) that is being dropped; its errors change nothing."""
+    if thing is not None:
+        with contextlib.suppress(Exception):
+            thing.close()
