@@ -29,6 +29,7 @@ from lq_ros import messages as m
 from lq_ros.bridge import DeltaToTarget
 from lq_ros.config import versions
 from lq_ros.env import load_task
+from lq_ros.node_common import publish_observation
 from lq_ros.obs_builder import ObservationBuilder, Requirements, missing_task_objects
 from lq_ros.realtime import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.robot_config import load_robot_config
@@ -192,10 +193,7 @@ class BridgeNode(Node):
         except RuntimeError as exc:  # an input went missing: the episode cannot go on
             self.end(m.EventKind.ERROR, f"observation for request {req.request_id}: {exc}", {"node": "bridge"})
             return
-        t_ns = m.to_ns(obs.sim_time_s)
-        for cam, image in obs.images.items():
-            self.pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))
-        self.pubs[m.OBSERVATION.name].publish(m.observation_msg(obs, req.request_id))
+        publish_observation(self.pubs, obs, req.request_id)
 
     def on_command(self, cmd) -> None:
         if self.finished or self.clock is None:

@@ -3,7 +3,8 @@
 Each /clock message starts a control tick. Per tick (see lq_ros.executor): apply the chunk due now
 (waiting for it if needed), maybe request an observation (and wait until the sim has captured it,
 so the observation is of this tick), then publish the one command for the tick. Malformed chunks
-are rejected with a CHUNK_REJECTED event and never published as commands.
+are rejected with a CHUNK_REJECTED event and never published as commands (lq_ros.node_common.ExecutorLink,
+shared with the real-time executor).
 
 Managed node: activate builds a fresh protocol core from the episode's parameters (mode, latency,
 merge... may change between episodes); deactivate stops it.
@@ -18,6 +19,7 @@ from lq_ros import messages as m
 from lq_ros.config import RunConfig
 from lq_ros.env import tick_of_sim_time
 from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.node_common import ExecutorLink
 from lq_ros.ros_util import EpisodeNode, run_managed
 
 
@@ -39,10 +41,9 @@ class ExecutorNode(EpisodeNode):
         self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
         self.waiting_since: float | None = None
 
-        self.command_pub = self.episode_publisher(m.COMMAND)
-        self.request_pub = self.episode_publisher(m.OBSERVATION_REQUEST)
-        self.prefix_pub = self.episode_publisher(m.ACTION_PREFIX)
-        self.event_pub = self.episode_publisher(m.EPISODE_EVENTS)
+        self.link = ExecutorLink(
+            self.core, self.episode_publisher, self.get_logger(), stamp=lambda: (self.tick_ns, self.tick or 0)
+        )
         self.episode_subscription(m.CLOCK, self.on_clock)
         self.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
         self.episode_subscription(m.OBSERVATION, self.on_observation)
@@ -82,16 +83,14 @@ class ExecutorNode(EpisodeNode):
             if isinstance(step, ObservationNeeded):
                 # Continue once the sim has captured the observation of this tick.
                 self.awaiting_observation = step.request.request_id
-                if step.request.prefix is not None:  # rtc: the policy inpaints against the executing plan
-                    self.prefix_pub.publish(m.prefix_msg(self.tick_ns, step.request))
-                self.request_pub.publish(m.request_msg(self.tick_ns, step.request))
+                self.link.request_observation(self.tick_ns, step.request)
             elif isinstance(step, ChunkDue):
                 if not self.deliver(step.request):
                     return  # not arrived yet: on_chunk calls advance again
             elif isinstance(step, Failed):
                 self.end_with_error(step.reason)
             else:
-                self.command_pub.publish(m.command_msg(self.tick_ns, step))
+                self.link.command(self.tick_ns, step)
                 self.tick = None
 
     def deliver(self, due) -> bool:
@@ -101,28 +100,17 @@ class ExecutorNode(EpisodeNode):
             self.waiting_since = self.waiting_since or time.monotonic()
             return False
         self.waiting_since = None
-        if msg.error:
-            self.end_with_error(f"policy failed on request {due.request_id}: {msg.error}")
-            return True
-        reason = self.core.deliver(due.request_id, m.chunk_actions(msg))
-        if reason is not None:
-            self.get_logger().error(f"chunk of request {due.request_id} rejected: {reason}")
-            self.event(m.EventKind.CHUNK_REJECTED, reason, {"request_id": due.request_id})
-        for warning in self.core.take_warnings():
-            self.get_logger().warning(warning)
-            self.event(m.EventKind.WARNING, warning, {"request_id": due.request_id})
+        error = self.link.apply_chunk(due.request_id, msg)
+        if error:
+            self.end_with_error(error)
         return True
 
     def check_chunk_timeout(self) -> None:
         if self.waiting_since is not None and time.monotonic() - self.waiting_since > self.chunk_timeout_s:
             self.end_with_error(f"no chunk from the policy within {self.chunk_timeout_s} s (wall clock)")
 
-    def event(self, kind: int, reason: str, detail: dict | None = None) -> None:
-        self.event_pub.publish(m.event_msg(self.tick_ns, kind, self.tick or 0, reason, detail))
-
     def end_with_error(self, reason: str) -> None:
-        self.get_logger().error(reason)
-        self.event(m.EventKind.ERROR, reason, {"node": "executor"})
+        self.link.error(reason)
         self.finished = True
         self.waiting_since = None
 

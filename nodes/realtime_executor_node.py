@@ -8,7 +8,8 @@ arrived ``COMMAND_DEADLINE_S`` into the tick is declared late (``ExecutorCore.la
 runs on the buffer, and the chunk applies at the first tick after it arrives, its stale rows (the ticks
 that really passed) dropped. Ticks whose command went out more than one period after the tick's
 scheduled start are overruns; the count and the worst lateness are published on /lq/realtime_stats
-(std_msgs/String, JSON) when the episode ends.
+(std_msgs/String, JSON) when the episode ends. Requests, chunk handling, commands and events are the
+lockstep executor's (lq_ros.node_common.ExecutorLink).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from std_msgs.msg import String
 
 from lq_ros import messages as m
 from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.node_common import ExecutorLink
 from lq_ros.realtime import COMMAND_DEADLINE_S, OverrunCounter, TickClock
 from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
 
@@ -35,10 +37,7 @@ class RealtimeExecutorNode(Node):
         # Wall-clock seconds to wait for a requested chunk before ending the episode as an error.
         self.declare_parameter("chunk_timeout_s", 60.0)
         self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
-        self.command_pub = publisher(self, m.COMMAND)
-        self.request_pub = publisher(self, m.OBSERVATION_REQUEST)
-        self.prefix_pub = publisher(self, m.ACTION_PREFIX)
-        self.event_pub = publisher(self, m.EPISODE_EVENTS)
+        self.link = ExecutorLink(self.core, lambda topic: publisher(self, topic), self.get_logger(), self.event_stamp)
         self.stats_pub = self.create_publisher(String, STATS_TOPIC, LOSSLESS_QOS)
         raw_subscription(self, m.ACTION_CHUNK, self.on_chunk)
         raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
@@ -95,10 +94,7 @@ class RealtimeExecutorNode(Node):
         while not self.finished and self.tick is not None:
             step = self.core.advance(self.tick)
             if isinstance(step, ObservationNeeded):
-                t_ns = self.clock.tick_ns(self.tick)
-                if step.request.prefix is not None:
-                    self.prefix_pub.publish(m.prefix_msg(t_ns, step.request))
-                self.request_pub.publish(m.request_msg(t_ns, step.request))
+                self.link.request_observation(self.clock.tick_ns(self.tick), step.request)
                 self.requested_at[step.request.request_id] = time.monotonic()
             elif isinstance(step, ChunkDue):
                 msg = self.chunks.pop(step.request.request_id, None)
@@ -106,36 +102,25 @@ class RealtimeExecutorNode(Node):
                     self.waiting_due = True  # until it arrives or the deadline passes (poll)
                     return
                 self.waiting_due = False
-                self.deliver(step.request, msg)
+                error = self.link.apply_chunk(step.request.request_id, msg)
+                if error:
+                    self.end_with_error(error)
             elif isinstance(step, Failed):
                 self.end_with_error(step.reason)
             else:
-                self.command_pub.publish(m.command_msg(self.clock.tick_ns(self.tick), step))
+                self.link.command(self.clock.tick_ns(self.tick), step)
                 now = time.time_ns()
                 scheduled = self.clock.tick_ns(self.tick)
                 self.overruns.record(self.tick, self.tick_start_ns - scheduled, now - self.tick_start_ns)
                 self.tick = None
 
-    def deliver(self, due, msg) -> None:
-        if msg.error:
-            self.end_with_error(f"policy failed on request {due.request_id}: {msg.error}")
-            return
-        reason = self.core.deliver(due.request_id, m.chunk_actions(msg))
-        if reason is not None:
-            self.get_logger().error(f"chunk of request {due.request_id} rejected: {reason}")
-            self.event(m.EventKind.CHUNK_REJECTED, reason, {"request_id": due.request_id})
-        for warning in self.core.take_warnings():
-            self.get_logger().warning(warning)
-            self.event(m.EventKind.WARNING, warning, {"request_id": due.request_id})
-
-    def event(self, kind: int, reason: str, detail: dict | None = None) -> None:
+    def event_stamp(self) -> tuple[int, int]:
+        """(scheduled wall time, tick) of the tick being decided (or the next one) for an event."""
         tick = self.tick if self.tick is not None else self.next_tick
-        t_ns = self.clock.tick_ns(tick) if self.clock else 0
-        self.event_pub.publish(m.event_msg(t_ns, kind, tick, reason, detail))
+        return (self.clock.tick_ns(tick) if self.clock else 0), tick
 
     def end_with_error(self, reason: str) -> None:
-        self.get_logger().error(reason)
-        self.event(m.EventKind.ERROR, reason, {"node": "executor"})
+        self.link.error(reason)
         self.finish()
 
     def finish(self) -> None:

@@ -24,6 +24,7 @@ from std_msgs.msg import String
 from lq_ros import messages as m
 from lq_ros.config import versions
 from lq_ros.env import LiberoEnv
+from lq_ros.node_common import publish_observation
 from lq_ros.realtime import SIM_STEP_OFFSET_S, START_DELAY_S, OverrunCounter, TickClock, tick_state_msgs
 from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
 from lq_ros.suites import DUMMY_ACTION
@@ -92,11 +93,8 @@ class RealtimeSimNode(Node):
             obs = self.env.observe(with_images=True)
         except Exception as exc:  # noqa: BLE001
             return self.fail(f"observation failed: {exc}", traceback.format_exc())
-        t_ns = self.clock.tick_ns(obs.tick)
-        for cam, image in obs.images.items():
-            self.pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))
-        obs.sim_time_s = t_ns / 1e9
-        self.pubs[m.OBSERVATION.name].publish(m.observation_msg(obs, req.request_id))
+        obs.sim_time_s = self.clock.tick_ns(obs.tick) / 1e9  # the tick's scheduled wall time
+        publish_observation(self.pubs, obs, req.request_id)
 
     def on_event(self, event) -> None:
         if event.kind in m.EventKind.TERMINAL and not self.finished:

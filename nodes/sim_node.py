@@ -18,6 +18,7 @@ import traceback
 from lq_ros import messages as m
 from lq_ros.config import RunConfig, versions
 from lq_ros.env import LiberoEnv, sim_time_of_tick
+from lq_ros.node_common import publish_observation
 from lq_ros.ros_util import EpisodeNode, run_managed
 
 
@@ -96,10 +97,7 @@ class SimNode(EpisodeNode):
             obs = self.env.observe(with_images=True)
         except Exception as exc:  # noqa: BLE001 - any env failure ends the episode as an error
             return self.fail(f"observation failed: {exc}", traceback.format_exc())
-        t_ns = m.to_ns(obs.sim_time_s)
-        for cam, image in obs.images.items():
-            self.pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))
-        self.pubs[m.OBSERVATION.name].publish(m.observation_msg(obs, req.request_id))
+        publish_observation(self.pubs, obs, req.request_id)
 
     def on_command(self, cmd) -> None:
         if self.finished or not self._expect_tick(cmd.tick, "command"):
