@@ -10,11 +10,19 @@ Usage: python benchmarks/eval_learned.py [--suite libero_spatial --suite libero_
        [--tasks 0 1 ...] [--workers 2] [--json out.json]
        [--policy oft --policy oft:chunk_size=1 --policy flow]   (name[:key=value,...], repeatable)
        python benchmarks/eval_learned.py --merge a.json b.json   (one table from runs split by task/policy)
+       python benchmarks/eval_learned.py --merge a.json b.json --by-weights   (columns per checkpoint, see below)
+
+``--by-weights`` pools runs by the checkpoint they ran instead of by the policy spec string: ``oft`` and
+``oft:weights=/some/copy/oft_c8_libero_spatial.json`` become one column ``oft_c8`` if the two ``.pt`` files
+are byte-identical (MD5; recorded in every row since it was added, else taken from the spec's ``weights=``
+path, else from the shipped file, as the table says); different bytes under one name, or the same episode
+twice, are refused.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import multiprocessing as mp
 import sys
@@ -80,6 +88,7 @@ def eval_task(job: tuple[str, int, list[str], range, int]) -> list[dict]:
             policy.reset(env.task, SEED)  # loads the suite's weights: their replan_steps
             replan = replan_override or int(policy.inner.replan_steps)
             weights = policy.inner.weights_path.name
+            weights_md5 = weights_digest(policy.inner.weights_path)
             for init in inits:
                 t0 = time.perf_counter()
                 try:
@@ -88,13 +97,62 @@ def eval_task(job: tuple[str, int, list[str], range, int]) -> list[dict]:
                 except Exception as exc:  # noqa: BLE001 - counted as an error, never as a failure
                     status, ticks = f"error: {type(exc).__name__}: {exc}", 0
                 rows.append({"suite": suite, "policy": spec, "task": task_id, "init": init, "status": status,
-                             "ticks": ticks, "replan_steps": replan, "weights": weights,
+                             "ticks": ticks, "replan_steps": replan, "weights": weights, "weights_md5": weights_md5,
                              "wall_s": round(time.perf_counter() - t0, 2)})  # fmt: skip
                 print(f"{suite} {spec:18s} task {task_id} init {init}: {status} {ticks}", file=sys.stderr, flush=True)
             rows.append({"suite": suite, "policy": spec, "task": task_id, "infer_s": policy.times_s})
     finally:
         env.close()
     return rows
+
+
+def weights_digest(checkpoint_json: Path) -> str:
+    """MD5 of the ``.pt`` file a checkpoint JSON names (what tells two copies of a checkpoint apart)."""
+    meta = json.loads(checkpoint_json.read_text())
+    return hashlib.md5(checkpoint_json.with_name(meta["weights_file"]).read_bytes()).hexdigest()
+
+
+def by_weights(rows: list[dict]) -> tuple[list[dict], list[str], dict[tuple[str, str], str]]:
+    """Relabel rows by checkpoint base name (``oft_c8``), checking that each name has one set of bytes.
+
+    Returns (rows, labels in first-seen order, (suite, label) -> a policy spec that loads it, for the latency).
+    """
+    from lq_ros.learned.policy import resolve_weights
+
+    label_of: dict[tuple[str, str], str] = {}  # (suite, spec) -> label
+    digest: dict[tuple[str, str], str] = {}  # (suite, label) -> md5
+    sources: dict[tuple[str, str], list[str]] = {}  # (suite, label) -> where each spec's md5 came from
+    spec_of: dict[tuple[str, str], str] = {}
+    for r in rows:
+        if "status" not in r or (r["suite"], r["policy"]) in label_of:
+            continue
+        suite, spec = r["suite"], r["policy"]
+        label = r["weights"].removesuffix(".json").removesuffix(f"_{suite}")
+        if r.get("weights_md5"):
+            md5, source = r["weights_md5"], f"{spec!r}: recorded in the run"
+        else:
+            weights = parse_spec(spec)[1].get("weights") or label
+            path = resolve_weights(str(weights), suite)
+            md5, source = weights_digest(path), f"{spec!r}: {path} now, not recorded in the run"
+        if digest.setdefault((suite, label), md5) != md5:
+            raise SystemExit(f"{suite} {label}: {source} is {md5}, other runs of {label} {digest[suite, label]}")
+        sources.setdefault((suite, label), []).append(source)
+        label_of[suite, spec] = label
+        spec_of.setdefault((suite, label), spec)
+    out, episodes = [], set()
+    for r in rows:
+        label = label_of.get((r["suite"], r["policy"]))
+        if label is None:
+            raise SystemExit(f"{r['suite']} {r['policy']!r}: latency rows without episodes")
+        if "status" in r:
+            key = (r["suite"], label, r["task"], r["init"])
+            if key in episodes:
+                raise SystemExit(f"episode {key} is in the merged runs twice")
+            episodes.add(key)
+        out.append({**r, "policy": label, "spec": r["policy"]})
+    for (suite, label), md5 in digest.items():
+        print(f"{suite} {label}: weights md5 {md5} ({'; '.join(sources[suite, label])})")
+    return out, list(dict.fromkeys(label for _, label in spec_of)), spec_of
 
 
 def isolated_latency_ms(spec: str, suite: str, repeats: int = 200) -> dict:
@@ -127,8 +185,13 @@ def cell(ok: int, n: int) -> str:
     return f"{ok}/{n} [{100 * lo:.0f}-{100 * hi:.0f}]"
 
 
-def report(rows: list[dict], specs: list[str], isolated: bool) -> dict:
-    """Print, per suite, the per-task success table (Wilson 95% CIs) and latency; returns the summary."""
+def report(
+    rows: list[dict], specs: list[str], isolated: bool, spec_of: dict[tuple[str, str], str] | None = None
+) -> dict:
+    """Print, per suite, the per-task success table (Wilson 95% CIs) and latency; returns the summary.
+
+    ``specs`` are the column labels (the rows' ``policy``); ``spec_of`` maps (suite, label) to the policy spec
+    the isolated latency is measured with (default: the label itself)."""
     episodes = [r for r in rows if "status" in r]
     summary: dict = {}
     for suite in sorted({r["suite"] for r in episodes}, key=lambda s: (s not in SUITES, s)):
@@ -193,7 +256,7 @@ def report(rows: list[dict], specs: list[str], isolated: bool) -> dict:
             for spec in specs:
                 if spec not in summary[suite]:
                     continue
-                lat = isolated_latency_ms(spec, suite)
+                lat = isolated_latency_ms((spec_of or {}).get((suite, spec), spec), suite)
                 summary[suite][spec]["infer_ms_isolated"] = lat
                 print(f"  {spec:18s} mean {lat['mean']:.2f} ms  p50 {lat['p50']:.2f}  p95 {lat['p95']:.2f}")
     return summary
@@ -210,13 +273,20 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2, help="processes (one task each at a time)")
     ap.add_argument("--json", type=Path, help="also write every episode row here")
     ap.add_argument("--merge", type=Path, nargs="+", help="only print the table of these --json files together")
+    ap.add_argument("--by-weights", action="store_true", help="--merge: one column per checkpoint (see above)")
     ap.add_argument("--no-isolated", action="store_true", help="skip the isolated latency measurement")
     args = ap.parse_args()
 
     if args.merge:
         rows = [r for path in args.merge for r in json.loads(path.read_text())["rows"]]
-        specs = list(dict.fromkeys(r["policy"] for r in rows))
-        report(rows, specs, isolated=not args.no_isolated)
+        spec_of = None
+        if args.by_weights:
+            rows, specs, spec_of = by_weights(rows)
+        else:
+            specs = list(dict.fromkeys(r["policy"] for r in rows))
+        summary = report(rows, specs, isolated=not args.no_isolated, spec_of=spec_of)
+        if args.json:
+            args.json.write_text(json.dumps({"summary": summary, "merged": [str(p) for p in args.merge]}, indent=1))
         return
     specs = args.policy or list(DEFAULT_POLICIES)
     suites = args.suite or list(SUITES)
