@@ -7,7 +7,12 @@ For each L, protocol and init state of LIBERO-Spatial task ``--task`` (seed 7):
 - real time (``--clock realtime``, four processes on the wall clock): the scripted expert whose inference
   takes L of wall time (``lq_ros.policies.sleepy:SleepyPolicy sleep_s=L``), no injected latency; async
   requests the next chunk with N = L / 50 ms actions left, as lockstep's default does;
-- lockstep (in process, bit-identical to the ROS stack): the scripted expert at Δt_sim = L.
+- lockstep (in process, bit-identical to the ROS stack): the scripted expert at Δt_sim = L;
+- lockstep, replayed delays: the same, with the delays the paired real-time episode (same init state) really
+  had between each request and its chunk taking effect, replayed per request as a ``trace:`` latency
+  (written to ``OUT/traces/``), at the real-time run's request threshold. Real time pays what lockstep's
+  Δt_sim leaves out (the observation waiting for the sim's step, transport), a few ms that push some chunks
+  past a tick boundary; this arm tells that apart from a fault of the injection model.
 
 Episodes are stored under their configuration, so a rerun resumes. Prints success (Wilson 95% CI) and,
 over successes, completion time, jerk (20 Hz) and energy (bootstrap 95% CIs) side by side, plus the
@@ -27,27 +32,67 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pandas as pd  # noqa: E402
 
+from lq_ros import messages as m  # noqa: E402
 from lq_ros.aggregate import aggregate  # noqa: E402
-from lq_ros.bag import read_run_metadata  # noqa: E402
+from lq_ros.bag import read_run_metadata, scan_mcap  # noqa: E402
 from lq_ros.config import RunConfig  # noqa: E402
 from lq_ros.episode import run_episode, scored_row  # noqa: E402
+from lq_ros.suites import CONTROL_DT_S  # noqa: E402
 
 SLEEPY = "lq_ros.policies.sleepy:SleepyPolicy"
 METRICS = (("completion s (succ.)", "completion_time_s", 2), ("jerk m/s³ (succ.)", "jerk_mean", 1),
            ("energy J (succ.)", "energy_total_j", 0))  # fmt: skip
 
 
-def configs(latencies: list[float], modes: list[str], inits: int, task: int):
+def configs(latencies: list[float], modes: list[str], inits: int, task: int, out: Path):
+    """(L, arm, config) in run order; lazily: a replay config exists once its real-time bag does."""
     for lat in latencies:
         for mode in modes:
             for init in range(inits):
                 common = dict(suite="libero_spatial", task=task, init=init, seed=7, mode=mode)
                 # Same protocol as lockstep at N = L / 50 ms: async asks for the next chunk when N actions are
                 # left (replace's default threshold is the *injected* N, which is 0 here).
-                threshold = round(lat / 0.05) if mode == "async" else -1
-                yield lat, RunConfig(**common, clock="realtime", policy=SLEEPY, policy_args={"sleep_s": lat},
+                threshold = round(lat / CONTROL_DT_S) if mode == "async" else -1
+                realtime = RunConfig(**common, clock="realtime", policy=SLEEPY, policy_args={"sleep_s": lat},
                                      request_threshold=threshold)  # fmt: skip
-                yield lat, RunConfig(**common, latency_s=lat)
+                yield lat, "realtime", realtime
+                yield lat, "lockstep", RunConfig(**common, latency_s=lat)
+                trace = replay_trace(out / realtime.episode_name(), out / "traces", lat)
+                if trace is not None:
+                    yield (
+                        lat,
+                        "lockstep, replayed delays",
+                        RunConfig(**common, latency_dist=f"trace:{trace}", request_threshold=threshold),
+                    )
+
+
+def applied_delays_ticks(bag: Path) -> dict[int, int]:
+    """Request id -> ticks from its observation request to the first command of its chunk, from a bag."""
+    requested, applied = {}, {}
+    for file in sorted(bag.glob("*.mcap")):
+        for topic, _t, data in scan_mcap(file, keep_messages=True).messages:
+            if topic == m.OBSERVATION_REQUEST.name:
+                req = m.deserialize(data, m.OBSERVATION_REQUEST.msgtype)
+                requested[req.request_id] = req.tick
+            elif topic == m.COMMAND.name:
+                cmd = m.deserialize(data, m.COMMAND.msgtype)
+                if cmd.request_id and cmd.request_id not in applied:
+                    applied[cmd.request_id] = cmd.tick
+    return {rid: applied[rid] - tick for rid, tick in requested.items() if rid in applied}
+
+
+def replay_trace(bag: Path, folder: Path, lat: float) -> Path | None:
+    """The real-time episode's applied delays as a latency trace (line k: request k + 1; L where unknown)."""
+    if not (bag / "metadata.yaml").exists():
+        return None
+    path = folder / f"{bag.name}.txt"
+    if not path.exists():
+        delays = applied_delays_ticks(bag)
+        nominal = round(lat / CONTROL_DT_S)
+        lines = [f"{delays.get(rid, nominal) * CONTROL_DT_S:.3f}" for rid in range(1, max(delays, default=0) + 1)]
+        folder.mkdir(parents=True, exist_ok=True)
+        path.write_text(f"# request-to-chunk delays (s) of {bag.name}\n" + "\n".join(lines or [f"{lat:.3f}"]) + "\n")
+    return path
 
 
 def _ci(mean: float, lo: float, hi: float, decimals: int, scale: float = 1.0) -> str:
@@ -67,7 +112,7 @@ def main() -> None:
     args = ap.parse_args()
 
     rows = []
-    for lat, cfg in configs(args.latencies, args.modes, args.inits, args.task):
+    for lat, arm, cfg in configs(args.latencies, args.modes, args.inits, args.task, args.out):
         bag = args.out / cfg.episode_name()
         if not (bag / "score.json").exists() and not (bag / "metadata.yaml").exists():
             if args.table_only:
@@ -75,7 +120,9 @@ def main() -> None:
             transport = "ros" if cfg.clock == "realtime" else "inprocess"
             run_episode(cfg, args.out, transport)
         row = scored_row(bag)
-        row["L_s"], row["clock"] = lat, cfg.clock
+        row["L_s"], row["clock"] = lat, arm
+        delays = list(applied_delays_ticks(bag).values())
+        row["late_chunks_pct"] = 100.0 * sum(d > round(lat / CONTROL_DT_S) for d in delays) / max(len(delays), 1)
         stats = (read_run_metadata(bag).get("realtime") or {}) if (bag / "metadata.yaml").exists() else {}
         row["overrun_ticks"] = sum(s.get("overrun_ticks", 0) for s in stats.values())
         row["missed_commands"] = stats.get("sim", {}).get("missed_commands", 0)
@@ -91,6 +138,7 @@ def main() -> None:
                 "success %": _ci(agg.success_rate, agg.success_ci_lo, agg.success_ci_hi, 0, 100.0)}  # fmt: skip
         for header, metric, decimals in METRICS:
             line[header] = _ci(agg[f"{metric}_mean"], agg[f"{metric}_ci_lo"], agg[f"{metric}_ci_hi"], decimals)
+        line["chunks late by >= 1 tick %"] = f"{group.late_chunks_pct.mean():.0f}"
         line["overrun ticks / ep"] = f"{group.overrun_ticks.mean():.1f}" if agg.clock == "realtime" else "–"
         line["missed cmds / ep"] = f"{group.missed_commands.mean():.1f}" if agg.clock == "realtime" else "–"
         table.append(line)
