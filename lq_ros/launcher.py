@@ -169,6 +169,10 @@ class RosStack:
         self.domain = self._exit.enter_context(reserved_domain(domain_id))
         self.work = Path(tempfile.mkdtemp(prefix="lq_run_"))
         self.params_file = self.work / "params.yaml"
+        # A node (re)started reads this file in rclpy.init and dies without it ("Couldn't parse params file"):
+        # processes started before the first episode (start()) get the defaults, which that episode's
+        # set_parameters calls then override, as they override every later episode's file.
+        self._write_params({"/**": RunConfig().ros_parameters()})
         self.env = child_environment(self.domain.id, self.work / "ros_logs")
         self.procs: dict[str, subprocess.Popen] = {}
         self.shm = ShmTracker()
@@ -205,8 +209,18 @@ class RosStack:
         if manager:
             self._replies = b""
 
-    def _ensure_processes(self) -> None:
-        """Start whatever is not running (the first episode: all; after a crash: the dead node)."""
+    def _write_params(self, params: dict) -> None:
+        """Replace the params file atomically: a node starting meanwhile reads the old or the new one, whole."""
+        tmp = self.params_file.with_suffix(".tmp")
+        tmp.write_text(params_yaml(params))
+        os.replace(tmp, self.params_file)
+
+    def start(self) -> None:
+        """Start whatever is not running (the first episode: all; after a crash: the dead node).
+
+        Every episode calls it; calling it before the first one starts the processes early. A node found dead
+        here is replaced (and counted in ``restarts``): its PID is not the one noted before.
+        """
         for name in (*NODES, MANAGER):
             p = self.procs.get(name)
             if p is not None and p.poll() is None:
@@ -280,10 +294,10 @@ class RosStack:
         camera_size_px = cfg.camera_size_for(render_size)
         timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
         params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
-        self.params_file.write_text(params_yaml(params))  # what a (re)started node starts with
+        self._write_params(params)  # what a (re)started node starts with
         log_marks = self._log_sizes()
         try:
-            self._ensure_processes()
+            self.start()
             keys = configure_keys(cfg, cameras, camera_size_px)
             per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
             # All after a refused transition or a restarted node (None): configure everything again (cleanup of

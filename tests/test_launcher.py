@@ -7,9 +7,10 @@ import dataclasses
 from pathlib import Path
 
 import pytest
+import yaml
 
 from lq_ros.config import RunConfig
-from lq_ros.launcher import NODES, configure_keys, policy_key
+from lq_ros.launcher import NODES, RosStack, configure_keys, policy_key
 from lq_ros.sweep.worker import env_key
 
 REPO = Path(__file__).resolve().parents[1]
@@ -94,3 +95,11 @@ def test_the_sweep_env_key_separates_every_configuration_that_needs_another_node
         for cams, size in setups
     )
     assert (env_key(other) != env_key(BASE)) == needs_rebuild
+
+
+def test_a_stack_has_its_params_file_before_the_first_episode():
+    """Nodes started early (RosStack.start) read it in rclpy.init; without it they die at once and the first
+    episode restarts them (tests/test_lifecycle.py::test_processes_started_before_the_first_episode_run_it)."""
+    with RosStack() as stack:
+        written = yaml.safe_load(stack.params_file.read_text())
+    assert written == {"/**": {"ros__parameters": RunConfig().ros_parameters()}}

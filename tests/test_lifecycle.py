@@ -13,16 +13,17 @@ import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 
 from lq_ros.config import RunConfig
 from lq_ros.launcher import NODE_MODULE, RosStack, child_environment, launch_nodes, reserved_domain
-from lq_ros.procs import die_with_parent
+from lq_ros.procs import die_with_parent, fastdds_shm_owned
 from lq_ros.runner import run_inprocess
 from tests.bag_compare import comparable
-from tests.test_faults import SHM, alive, orphaned_shm, wait_for
+from tests.test_faults import SHM, ClockProbe, alive, cmdline, orphaned_shm, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -150,6 +151,93 @@ def test_long_lived_stack_is_bit_identical_to_in_process_and_to_a_fresh_stack(tm
     assert orphaned_shm(before_shm) == []
 
 
+#: The killed episode: long enough that the clock probe, started with it, is subscribed well before its end
+#: (the sine policy never succeeds, so it would run 1000 ticks); the kill comes at sim time KILL_AT_NS.
+KILLED_CFG = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=1000)
+KILL_AT_NS = 2_000_000_000  # tick 40
+
+
+def kill_node(stack: RosStack, name: str) -> int:
+    """SIGKILL the process that runs node ``name`` now, as the stack knows it (never a PID noted earlier:
+    the stack may have replaced the process since); returns its PID.
+
+    Through a pidfd, so a PID that was reaped and reused meanwhile is never signalled: the fd is opened
+    before checking the stack has not reaped the process, so it refers to that very process.
+    """
+    proc = stack.procs[name]
+    fd = os.pidfd_open(proc.pid)
+    try:
+        assert proc.returncode is None, f"{name} node already exited ({proc.returncode})"
+        assert f"{NODE_MODULE.format(name)} " in cmdline(proc.pid), cmdline(proc.pid)
+        signal.pidfd_send_signal(fd, signal.SIGKILL)
+    finally:
+        os.close(fd)
+    return proc.pid
+
+
+def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_path):
+    before_shm = set(os.listdir(SHM))
+    next_cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=20, init=2)
+    seen: set[int] = set()
+    with RosStack() as stack, ThreadPoolExecutor(1) as pool:
+        for victim in ("sim", "policy"):
+            out = tmp_path / victim
+            out.mkdir()
+            # The probe follows this episode's /clock (the previous episode's publishers are gone with it).
+            probe = ClockProbe(out, str(stack.domain.id))
+            seen.add(probe.proc.pid)
+
+            def kill_at_sim_time(probe: ClockProbe = probe, victim: str = victim) -> tuple[int, int]:
+                now_ns = probe.wait_until(KILL_AT_NS)
+                return now_ns, kill_node(stack, victim)
+
+            try:
+                killer = pool.submit(kill_at_sim_time)
+                bag, reason = stack.run_episode(KILLED_CFG, out)
+                assert reason == f"{victim} node exited with code -9", reason
+                killed_at_ns, pid = killer.result(timeout=60)
+            finally:
+                probe.stop()  # before the next episode, which must run exactly as without it
+            seen |= {p.pid for p in stack.procs.values()}
+            assert stack.procs[victim].pid == pid, "the process that ran the episode is the one killed"
+            assert killed_at_ns < KILLED_CFG.budget * 50_000_000  # mid-episode (20 Hz ticks)
+            # The survivors were deactivated: the recorder closed the bag with a STOPPED event, a run error.
+            assert json.loads((bag / "score.json").read_text())["status"] == "error"
+
+            after, reason = stack.run_episode(next_cfg, tmp_path / f"{victim}_next")
+            assert reason == "", reason
+            assert stack.procs[victim].pid != pid
+            assert stack.restarts == ({"sim": 1} if victim == "sim" else {"sim": 1, "policy": 1})
+            if victim == "sim":  # the new process configured (created its env) for this episode
+                assert "creating libero_spatial task 0" in (after / "logs" / "sim.log").read_text()
+            seen |= {p.pid for p in stack.procs.values()}
+            local = run_inprocess(next_cfg, tmp_path / f"{victim}_local")
+            assert comparable(after) == comparable(local.bag_path)
+    wait_for(lambda: not any(alive(p) for p in seen), 60, "every process of the stack to exit")
+    assert orphaned_shm(before_shm) == []
+
+
+def test_processes_started_before_the_first_episode_run_it(tmp_path):
+    """RosStack.start() before any episode (as the killed-manager test does): the nodes start on the default
+    parameters and run the first episode. They used to die in rclpy.init for want of the params file, which
+    the first episode writes, and that episode silently ran on replacements: a PID noted after start() was
+    dead by the time of a kill (the old killed-node test's failure, when the test process was slow enough)."""
+    with RosStack() as stack:
+        stack.start()
+        started = {n: p.pid for n, p in stack.procs.items()}
+        # Each process has created its ROS participant (it owns Fast DDS files) or died trying.
+        wait_for(
+            lambda: all(p.poll() is not None or fastdds_shm_owned(p.pid) for p in stack.procs.values()),
+            120,
+            "every process to initialise ROS",
+        )
+        dead = stack._dead()
+        assert not dead, {n: (stack.work / f"{n}.log").read_text()[-500:] for n in dead}
+        bag, reason = stack.run_episode(RunConfig(policy="sine", max_steps=5), tmp_path)
+        assert reason == "", reason
+        assert {n: p.pid for n, p in stack.procs.items()} == started and stack.restarts == {}
+
+
 def test_a_refused_activation_is_the_episode_error_with_its_reason_and_the_stack_goes_on(tmp_path):
     # The scripted expert cannot inpaint against an executing prefix: its node refuses to activate for rtc.
     refused = RunConfig(policy="scripted", mode="async", latency_s=0.2, merge="rtc", max_steps=10)
@@ -234,7 +322,7 @@ def test_a_killed_lifecycle_manager_ends_the_episode_and_the_stack(tmp_path):
     cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=220)
     stack = RosStack()
     try:
-        stack._ensure_processes()
+        stack.start()
         pids = {p.pid for p in stack.procs.values()}
         pid = stack.procs["manager"].pid
 
