@@ -38,10 +38,12 @@ STANDIN_PROGRAM = "robot_standin"
 
 
 def robot_recorded_topics(robot: RobotConfig) -> list[dict]:
-    """The robot's topics a bag keeps: joint and finger states, EE pose, the bridge's commands, success."""
+    """The robot's topics a bag keeps: joint and finger states, EE pose, the bridge's commands, success, /clock."""
     topics = [robot.joint_states, robot.ee_pose, robot.ee_target]
     if robot.gripper_state:
         topics.append(robot.gripper_state)
+    if robot.clock_stream:  # a robot on sim time: its clock, next to the stamps it explains
+        topics.append(robot.clock_stream)
     out = [{"name": s.topic, "type": s.type} for s in topics]
     if robot.gripper_command:
         out.append({"name": robot.gripper_command.topic, "type": robot.gripper_command.type})

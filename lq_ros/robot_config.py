@@ -4,7 +4,9 @@ A robot (real, or the stand-in in nodes/robot_standin.py) publishes standard top
 ``sensor_msgs/JointState`` (positions, velocities, efforts), an end-effector ``geometry_msgs/PoseStamped``,
 optionally finger joint states, camera ``sensor_msgs/Image`` topics, object poses from a tracker and a
 success flag; it takes an absolute EE target ``PoseStamped`` and a gripper width
-``std_msgs/Float64MultiArray``. Examples: config/robots/standin.yaml, config/robots/franka_ros2.yaml.
+``std_msgs/Float64MultiArray``. Its stamps are wall-clock time (``clock: wall``) or simulated time it
+publishes on ``/clock`` (``clock: sim``, e.g. a simulator). Examples: config/robots/standin.yaml,
+config/robots/franka_ros2.yaml.
 A bad file is refused with one line naming the entry and the valid values (:class:`RobotConfigError`).
 """
 
@@ -22,6 +24,9 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 IMAGE = "sensor_msgs/msg/Image"
 BOOL = "std_msgs/msg/Bool"
 FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
+CLOCK = "rosgraph_msgs/msg/Clock"
+#: Where a robot on simulated time (``clock: sim``) publishes its clock (the ROS convention, use_sim_time).
+CLOCK_TOPIC = "/clock"
 #: Shipped configurations, by name (``--robot standin`` = config/robots/standin.yaml).
 ROBOTS_DIR = REPO_ROOT / "config" / "robots"
 
@@ -84,6 +89,11 @@ class RobotConfig:
     success: StreamSpec | None = None
     source: str = ""
 
+    @property
+    def clock_stream(self) -> StreamSpec | None:
+        """The robot's /clock when it stamps in simulated time (``clock: sim``), else None."""
+        return StreamSpec(CLOCK_TOPIC, CLOCK) if self.clock == "sim" else None
+
     def topic_map(self) -> dict[str, str]:
         """Role -> topic name (recorded with every run)."""
         out = {"joint_states": self.joint_states.topic, "ee_pose": self.ee_pose.topic,
@@ -94,6 +104,8 @@ class RobotConfig:
             out["gripper_command"] = self.gripper_command.topic
         if self.success:
             out["success"] = self.success.topic
+        if self.clock_stream:
+            out["clock"] = self.clock_stream.topic
         if self.objects:
             out["objects"] = self.objects.topic("<name>")
         out.update({f"camera/{c}": s.topic for c, s in self.cameras.items()})

@@ -73,6 +73,15 @@ class StandinRobot:
         self.set_target(pos, quat)
         self._gripper_action = DUMMY_ACTION[-1]
         self.substeps = 0
+        self._time0_ns = round(self._data.time * 1e9)  # MuJoCo's clock after the wait steps
+
+    def time_ns(self) -> int:
+        """MuJoCo's simulated time of the current state, ns (the clock of a stand-in on sim time).
+
+        Counted in whole 2 ms substeps from the time reset left, so stamps are exactly periodic (MuJoCo's
+        ``data.time`` is the same sum in floating point).
+        """
+        return self._time0_ns + self.substeps * round(PHYSICS_DT_S * 1e9)
 
     # -- commands -------------------------------------------------------------------------------
     def set_target(self, pos: np.ndarray, quat_xyzw: np.ndarray) -> None:

@@ -11,6 +11,11 @@ every peer is connected; SUCCESS when the robot's success topic (an operator or 
 stand-in's goal check) says true; TIMEOUT once the step budget's wall time has passed. Ticks run on this
 machine's wall clock (``tick0_wall_ns``); every episode event is stamped with the robot's latest EE-pose
 stamp (the robot's clock), so the recorded pose series spans the episode exactly.
+
+The robot's clock is the YAML's ``clock``: ``wall`` (its stamps are wall-clock time) or ``sim`` (it stamps
+in simulated time and publishes it on /clock, which this node then waits for and stamps its targets
+with). The terminal event's ``robot_time_factor`` is robot-clock seconds per wall second over the episode:
+about 1 unless the robot (or a simulator) fell behind real time.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
@@ -80,6 +86,9 @@ class BridgeNode(Node):
             self.create_subscription(JointState, r.gripper_state.topic, self.on_fingers, SENSOR_QOS)
         for cam in self.req.cameras:
             self.create_subscription(Image, r.cameras[cam].topic, lambda msg, c=cam: self.on_image(c, msg), SENSOR_QOS)
+        self.robot_now_ns = -1  # last /clock of a robot on sim time
+        if r.clock_stream:
+            self.create_subscription(Clock, r.clock_stream.topic, self.on_clock, SENSOR_QOS)
         if r.success:
             # Reliable: an operator's single `true` must not be lost (ros2 topic pub is reliable by default).
             self.create_subscription(Bool, r.success.topic, self.on_success, COMMAND_QOS)
@@ -125,6 +134,13 @@ class BridgeNode(Node):
             PoseStamped, topic, lambda msg, n=name: self.builder.on_object_pose(n, msg, _ns(msg.header)), SENSOR_QOS
         )
 
+    def on_clock(self, msg: Clock) -> None:
+        self.robot_now_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
+
+    def robot_time_ns(self) -> int:
+        """Now on the robot's clock: its last /clock (sim time) or this machine's wall clock."""
+        return self.robot_now_ns if self.robot.clock_stream else time.time_ns()
+
     def on_success(self, msg: Bool) -> None:
         if msg.data and self.clock is not None and not self.finished:
             self.end(m.EventKind.SUCCESS, "", {"source": self.robot.success.topic})
@@ -143,6 +159,8 @@ class BridgeNode(Node):
     def start_when_ready(self) -> None:
         self.discover_objects()
         waiting = list(self.builder.missing())
+        if self.robot.clock_stream and self.robot_now_ns < 0:
+            waiting.append(self.robot.clock_stream.topic)
         if self.req.objects:
             waiting += [
                 self.robot.objects.topic(n) for n in missing_task_objects(self.task.goal, set(self.builder.objects))
@@ -180,6 +198,7 @@ class BridgeNode(Node):
         detail = m.started_detail(self.task, self.cfg.init, self.cfg.seed, self.versions)
         detail.update(tick0_wall_ns=self.clock.tick0_ns, clock="realtime", robot=self.robot.to_dict())
         detail["robot_clock_offset_ms"] = round((now - ee_ns) / 1e6, 3)
+        self.started_at = (now, ee_ns)  # wall and robot clock at STARTED: robot_time_factor at the end
         self.publish_event(t0_robot_ns, m.EventKind.STARTED, 0, "", detail)
         self.get_logger().info(f"episode started (robot {self.robot.name!r}): {detail['robot_clock_offset_ms']} ms "
                                "between this wall clock and the robot's last EE stamp")  # fmt: skip
@@ -201,7 +220,7 @@ class BridgeNode(Node):
         pos, quat = self.builder.ee.values
         target = self.converter.target(np.asarray(cmd.action), pos, quat)
         msg = PoseStamped()
-        now = time.time_ns()
+        now = self.robot_time_ns()
         msg.header.stamp.sec, msg.header.stamp.nanosec = now // 1_000_000_000, now % 1_000_000_000
         msg.header.frame_id = self.robot.frame_id
         msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in target.pos)
@@ -234,6 +253,11 @@ class BridgeNode(Node):
         # Ticks whose command the robot had: the tick count of the outcome (as the sim's state.tick).
         tick = self.cfg.budget if kind == m.EventKind.TIMEOUT else self.last_tick + 1
         detail = dict(detail or {}, commands_received=self.commands)
+        if self.clock is not None:
+            wall0, robot0 = self.started_at
+            wall_s = (time.time_ns() - wall0) / 1e9
+            if wall_s > 0:
+                detail["robot_time_factor"] = round((self.builder.ee.stamp_ns - robot0) / 1e9 / wall_s, 4)
         self.publish_event(self.builder.ee.stamp_ns, kind, tick, reason, detail)
         self.finished = True
 

@@ -4,8 +4,9 @@ Like the lockstep metrics node it writes every episode topic as received (serial
 as log times; lq_ros.bag's crash-safe writer) and scores the bag when the episode is over. Besides:
 
 - a robot's own topics (``robot_topics_json``: [{name, type}], e.g. its 500 Hz joint states, 100 Hz EE
-  pose, the bridge's targets) are recorded under their own names, subscribed reliable + volatile as a
-  robot driver publishes them; messages without a header are logged at their receive (wall) time;
+  pose, the bridge's targets, the /clock of a robot on sim time) are recorded under their own names,
+  subscribed reliable + volatile as a robot driver publishes them, logged at their stamps (the robot's
+  clock); messages without a header or time are logged at their receive (wall) time;
 - the real-time stats the nodes publish on /lq/realtime_stats (overrun ticks, missed commands) are
   recorded and copied into the run metadata (``realtime``), with ``clock: realtime`` and the robot's
   interface, so the bag says it is not bit-reproducible;
@@ -38,8 +39,9 @@ ROBOT_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )  # fmt: skip
-#: Types whose first field is a std_msgs/Header (log time = its stamp); others: receive time.
-_HEADER_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped", "sensor_msgs/msg/Image"}
+#: Types whose first field is a std_msgs/Header or a Time (log time = its stamp); others: receive time.
+_HEADER_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped", "sensor_msgs/msg/Image",
+                 "rosgraph_msgs/msg/Clock"}  # fmt: skip
 
 
 class RealtimeRecorderNode(Node):

@@ -1,6 +1,6 @@
-"""A robot stand-in: a LIBERO scene in MuJoCo on wall-clock time, speaking only standard topics.
+"""A robot stand-in: a LIBERO scene in MuJoCo, paced by the wall clock, speaking only standard topics.
 
-Not our sim node: no /clock, no lq_msgs, no episode events, no lockstep. It behaves like a robot with a
+Not our sim node: no lq_msgs, no episode events, no lockstep. It behaves like a robot with a
 Cartesian impedance controller (lq_ros/standin.py): the physics runs one 2 ms substep after another in
 step with the wall clock, and it publishes, at its own rates and with the names of a robot YAML
 (``robot_config``, default config/robots/standin.yaml):
@@ -13,9 +13,16 @@ step with the wall clock, and it publishes, at its own rates and with the names 
   (LIBERO names: agentview, robot0_eye_in_hand; rendering costs 50-125 ms per image on a CPU).
 
 It takes only the bridge's commands: an absolute EE target ``PoseStamped`` and a gripper width
-``std_msgs/Float64MultiArray``. Stamps are the robot's clock: ``epoch + k * 2 ms`` for substep k, with the
-epoch read from the wall clock at start, so every series is exactly periodic; if the physics falls behind
-the wall clock (a slow CPU), the lag is logged and counted, as a robot's controller would report overruns.
+``std_msgs/Float64MultiArray``. Stamps are the robot's clock, per the YAML's ``clock``:
+
+- ``wall`` (default): ``epoch + k * 2 ms`` for substep k, the epoch read from the wall clock at start; no /clock;
+- ``sim``: MuJoCo's simulated time (lq_ros.standin.StandinRobot.time_ns), also published on ``/clock``
+  (``rosgraph_msgs/Clock``) after every batch of substeps, like a simulator run with ``use_sim_time``.
+
+Either way every series is exactly periodic and the physics is paced by the wall clock (a sim-time robot
+that ran faster or slower than real time would not match the stack's wall-clock ticks); if the physics
+falls behind the wall clock (a slow CPU), the lag is logged and counted, as a robot's controller would
+report overruns.
 
 Parameters: suite, task, init, seed, robot_config, camera_size_px.
 """
@@ -30,11 +37,12 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
 from lq_ros.bridge import width_to_gripper_action
-from lq_ros.robot_config import load_robot_config
+from lq_ros.robot_config import CLOCK_TOPIC, load_robot_config
 from lq_ros.ros_util import run
 from lq_ros.standin import StandinRobot
 from lq_ros.suites import PHYSICS_DT_S
@@ -97,9 +105,14 @@ class RobotStandin(Node):
         if self.gripper_cmd:
             self.create_subscription(Float64MultiArray, self.gripper_cmd.topic, self.on_gripper, ROBOT_QOS)
         self.slow_slots = 0  # timer calls after which the physics was > LAG_LIMIT_NS behind the wall clock
-        self.epoch_ns = time.time_ns()
+        self.sim_time = rc.clock == "sim"
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, ROBOT_QOS) if self.sim_time else None
+        self.epoch_ns = time.time_ns()  # wall time of substep 0: the physics keeps pace with it
+        # Stamp of substep 0: the wall epoch, or MuJoCo's time (stamps then follow StandinRobot.time_ns).
+        self.stamp0_ns = self.robot.time_ns() if self.sim_time else self.epoch_ns
         self.create_timer(0.01, self.loop)
-        self.get_logger().info(f"running on wall-clock time from {self.epoch_ns} ns")
+        clock = "sim time (MuJoCo's, on /clock)" if self.sim_time else "wall-clock time"
+        self.get_logger().info(f"running on {clock} from {self.stamp0_ns} ns")
 
     # -- commands -------------------------------------------------------------------------------
     def on_target(self, msg: PoseStamped) -> None:
@@ -124,7 +137,7 @@ class RobotStandin(Node):
         while self.robot.substeps < min(due, first + MAX_BATCH):
             s = self.robot.substep()
             k = self.robot.substeps
-            t_ns = self.epoch_ns + k * SUBSTEP_NS
+            t_ns = self.stamp0_ns + k * SUBSTEP_NS
             if k % self.joints_every == 0:
                 self.publish_joints(t_ns, s)
             if k % self.pose_every == 0:
@@ -134,6 +147,12 @@ class RobotStandin(Node):
             for cam, every in self.camera_every.items():
                 if k % every == 0:
                     self.publish_image(cam, t_ns)
+        if self.clock_pub is not None and self.robot.substeps > first:
+            # Once per batch (~100 Hz), at its last substep: every sample sent so far is stamped at or before it.
+            t_ns = self.stamp0_ns + self.robot.substeps * SUBSTEP_NS
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = t_ns // 1_000_000_000, t_ns % 1_000_000_000
+            self.clock_pub.publish(msg)
         behind_ns = time.time_ns() - (self.epoch_ns + self.robot.substeps * SUBSTEP_NS)
         if behind_ns > LAG_LIMIT_NS:
             self.slow_slots += 1

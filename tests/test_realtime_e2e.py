@@ -16,15 +16,18 @@ from pathlib import Path
 import pytest
 import yaml
 
+from lq_ros import messages as m
 from lq_ros.bag import read_run_metadata
 from lq_ros.config import RunConfig
 from lq_ros.realtime_launch import launch_realtime
 from lq_ros.scoring import score_bag
+from tests.bag_compare import bag_messages
 from tests.test_e2e_ros import _alive, node_descendants
 from tests.test_faults import orphaned_shm
 
 pytestmark = pytest.mark.slow
 SHM = Path("/dev/shm")
+ROBOTS = Path(__file__).resolve().parents[1] / "config/robots"
 
 
 def _lq_run(tmp_path: Path, *args: str) -> tuple[dict, list[int]]:
@@ -68,6 +71,44 @@ def test_standin_episode_recorded_and_scored(tmp_path, mode):
     # The bridge really commanded the robot: absolute targets recorded on the robot's topic.
     topics = (bag / "metadata.yaml").read_text()
     assert "/robot/equilibrium_pose" in topics and "/robot/joint_states" in topics
+
+
+def test_standin_on_sim_time_recorded_and_scored(tmp_path):
+    """A robot that stamps in simulated time and publishes /clock (the stand-in with ``clock: sim``).
+
+    The same stack and the unchanged scorer: the episode's events, the robot's series and the bridge's targets
+    are all in the robot's (MuJoCo's) time, seconds from its start, while the ticks run on the wall clock.
+    """
+    text = (ROBOTS / "standin.yaml").read_text()
+    assert "\nclock: wall\n" in text
+    robot = tmp_path / "standin_sim_time.yaml"  # still named libero_standin: the launcher starts it
+    robot.write_text(text.replace("\nclock: wall\n", "\nclock: sim\n"))
+    out = tmp_path / "out"
+    before_shm = set(os.listdir(SHM))
+    row, pids = _lq_run(out, "--clock", "realtime", "--robot", str(robot), "--mode", "sync", "--max-steps", "60")
+    _assert_nothing_left(pids, before_shm)
+    assert row["status"] in ("success", "failure"), row
+    # The scorer found EE and joint series spanning STARTED..end in the robot's clock (else null with a reason).
+    assert row["trajectory_rate_hz"] == 100.0 and row["energy_rate_hz"] == 500.0
+    assert row["jerk_mean"] is not None and row["energy_total_j"] is not None, row.get("null_reasons")
+    bag = next(p for p in out.iterdir() if (p / "metadata.yaml").exists())
+    meta = read_run_metadata(bag)
+    assert meta["robot"]["clock"] == "sim" and meta["robot"]["topics"]["clock"] == "/clock"
+    msgs = bag_messages(bag)
+    sim_time_ns = 10**12  # MuJoCo's clock starts near 0.5 s: anything below ~17 min is not wall time (~1.7e18)
+    clock = [m.stamp_ns(m.deserialize(raw, m.CLOCK.msgtype)) for _, raw in msgs["/clock"]]
+    assert len(clock) > 10 and clock == sorted(clock) and 0 < clock[-1] < sim_time_ns
+    events = [m.deserialize(raw, m.EPISODE_EVENTS.msgtype) for _, raw in msgs[m.EPISODE_EVENTS.name]]
+    started = next(e for e in events if e.kind == m.EventKind.STARTED)
+    end = next(e for e in events if e.kind in m.EventKind.TERMINAL)
+    assert 0 < m.stamp_ns(started) < m.stamp_ns(end) <= clock[-1]
+    assert json.loads(end.detail_json)["robot_time_factor"] > 0.1  # robot seconds per wall second
+    # The bridge stamps its targets with the robot's /clock, not this machine's wall clock.
+    targets = [t for t, _ in msgs["/robot/equilibrium_pose"]]
+    assert targets and all(0 < t < sim_time_ns for t in targets)
+    again = score_bag(bag, ee_topic="/robot/ee_pose", joint_topic="/robot/joint_states", rate="native",
+                      energy_rate="native")  # fmt: skip
+    assert again["status"] == row["status"] and again["jerk_mean"] == pytest.approx(row["jerk_mean"])
 
 
 def test_realtime_sim_episode(tmp_path):
@@ -173,6 +214,16 @@ def test_camera_images_from_the_robot_reach_the_policy(tmp_path):
     assert row["status"] == "failure", row.get("error_reason")  # the sine never solves the task; no error
     assert row["num_inferences"] >= 2
     assert "/camera/agentview/image_raw" in (bag / "metadata.yaml").read_text()  # recorded as the policy saw it
+
+
+def test_camera_policy_in_the_realtime_sim(tmp_path):
+    """The real-time sim stamps an observation and its images alike (wall-clock ns do not survive seconds)."""
+    cfg = RunConfig(policy="tests.rt_policies:CameraSine", clock="realtime", max_steps=20)
+    bag, error = launch_realtime(cfg, tmp_path)
+    assert error == ""
+    row = json.loads((bag / "score.json").read_text())
+    assert row["status"] == "failure", row.get("error_reason")  # before the fix: no chunk within 60 s (error)
+    assert row["num_inferences"] >= 2
 
 
 def test_same_stack_under_franka_ros2_topic_names(tmp_path):
