@@ -228,7 +228,10 @@ class RosStack:
             if p is not None:
                 self.restarts[name] = self.restarts.get(name, 0) + 1
                 if name != MANAGER:
-                    self._keys = None  # a fresh node is unconfigured: configure all with this episode
+                    # Configure every node again with this episode, not only the fresh (unconfigured) one: a
+                    # node that died during a reconfigure leaves the survivors' configurations unknown, and a
+                    # stale configuration must never be activated.
+                    self._keys = None
             self._spawn(name)
 
     def _dead(self) -> list[str]:
