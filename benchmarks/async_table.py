@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pandas as pd  # noqa: E402
 
-from lq_ros.aggregate import aggregate  # noqa: E402
+from lq_ros.aggregate import aggregate, ci_text  # noqa: E402
 from lq_ros.report import load_episodes  # noqa: E402
 
 STRATEGIES = ("replace", "weighted_average", "temporal_ensemble", "rtc", "rtc_hard", "latest_only", "average",
@@ -27,13 +27,6 @@ STRATEGIES = ("replace", "weighted_average", "temporal_ensemble", "rtc", "rtc_ha
 COLUMNS = (("jerk m/s³", "jerk_mean_all", 1), ("switch jump, mean", "chunk_switch_jump_mean_all", 2),
            ("switch jump, P90", "chunk_switch_jump_p90_all", 2),
            ("jerk near switches / elsewhere", "chunk_switch_jerk_ratio_all", 2))  # fmt: skip
-
-
-def _ci(agg: pd.Series, metric: str, decimals: int) -> str:
-    mean = agg.get(f"{metric}_mean")
-    if mean is None or pd.isna(mean):
-        return "–"
-    return f"{mean:.{decimals}f} [{agg[f'{metric}_ci_lo']:.{decimals}f}, {agg[f'{metric}_ci_hi']:.{decimals}f}]"
 
 
 def latency_label(agg: pd.Series) -> str:
@@ -57,7 +50,7 @@ def table(sweep: Path) -> str:
         success = f"{int(agg.n_success)}/{n_outcome} [{100 * agg.success_ci_lo:.0f}, {100 * agg.success_ci_hi:.0f}]"
         line = {"Δt_sim s": latency_label(agg), "strategy": agg["merge"], "success [95% CI, %]": success}
         for header, metric, decimals in COLUMNS:
-            line[header] = _ci(agg, metric, decimals)
+            line[header] = ci_text(agg, metric, decimals)
         line["errors"] = int(agg.n_error)
         line["degenerate"] = int(agg.n_degenerate)
         lines.append(line)

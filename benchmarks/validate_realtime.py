@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
+from collections import Counter
+from functools import cache
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -33,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pandas as pd  # noqa: E402
 
 from lq_ros import messages as m  # noqa: E402
-from lq_ros.aggregate import aggregate  # noqa: E402
+from lq_ros.aggregate import aggregate, ci_text  # noqa: E402
 from lq_ros.bag import read_run_metadata, scan_mcap  # noqa: E402
 from lq_ros.config import RunConfig  # noqa: E402
 from lq_ros.episode import run_episode, scored_row  # noqa: E402
@@ -66,6 +67,7 @@ def configs(latencies: list[float], modes: list[str], inits: int, task: int, out
                     )
 
 
+@cache  # read once per bag: the trace and the table both need it
 def applied_delays_ticks(bag: Path) -> dict[int, int]:
     """Request id -> ticks from its observation request to the first command of its chunk, from a bag."""
     requested, applied = {}, {}
@@ -95,10 +97,30 @@ def replay_trace(bag: Path, folder: Path, lat: float) -> Path | None:
     return path
 
 
-def _ci(mean: float, lo: float, hi: float, decimals: int, scale: float = 1.0) -> str:
-    if mean is None or (isinstance(mean, float) and math.isnan(mean)):
-        return "–"
-    return f"{mean * scale:.{decimals}f} [{lo * scale:.{decimals}f}, {hi * scale:.{decimals}f}]"
+def paired_agreement(episodes: pd.DataFrame) -> str:
+    """Per (L, protocol): how often each lockstep arm agrees with the real-time episode of the same init state."""
+    index = ["L_s", "mode", "init"]
+    real = episodes[episodes.clock == "realtime"].set_index(index)
+    lines = []
+    for arm in sorted(set(episodes.clock) - {"realtime"}):
+        other = episodes[episodes.clock == arm].set_index(index)
+        both = real.join(other, how="inner", rsuffix="_arm")
+        energy_close = (both.energy_total_j - both.energy_total_j_arm).abs() <= 1e-6 * both.energy_total_j.abs()
+        lines.append({"arm vs realtime": arm, "pairs": len(both),
+                      "same outcome": int((both.status == both.status_arm).sum()),
+                      "same completion tick": int((both.completion_steps == both.completion_steps_arm).sum()),
+                      "energy within 1e-6 rel.": int(energy_close.sum())})  # fmt: skip
+    return pd.DataFrame(lines).to_markdown(index=False)
+
+
+def delay_counts(episodes: pd.DataFrame) -> str:
+    """Real-time chunks by how many ticks they took from request to effect, per (L, protocol)."""
+    lines = []
+    for (lat, mode), group in episodes[episodes.clock == "realtime"].groupby(["L_s", "mode"]):
+        counts = Counter(d for delays in group.delays for d in delays)
+        lines.append({"L s": lat, "mode": mode, "chunks": sum(counts.values()),
+                      **{f"{k} ticks": counts[k] for k in sorted(counts)}})  # fmt: skip
+    return pd.DataFrame(lines).fillna(0).to_markdown(index=False)
 
 
 def main() -> None:
@@ -121,7 +143,7 @@ def main() -> None:
             run_episode(cfg, args.out, transport)
         row = scored_row(bag)
         row["L_s"], row["clock"] = lat, arm
-        delays = list(applied_delays_ticks(bag).values())
+        row["delays"] = delays = list(applied_delays_ticks(bag).values())
         row["late_chunks_pct"] = 100.0 * sum(d > round(lat / CONTROL_DT_S) for d in delays) / max(len(delays), 1)
         stats = (read_run_metadata(bag).get("realtime") or {}) if (bag / "metadata.yaml").exists() else {}
         row["overrun_ticks"] = sum(s.get("overrun_ticks", 0) for s in stats.values())
@@ -135,14 +157,16 @@ def main() -> None:
     for _, agg in aggs.iterrows():
         group = episodes[(episodes.clock == agg.clock) & (episodes["mode"] == agg["mode"]) & (episodes.L_s == agg.L_s)]
         line = {"L s": agg.L_s, "mode": agg["mode"], "clock": agg.clock, "n": int(agg.n), "errors": int(agg.n_error),
-                "success %": _ci(agg.success_rate, agg.success_ci_lo, agg.success_ci_hi, 0, 100.0)}  # fmt: skip
+                "success %": ci_text(agg, "success", 0, 100.0)}  # fmt: skip
         for header, metric, decimals in METRICS:
-            line[header] = _ci(agg[f"{metric}_mean"], agg[f"{metric}_ci_lo"], agg[f"{metric}_ci_hi"], decimals)
+            line[header] = ci_text(agg, metric, decimals)
         line["chunks late by >= 1 tick %"] = f"{group.late_chunks_pct.mean():.0f}"
         line["overrun ticks / ep"] = f"{group.overrun_ticks.mean():.1f}" if agg.clock == "realtime" else "–"
         line["missed cmds / ep"] = f"{group.missed_commands.mean():.1f}" if agg.clock == "realtime" else "–"
         table.append(line)
     print(pd.DataFrame(table).sort_values(["L s", "mode", "clock"]).to_markdown(index=False))
+    print("\nReal-time chunks by request-to-effect delay:\n" + delay_counts(episodes))
+    print("\nPaired episodes (same L, protocol, init state):\n" + paired_agreement(episodes))
 
 
 if __name__ == "__main__":

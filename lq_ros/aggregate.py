@@ -358,6 +358,14 @@ def _with_ci(mean: float, low: float, high: float, decimals: int, scale: float =
     return f"{mean * scale:.{decimals}f} [{low * scale:.{decimals}f}, {high * scale:.{decimals}f}]"
 
 
+def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.0) -> str:
+    """``mean [lo, hi]`` of an aggregate row's ``metric`` (``success``: the rate), or – when it has none."""
+    mean_key = {"success": "success_rate", "completion_time_rmst": "completion_time_rmst_s"}.get(metric)
+    prefix = "success" if metric == "success" else metric
+    mean = row.get(mean_key or f"{metric}_mean")
+    return _with_ci(mean, row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi"), decimals, scale)
+
+
 def sampling_label(agg: pd.Series | dict) -> str:
     """E.g. ``traj 20 Hz, energy substep``: the rates a row's metrics were computed at."""
     rate = agg.get("trajectory_rate_hz")

@@ -334,16 +334,6 @@ def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
     return out
 
 
-def _ci_text(row, metric: str, decimals: int, scale: float = 1.0) -> str:
-    mean_key = {"success": "success_rate", "completion_time_rmst": "completion_time_rmst_s"}.get(metric)
-    mean = row.get(mean_key or f"{metric}_mean")
-    lo = row.get(f"{metric}_ci_lo") if metric != "success" else row.get("success_ci_lo")
-    hi = row.get(f"{metric}_ci_hi") if metric != "success" else row.get("success_ci_hi")
-    if mean is None or not np.isfinite(mean):
-        return "–"
-    return f"{mean * scale:.{decimals}f} [{lo * scale:.{decimals}f}, {hi * scale:.{decimals}f}]"
-
-
 #: (header, metric, decimals, scale) of the pooled summary table.
 SUMMARY_COLUMNS = (
     ("success %", "success", 0, 100.0),
@@ -364,7 +354,7 @@ def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
         row = {"policy": r["policy"], "mode": r["mode"], "Δt_sim s (N)": f"{r['latency_s']:g} ({r['latency_ticks']})",
                "sampling": agg.sampling_label(r), "n": int(r["n"]), "errors": int(r["n_error"])}  # fmt: skip
         for header, metric, decimals, scale in SUMMARY_COLUMNS:
-            row[header] = _ci_text(r, metric, decimals, scale)
+            row[header] = agg.ci_text(r, metric, decimals, scale)
         row["note"] = f"⚠ degenerate in {int(r['n_degenerate'])} episodes" if r.get("n_degenerate") else ""
         rows.append(row)
     return pd.DataFrame(rows)
@@ -510,5 +500,5 @@ def _per_task_view(per_task: pd.DataFrame) -> pd.DataFrame:
     cols = [*agg.GROUP_KEYS, "n", "n_error"]
     view = per_task[cols].copy()
     for header, metric, decimals, scale in SUMMARY_COLUMNS:
-        view[header] = [_ci_text(r, metric, decimals, scale) for _, r in per_task.iterrows()]
+        view[header] = [agg.ci_text(r, metric, decimals, scale) for _, r in per_task.iterrows()]
     return view
