@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import pytest
@@ -161,11 +162,16 @@ class ClockProbe:
 
     It is a participant of the run's domain that the launcher does not know about: its own Fast DDS
     files, left behind when a peer is killed, are removed here (lq_ros.procs.ShmTracker), so that what
-    the test finds in /dev/shm is the run's.
+    the test finds in /dev/shm is the run's. It also outlives the run: after the launcher has removed a
+    killed node's port files, the probe's discovery traffic to that node (until its lease expires)
+    creates them again (a segment and its mutex, without the ``_el`` lock that only a port's reader
+    holds). So the probe also notes the files of the run's nodes (``watch``) and removes, once it has
+    stopped, whichever of them its own writes brought back.
     """
 
-    def __init__(self, tmp_path: Path, domain: str) -> None:
+    def __init__(self, tmp_path: Path, domain: str, watch: Callable[[], Iterable[int]] = tuple) -> None:
         self.shm = ShmTracker()
+        self.watch = watch  # the run's node pids, asked again at every look (a restarted node is new)
         self.file = tmp_path / "clock_ns"
         env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         self.proc = subprocess.Popen(
@@ -174,7 +180,7 @@ class ClockProbe:
         )  # fmt: skip
 
     def now_ns(self) -> int:
-        self.shm.sample([self.proc.pid])
+        self.shm.sample([self.proc.pid, *self.watch()])
         try:
             return int(self.file.read_text())
         except (OSError, ValueError):
@@ -184,7 +190,7 @@ class ClockProbe:
         return wait_for(lambda: self.now_ns() if self.now_ns() >= t_ns else 0, timeout_s, f"sim time {t_ns} ns")
 
     def stop(self) -> None:
-        self.shm.sample([self.proc.pid])
+        self.shm.sample([self.proc.pid, *self.watch()])
         self.proc.send_signal(signal.SIGINT)
         try:
             self.proc.wait(timeout=20)
@@ -198,7 +204,7 @@ def start_run_and_probe(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, 
     cli = start_lq(tmp_path, "run", *RUN_ARGS, "--out", str(tmp_path / "out"), "--json", *extra)
     try:
         nodes = wait_for(lambda: four_nodes(cli.pid), 120, "the four nodes")
-        return cli, nodes, ClockProbe(tmp_path, domain_of(nodes["sim"]))
+        return cli, nodes, ClockProbe(tmp_path, domain_of(nodes["sim"]), watch=nodes.values)
     except BaseException:
         cli.kill()
         raise
@@ -347,7 +353,7 @@ def test_killed_sweep_worker_is_replaced_and_its_episode_retried(tmp_path):
         seen |= set(nodes.values())
         worker = next(p for p in descendants(sweep.pid) if "spawn_main" in cmdline(p) and nodes["sim"] in
                       descendants(p))  # fmt: skip
-        probe = ClockProbe(tmp_path, domain_of(nodes["sim"]))
+        probe = ClockProbe(tmp_path, domain_of(nodes["sim"]), watch=nodes.values)
         try:
             probe.wait_until(2_000_000_000)
             os.kill(worker, signal.SIGKILL)

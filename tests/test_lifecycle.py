@@ -184,7 +184,7 @@ def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_pa
             out = tmp_path / victim
             out.mkdir()
             # The probe follows this episode's /clock (the previous episode's publishers are gone with it).
-            probe = ClockProbe(out, str(stack.domain.id))
+            probe = ClockProbe(out, str(stack.domain.id), watch=lambda: [p.pid for p in stack.procs.values()])
             seen.add(probe.proc.pid)
 
             def kill_at_sim_time(probe: ClockProbe = probe, victim: str = victim) -> tuple[int, int]:
