@@ -5,7 +5,7 @@ Usage: python benchmarks/async_table.py bags/sweeps/async_quick
 One row per (latency, merge strategy) over the async episodes: success (Wilson 95% CI), and over every
 episode with an outcome (few succeed, so success-only columns would be mostly empty) the mean jerk, the
 chunk-switch jump mean and P90 and the jerk ratio near switches, each with its seeded bootstrap 95% CI
-(lq_ros.aggregate), plus how many episodes were flagged degenerate (no chunk could overlap the old plan).
+(lq_ros.scoring.aggregate), plus how many episodes were flagged degenerate (no chunk could overlap the old plan).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pandas as pd  # noqa: E402
 
-from lq_ros.aggregate import aggregate, ci_text  # noqa: E402
-from lq_ros.report import load_episodes  # noqa: E402
+from lq_ros.report.sweep_report import load_episodes  # noqa: E402
+from lq_ros.scoring.aggregate import aggregate, ci_text  # noqa: E402
 
 STRATEGIES = ("replace", "weighted_average", "temporal_ensemble", "rtc", "rtc_hard", "latest_only", "average",
               "conservative")  # fmt: skip

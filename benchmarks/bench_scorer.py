@@ -25,8 +25,8 @@ LENGTHS = (130, 260, 520, 900)  # robosuite ends any episode at its 1000-step ho
 
 
 def record_bags(root: Path) -> dict[int, Path]:
-    from lq_ros.config import RunConfig
-    from lq_ros.runner import run_inprocess
+    from lq_ros.core.run_config import RunConfig
+    from lq_ros.transport.inprocess import run_inprocess
 
     bags = {}
     for ticks in LENGTHS:
@@ -76,7 +76,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=20)
     args = parser.parse_args()
     os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core
-    from lq_ros.scoring import score_bag
+    from lq_ros.scoring.bag_scorer import score_bag
 
     bags = record_bags(args.bags)
     print(f"{'ticks':>6} {'MB':>6} {'bags/s default':>15} {'bags/s ctl-energy':>18} {'default/ctl':>12} "

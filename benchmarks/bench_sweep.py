@@ -19,7 +19,7 @@ from pathlib import Path
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-from lq_ros import sweep as sw  # noqa: E402
+from lq_ros.run import sweep as sw  # noqa: E402
 
 
 def _children_cpu_s() -> float:

@@ -23,10 +23,10 @@ from pathlib import Path
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-from lq_ros.config import RunConfig  # noqa: E402
-from lq_ros.episode import run_episode  # noqa: E402
-from lq_ros.launcher import RosStack  # noqa: E402
-from lq_ros.sweep.worker import EpisodeWorker  # noqa: E402
+from lq_ros.core.run_config import RunConfig  # noqa: E402
+from lq_ros.run.episode import run_episode  # noqa: E402
+from lq_ros.run.sweep.worker import EpisodeWorker  # noqa: E402
+from lq_ros.transport.ros.stack import RosStack  # noqa: E402
 
 
 def main() -> None:
@@ -83,7 +83,7 @@ def main() -> None:
 
 def reset_times(n: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float]:
     """Mean wall seconds of a hard and of a soft reset of one env, alternated (same process, same load)."""
-    from lq_ros.env import LiberoEnv
+    from lq_ros.sim.libero_env import LiberoEnv
 
     env = LiberoEnv(suite, task)
     env.reset(0, 7)  # the first reset builds everything once; not counted

@@ -33,10 +33,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lq_ros.env import LiberoEnv, Observation, TaskInfo
-from lq_ros.metrics import wilson_interval
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies import Policy, make_policy
-from lq_ros.runner import run_conventional
+from lq_ros.scoring.metrics import wilson_interval
+from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.transport.inprocess import run_conventional
 
 SUITES = ("libero_spatial", "libero_object")
 SEED = 7
@@ -117,7 +118,7 @@ def by_weights(rows: list[dict]) -> tuple[list[dict], list[str], dict[tuple[str,
 
     Returns (rows, labels in first-seen order, (suite, label) -> a policy spec that loads it, for the latency).
     """
-    from lq_ros.learned.policy import resolve_weights
+    from lq_ros.policies.learned.chunk_policy import resolve_weights
 
     label_of: dict[tuple[str, str], str] = {}  # (suite, spec) -> label
     digest: dict[tuple[str, str], str] = {}  # (suite, label) -> md5

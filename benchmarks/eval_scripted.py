@@ -17,9 +17,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lq_ros.env import LiberoEnv
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.runner import run_conventional
+from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.transport.inprocess import run_conventional
 
 SEED = 7
 

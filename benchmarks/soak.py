@@ -1,6 +1,6 @@
 """Soak test: hundreds of episodes through the four-node ROS stack with faults injected; nothing may be lost.
 
-A sweep (``lq_ros.sweep.run_sweep``, local workers, ros transport) of short episodes: mostly the sine policy,
+A sweep (``lq_ros.run.sweep.run_sweep``, local workers, ros transport) of short episodes: mostly the sine policy,
 plus a policy that raises (``faulty``, fault ``raise``) and a remote policy slower than its timeout (the
 ``openvla`` client against a stand-in server that answers after 1.5 s, ``timeout_s`` 0.5). About every
 ``--kill-every`` finished episodes a random node (sim, policy, executor or metrics) of a running episode is
@@ -32,9 +32,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # tests.standin_servers: the stand-in OpenVLA server
 
-from lq_ros.config import RunConfig  # noqa: E402
-from lq_ros.procs import SHM_DIR  # noqa: E402
-from lq_ros.sweep import ResultStore, SweepSpec, SweepSummary, run_sweep  # noqa: E402
+from lq_ros.core.run_config import RunConfig  # noqa: E402
+from lq_ros.run.sweep import ResultStore, SweepSpec, SweepSummary, run_sweep  # noqa: E402
+from lq_ros.transport.processes import SHM_DIR  # noqa: E402
 
 NODE_NAMES = ("sim", "policy", "executor", "metrics")
 

@@ -33,12 +33,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pandas as pd  # noqa: E402
 
-from lq_ros import messages as m  # noqa: E402
-from lq_ros.aggregate import aggregate, ci_text  # noqa: E402
-from lq_ros.bag import read_run_metadata, scan_mcap  # noqa: E402
-from lq_ros.config import RunConfig  # noqa: E402
-from lq_ros.episode import run_episode, scored_row  # noqa: E402
-from lq_ros.suites import CONTROL_DT_S  # noqa: E402
+from lq_ros.core.run_config import RunConfig  # noqa: E402
+from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
+from lq_ros.recording.episode_bag import read_run_metadata, scan_mcap  # noqa: E402
+from lq_ros.run.episode import run_episode, scored_row  # noqa: E402
+from lq_ros.scoring.aggregate import aggregate, ci_text  # noqa: E402
+from lq_ros.wire import messages as m  # noqa: E402
 
 SLEEPY = "lq_ros.policies.sleepy:SleepyPolicy"
 METRICS = (("completion s (succ.)", "completion_time_s", 2), ("jerk m/s³ (succ.)", "jerk_mean", 1),

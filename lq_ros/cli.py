@@ -15,8 +15,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from lq_ros.config import RunConfig
-from lq_ros.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
+from lq_ros.core.run_config import RunConfig
+from lq_ros.scoring.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
 # Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -168,7 +168,7 @@ def run(
     as_json: Annotated[bool, typer.Option("--json", help="Print the scored row as JSON.")] = False,
 ) -> None:
     """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task)."""
-    from lq_ros.suites import round_latency
+    from lq_ros.core.suite_constants import round_latency
 
     latency_fields: dict = {"latency_dist": latency}  # a distribution (RunConfig parses and checks it)
     if ":" not in latency:
@@ -190,10 +190,10 @@ def run(
         if cfg.clock == "realtime" and transport is not Transport.ros:
             raise ValueError("--clock realtime runs through ROS only (--transport ros)")
         if cfg.robot:
-            from lq_ros.robot_config import load_robot_config
+            from lq_ros.robot.robot_config import load_robot_config
 
             load_robot_config(cfg.robot)  # a bad robot YAML: one line naming the entry
-        from lq_ros import validate
+        from lq_ros.run import validation as validate
 
         validate.check_run(cfg)  # task and init ranges, the policy and its arguments: before anything starts
         from lq_ros.policies import policy_class
@@ -201,7 +201,7 @@ def run(
         policy_class(cfg.policy).check_merge(cfg.merge)  # rtc needs a policy that takes the executing prefix
         if cfg.robot:  # a policy that needs what the robot does not publish: refused before anything starts
             from lq_ros.policies import make_policy
-            from lq_ros.realtime_launch import check_robot
+            from lq_ros.transport.ros.realtime_stack import check_robot
 
             probe = make_policy(cfg.policy, **cfg.policy_args)
             try:
@@ -226,8 +226,8 @@ def run(
 
 def run_episode(cfg, out: Path, transport: Transport, **launch_kwargs) -> dict:
     """One episode through the chosen transport; returns the scored row."""
-    from lq_ros import episode
-    from lq_ros.procs import sigterm_as_keyboard_interrupt
+    from lq_ros.run import episode
+    from lq_ros.transport.processes import sigterm_as_keyboard_interrupt
 
     sigterm_as_keyboard_interrupt()  # e.g. from a job runner: the children are stopped cleanly, like on Ctrl-C
     _, row = episode.run_episode(cfg, out, transport.value, **launch_kwargs)
@@ -243,7 +243,7 @@ def demo(
 ) -> None:
     """LIBERO-Spatial task 0 through one four-node stack: sync and async at 0 and 0.2 s latency (a rerun
     replaces the demo's episodes in OUT)."""
-    from lq_ros import validate
+    from lq_ros.run import validation as validate
 
     configs = [RunConfig(suite="libero_spatial", task=task, mode=mode, latency_s=latency, policy=policy)
                for mode in ("sync", "async") for latency in (0.0, 0.2)]  # fmt: skip
@@ -256,7 +256,7 @@ def demo(
         # One long-lived node stack for the four episodes (docs/lifecycle.md), as a sweep worker keeps one.
         stack = None
         if transport is Transport.ros:
-            from lq_ros.launcher import RosStack
+            from lq_ros.transport.ros.stack import RosStack
 
             stack = keep.enter_context(RosStack())
         for cfg in configs:
@@ -303,13 +303,13 @@ def score(
 ) -> None:
     """Score bags. A directory of bags also gets per (policy, mode, Δt_sim, suite, task) aggregates with
     95% CIs, written as CSV + Parquet, and a markdown table on stdout. Exits 1 if any bag is damaged."""
-    from lq_ros.aggregate import aggregate, markdown_table, score_directory, write_tables
-    from lq_ros.scoring import find_bags
+    from lq_ros.scoring.aggregate import aggregate, markdown_table, score_directory, write_tables
+    from lq_ros.scoring.bag_scorer import find_bags
 
     if not find_bags(path):
         console.print(f"[red]no rosbag2 MCAP bag at or below {path}[/red]")
         raise typer.Exit(2)
-    from lq_ros.scoring import ENERGY_RATES, TRAJECTORY_RATES
+    from lq_ros.scoring.bag_scorer import ENERGY_RATES, TRAJECTORY_RATES
 
     if rate not in TRAJECTORY_RATES:
         raise typer.BadParameter(f"--rate must be one of {', '.join(TRAJECTORY_RATES)}; got {rate!r}")
@@ -329,7 +329,7 @@ def score(
             console.print(f"[red]error:[/red] {row.get('episode')}: {row.get('error_reason')}", soft_wrap=True)
     single_bag = len(rows) == 1 and out is None
     if as_json:
-        from lq_ros.scoring import to_json
+        from lq_ros.scoring.bag_scorer import to_json
 
         for row in rows:
             nested = {k: json.loads(v) for k, v in row.items() if k in ("versions", "null_reasons", "warnings") and v}
@@ -351,7 +351,7 @@ def _read_references(path: Path):
     """Relative-efficiency references from an earlier episodes table (one line naming a bad file)."""
     import pandas as pd
 
-    from lq_ros.aggregate import REFERENCE_KEYS, efficiency_references
+    from lq_ros.scoring.aggregate import REFERENCE_KEYS, efficiency_references
 
     try:
         table = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
@@ -376,7 +376,7 @@ def sweep(
     retry_errors: Annotated[bool, typer.Option(help="Run episodes recorded as error again.")] = False,
 ) -> None:
     """Run a latency sweep (docs/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
-    from lq_ros import sweep as sw
+    from lq_ros.run import sweep as sw
 
     if backend not in sw.BACKENDS:
         raise typer.BadParameter(f"--backend must be one of {', '.join(sw.BACKENDS)}, got {backend!r}")
@@ -418,8 +418,8 @@ def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
         TimeRemainingColumn,
     )
 
-    from lq_ros.procs import sigterm_as_keyboard_interrupt
-    from lq_ros.sweep import SweepSummary, run_sweep
+    from lq_ros.run.sweep import SweepSummary, run_sweep
+    from lq_ros.transport.processes import sigterm_as_keyboard_interrupt
 
     progress = Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -462,7 +462,7 @@ def report(
     per episode and, with --videos K, up to K replay videos per cell (successes and failures)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from lq_ros.report import build_report
+    from lq_ros.report.sweep_report import build_report
 
     if videos < 0:
         raise typer.BadParameter(f"--videos must be >= 0, got {videos}")
@@ -497,8 +497,8 @@ def replay(
 ) -> None:
     """Re-simulate a recorded lockstep episode from its bag's configuration and commands; check that the EE
     trajectory equals the recorded one. Exits 1 if it differs, 2 if the bag cannot be replayed (reason given)."""
-    from lq_ros.replay import ReplayRefused
-    from lq_ros.replay import replay as replay_bag
+    from lq_ros.report.replay import ReplayRefused
+    from lq_ros.report.replay import replay as replay_bag
 
     names = tuple(c.strip() for c in cameras.split(",") if c.strip())
     if video is not None and not names:
@@ -524,7 +524,7 @@ def reindex(
 ) -> None:
     """Rebuild the metadata.yaml of bags from their .mcap (like ros2 bag reindex), e.g. after the recorder was
     killed; the run metadata is kept, the .mcap is not modified. Exits 1 if any .mcap is damaged."""
-    from lq_ros.bag import reindex as reindex_bag
+    from lq_ros.recording.episode_bag import reindex as reindex_bag
 
     damaged = False
     for bag in bags:
@@ -539,8 +539,8 @@ def reindex(
         raise typer.Exit(1)
 
 
-# Learned policies: demonstrations and training (lq_ros/learned/cli.py).
-from lq_ros.learned import cli as _learned_cli  # noqa: E402
+# Learned policies: demonstrations and training (lq_ros/training/cli.py).
+from lq_ros.training import cli as _learned_cli  # noqa: E402
 
 app.command()(_learned_cli.collect)
 app.command()(_learned_cli.train)

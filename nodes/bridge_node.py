@@ -1,10 +1,10 @@
 """Bridge node: the one node that speaks a robot's standard topics (names in a robot YAML).
 
 Robot -> stack: keeps the latest arm/finger joint states, EE pose, object poses and images
-(lq_ros/obs_builder.py) and answers each /lq/observation_request with an /lq/observation (+ camera
+(lq_ros/robot/observation_builder.py) and answers each /lq/observation_request with an /lq/observation (+ camera
 images) built from them, stamped with the robot's EE-pose stamp. Stack -> robot: each /lq/command (the
 executor's 7-D LIBERO delta) becomes an absolute EE target ``PoseStamped`` and a gripper width
-``Float64MultiArray`` (lq_ros/bridge.py: LIBERO's OSC scaling), applied by the robot when it arrives.
+``Float64MultiArray`` (lq_ros/robot/delta_to_target.py: LIBERO's OSC scaling), applied by the robot when it arrives.
 
 Episode: STARTED (task from the run configuration) once every input the policy needs has arrived and
 every peer is connected; SUCCESS when the robot's success topic (an operator or a detector; the
@@ -31,15 +31,15 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
-from lq_ros import messages as m
-from lq_ros.bridge import DeltaToTarget
-from lq_ros.config import versions
-from lq_ros.env import load_task
-from lq_ros.node_common import publish_observation
-from lq_ros.obs_builder import ObservationBuilder, Requirements, missing_task_objects
-from lq_ros.realtime import PERIOD_NS, START_DELAY_S, TickClock
-from lq_ros.robot_config import load_robot_config
-from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+from lq_ros.core.run_config import versions
+from lq_ros.robot.delta_to_target import DeltaToTarget
+from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, missing_task_objects
+from lq_ros.robot.robot_config import load_robot_config
+from lq_ros.sim.libero_env import load_task
+from lq_ros.transport.ros.endpoints import publish_observation
+from lq_ros.transport.ros.rclpy_helpers import declare_run_config, publisher, raw_subscription, run
+from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
+from lq_ros.wire import messages as m
 
 #: Latest-sample subscriptions: best effort matches any publisher (a robot driver's QoS is its own); depth 1:
 #: a busy bridge skips stale samples instead of working through a 500 Hz backlog.

@@ -1,9 +1,9 @@
 """Executor node: the sync hold / async buffer protocol at the control rate (lockstep on /clock).
 
-Each /clock message starts a control tick. Per tick (see lq_ros.executor): apply the chunk due now
+Each /clock message starts a control tick. Per tick (see lq_ros.core.executor_protocol): apply the chunk due now
 (waiting for it if needed), maybe request an observation (and wait until the sim has captured it,
 so the observation is of this tick), then publish the one command for the tick. Malformed chunks
-are rejected with a CHUNK_REJECTED event and never published as commands (lq_ros.node_common.ExecutorLink,
+are rejected with a CHUNK_REJECTED event and never published as commands (lq_ros.transport.ros.endpoints.ExecutorLink,
 shared with the real-time executor).
 
 Managed node: activate builds a fresh protocol core from the episode's parameters (mode, latency,
@@ -15,12 +15,12 @@ from __future__ import annotations
 import sys
 import time
 
-from lq_ros import messages as m
-from lq_ros.config import RunConfig
-from lq_ros.env import tick_of_sim_time
-from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
-from lq_ros.node_common import ExecutorLink
-from lq_ros.ros_util import EpisodeNode, run_managed
+from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.core.run_config import RunConfig
+from lq_ros.core.suite_constants import tick_of_sim_time
+from lq_ros.transport.ros.endpoints import ExecutorLink
+from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
+from lq_ros.wire import messages as m
 
 
 class ExecutorNode(EpisodeNode):
@@ -77,7 +77,7 @@ class ExecutorNode(EpisodeNode):
 
     # -- the tick state machine -------------------------------------------------------------
     def advance(self) -> None:
-        """Do as much of the current tick as the messages in hand allow (lq_ros.executor's loop)."""
+        """Do as much of the current tick as the messages in hand allow (lq_ros.core.executor_protocol's loop)."""
         while not self.finished and self.tick is not None and self.awaiting_observation is None:
             step = self.core.advance(self.tick)
             if isinstance(step, ObservationNeeded):

@@ -2,7 +2,7 @@
 
 The role of nav2's lifecycle_manager or ros2_control's controller manager: it calls each node's standard
 services, ``~/set_parameters`` (rcl_interfaces), ``~/change_state`` and ``~/get_state`` (lifecycle_msgs),
-nothing else. The launcher (lq_ros/launcher.py, which keeps rclpy out of its own process so a killed
+nothing else. The launcher (lq_ros/transport/ros/stack.py, which keeps rclpy out of its own process so a killed
 launcher leaves no Fast DDS file behind) sends it one JSON object per line on stdin and reads one per line
 on stdout:
 

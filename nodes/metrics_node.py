@@ -1,10 +1,10 @@
 """Metrics node: records the episode topics to a rosbag2 MCAP bag, then scores it offline.
 
 Messages are written exactly as received (serialized CDR) with their sim-time log stamps. The bag is
-crash-safe (lq_ros.bag): killed with SIGKILL, it keeps all but the last 0.5 s of sim time, and its
+crash-safe (lq_ros.recording.episode_bag): killed with SIGKILL, it keeps all but the last 0.5 s of sim time, and its
 metadata.yaml (with the run metadata) exists from the start. Once a
 terminal event (success, timeout, error) has arrived and the topics have been quiet for a moment,
-the bag is closed, scored with lq_ros.scoring and the score written next to it (score.json).
+the bag is closed, scored with lq_ros.scoring.bag_scorer and the score written next to it (score.json).
 Stopped early (deactivated, Ctrl-C), it records a STOPPED event so the episode scores as an error, not
 a failure.
 
@@ -19,12 +19,12 @@ import sys
 import time
 from pathlib import Path
 
-from lq_ros import messages as m
-from lq_ros.bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
-from lq_ros.config import RunConfig, versions
-from lq_ros.env import sim_time_of_tick
-from lq_ros.ros_util import LOSSLESS_QOS, EpisodeNode, msg_class, run_managed
-from lq_ros.scoring import score_bag, to_json
+from lq_ros.core.run_config import RunConfig, versions
+from lq_ros.core.suite_constants import sim_time_of_tick
+from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
+from lq_ros.scoring.bag_scorer import score_bag, to_json
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, msg_class, run_managed
+from lq_ros.wire import messages as m
 
 SCORE_FILE = "score.json"
 

@@ -3,10 +3,10 @@
 A chunk computed from the observation at sim time t is published once /clock reaches
 t + N * dt_c, stamped with t, the request id, the injected latency dt_sim = N dt_c and the measured
 wall-clock inference latency dt_real. N is the request's own draw, computed by the same function the
-executor core uses (lq_ros.latency.request_latency of the run's distribution, seed and request id).
+executor core uses (lq_ros.core.latency.request_latency of the run's distribution, seed and request id).
 With merge rtc/rtc_hard the policy also gets the executing prefix (/lq/action_prefix) of the request.
 A policy that raises publishes a chunk carrying the error, which ends the episode as an error. The
-protocol is lq_ros.node_common.ChunkServer, shared with the real-time policy node (which holds chunks in
+protocol is lq_ros.transport.ros.endpoints.ChunkServer, shared with the real-time policy node (which holds chunks in
 wall time instead).
 
 Managed node: configure builds the policy (``policy``, ``policy_args``); activate checks it can run the
@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import sys
 
-from lq_ros import messages as m
-from lq_ros.config import RunConfig
-from lq_ros.node_common import ChunkServer
+from lq_ros.core.run_config import RunConfig
 from lq_ros.policies import Policy, make_policy
-from lq_ros.ros_util import EpisodeNode, run_managed
+from lq_ros.transport.ros.endpoints import ChunkServer
+from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
+from lq_ros.wire import messages as m
 
 
 class PolicyNode(EpisodeNode):

@@ -1,15 +1,15 @@
-"""Real-time executor: the sync hold / async buffer protocol (lq_ros/executor.py) on a wall-clock timer.
+"""Real-time executor: the sync hold / async buffer protocol (lq_ros/core/executor_protocol.py) on a wall-clock timer.
 
-The lockstep executor (executor_node.py) waits for each tick's /clock and for every due chunk; this one
-waits for nothing (lq_ros/realtime.py). Tick m starts at ``tick0 + m * 50 ms`` (``tick0_wall_ns`` from the
-STARTED event); the core's answer for the tick is worked out at once: an observation request goes out
+The lockstep executor (executor_node.py) waits for each tick's /clock and for every due chunk; this one waits
+for nothing (lq_ros/transport/ros/wall_clock.py). Tick m starts at ``tick0 + m * 50 ms`` (``tick0_wall_ns``
+from the STARTED event); the core's answer for the tick is worked out at once: an observation request goes out
 without waiting for the observation, a due chunk that is already here is applied, and one that has not
 arrived ``COMMAND_DEADLINE_S`` into the tick is declared late (``ExecutorCore.late``): the tick holds or
 runs on the buffer, and the chunk applies at the first tick after it arrives, its stale rows (the ticks
 that really passed) dropped. Ticks whose command went out more than one period after the tick's
 scheduled start are overruns; the count and the worst lateness are published on /lq/realtime_stats
 (std_msgs/String, JSON) when the episode ends. Requests, chunk handling, commands and events are the
-lockstep executor's (lq_ros.node_common.ExecutorLink).
+lockstep executor's (lq_ros.transport.ros.endpoints.ExecutorLink).
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import time
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from lq_ros import messages as m
-from lq_ros.executor import ChunkDue, ExecutorCore, Failed, ObservationNeeded
-from lq_ros.node_common import ExecutorLink
-from lq_ros.realtime import COMMAND_DEADLINE_S, OverrunCounter, TickClock
-from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
+from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.transport.ros.endpoints import ExecutorLink
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
+from lq_ros.transport.ros.wall_clock import COMMAND_DEADLINE_S, OverrunCounter, TickClock
+from lq_ros.wire import messages as m
 
 STATS_TOPIC = "/lq/realtime_stats"
 

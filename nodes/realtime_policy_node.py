@@ -3,9 +3,9 @@
 The lockstep policy node (policy_node.py) holds each chunk until *sim* time reaches the observation's
 time + N ticks, so the measured inference time never matters. Here nothing is simulated away: a chunk
 is published Δt_sim = N * 50 ms of wall time after its inference finished (N drawn as in lockstep,
-lq_ros.latency.request_latency), so the executor sees it Δt_real + Δt_sim after it asked. Chunks carry
+lq_ros.core.latency.request_latency), so the executor sees it Δt_real + Δt_sim after it asked. Chunks carry
 both (ActionChunk.injected_latency_s, inference_latency_s). No /clock is used. The protocol is the lockstep
-node's (lq_ros.node_common.ChunkServer); only the clock the chunks are held on differs.
+node's (lq_ros.transport.ros.endpoints.ChunkServer); only the clock the chunks are held on differs.
 """
 
 from __future__ import annotations
@@ -15,10 +15,10 @@ import time
 
 from rclpy.node import Node
 
-from lq_ros import messages as m
-from lq_ros.node_common import ChunkServer
 from lq_ros.policies import make_policy
-from lq_ros.ros_util import declare_run_config, publisher, raw_subscription, run
+from lq_ros.transport.ros.endpoints import ChunkServer
+from lq_ros.transport.ros.rclpy_helpers import declare_run_config, publisher, raw_subscription, run
+from lq_ros.wire import messages as m
 
 
 class RealtimePolicyNode(Node):

@@ -1,7 +1,7 @@
 """Recorder of real-time episodes (wall-clock sim or a robot): a bag, then the unchanged scorer.
 
 Like the lockstep metrics node it writes every episode topic as received (serialized CDR, header stamps
-as log times; lq_ros.bag's crash-safe writer) and scores the bag when the episode is over. Besides:
+as log times; lq_ros.recording.episode_bag's crash-safe writer) and scores the bag when the episode is over. Besides:
 
 - a robot's own topics (``robot_topics_json``: [{name, type}], e.g. its 500 Hz joint states, 100 Hz EE
   pose, the bridge's targets, the /clock of a robot on sim time) are recorded under their own names,
@@ -27,11 +27,11 @@ from pathlib import Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from lq_ros import messages as m
-from lq_ros.bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
-from lq_ros.config import versions
-from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, json_param, msg_class, run
-from lq_ros.scoring import score_bag, to_json
+from lq_ros.core.run_config import versions
+from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
+from lq_ros.scoring.bag_scorer import score_bag, to_json
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, json_param, msg_class, run
+from lq_ros.wire import messages as m
 
 SCORE_FILE = "score.json"
 STATS = m.Topic("/lq/realtime_stats", "std_msgs/msg/String")

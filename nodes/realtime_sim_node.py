@@ -1,7 +1,7 @@
 """Real-time sim node (``--clock realtime``): the LIBERO env stepped on a wall-clock timer at 20 Hz.
 
 The lockstep sim (sim_node.py) steps tick m when the command for tick m arrives. This one steps tick m
-at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` whatever has arrived (lq_ros/realtime.py): the command
+at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` whatever has arrived (lq_ros/transport/ros/wall_clock.py): the command
 for tick m if the executor delivered it in time, else the stop hold (zero arm delta, the last applied
 gripper command), and that tick is counted as a missed command. State is published right after each
 step, stamped with the next tick's scheduled wall time; there is no /clock. Observation requests are
@@ -21,13 +21,13 @@ import numpy as np
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from lq_ros import messages as m
-from lq_ros.config import versions
-from lq_ros.env import LiberoEnv
-from lq_ros.node_common import publish_observation
-from lq_ros.realtime import SIM_STEP_OFFSET_S, START_DELAY_S, OverrunCounter, TickClock, tick_state_msgs
-from lq_ros.ros_util import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
-from lq_ros.suites import DUMMY_ACTION
+from lq_ros.core.run_config import versions
+from lq_ros.core.suite_constants import DUMMY_ACTION
+from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.transport.ros.endpoints import publish_observation
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
+from lq_ros.transport.ros.wall_clock import SIM_STEP_OFFSET_S, START_DELAY_S, OverrunCounter, TickClock, tick_state_msgs
+from lq_ros.wire import messages as m
 
 STATS_TOPIC = "/lq/realtime_stats"
 

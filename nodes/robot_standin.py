@@ -1,7 +1,7 @@
 """A robot stand-in: a LIBERO scene in MuJoCo, paced by the wall clock, speaking only standard topics.
 
 Not our sim node: no lq_msgs, no episode events, no lockstep. It behaves like a robot with a
-Cartesian impedance controller (lq_ros/standin.py): the physics runs one 2 ms substep after another in
+Cartesian impedance controller (lq_ros/sim/standin_robot.py): the physics runs one 2 ms substep after another in
 step with the wall clock, and it publishes, at its own rates and with the names of a robot YAML
 (``robot_config``, default config/robots/standin.yaml):
 
@@ -16,7 +16,7 @@ It takes only the bridge's commands: an absolute EE target ``PoseStamped`` and a
 ``std_msgs/Float64MultiArray``. Stamps are the robot's clock, per the YAML's ``clock``:
 
 - ``wall`` (default): ``epoch + k * 2 ms`` for substep k, the epoch read from the wall clock at start; no /clock;
-- ``sim``: MuJoCo's simulated time (lq_ros.standin.StandinRobot.time_ns), also published on ``/clock``
+- ``sim``: MuJoCo's simulated time (lq_ros.sim.standin_robot.StandinRobot.time_ns), also published on ``/clock``
   (``rosgraph_msgs/Clock``) after every batch of substeps, like a simulator run with ``use_sim_time``.
 
 Either way every series is exactly periodic and the physics is paced by the wall clock (a sim-time robot
@@ -41,11 +41,11 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
-from lq_ros.bridge import width_to_gripper_action
-from lq_ros.robot_config import CLOCK_TOPIC, load_robot_config
-from lq_ros.ros_util import run
-from lq_ros.standin import StandinRobot
-from lq_ros.suites import PHYSICS_DT_S
+from lq_ros.core.suite_constants import PHYSICS_DT_S
+from lq_ros.robot.delta_to_target import width_to_gripper_action
+from lq_ros.robot.robot_config import CLOCK_TOPIC, load_robot_config
+from lq_ros.sim.standin_robot import StandinRobot
+from lq_ros.transport.ros.rclpy_helpers import run
 
 #: What a robot driver typically offers: reliable, volatile (no history for late joiners).
 ROBOT_QOS = QoSProfile(

@@ -5,7 +5,7 @@ Publishes /clock, /joint_states (effort = arm torque), /ee_pose, /lq/energy_inte
 and camera images only when asked (/lq/observation_request), and episode events. Tick m is stepped only once the command
 for tick m has arrived, so sim time never depends on wall-clock timing.
 
-Managed node (lq_ros.ros_util.EpisodeNode): configure creates the task's env (hard reset); activate
+Managed node (lq_ros.transport.ros.rclpy_helpers.EpisodeNode): configure creates the task's env (hard reset); activate
 resets it to the episode's init state and seed (soft: same MjSim, bit-identical to a rebuild) and
 starts the episode once every peer is connected; deactivate stops stepping.
 """
@@ -15,11 +15,12 @@ from __future__ import annotations
 import sys
 import traceback
 
-from lq_ros import messages as m
-from lq_ros.config import RunConfig, versions
-from lq_ros.env import LiberoEnv, sim_time_of_tick
-from lq_ros.node_common import publish_observation
-from lq_ros.ros_util import EpisodeNode, run_managed
+from lq_ros.core.run_config import RunConfig, versions
+from lq_ros.core.suite_constants import sim_time_of_tick
+from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.transport.ros.endpoints import publish_observation
+from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
+from lq_ros.wire import messages as m
 
 
 class SimNode(EpisodeNode):
@@ -55,7 +56,7 @@ class SimNode(EpisodeNode):
         self.min_clock_subscribers = self.get_parameter("min_clock_subscribers").value
         self.finished = False
         self.started = False
-        self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.env)
+        self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
         self.pubs = {
             t.name: self.episode_publisher(t)
             for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)

@@ -12,8 +12,8 @@ from pathlib import Path
 import rclpy
 from rclpy.executors import ExternalShutdownException
 
-from lq_ros import messages as m
-from lq_ros.ros_util import LOSSLESS_QOS, msg_class
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, msg_class
+from lq_ros.wire import messages as m
 
 
 def main() -> None:

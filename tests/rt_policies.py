@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
 from lq_ros.policies.sine import SinePolicy
 

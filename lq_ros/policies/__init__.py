@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib
 
-from lq_ros.merge import ActionPrefix
+from lq_ros.core.merge import ActionPrefix
 from lq_ros.policies.base import Policy, PolicyError
 
 #: name -> "module:Class". Adding a policy is one new module and one line here.

@@ -6,8 +6,8 @@ import abc
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
-from lq_ros.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
+from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
+from lq_ros.core.types import Observation, TaskInfo
 
 
 class PolicyError(RuntimeError):
@@ -31,7 +31,7 @@ class Policy(abc.ABC):
     #: infers and the delay d) and makes its chunk consistent with it: real-time chunking, ``--merge rtc``.
     supports_prefix: bool = False
     #: True if ``infer`` reads privileged object poses (``Observation.objects``): on a robot they must come from
-    #: a tracker's pose topics, else the run is refused at configure time (lq_ros/obs_builder.py).
+    #: a tracker's pose topics, else the run is refused at configure time (lq_ros/robot/observation_builder.py).
     needs_object_poses: bool = False
 
     @abc.abstractmethod

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from lq_ros import rtc
-from lq_ros.env import Observation
-from lq_ros.learned.models import FlowHook
-from lq_ros.learned.policy import LearnedChunkPolicy
-from lq_ros.merge import ActionPrefix
-from lq_ros.suites import ACTION_DIM
+from lq_ros.core import rtc_guidance as rtc
+from lq_ros.core.merge import ActionPrefix
+from lq_ros.core.suite_constants import ACTION_DIM
+from lq_ros.core.types import Observation
+from lq_ros.policies.learned.chunk_policy import LearnedChunkPolicy
+from lq_ros.policies.learned.networks import FlowHook
 
 
 class FlowPolicy(LearnedChunkPolicy):

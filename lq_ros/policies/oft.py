@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from lq_ros.env import Observation
-from lq_ros.learned.policy import LearnedChunkPolicy
+from lq_ros.core.types import Observation
+from lq_ros.policies.learned.chunk_policy import LearnedChunkPolicy
 
 
 class OFTPolicy(LearnedChunkPolicy):

@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.suite_constants import ACTION_DIM
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
-from lq_ros.suites import ACTION_DIM
 
 #: LIBERO camera names (MuJoCo) of the third-person and wrist views.
 AGENTVIEW = "agentview"

@@ -30,7 +30,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
 from lq_ros.policies.openpi_remote import (
     AGENTVIEW,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
-from lq_ros.merge import ActionPrefix
+from lq_ros.core.merge import ActionPrefix
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy
 
 
@@ -16,7 +16,7 @@ class SinePolicy(Policy):
     exactly the actions those ticks would have had, so latency effects are easy to see.
 
     With a prefix (merge rtc/rtc_hard) it inpaints in closed form: row i becomes w_i p_i + (1 - w_i) a_i with
-    the RTC prefix weights w (lq_ros.rtc.prefix_weights), so the real-time-chunking plumbing can be tested
+    the RTC prefix weights w (lq_ros.core.rtc_guidance.prefix_weights), so the real-time-chunking plumbing can be tested
     without a model.
     """
 
@@ -43,7 +43,7 @@ class SinePolicy(Policy):
         chunk[:, 1] = self.amplitude * np.cos(phase)
         chunk[:, 6] = -1.0
         if prefix is not None and len(prefix.actions):
-            from lq_ros.rtc import prefix_weights
+            from lq_ros.core.rtc_guidance import prefix_weights
 
             n = min(len(prefix.actions), self.chunk_size)
             w = prefix_weights(prefix.delay, n, self.chunk_size, prefix.schedule)[:n, None]

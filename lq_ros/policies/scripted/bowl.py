@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import PolicyError
 from lq_ros.policies.scripted.machine import Expert, Machine, View, quat_to_mat, wrap_half
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.scripted.machine import YAW_PER_STEP, Expert, ExpertParams, Machine, View, quat_to_mat
 
 

@@ -12,7 +12,7 @@ from dataclasses import asdict
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
 from lq_ros.policies.scripted.bowl import BowlExpert, BowlOntoObjectExpert, SpatialBowlExpert
 from lq_ros.policies.scripted.drawer import DrawerExpert

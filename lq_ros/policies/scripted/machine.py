@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 import numpy as np
 
-from lq_ros.env import Observation, TaskInfo
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy
 
 # --- Measured constants (see the platform notes) -------------------------------------------------------

@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lq_ros.env import Observation
+from lq_ros.core.types import Observation
 from lq_ros.policies.base import PolicyError
 from lq_ros.policies.scripted.machine import (
     CLOSE,

@@ -1,6 +1,6 @@
 """Record what OpenVLA's and OpenVLA-OFT's own LIBERO code hands the model, for real rendered frames.
 
-tests/test_remote_policies.py checks that our OpenVLA client sends exactly these images and states.
+tests/policies/test_remote_policies.py checks that our OpenVLA client sends exactly these images and states.
 The reference code needs TensorFlow, which this project does not install, so the recording is made
 in two steps and committed (``libero_frames.npz``, ~1 MB):
 

@@ -1,0 +1,99 @@
+"""The values that cross every boundary of the stack: task, robot state, observation, energy integrals.
+
+Plain dataclasses with no simulator behind them: the LIBERO env produces them, policies and the wire codec
+consume them, and a robot bridge builds them from a real robot's topics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TaskInfo:
+    """What a policy may know about the task before the first observation."""
+
+    suite: str
+    task_id: int
+    name: str
+    instruction: str
+    #: Parsed BDDL goal, e.g. [["on", "akita_black_bowl_1", "plate_1"]].
+    goal: list[list[str]]
+    step_budget: int
+    num_init_states: int
+
+    def to_dict(self) -> dict:
+        return {
+            "suite": self.suite,
+            "task_id": self.task_id,
+            "name": self.name,
+            "instruction": self.instruction,
+            "goal": self.goal,
+            "step_budget": self.step_budget,
+            "num_init_states": self.num_init_states,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TaskInfo:
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__})
+
+
+@dataclass
+class PhysicsSamples:
+    """Per-physics-substep samples of one control tick (SUBSTEPS_PER_TICK rows, PHYSICS_DT_S apart)."""
+
+    eef_pos: np.ndarray  # (S, 3) m
+    eef_quat_xyzw: np.ndarray  # (S, 4)
+    joint_vel: np.ndarray  # (S, 7) rad/s
+    joint_torque: np.ndarray  # (S, 7) N m
+
+
+@dataclass(frozen=True)
+class EnergyIntegrals:
+    """Joint-power integrals over the physics substeps of one control tick (paper eq. 6-8).
+
+    With MuJoCo's Euler integrator a substep moves the joints by ``qdot_end * dt``, so
+    ``tau . qdot_end * dt`` is exactly the work the actuators did in that substep.
+    """
+
+    duration_s: float
+    substeps: int
+    positive_work_j: float  # sum_k max(0, tau_k . qdot_k) dt
+    torque_squared_integral: float  # sum_k tau_k . tau_k dt, N^2 m^2 s
+
+
+@dataclass
+class TickState:
+    """Robot state at the start of control tick ``tick`` (after the previous command was applied)."""
+
+    tick: int
+    sim_time_s: float
+    eef_pos: np.ndarray  # (3,) m, exact forward kinematics of the current joint positions
+    eef_quat_xyzw: np.ndarray  # (4,)
+    joint_pos: np.ndarray  # (7,) rad
+    joint_vel: np.ndarray  # (7,) rad/s
+    joint_torque: np.ndarray  # (7,) N m, arm actuator torque during the last physics substep
+    gripper_qpos: np.ndarray  # (2,) m
+    success: bool
+    physics: PhysicsSamples | None = None
+    #: Integrals over the substeps of the tick that led here (None at tick 0: nothing applied yet).
+    energy: EnergyIntegrals | None = None
+
+
+@dataclass
+class Observation:
+    """What a policy sees at one tick: proprioception, privileged object poses, optional images."""
+
+    tick: int
+    sim_time_s: float
+    eef_pos: np.ndarray
+    eef_quat_xyzw: np.ndarray
+    gripper_qpos: np.ndarray
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray
+    #: name -> (position (3,), quaternion xyzw (4,))
+    objects: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    #: camera name -> upright HxWx3 uint8 image (row 0 is the top of the picture)
+    images: dict[str, np.ndarray] = field(default_factory=dict)

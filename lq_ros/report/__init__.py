@@ -1,0 +1,1 @@
+"""Reports for people: the sweep report and its figures, per-episode plots, replays and videos."""

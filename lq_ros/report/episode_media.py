@@ -1,0 +1,228 @@
+"""Per-episode media for ``lq report``: a figure for every episode, replay videos for a few per cell.
+
+Figures (lq_ros/report/episode_plot.py) need only the bag. Videos re-simulate the episode
+(lq_ros/report/replay.py), which costs CPU (~0.1-0.25 s per tick for two 256 px cameras), so they are off
+unless asked for: up to K per (policy, protocol, Δt_sim) cell, alternating successes and failures. Both are
+cached: a file newer than its bag is kept. Paths stored in the episode table are relative to the report
+folder, so links survive moving it.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from lq_ros.report.replay import DEFAULT_CAMERAS, DEFAULT_SIZE_PX, ReplayRefused
+
+#: Columns added to the episode table: figure path, video path, replay verdict.
+MEDIA_COLUMNS = ("plot", "video", "replay")
+FIGURE_DIR = "episodes"
+VIDEO_DIR = "videos"
+#: progress(stage, done, total): stage is "episode figures" (episodes) or "replay videos" (ticks).
+Progress = Callable[[str, int, int], None]
+
+
+def _bag_mtime(bag: Path) -> float:
+    files = list(bag.glob("*.mcap")) + [bag / "metadata.yaml"]
+    return max((f.stat().st_mtime for f in files if f.exists()), default=math.inf)
+
+
+def _fresh(path: Path, bag: Path) -> bool:
+    return path.exists() and path.stat().st_mtime >= _bag_mtime(bag)
+
+
+def _bag_path(results_dir: Path, bag) -> Path | None:
+    if not isinstance(bag, str) or not bag:
+        return None
+    path = results_dir / bag
+    return path if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) else None
+
+
+def pick_video_episodes(episodes: pd.DataFrame, k: int, cell_keys: Sequence[str]) -> list:
+    """Index labels of up to ``k`` episodes per cell: success, failure, success, ... (errors never)."""
+    if k <= 0 or episodes.empty:
+        return []
+    order = [c for c in ("suite", "task", "init", "seed") if c in episodes]
+    picked = []
+    for _, rows in episodes.groupby(list(cell_keys), dropna=False, sort=True):
+        rows = rows.sort_values(order) if order else rows
+        queues = [list(rows.index[rows["status"] == s]) for s in ("success", "failure")]
+        while len([i for i in picked if i in rows.index]) < k and any(queues):
+            for q in queues:
+                if q and len([i for i in picked if i in rows.index]) < k:
+                    picked.append(q.pop(0))
+    return picked
+
+
+def add_episode_media(
+    episodes: pd.DataFrame,
+    results_dir: Path,
+    out_dir: Path,
+    *,
+    videos: int = 0,
+    cell_keys: Sequence[str] = ("policy", "mode", "latency_s"),
+    progress: Progress | None = None,
+    cameras: tuple[str, ...] = DEFAULT_CAMERAS,
+    size_px: int = DEFAULT_SIZE_PX,
+) -> tuple[pd.DataFrame, list[str]]:
+    """``episodes`` with MEDIA_COLUMNS filled in (None where there is none) and the warnings met on the way."""
+    from lq_ros.report.episode_plot import write_episode_figure
+    from lq_ros.report.replay import replay, write_sidecar
+
+    results_dir, out_dir = Path(results_dir), Path(out_dir)
+    out = episodes.copy()
+    for col in MEDIA_COLUMNS:
+        out[col] = None
+    warnings: list[str] = []
+    bags = {i: _bag_path(results_dir, b) for i, b in out.get("bag", pd.Series(dtype=object)).items()}
+    todo = [i for i, b in bags.items() if b is not None]
+    for n, i in enumerate(todo):
+        bag = bags[i]
+        png = out_dir / FIGURE_DIR / f"{bag.name}.png"
+        try:
+            if not _fresh(png, bag):
+                write_episode_figure(bag, png)
+            out.at[i, "plot"] = f"{FIGURE_DIR}/{png.name}"
+        except Exception as exc:  # noqa: BLE001 - one unreadable bag must not sink the report
+            warnings.append(f"episode figure of {bag}: {type(exc).__name__}: {exc}")
+        if progress:
+            progress("episode figures", n + 1, len(todo))
+
+    chosen = [i for i in pick_video_episodes(out, videos, cell_keys) if bags.get(i) is not None]
+    steps = out.get("completion_steps", pd.Series(dtype=float))
+    ticks = {i: int(steps[i]) if pd.notna(steps.get(i)) else 1 for i in chosen}
+    total, done = sum(ticks.values()), 0
+    for i in chosen:
+        bag = bags[i]
+        mp4 = out_dir / VIDEO_DIR / f"{bag.name}.mp4"
+        verdict = mp4.with_suffix(".json")
+        try:
+            if _fresh(mp4, bag) and _fresh(verdict, bag):
+                result = json.loads(verdict.read_text())
+            else:
+                base = done
+
+                def tick(k: int, _n: int, base: int = base) -> None:
+                    if progress:
+                        progress("replay videos", base + k, total)
+
+                r = replay(bag, video=mp4, cameras=cameras, size_px=size_px, on_tick=tick)
+                write_sidecar(r, verdict)
+                result = r.to_dict()
+            out.at[i, "video"] = f"{VIDEO_DIR}/{mp4.name}"
+            out.at[i, "replay"] = replay_verdict(result)
+            if not result["equal"]:
+                warnings.append(f"replay of {bag.name} differs from its bag: {out.at[i, 'replay']}")
+        except ReplayRefused as exc:
+            warnings.append(f"no video of {bag.name}: {exc}")
+            out.at[i, "replay"] = "not replayable"
+        done += ticks[i]
+        if progress:
+            progress("replay videos", done, total)
+    return out, warnings
+
+
+def replay_verdict(result: dict) -> str:
+    """Short text of a replay result (ReplayResult.to_dict()): 'equal' or where it diverged."""
+    if result.get("equal"):
+        return "= bag"
+    d = result.get("divergence")
+    if d:
+        return f"≠ bag from tick {d['tick']} ({d['position_error_m']:.2g} m)"
+    return "≠ bag (outcome)"
+
+
+# -- page fragments ---------------------------------------------------------------------------------
+
+
+def _present(v) -> bool:
+    return isinstance(v, str) and bool(v)
+
+
+def table_columns(episodes: pd.DataFrame) -> list[str]:
+    """The media columns present (the episode table keeps them; the pages turn them into links)."""
+    return [c for c in MEDIA_COLUMNS if c in episodes]
+
+
+def link_headers(table: pd.DataFrame) -> list[str]:
+    """Headers of the link cells that html_cells / md_cells return for ``table``'s rows."""
+    return [c for c in ("plot", "video") if c in table]
+
+
+def html_cells(row) -> str:
+    """The link cells of one episode row (double-quoted hrefs, relative to the report folder)."""
+    e = html.escape
+    cells = []
+    if "plot" in row:
+        cells.append(f'<a href="{e(row["plot"])}">plot</a>' if _present(row["plot"]) else "–")
+    if "video" in row:
+        if _present(row["video"]):
+            cells.append(f'<a href="{e(row["video"])}">video</a> {e(str(row.get("replay") or ""))}')
+        else:
+            cells.append(e(str(row.get("replay") or "–")))
+    return "".join(f"<td style='text-align:left'>{c}</td>" for c in cells)
+
+
+def md_cells(row) -> list[str]:
+    cells = []
+    if "plot" in row:
+        cells.append(f"[plot]({row['plot']})" if _present(row["plot"]) else "–")
+    if "video" in row:
+        cells.append(f"[video]({row['video']}) {row.get('replay') or ''}".strip() if _present(row["video"]) else "–")
+    return cells
+
+
+def _caption(row) -> str:
+    parts = [f"{k} {row[k]}" for k in ("suite", "task", "init", "seed") if k in row and pd.notna(row[k])]
+    status = row.get("status")
+    steps = row.get("completion_steps")
+    end = f"{status}" + (f" at tick {int(steps)}" if pd.notna(steps) else "")
+    return " · ".join([*parts, end, f"replay {row.get('replay')}"])
+
+
+def _cell_title(cell_keys: Sequence[str], cell) -> str:
+    """'scripted · async · Δt_sim 0.2 s' (+ 'key value' for any other grouping key)."""
+    cell = cell if isinstance(cell, tuple) else (cell,)
+    parts = []
+    for k, v in zip(cell_keys, cell, strict=True):
+        if k in ("policy", "mode"):
+            parts.append(str(v))
+        elif k == "latency_s":
+            parts.append(f"Δt_sim {v:g} s" if isinstance(v, int | float) else f"Δt_sim {v}")
+        else:
+            parts.append(f"{k} {v}")
+    return " · ".join(parts)
+
+
+def videos_html(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> str:
+    """A "Replay videos" section: per cell, its videos inline (empty string without videos)."""
+    if "video" not in episodes or not episodes["video"].map(_present).any():
+        return ""
+    e = html.escape
+    parts = ["<h2>Replay videos</h2><p>Re-simulated from each bag's recorded commands; the strip shows the tick, "
+             "the command's source (colours as in the timeline: chunk, hold, underrun, rejected), chunk switches "
+             "and the outcome. docs/visualize.md explains them.</p>"]  # fmt: skip
+    with_video = episodes[episodes["video"].map(_present)]
+    for cell, rows in with_video.groupby(list(cell_keys), sort=True):
+        parts.append(f"<h3>{e(_cell_title(cell_keys, cell))}</h3><div style='display:flex;flex-wrap:wrap;gap:12px'>")
+        for _, r in rows.iterrows():
+            parts.append(f'<figure style="margin:0"><video controls preload="metadata" src="{e(r["video"])}" '
+                         f'style="max-width:560px"></video><figcaption style="font-size:12px">'
+                         f'<a href="{e(r["video"])}">{e(_caption(r))}</a></figcaption></figure>')  # fmt: skip
+        parts.append("</div>")
+    return "\n".join(parts)
+
+
+def videos_md(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> list[str]:
+    if "video" not in episodes or not episodes["video"].map(_present).any():
+        return []
+    lines = ["## Replay videos", ""]
+    for cell, rows in episodes[episodes["video"].map(_present)].groupby(list(cell_keys), sort=True):
+        lines.append("- " + _cell_title(cell_keys, cell) + ": "
+                     + ", ".join(f"[{_caption(r)}]({r['video']})" for _, r in rows.iterrows()))  # fmt: skip
+    return [*lines, ""]

@@ -1,0 +1,218 @@
+"""The robot interface: every topic name, type, rate and frame the stack uses to talk to a robot, from one YAML.
+
+A robot (real, or the stand-in in nodes/robot_standin.py) publishes standard topics only: arm
+``sensor_msgs/JointState`` (positions, velocities, efforts), an end-effector ``geometry_msgs/PoseStamped``,
+optionally finger joint states, camera ``sensor_msgs/Image`` topics, object poses from a tracker and a
+success flag; it takes an absolute EE target ``PoseStamped`` and a gripper width
+``std_msgs/Float64MultiArray``. Its stamps are wall-clock time (``clock: wall``) or simulated time it
+publishes on ``/clock`` (``clock: sim``, e.g. a simulator). Examples: config/robots/standin.yaml,
+config/robots/franka_ros2.yaml.
+A bad file is refused with one line naming the entry and the valid values (:class:`RobotConfigError`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from lq_ros.core.run_config import REPO_ROOT
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+IMAGE = "sensor_msgs/msg/Image"
+BOOL = "std_msgs/msg/Bool"
+FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
+CLOCK = "rosgraph_msgs/msg/Clock"
+#: Where a robot on simulated time (``clock: sim``) publishes its clock (the ROS convention, use_sim_time).
+CLOCK_TOPIC = "/clock"
+#: Shipped configurations, by name (``--robot standin`` = config/robots/standin.yaml).
+ROBOTS_DIR = REPO_ROOT / "config" / "robots"
+
+
+class RobotConfigError(ValueError):
+    """A robot YAML that cannot be used; the message is one line naming the entry and what is valid."""
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """One topic the robot publishes or takes."""
+
+    topic: str
+    type: str
+    rate_hz: float = 0.0  # the robot's publishing rate (0: on change / not periodic)
+    joints: tuple[str, ...] = ()
+    #: ee_pose only: fixed rotation (x y z w, body-fixed: R_obs = R_ee @ R) from the published EE frame (the
+    #: one the impedance controller tracks) to the frame the policy's observations were trained in.
+    observation_rotation_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class ObjectsSpec:
+    topic_prefix: str
+    rate_hz: float
+    #: Object names; ``None`` means "auto": every ``<prefix>/<name>/pose`` topic found on the graph.
+    names: tuple[str, ...] | None
+
+    def topic(self, name: str) -> str:
+        return f"{self.topic_prefix.rstrip('/')}/{name}/pose"
+
+    def name_of(self, topic: str) -> str | None:
+        prefix = self.topic_prefix.rstrip("/") + "/"
+        if topic.startswith(prefix) and topic.endswith("/pose"):
+            name = topic[len(prefix) : -len("/pose")]
+            return name if name and "/" not in name else None
+        return None
+
+
+@dataclass(frozen=True)
+class GripperCommandSpec:
+    topic: str
+    type: str
+    open_width_m: float
+    closed_width_m: float
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    name: str
+    frame_id: str
+    clock: str
+    joint_states: StreamSpec
+    ee_pose: StreamSpec
+    gripper_state: StreamSpec | None
+    objects: ObjectsSpec | None
+    cameras: dict[str, StreamSpec] = field(default_factory=dict)
+    ee_target: StreamSpec = StreamSpec("/equilibrium_pose", POSE_STAMPED)
+    gripper_command: GripperCommandSpec | None = None
+    success: StreamSpec | None = None
+    source: str = ""
+
+    @property
+    def clock_stream(self) -> StreamSpec | None:
+        """The robot's /clock when it stamps in simulated time (``clock: sim``), else None."""
+        return StreamSpec(CLOCK_TOPIC, CLOCK) if self.clock == "sim" else None
+
+    def topic_map(self) -> dict[str, str]:
+        """Role -> topic name (recorded with every run)."""
+        out = {"joint_states": self.joint_states.topic, "ee_pose": self.ee_pose.topic,
+               "ee_target": self.ee_target.topic}  # fmt: skip
+        if self.gripper_state:
+            out["gripper_state"] = self.gripper_state.topic
+        if self.gripper_command:
+            out["gripper_command"] = self.gripper_command.topic
+        if self.success:
+            out["success"] = self.success.topic
+        if self.clock_stream:
+            out["clock"] = self.clock_stream.topic
+        if self.objects:
+            out["objects"] = self.objects.topic("<name>")
+        out.update({f"camera/{c}": s.topic for c, s in self.cameras.items()})
+        return out
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "source": self.source, "frame_id": self.frame_id, "clock": self.clock,
+                "topics": self.topic_map()}  # fmt: skip
+
+
+def resolve_path(spec: str) -> Path:
+    """A shipped robot's name (``standin``, ``franka_ros2``) or a path to a YAML file."""
+    path = Path(spec)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        return path
+    shipped = ROBOTS_DIR / f"{spec}.yaml"
+    if shipped.exists():
+        return shipped
+    known = ", ".join(sorted(p.stem for p in ROBOTS_DIR.glob("*.yaml")))
+    raise RobotConfigError(f"unknown robot {spec!r}: give a YAML file or one of: {known}")
+
+
+def load_robot_config(spec: str | Path) -> RobotConfig:
+    path = resolve_path(str(spec))
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise RobotConfigError(f"robot config {path}: cannot read ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise RobotConfigError(f"robot config {path}: not YAML ({str(exc).splitlines()[0]})") from None
+    return parse_robot_config(raw, str(path))
+
+
+def _stream(raw: dict, key: str, msgtype: str, where: str, *, need_joints: bool = False) -> StreamSpec:
+    entry = raw.get(key)
+    if not isinstance(entry, dict) or not isinstance(entry.get("topic"), str) or not entry["topic"].startswith("/"):
+        raise RobotConfigError(f"{where}: '{key}' needs 'topic' (an absolute name such as /robot/{key})")
+    if entry.get("type", msgtype) != msgtype:
+        raise RobotConfigError(f"{where}: '{key}.type' is {entry['type']!r}; the stack reads {msgtype} there")
+    rate = entry.get("rate_hz", 0.0)
+    if not isinstance(rate, int | float) or rate < 0:
+        raise RobotConfigError(f"{where}: '{key}.rate_hz' must be a number >= 0, got {rate!r}")
+    joints = entry.get("joints", [])
+    if need_joints and (not isinstance(joints, list) or not joints or not all(isinstance(j, str) for j in joints)):
+        raise RobotConfigError(f"{where}: '{key}.joints' must list the joint names in order")
+    return StreamSpec(entry["topic"], msgtype, float(rate), tuple(joints or ()))
+
+
+def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
+    if not isinstance(raw, dict):
+        raise RobotConfigError(f"{where}: expected a mapping of robot interface entries")
+    known = {"name", "frame_id", "clock", "joint_states", "ee_pose", "gripper_state", "objects", "cameras",
+             "command", "success"}  # fmt: skip
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise RobotConfigError(f"{where}: unknown entries {unknown}; valid: {', '.join(sorted(known))}")
+    clock = raw.get("clock", "wall")
+    if clock not in ("wall", "sim"):
+        raise RobotConfigError(f"{where}: 'clock' must be wall or sim, got {clock!r}")
+    joint_states = _stream(raw, "joint_states", JOINT_STATE, where, need_joints=True)
+    if len(joint_states.joints) != 7:
+        raise RobotConfigError(f"{where}: 'joint_states.joints' lists {len(joint_states.joints)} joints; a 7-DoF arm")
+    ee_pose = _stream(raw, "ee_pose", POSE_STAMPED, where)
+    rot = raw["ee_pose"].get("observation_rotation_xyzw", [0.0, 0.0, 0.0, 1.0])
+    if not (isinstance(rot, list) and len(rot) == 4 and all(isinstance(v, int | float) for v in rot)) or not (
+        abs(sum(v * v for v in rot) - 1.0) < 1e-3
+    ):
+        raise RobotConfigError(f"{where}: 'ee_pose.observation_rotation_xyzw' must be a unit quaternion [x, y, z, w]")
+    ee_pose = StreamSpec(ee_pose.topic, ee_pose.type, ee_pose.rate_hz, (), tuple(float(v) for v in rot))
+    gripper_state = (
+        _stream(raw, "gripper_state", JOINT_STATE, where, need_joints=True) if "gripper_state" in raw else None
+    )
+    objects = None
+    if raw.get("objects"):
+        o = raw["objects"]
+        if not isinstance(o, dict) or not str(o.get("topic_prefix", "")).startswith("/"):
+            raise RobotConfigError(f"{where}: 'objects' needs 'topic_prefix' (topics <prefix>/<name>/pose)")
+        if o.get("type", POSE_STAMPED) != POSE_STAMPED:
+            raise RobotConfigError(f"{where}: 'objects.type' must be {POSE_STAMPED}")
+        names = o.get("names", [])
+        if names != "auto" and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
+            raise RobotConfigError(f"{where}: 'objects.names' must be a list of names or auto")
+        objects = ObjectsSpec(
+            o["topic_prefix"], float(o.get("rate_hz", 0.0)), None if names == "auto" else tuple(names)
+        )
+    cams_raw = raw.get("cameras") or {}
+    if not isinstance(cams_raw, dict):
+        raise RobotConfigError(f"{where}: 'cameras' must map camera names to {{topic, type, rate_hz}}")
+    cameras = {str(c): _stream(cams_raw, c, IMAGE, f"{where}: cameras") for c in cams_raw}
+    command = raw.get("command")
+    if not isinstance(command, dict):
+        raise RobotConfigError(f"{where}: 'command' needs 'ee_target' (and 'gripper')")
+    ee_target = _stream(command, "ee_target", POSE_STAMPED, f"{where}: command")
+    gripper_command = None
+    if "gripper" in command:
+        g = _stream(command, "gripper", FLOAT64_ARRAY, f"{where}: command")
+        widths = command["gripper"]
+        try:
+            open_w, closed_w = float(widths["open_width_m"]), float(widths["closed_width_m"])
+        except (KeyError, TypeError, ValueError):
+            raise RobotConfigError(f"{where}: 'command.gripper' needs open_width_m and closed_width_m (m)") from None
+        if not open_w > closed_w >= 0:
+            raise RobotConfigError(f"{where}: 'command.gripper' needs open_width_m > closed_width_m >= 0")
+        gripper_command = GripperCommandSpec(g.topic, g.type, open_w, closed_w)
+    success = _stream(raw, "success", BOOL, where) if "success" in raw else None
+    return RobotConfig(
+        name=str(raw.get("name", "robot")), frame_id=str(raw.get("frame_id", "world")), clock=clock,
+        joint_states=joint_states, ee_pose=ee_pose, gripper_state=gripper_state, objects=objects, cameras=cameras,
+        ee_target=ee_target, gripper_command=gripper_command, success=success, source=where,
+    )  # fmt: skip

@@ -1,0 +1,1 @@
+"""Running evaluations: one episode end to end, input validation, and sweeps."""

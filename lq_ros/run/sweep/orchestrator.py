@@ -1,0 +1,216 @@
+"""A sweep's orchestration: jobs scheduled onto a pool of workers, results made durable as they finish.
+
+``run_sweep`` is the whole of it: prepare the store (skipping finished episodes), hand jobs to free
+workers (keeping a worker on its task so its env is reused), turn each result into a record, retry a
+crashed attempt once.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+import yaml
+
+from lq_ros.core.run_config import RunConfig
+from lq_ros.run.episode import TRANSPORTS
+from lq_ros.run.sweep.local import LocalPool
+from lq_ros.run.sweep.ray_pool import RayPool
+from lq_ros.run.sweep.spec import SweepSpec
+from lq_ros.run.sweep.store import RECORD_FORMAT, ResultStore, atomic_write_text, fsync_tree
+from lq_ros.run.sweep.worker import default_workers, env_key
+
+BACKENDS = ("local", "ray")
+#: A crashed episode is run at most this many times in total.
+MAX_ATTEMPTS = 2
+
+
+@dataclass
+class Job:
+    cfg: RunConfig
+    attempt: int = 1
+    previous: list[dict] = field(default_factory=list)  # records of crashed earlier attempts
+
+    @property
+    def key(self) -> str:
+        return self.cfg.key()
+
+
+class Scheduler:
+    """Pending jobs grouped by env key; a free worker gets one of its current group first (env reuse),
+    else one of the group the fewest workers are on (the rest of the largest group breaks ties)."""
+
+    def __init__(self, jobs: list[Job]) -> None:
+        self.groups: dict[tuple, deque[Job]] = {}
+        for job in jobs:
+            self.groups.setdefault(env_key(job.cfg), deque()).append(job)
+
+    def __len__(self) -> int:
+        return sum(len(q) for q in self.groups.values())
+
+    def retry(self, job: Job) -> None:
+        self.groups.setdefault(env_key(job.cfg), deque()).appendleft(job)
+
+    def pick(self, current: tuple | None, busy: Counter) -> Job | None:
+        live = {k: q for k, q in self.groups.items() if q}
+        if not live:
+            return None
+        key = current if current in live else min(live, key=lambda k: (busy[k], -len(live[k])))
+        return live[key].popleft()
+
+
+@dataclass
+class SweepSummary:
+    total: int
+    skipped: int
+    ran: int = 0
+    counts: Counter = field(default_factory=Counter)  # final status -> episodes finished in this run
+    retried: int = 0
+    wall_s: float = 0.0
+    out_dir: Path | None = None
+
+
+def _now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def prepare(spec: SweepSpec, out_dir: Path, *, retry_errors: bool = False) -> tuple[ResultStore, list[Job], int]:
+    """Create the store, write the spec and manifest; returns the jobs still to run and how many are done."""
+    store = ResultStore(out_dir)
+    store.create()
+    atomic_write_text(store.root / "sweep.yaml", yaml.safe_dump(spec.raw, sort_keys=False))
+    manifest = {"name": spec.name, "episodes": {c.key(): c.to_dict() for c in spec.configs}}
+    atomic_write_text(store.root / "manifest.json", json.dumps(manifest, sort_keys=True, indent=1))
+    jobs, done = [], 0
+    for cfg in spec.configs:
+        record = store.load(cfg.key())
+        if record is not None and retry_errors and record["status"] == "error":
+            store.forget(cfg.key())
+            record = None
+        if record is not None:
+            done += 1
+            continue
+        previous = store.failed_attempts(cfg.key())
+        jobs.append(Job(cfg, attempt=len(previous) + 1, previous=previous))
+    return store, jobs, done
+
+
+def run_sweep(
+    spec: SweepSpec,
+    out_dir: Path,
+    *,
+    workers: int | None = None,
+    transport: str | None = None,
+    backend: str = "local",
+    address: str | None = None,
+    retry_errors: bool = False,
+    on_progress: Callable[[SweepSummary, dict | None], None] | None = None,
+) -> SweepSummary:
+    """Run every unfinished episode of ``spec`` into ``out_dir``; finished ones are skipped.
+
+    ``on_progress(summary, record)`` is called once at the start (record None) and after every
+    finished episode. A crashed attempt is kept under attempts/ and run once more; a second crash
+    is the episode's final result (status error).
+    """
+    transport = transport or spec.transport or "ros"
+    if transport not in TRANSPORTS:
+        raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    store, jobs, done = prepare(spec, out_dir, retry_errors=retry_errors)
+    summary = SweepSummary(total=len(spec.configs), skipped=done, out_dir=store.root)
+    if on_progress:
+        on_progress(summary, None)
+    started = time.monotonic()
+    if not jobs:
+        store.write_index()
+        return summary
+    if backend == "ray":
+        pool = RayPool(workers, transport, store.bags, spec.timeout_s, address)
+    else:
+        pool = LocalPool(min(workers or default_workers(), len(jobs)), transport, store.bags, spec.timeout_s)
+    sched = Scheduler(jobs)
+    running: dict[int, Job] = {}
+    current: dict[int, tuple] = {}
+    try:
+        while len(sched) or running:
+            busy = Counter(env_key(j.cfg) for j in running.values())
+            for slot in range(pool.size):
+                if slot in running:
+                    continue
+                job = sched.pick(current.get(slot), busy)
+                if job is None:
+                    break
+                store.clear_leftovers(job.cfg)
+                running[slot], current[slot] = job, env_key(job.cfg)
+                busy[current[slot]] += 1
+                pool.submit(slot, job.cfg, store.logs / f"{job.key}.a{job.attempt}.log")
+            for slot, result in pool.wait(set(running), timeout_s=0.5):
+                job = running.pop(slot)
+                record = _finish(store, job, result, transport, spec.name)
+                if record is None:  # crashed first attempt: run it again
+                    summary.retried += 1
+                    previous = store.failed_attempts(job.key)
+                    sched.retry(Job(job.cfg, attempt=job.attempt + 1, previous=previous))
+                    continue
+                summary.ran += 1
+                summary.counts[record["status"]] += 1
+                summary.wall_s = time.monotonic() - started
+                if on_progress:
+                    on_progress(summary, record)
+        pool.close()
+    except BaseException:
+        pool.terminate()
+        raise
+    finally:
+        summary.wall_s = time.monotonic() - started
+        store.write_index()
+    return summary
+
+
+def _finish(store: ResultStore, job: Job, result: dict, transport: str, sweep_name: str) -> dict | None:
+    """Turn a worker result into a durable record; None when the attempt crashed and may be retried."""
+    bag = Path(result["bag"]) if result.get("bag") else None
+    attempt = {
+        "attempt": job.attempt,
+        "status": result["status"],
+        "reason": result.get("reason") or "",
+        "log": str((store.logs / f"{job.key}.a{job.attempt}.log").relative_to(store.root)),
+        "wall_s": result.get("wall_s"),
+        "finished_at": _now(),
+    }
+    if result.get("node"):  # a Ray worker: the node that ran it
+        attempt["node"] = result["node"]
+    if result["status"] == "error" and job.attempt < MAX_ATTEMPTS:
+        store.keep_failed_attempt(job.key, attempt, bag if bag is not None else store.bags / job.cfg.episode_name())
+        return None
+    if bag is not None:
+        attempt["bag"] = str(bag.relative_to(store.root))
+        fsync_tree(bag)
+    row = result.get("row") or {
+        "episode": job.cfg.episode_name(), "status": "error", "success": None, "error_reason": attempt["reason"],
+        **{k: getattr(job.cfg, k) for k in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")},
+    }  # fmt: skip
+    row["transport"] = row.get("transport") or transport
+    record = {
+        "format": RECORD_FORMAT,
+        "key": job.key,
+        "sweep": sweep_name,
+        "episode": job.cfg.episode_name(),
+        "config": job.cfg.to_dict(),
+        "transport": transport,
+        "status": result["status"],
+        "bag": attempt.get("bag"),
+        "row": row,
+        "attempts": [*job.previous, attempt],
+        "finished_at": attempt["finished_at"],
+    }
+    store.write(record)
+    return record

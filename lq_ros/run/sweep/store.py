@@ -1,0 +1,140 @@
+"""The durable store of a sweep folder: one atomically written record per finished episode.
+
+An episode counts as finished only when ``results/<key>.json`` parses, names its key and its bag
+exists; anything else (a half-written file, a bag without a record) is run again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from lq_ros.core.run_config import RunConfig
+
+FINAL_STATUSES = ("success", "failure", "error")
+RECORD_FORMAT = 1
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write-then-rename with fsync: after a crash the file is either the old one or the whole new one."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; results are for everyone who can read the folder
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
+
+
+def fsync_tree(path: Path) -> None:
+    """Flush a finished bag folder to disk before a record points at it (survives a reboot)."""
+    for p in sorted(Path(path).rglob("*")):
+        if p.is_file():
+            with open(p, "rb") as f:
+                os.fsync(f.fileno())
+    for d in [path, *(p for p in Path(path).rglob("*") if p.is_dir())]:
+        _fsync_dir(d)
+
+
+class ResultStore:
+    """Finished episodes of one sweep folder, keyed by RunConfig.key()."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.results = self.root / "results"
+        self.bags = self.root / "bags"
+        self.attempts = self.root / "attempts"
+        self.logs = self.root / "logs"
+
+    def create(self) -> None:
+        for d in (self.results, self.bags, self.attempts, self.logs):
+            d.mkdir(parents=True, exist_ok=True)
+
+    def record_path(self, key: str) -> Path:
+        return self.results / f"{key}.json"
+
+    def load(self, key: str) -> dict | None:
+        """The finished record of ``key``, or None when missing, half-written or pointing at a lost bag."""
+        try:
+            record = json.loads(self.record_path(key).read_text())
+        except (OSError, ValueError):
+            return None
+        if not isinstance(record, dict) or record.get("key") != key or record.get("status") not in FINAL_STATUSES:
+            return None
+        bag = record.get("bag")
+        if bag and not (self.root / bag / "metadata.yaml").exists():
+            return None
+        return record
+
+    def records(self) -> list[dict]:
+        """Every valid finished record, in file-name order."""
+        out = []
+        for path in sorted(self.results.glob("*.json")):
+            record = self.load(path.stem)
+            if record is not None:
+                out.append(record)
+        return out
+
+    def write(self, record: dict) -> None:
+        atomic_write_text(self.record_path(record["key"]), json.dumps(record, sort_keys=True, default=str))
+
+    def failed_attempts(self, key: str) -> list[dict]:
+        """Crashed earlier attempts of an unfinished episode (survive a restart of the sweep)."""
+        out = []
+        for path in sorted(self.attempts.glob(f"{key}.a*.json")):
+            with contextlib.suppress(OSError, ValueError):
+                out.append(json.loads(path.read_text()))
+        return out
+
+    def keep_failed_attempt(self, key: str, attempt: dict, bag: Path | None) -> dict:
+        """Move a crashed attempt's bag aside (its retry writes a fresh one) and persist its record."""
+        n = attempt["attempt"]
+        if bag is not None:
+            for src in (bag, bag.with_name(bag.name + ".logs")):
+                if src.exists():
+                    dest = self.attempts / f"{src.name}.a{n}"
+                    shutil.rmtree(dest, ignore_errors=True)
+                    shutil.move(str(src), dest)
+                    if src == bag:
+                        attempt["bag"] = str(dest.relative_to(self.root))
+        atomic_write_text(self.attempts / f"{key}.a{n}.json", json.dumps(attempt, sort_keys=True, default=str))
+        return attempt
+
+    def clear_leftovers(self, cfg: RunConfig) -> None:
+        """Remove what an interrupted, unrecorded run of ``cfg`` left (the bag writer needs a new folder)."""
+        bag = self.bags / cfg.episode_name()
+        for path in (bag, bag.with_name(bag.name + ".logs")):
+            shutil.rmtree(path, ignore_errors=True)
+
+    def forget(self, key: str) -> None:
+        """Drop a finished record (``--retry-errors``); its bag and attempts are cleared on rerun."""
+        with contextlib.suppress(FileNotFoundError):
+            self.record_path(key).unlink()
+        for path in self.attempts.glob(f"{key}.a*.json"):
+            path.unlink()
+
+    def write_index(self) -> Path:
+        """episodes.jsonl: one finished record per line (rebuilt from results/, atomically)."""
+        lines = [json.dumps(r, sort_keys=True, default=str) for r in self.records()]
+        path = self.root / "episodes.jsonl"
+        atomic_write_text(path, "".join(line + "\n" for line in lines))
+        return path

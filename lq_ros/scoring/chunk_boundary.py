@@ -1,0 +1,216 @@
+"""Chunk-boundary quality: what happens where execution switches from one action chunk to the next.
+
+Users feel the chunk boundary as a jolt or a vibration when the queue refills (LeRobot #2938, openpi
+#393); these metrics measure it from a bag's recorded chunks, commands and end-effector poses.
+
+**Switch.** Tick t is a switch when its command came from a chunk (source CHUNK) whose request id differs
+from that of the last earlier chunk command (holds in between allowed; the first chunk command of an
+episode is not a switch). With blending strategies the command at t may mix chunks; it is attributed to
+the newest one, so the switch is the tick the new chunk lands.
+
+**Jump** (``chunk_switch_jump_*``, in action units): ‖c_t - p_t‖ over the six arm dimensions of the OSC
+delta action (the gripper is a discrete open/close command and is left out), where c_t is the command
+executed at the switch and p_t the command the old plan held for tick t just before the new chunk was
+merged: the head of the executor's buffer (async) or the old chunk's next unexecuted row (sync, whose
+stop-and-go drops it). When the old plan had nothing left for t (async ``replace`` at its default
+threshold, or after an underrun) p_t is the last action executed from the old plan: the jump is then
+the command step across the boundary. The plan is reconstructed by replaying the recorded chunks
+through the run's merge strategy (lq_ros/core/merge.py, the executor's own code); the replayed commands must
+equal the recorded ones (to 1e-9), otherwise the metrics are null with the first tick that differs.
+
+**Jerk near switches** (``chunk_switch_jerk_ratio``): the jerk sample j_k = (p_k - 3p_{k-1} + 3p_{k-2} -
+p_{k-3}) / dt³ of the 20 Hz EE positions (p_k after k ticks) is centred at (k - 1.5) dt; the command of
+switch tick t acts over [t, t + 1] dt, centred at (t + 0.5) dt. The samples within ±2 ticks of a switch
+are those with |k - 2 - t| <= 2, i.e. k = t .. t + 4 (the four whose stencil contains p_{t+1}, the first
+pose the new command moves, and one before). The ratio is the mean jerk norm over the samples within
+±2 ticks of any switch divided by the mean over all other samples; ``chunk_switch_jerk_mean`` is the
+numerator (m/s³). 1 means the boundary is no rougher than the rest of the motion. Samples up to ±2 ticks
+after the first chunk command (the arm starts from rest) and before it are in neither population; with
+fewer than 5 samples away from every switch (a switch every 5 ticks or less) the ratio is null with the
+reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lq_ros.core.executor_protocol import Source
+from lq_ros.core.merge import ENSEMBLE_COEFF, Merge, apply_chunk
+from lq_ros.scoring import metrics
+
+#: Arm dimensions of the 7-D action (OSC position and rotation deltas); the gripper is the last.
+ARM_DIMS = slice(0, 6)
+#: Jerk samples within this many ticks of a switch count as near it.
+SWITCH_WINDOW_TICKS = 2
+#: The jerk ratio needs at least this many samples away from every switch.
+MIN_ELSEWHERE = 5
+#: Recorded and replayed commands may differ by float rounding (e.g. the old ``blend`` rule), no more.
+REPLAY_TOL = 1e-9
+#: Old bags called weighted_average ``blend`` (the same rule).
+_ALIASES = {"blend": Merge.WEIGHTED_AVERAGE}
+KEYS = (
+    "chunk_switches",
+    "chunk_switch_jump_mean",
+    "chunk_switch_jump_p90",
+    "chunk_switch_jump_max",
+    "chunk_switch_jerk_mean",
+    "chunk_switch_jerk_ratio",
+    "chunks_overlapping",
+)
+
+
+@dataclass(frozen=True)
+class Chunk:
+    request_id: int
+    observation_tick: int
+    latency_ticks: int
+    #: None: the policy failed or the chunk was malformed (never executed); the caller validates
+    #: (executor.validate_chunk) when it builds the record.
+    actions: np.ndarray | None
+
+    @property
+    def due_tick(self) -> int:
+        return self.observation_tick + self.latency_ticks
+
+
+@dataclass(frozen=True)
+class Commands:
+    tick: np.ndarray  # (T,)
+    action: np.ndarray  # (T, 7)
+    source: np.ndarray  # (T,)
+    request_id: np.ndarray  # (T,)
+    chunk_index: np.ndarray  # (T,)
+
+
+class ReplayMismatch(ValueError):
+    """The recorded commands do not follow from the recorded chunks under the run's protocol."""
+
+
+def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ensemble_coeff: float = ENSEMBLE_COEFF):
+    """(switch ticks, jumps, arrivals that met an old plan) of an episode; raises ReplayMismatch."""
+    order = np.argsort(cmds.tick, kind="stable")
+    ticks, actions = cmds.tick[order], cmds.action[order]
+    sources, rids, idxs = cmds.source[order], cmds.request_id[order], cmds.chunk_index[order]
+    if len(ticks) and not np.array_equal(ticks, np.arange(len(ticks))):
+        raise ReplayMismatch("the command ticks are not 0, 1, 2, ... (a gap or a duplicate)")
+    strategy = _ALIASES.get(merge) or Merge(merge or "replace")
+    valid = {c.request_id: c for c in chunks if c.actions is not None}
+    due: dict[int, list[Chunk]] = {}
+    for c in sorted(valid.values(), key=lambda c: c.request_id):
+        due.setdefault(c.due_tick, []).append(c)
+    buffer: list = []
+    sync_chunk: Chunk | None = None
+    old_plan_at: dict[int, np.ndarray | None] = {}  # tick -> the old plan's action for it (None: exhausted)
+    overlapping = 0
+    last_row: tuple[int, int] | None = None  # (request id, row) of the last chunk command before tick t
+    # (tick, replayed action, request id, row) of every chunk command, compared with the bag at once below
+    # (a comparison per tick was two thirds of an episode's scoring time).
+    replayed: list[tuple[int, np.ndarray, int, int]] = []
+    # Python lists for the per-tick loops: indexing numpy scalars there costs more than the work.
+    source_list, rid_list, idx_list = sources.tolist(), rids.tolist(), idxs.tolist()
+
+    def mismatch(reason: str) -> ReplayMismatch:
+        """The first replayed command that differs from the bag, else ``reason``."""
+        first = _first_mismatch(replayed, actions, rids, idxs)
+        if first is not None:
+            t, e_rid, e_idx = first
+            reason = (
+                f"tick {t}: recorded request {rids[t]} row {idxs[t]}, replayed request {e_rid} row {e_idx} "
+                f"(merge {strategy.value})"
+            )
+        return ReplayMismatch(reason)
+
+    for t in range(len(ticks)):
+        for c in due.get(t, []):
+            if mode == "sync":
+                nxt = None
+                if sync_chunk is not None and last_row is not None and last_row[0] == sync_chunk.request_id:
+                    row = last_row[1] + 1
+                    nxt = sync_chunk.actions[row] if row < len(sync_chunk.actions) else None
+                old_plan_at[t] = nxt
+                sync_chunk = c
+            else:
+                old_plan_at[t] = buffer[0].action if buffer else None
+                overlapping += bool(buffer)
+                buffer, _ = apply_chunk(strategy, buffer, c.actions, c.request_id, c.latency_ticks, ensemble_coeff)
+        if source_list[t] != Source.CHUNK:
+            if mode != "sync" and buffer:
+                raise mismatch(f"tick {t}: a hold was recorded while the replayed buffer held actions")
+            continue
+        last_row = (rid_list[t], idx_list[t])
+        if mode == "sync":
+            chunk = valid.get(rid_list[t])
+            if chunk is None or idx_list[t] >= len(chunk.actions):
+                raise mismatch(f"tick {t}: the command names request {rids[t]} row {idxs[t]}, not recorded")
+            replayed.append((t, chunk.actions[idx_list[t]], int(rids[t]), int(idxs[t])))
+        else:
+            if not buffer:
+                raise mismatch(f"tick {t}: a chunk command was recorded but the replayed buffer is empty")
+            step = buffer.pop(0)
+            replayed.append((t, step.action, step.request_id, step.chunk_index))
+    if _first_mismatch(replayed, actions, rids, idxs) is not None:
+        raise mismatch("")
+    switch_ticks, jumps = [], []
+    last_rid, last_action = None, None
+    for t in range(len(ticks)):
+        if source_list[t] != Source.CHUNK:
+            continue
+        if last_rid is not None and rid_list[t] != last_rid:
+            planned = old_plan_at.get(t)
+            planned = last_action if planned is None else planned
+            switch_ticks.append(t)
+            jumps.append(float(np.linalg.norm(actions[t][ARM_DIMS] - planned[ARM_DIMS])))
+        last_rid, last_action = rid_list[t], actions[t]
+    return np.array(switch_ticks, dtype=np.int64), np.array(jumps), overlapping
+
+
+def _first_mismatch(replayed, actions, rids, idxs) -> tuple[int, int, int] | None:
+    """(tick, replayed request id, row) of the first replayed chunk command that differs from the bag."""
+    if not replayed:
+        return None
+    ts = np.array([r[0] for r in replayed])
+    expected = np.array([r[1] for r in replayed])
+    ids = np.array([(r[2], r[3]) for r in replayed])
+    bad = (ids[:, 0] != rids[ts]) | (ids[:, 1] != idxs[ts]) | (np.abs(expected - actions[ts]) > REPLAY_TOL).any(axis=1)
+    if not bad.any():
+        return None
+    k = int(np.flatnonzero(bad)[0])
+    return int(ts[k]), int(ids[k, 0]), int(ids[k, 1])
+
+
+def jerk_near_switches(
+    pos: np.ndarray, switch_ticks: np.ndarray, dt: float, first_chunk_tick: int = 0
+) -> tuple[float, float | None, str | None]:
+    """(mean jerk within ±2 ticks of a switch, that / mean jerk elsewhere, why the ratio is None); raises
+    ValueError when no sample is near a switch.
+
+    Samples up to ±2 ticks after ``first_chunk_tick`` (the first chunk command: the arm starts moving from
+    rest) belong to neither population. The ratio needs at least :data:`MIN_ELSEWHERE` samples more than
+    2 ticks from every switch: with a switch every 5 ticks or less the windows cover the whole motion.
+    """
+    if not len(switch_ticks):
+        raise ValueError("no chunk switch")
+    j = metrics.jerk_norms(pos, dt)  # j[m] has newest pose k = m + 3
+    k = np.arange(len(j)) + 3
+    near = np.zeros(len(j), dtype=bool)
+    for t in switch_ticks:
+        near |= np.abs(k - 2 - t) <= SWITCH_WINDOW_TICKS
+    considered = k - 2 - first_chunk_tick > SWITCH_WINDOW_TICKS
+    near &= considered
+    far = considered & ~near
+    if not near.any():
+        raise ValueError("no jerk sample within ±2 ticks of a switch")
+    near_mean = float(j[near].mean())
+    if far.sum() < MIN_ELSEWHERE:
+        period = float(np.mean(np.diff(switch_ticks))) if len(switch_ticks) > 1 else float("nan")
+        why = (
+            f"only {int(far.sum())} jerk samples are more than ±{SWITCH_WINDOW_TICKS} ticks from a switch (a switch "
+            f"every {period:.1f} ticks): nothing to compare with"
+        )
+        return near_mean, None, why
+    elsewhere = float(j[far].mean())
+    if elsewhere <= 0.0:
+        return near_mean, None, "zero jerk away from the switches"
+    return near_mean, near_mean / elsewhere, None

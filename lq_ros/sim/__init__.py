@@ -1,0 +1,1 @@
+"""Simulated robots: the LIBERO task env (MuJoCo via robosuite) and the wall-clock robot stand-in."""

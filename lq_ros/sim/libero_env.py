@@ -1,0 +1,302 @@
+"""LIBERO task environment wrapper: one control tick per ``step``, exact EE pose, arm torques.
+
+The wrapper is transport-agnostic: the ROS sim node and the in-process runner both drive it, so a
+trajectory depends only on the commands it is given.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lq_ros.core.suite_constants import (
+    CONTROL_DT_S,
+    DUMMY_ACTION,
+    NUM_WAIT_STEPS,
+    PHYSICS_DT_S,
+    SUBSTEPS_PER_TICK,
+    sim_time_of_tick,
+    step_budget,
+)
+from lq_ros.core.types import EnergyIntegrals, Observation, PhysicsSamples, TaskInfo, TickState
+
+# Headless rendering; a user with a display may override it.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+ARM_JOINTS = 7
+
+
+def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:
+    """TaskInfo, BDDL path and init states of ``suite`` task ``task_id`` (no simulator created)."""
+    from libero.libero import benchmark, get_libero_path
+
+    suites = benchmark.get_benchmark_dict()
+    if suite not in suites:
+        raise ValueError(f"unknown LIBERO suite {suite!r}")
+    bench = suites[suite]()
+    if not 0 <= task_id < bench.n_tasks:
+        raise ValueError(f"{suite} has tasks 0..{bench.n_tasks - 1}, got {task_id}")
+    task = bench.get_task(task_id)
+    bddl = Path(get_libero_path("bddl_files")) / task.problem_folder / task.bddl_file
+    init_states = np.asarray(bench.get_task_init_states(task_id))
+    from libero.libero.envs.bddl_utils import robosuite_parse_problem
+
+    goal = [list(map(str, g)) for g in robosuite_parse_problem(str(bddl))["goal_state"]]
+    info = TaskInfo(
+        suite=suite,
+        task_id=task_id,
+        name=task.name,
+        instruction=task.language,
+        goal=goal,
+        step_budget=step_budget(suite),
+        num_init_states=len(init_states),
+    )
+    return info, bddl, init_states
+
+
+class LiberoEnv:
+    """One LIBERO task. ``reset`` runs the wait steps; ``step`` applies one command for one tick."""
+
+    def __init__(
+        self,
+        suite: str,
+        task_id: int,
+        *,
+        camera_names: tuple[str, ...] = (),
+        camera_size: int = 224,
+        record_physics: bool = False,
+    ) -> None:
+        import mujoco
+        from libero.libero.envs.env_wrapper import ControlEnv
+
+        self.task, bddl, self._init_states = load_task(suite, task_id)
+        self.camera_names = tuple(camera_names)
+        self.camera_size = camera_size
+        self.record_physics = record_physics
+        self._env = ControlEnv(
+            bddl_file_name=str(bddl),
+            has_offscreen_renderer=bool(self.camera_names),
+            use_camera_obs=False,
+        )
+        self._mujoco = mujoco
+        self._substeps: list[tuple[np.ndarray, ...]] = []
+        self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
+        #: The simulator's data when robosuite last sampled its observations (cameras render from it).
+        self._observed_data = None
+        self._reset_before = False
+        self._bind_sim()
+        if self.camera_names:
+            self._wrap_observables()
+        self._obs: dict | None = None
+        self._tick = 0
+        self._success = False
+
+    # -- stepping ---------------------------------------------------------------------------
+    def reset(self, init_index: int, seed: int, *, hard: bool | None = None) -> TickState:
+        """Reset to init state ``init_index`` and run the wait steps; returns the state at tick 0.
+
+        The first reset of an env is hard (robosuite rebuilds the MjSim, ~2 s); later ones are soft by
+        default (same MjSim, ~0.2 s with the wait steps): MuJoCo's data is reset in full (constraint
+        solver warm start included) and the one piece of robosuite state that survives a soft reset
+        is cleared, so an episode is bit-identical whichever reset preceded it (tests check it).
+        ``hard=True`` forces a rebuild.
+        """
+        if not 0 <= init_index < len(self._init_states):
+            raise ValueError(f"init state {init_index} out of range 0..{len(self._init_states) - 1}")
+        hard = not self._reset_before if hard is None else hard
+        self._env.env.hard_reset = hard
+        self._env.seed(seed)
+        np.random.seed(seed)
+        self._reset_robosuite()  # hard: robosuite builds a new MjSim here; soft: mj_resetData
+        self._bind_sim()
+        if not hard:
+            for robot in self._env.env.robots:
+                # The gripper integrates its command (current_action += speed * sign(action)) and only a
+                # rebuilt gripper model starts from zero: carried over, it changes the first ticks.
+                robot.gripper.current_action = np.zeros(robot.gripper.dof)
+        self._reset_before = True
+        self._env.set_init_state(self._init_states[init_index])
+        for _ in range(NUM_WAIT_STEPS):
+            self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
+        self._substeps.clear()  # the wait steps are not part of the episode
+        self._energy[:] = 0.0
+        self._tick = 0
+        self._success = False
+        return self._tick_state()
+
+    def _reset_robosuite(self) -> None:
+        """robosuite's reset, retried only when object placement failed.
+
+        LIBERO's ``ControlEnv.reset`` retries inside ``try/finally: continue``, which swallows every
+        exception, KeyboardInterrupt and SystemExit included: a process told to stop during a reset
+        spun there forever. Same retry, nothing else swallowed.
+        """
+        from robosuite.utils.errors import RandomizationError
+
+        while True:
+            try:
+                self._env.env.reset()
+                return
+            except RandomizationError:
+                continue
+
+    def step(self, action: np.ndarray) -> TickState:
+        """Apply ``action`` for one control tick; returns the state at the next tick."""
+        self._substeps.clear()
+        self._energy[:] = 0.0
+        self._obs, _, done, _ = self._env.step(np.asarray(action, dtype=np.float64))
+        self._tick += 1
+        self._success = bool(done)
+        return self._tick_state()
+
+    @property
+    def tick(self) -> int:
+        return self._tick
+
+    @property
+    def init_states(self) -> np.ndarray:
+        return self._init_states
+
+    def close(self) -> None:
+        self._env.close()
+
+    # -- observations -----------------------------------------------------------------------
+    def observe(self, with_images: bool = True) -> Observation:
+        """Observation at the current tick; renders the configured cameras only if asked."""
+        obs = self._obs
+        assert obs is not None, "reset() first"
+        objects = {}
+        for key in obs:
+            if key.endswith("_pos") and not key.startswith("robot0_") and "_to_" not in key:
+                name = key[: -len("_pos")]
+                objects[name] = (np.array(obs[key], dtype=np.float64), np.array(obs[name + "_quat"], dtype=np.float64))
+        images = {}
+        if with_images and self.camera_names:
+            # Render the instant robosuite sampled the rest of the observation (after the tick's
+            # second-to-last substep), exactly as a robosuite camera observable would have.
+            live = self._sim.data._data
+            self._sim.data._data = self._observed_data if self._observed_data is not None else live
+            try:
+                for cam in self.camera_names:
+                    frame = self._sim.render(camera_name=cam, width=self.camera_size, height=self.camera_size)
+                    images[cam] = np.ascontiguousarray(frame[::-1])  # MuJoCo renders bottom row first
+            finally:
+                self._sim.data._data = live
+        return Observation(
+            tick=self._tick,
+            sim_time_s=sim_time_of_tick(self._tick),
+            eef_pos=np.array(obs["robot0_eef_pos"], dtype=np.float64),
+            eef_quat_xyzw=np.array(obs["robot0_eef_quat"], dtype=np.float64),
+            gripper_qpos=np.array(obs["robot0_gripper_qpos"], dtype=np.float64),
+            joint_pos=np.array(obs["robot0_joint_pos"], dtype=np.float64),
+            joint_vel=np.array(obs["robot0_joint_vel"], dtype=np.float64),
+            objects=objects,
+            images=images,
+        )
+
+    # -- internals --------------------------------------------------------------------------
+    def _eef_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Exact EE position and xyzw quaternion of the current joint positions."""
+        mj = self._mujoco
+        self._scratch.qpos[:] = self._data.qpos
+        mj.mj_kinematics(self._model, self._scratch)
+        pos = self._scratch.site_xpos[self._eef_site].copy()
+        wxyz = np.empty(4)
+        mj.mju_mat2Quat(wxyz, self._scratch.site_xmat[self._eef_site])
+        return pos, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]])
+
+    def _tick_state(self) -> TickState:
+        pos, quat = self._eef_pose()
+        physics = None
+        if self.record_physics and self._substeps:
+            eef, eef_quat, vel, tau = (np.array(col) for col in zip(*self._substeps))
+            physics = PhysicsSamples(eef_pos=eef, eef_quat_xyzw=eef_quat, joint_vel=vel, joint_torque=tau)
+        substeps, work, torque_sq = self._energy
+        energy = None
+        if substeps:
+            energy = EnergyIntegrals(
+                duration_s=substeps * PHYSICS_DT_S,
+                substeps=int(substeps),
+                positive_work_j=float(work) * PHYSICS_DT_S,
+                torque_squared_integral=float(torque_sq) * PHYSICS_DT_S,
+            )
+        return TickState(
+            tick=self._tick,
+            sim_time_s=sim_time_of_tick(self._tick),
+            eef_pos=pos,
+            eef_quat_xyzw=quat,
+            joint_pos=self._data.qpos[self._qpos_idx].copy(),
+            joint_vel=self._data.qvel[self._qvel_idx].copy(),
+            joint_torque=self._data.actuator_force[self._torque_idx].copy(),
+            gripper_qpos=np.array(self._obs["robot0_gripper_qpos"], dtype=np.float64),
+            success=self._success,
+            physics=physics,
+            energy=energy,
+        )
+
+    def _bind_sim(self) -> None:
+        """Cache handles to the current MjSim (robosuite replaces it on a hard reset)."""
+        inner = self._env.env
+        self._sim = inner.sim
+        self._robot = inner.robots[0]
+        self._model = self._sim.model._model
+        self._data = self._sim.data._data
+        # Scratch data for exact forward kinematics without touching the simulation state.
+        self._scratch = self._mujoco.MjData(self._model)
+        self._eef_site = self._robot.eef_site_id
+        self._torque_idx = np.asarray(self._robot._ref_joint_actuator_indexes)
+        self._qpos_idx = np.asarray(self._robot._ref_joint_pos_indexes)
+        self._qvel_idx = np.asarray(self._robot._ref_joint_vel_indexes)
+        if self._model.opt.timestep != PHYSICS_DT_S:
+            raise RuntimeError(f"MuJoCo timestep {self._model.opt.timestep} s, expected {PHYSICS_DT_S} s")
+        if not getattr(self._sim, "_lq_recording", False):
+            self._wrap_sim_step()
+
+    def _wrap_observables(self) -> None:
+        """Keep a copy of the simulator's data whenever robosuite samples its observables.
+
+        robosuite samples proprioception and object poses (and, in the reference evaluations'
+        OffScreenRenderEnv, the camera images) inside its substep loop, not after the last substep.
+        Rendering from this copy gives the references' pixels for the same state, and reading it never
+        touches the simulation.
+        """
+        inner = self._env.env
+        update = inner._update_observables
+
+        def update_and_keep(force: bool = False) -> None:
+            probe = inner._observables.get("robot0_joint_pos")  # re-created on a hard reset
+            before = None if probe is None else probe._current_observed_value
+            update(force=force)
+            if probe is not None and probe._current_observed_value is not before:  # sampled just now
+                self._observed_data = copy.copy(inner.sim.data._data)  # the current MjSim (hard resets)
+
+        inner._update_observables = update_and_keep
+
+    def _wrap_sim_step(self) -> None:
+        """Integrate joint power after every physics substep (and record the substep when asked).
+
+        robosuite calls ``sim.step`` SUBSTEPS_PER_TICK times per ``env.step``; reading the state after
+        each one changes nothing in the simulation.
+        """
+        sim_step = self._sim.step
+        energy = self._energy
+
+        def step_and_record() -> None:
+            sim_step()
+            vel = self._data.qvel[self._qvel_idx]
+            tau = self._data.actuator_force[self._torque_idx]
+            energy[0] += 1.0
+            energy[1] += max(0.0, float(tau @ vel))  # eq. 7: clip the instantaneous power
+            energy[2] += float(tau @ tau)
+            if self.record_physics:
+                pos, quat = self._eef_pose()
+                self._substeps.append((pos, quat, vel.copy(), tau.copy()))
+
+        self._sim.step = step_and_record
+        self._sim._lq_recording = True
+
+
+assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12

@@ -1,0 +1,154 @@
+"""``lq collect`` and ``lq train`` (registered in lq_ros/cli.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from lq_ros.training.recipe import KIND_RECIPE, TrainConfig
+
+#: TrainConfig's defaults (the shipped recipe): `lq train`'s option defaults, so the two cannot drift apart.
+_D = TrainConfig
+#: "oft 8, flow 10" per kind-dependent field, for the help texts.
+_RECIPE_HELP = {
+    key: ", ".join(f"{kind} {values[key]:g}" for kind, values in KIND_RECIPE.items())
+    for key in ("horizon", "steps", "ema")
+}
+
+
+def _ints(spec: str) -> tuple[int, ...]:
+    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers."""
+    out: list[int] = []
+    try:
+        for part in spec.split(","):
+            lo, sep, hi = part.strip().partition("-")
+            out += range(int(lo), int(hi) + 1) if sep else [int(lo)]
+    except ValueError:
+        raise typer.BadParameter(f"expected integers like '0-9' or '0,2,5', got {spec!r}") from None
+    if not out:
+        raise typer.BadParameter(f"empty selection {spec!r}")
+    return tuple(out)
+
+
+def _driver(spec: str) -> dict:
+    """``name[:key=value,...]`` -> CollectConfig driver fields; values parsed as JSON when possible."""
+    if not spec:
+        return {}
+    name, _, rest = spec.partition(":")
+    args = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise typer.BadParameter(f"bad driver {spec!r}: expected name:key=value,...")
+        try:
+            args[key] = json.loads(value)
+        except json.JSONDecodeError:
+            args[key] = value
+    return {"driver": name, "driver_args": args}
+
+
+def collect(
+    out: Annotated[Path, typer.Option(help="Dataset folder (data/frames.parquet + meta/).")],
+    suite: str = "libero_spatial",
+    tasks: Annotated[str, typer.Option(help="Task ids, e.g. '0-9' or '0,3'.")] = "0-9",
+    inits: Annotated[str, typer.Option(help="Init states (one episode each); 0-9 are the evaluation set.")] = "10-29",
+    noise: Annotated[str, typer.Option(help="Arm action-noise std per episode, cycled, e.g. '0,0.1,0.2'.")] = (
+        "0,0.1,0.2"
+    ),
+    repeats: Annotated[int, typer.Option(help="Episodes per init state (own noise draw each).")] = 1,
+    fresh: Annotated[
+        bool, typer.Option(help="--inits are seeds of new random object placements, not shipped init states.")
+    ] = False,
+    seed: int = 7,
+    expert: str = "scripted",
+    chunk_rows: Annotated[int, typer.Option(help="Rows of the expert's plan stored per frame.")] = 16,
+    max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's.")] = 0,
+    workers: Annotated[int, typer.Option(help="Processes (one task each at a time).")] = 2,
+    driver: Annotated[
+        str, typer.Option(help="DAgger: policy driving the robot, 'name[:key=value,...]'; the expert labels.")
+    ] = "",
+    driver_replan: Annotated[int, typer.Option(help="Actions of each driver chunk run open loop.")] = 8,
+    keep_failures: Annotated[bool, typer.Option(help="Keep unsuccessful episodes too (DAgger).")] = False,
+) -> None:
+    """Collect expert demonstrations with DART-style action noise; keeps the successful episodes."""
+    from lq_ros.training.collect import CollectConfig
+    from lq_ros.training.collect import collect as run_collect
+
+    try:
+        levels = tuple(float(x) for x in noise.split(","))
+        cfg = CollectConfig(
+            suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, repeats=repeats, fresh=fresh,
+            seed=seed, expert=expert, chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
+            driver_replan=driver_replan, keep_failures=keep_failures, **_driver(driver),
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    info = run_collect(cfg, out)
+    stats = info["collection"]["per_task"]
+    for task, s in stats.items():
+        print(
+            f"task {task}: {s['successes']}/{s['attempts']} successful ({s['frames']} frames kept,"
+            f" {s['errors']} errors;"
+            f" successes by noise std {s.get('kept_by_noise', {})})"
+        )
+    wall_s = info["collection"]["wall_s"]
+    print(f"{out}: {info['total_episodes']} episodes, {info['total_frames']} frames, {wall_s:.0f} s")
+
+
+def train(
+    policy: Annotated[str, typer.Option(help="oft | flow")],
+    data: Annotated[list[Path], typer.Option(help="Dataset folder from `lq collect` (repeatable).")],
+    out: Annotated[Path, typer.Option(help="Folder for <name>.pt + <name>.json.")],
+    chunk: Annotated[int, typer.Option(help=f"Chunk length H; 0: the recipe's ({_RECIPE_HELP['horizon']}).")] = (
+        _D.horizon
+    ),
+    steps: Annotated[int, typer.Option(help=f"Optimiser steps; 0: the recipe's ({_RECIPE_HELP['steps']}).")] = (
+        _D.steps
+    ),
+    batch_size: int = _D.batch_size,
+    lr: float = _D.lr,
+    width: int = _D.width,
+    depth: int = _D.depth,
+    seed: int = _D.seed,
+    dropout: float = _D.dropout,
+    feature_noise: Annotated[float, typer.Option(help="Input noise std (normalised units) in training.")] = (
+        _D.feature_noise
+    ),
+    ema: Annotated[
+        float | None,
+        typer.Option(
+            help=f"EMA decay of the saved weights per step (0: off); default the recipe's ({_RECIPE_HELP['ema']})."
+        ),
+    ] = _D.ema,
+    joint_velocity: Annotated[bool, typer.Option(help="Joint velocities as inputs (off: see the docs).")] = (
+        _D.joint_velocity
+    ),
+    target: Annotated[str, typer.Option(help="future (next H labels) | plan (expert's plan per frame).")] = _D.target,
+    replan_steps: Annotated[int, typer.Option(help="Actions run per chunk (default); 0: H oft, H//2 flow.")] = (
+        _D.replan_steps
+    ),
+    flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = _D.flow_steps,
+    threads: Annotated[int, typer.Option(help="torch threads.")] = _D.threads,
+    name: Annotated[str, typer.Option(help="Checkpoint name; default <policy>_c<H>_<suite>.")] = _D.name,
+) -> None:
+    """Train a chunk policy on collected demonstrations (seeded; logs losses as JSON lines on stderr).
+
+    Every default is the shipped weights' recipe (lq_ros/training/recipe.py): with no other option,
+    `lq train --policy oft --chunk 8` trains with the configuration the shipped oft_c8 weights record.
+    """
+    from lq_ros.training.train import train as run_train
+
+    try:
+        cfg = TrainConfig(
+            policy=policy, horizon=chunk, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
+            seed=seed, dropout=dropout, feature_noise=feature_noise, ema=ema, joint_velocity=joint_velocity,
+            target=target, replan_steps=replan_steps, flow_steps=flow_steps, threads=threads, name=name,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    meta = run_train(cfg, data, out)
+    m = meta["metrics"]
+    print(json.dumps({k: m[k] for k in ("params", "train_wall_s", "final_train_loss", "final_val_loss")}))

@@ -1,0 +1,1 @@
+"""Transports that run one episode: in process (no ROS) or through the ROS node stack."""

@@ -1,0 +1,171 @@
+"""The in-process transport: env, policy and executor core called directly, one process, no ROS.
+
+Paper Figure 3 exactly: while an inference occupies N ticks of sim time, the simulator advances by
+N ``env.step`` calls driven by the protocol. It writes the same bag (topics, types, metadata) as the
+four-node stack, so one scorer serves both; it is also the performance baseline.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.core.run_config import RunConfig, versions
+from lq_ros.core.suite_constants import sim_time_of_tick
+from lq_ros.policies import Policy, make_policy
+from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
+from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.transport.outcome import EpisodeOutcome
+from lq_ros.wire import messages as m
+
+
+@dataclass
+class ConventionalResult:
+    success: bool
+    ticks: int
+    eef_positions: np.ndarray  # (ticks + 1, 3) m, tick 0 included
+
+
+def run_conventional(
+    env: LiberoEnv, policy: Policy, init_index: int, seed: int, replan_steps: int, max_steps: int = 0
+) -> ConventionalResult:
+    """The conventional zero-latency LIBERO loop: policy -> chunk -> env.step per action, nothing else.
+
+    The reference the lockstep transports must equal at dt_sim = 0 (sync), and a fast evaluator.
+    """
+    state = env.reset(init_index, seed)
+    policy.reset(env.task, seed)
+    budget = max_steps or env.task.step_budget
+    positions, tick = [state.eef_pos], 0
+    while tick < budget and not state.success:
+        for action in policy.infer(env.observe(with_images=False))[:replan_steps]:
+            state = env.step(action)
+            positions.append(state.eef_pos)
+            tick += 1
+            if tick >= budget or state.success:
+                break
+    return ConventionalResult(state.success, tick, np.array(positions))
+
+
+class _Recorder:
+    """Writes messages with their deterministic sim-time log stamps."""
+
+    def __init__(self, writer: EpisodeBagWriter) -> None:
+        self.writer = writer
+
+    def put(self, topic: m.Topic, data: bytes) -> None:
+        self.writer.write(topic, log_time_ns(topic, data), data)
+
+    def put_at(self, topic: m.Topic, t_ns: int, data: bytes) -> None:
+        self.writer.write(topic, t_ns, data)
+
+    def event(self, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:
+        t_ns = m.to_ns(sim_time_of_tick(tick))
+        self.writer.write(m.EPISODE_EVENTS, t_ns, m.event_msg(t_ns, kind, tick, reason, detail))
+
+
+def run_inprocess(
+    cfg: RunConfig,
+    out_dir: Path,
+    *,
+    env: LiberoEnv | None = None,
+    policy: Policy | None = None,
+) -> EpisodeOutcome:
+    """Run one lockstep episode and write its bag to ``out_dir / cfg.episode_name()``.
+
+    ``env`` and ``policy`` may be passed in to reuse them across episodes (sweeps, benchmarks).
+    A crash anywhere is recorded as an ERROR event: the episode is an error, never a failure.
+    """
+    policy = policy or make_policy(cfg.policy, **cfg.policy_args)
+    policy.check_merge(cfg.merge)  # e.g. rtc with a policy that cannot take a prefix: refused, no bag
+    own_env = env is None
+    if env is None:
+        env = LiberoEnv(
+            cfg.suite,
+            cfg.task,
+            camera_names=policy.camera_names,
+            camera_size=cfg.camera_size_for(policy.render_size),
+            record_physics=cfg.physics_rate,
+        )
+    bag_path = Path(out_dir) / cfg.episode_name()
+    writer = EpisodeBagWriter(bag_path, episode_topics(cfg, policy.camera_names))
+    rec = _Recorder(writer)
+    env_versions = versions()
+    camera_size_px = env.camera_size if policy.camera_names else None
+    writer.set_run_metadata(run_metadata(cfg, policy.params(), "inprocess", env_versions, camera_size_px))
+    tick = 0
+    try:
+        state = env.reset(cfg.init, cfg.seed)
+        policy.reset(env.task, cfg.seed)
+        rec.event(m.EventKind.STARTED, 0, "", m.started_detail(env.task, cfg.init, cfg.seed, env_versions))
+        for topic, t_ns, data in m.tick_state_msgs(state, cfg.physics_rate):
+            rec.put_at(topic, t_ns, data)
+        core = ExecutorCore(cfg.executor_config())
+        chunks: dict[int, bytes] = {}
+
+        def infer(req) -> bytes:
+            """Observe tick req.tick and run the policy; returns the serialized chunk."""
+            t_ns = m.to_ns(sim_time_of_tick(req.tick))
+            rec.put_at(m.OBSERVATION_REQUEST, t_ns, m.request_msg(t_ns, req))
+            obs = env.observe(with_images=bool(policy.camera_names))
+            for cam, image in obs.images.items():
+                rec.put_at(m.camera_topic(cam), t_ns, m.image_msg(t_ns, cam, image))
+            rec.put_at(m.OBSERVATION, t_ns, m.observation_msg(obs, req.request_id))
+            started = time.perf_counter()
+            actions = policy.infer(obs) if req.prefix is None else policy.infer(obs, prefix=req.prefix)
+            inference_s = time.perf_counter() - started
+            return m.chunk_msg(
+                t_ns, req.request_id, req.tick, req.latency_s, inference_s, actions, policy.name,
+                timing=policy.last_timing,
+            )  # fmt: skip
+
+        def deliver(req) -> None:
+            """Apply the chunk of ``req`` at its due tick, exactly as the ROS executor node does."""
+            # Recorded when it takes effect (unapplied chunks are never published), and the
+            # executor gets what crossed the wire, exactly as in the ROS transport.
+            chunk_bytes = chunks.pop(req.request_id)
+            rec.put(m.ACTION_CHUNK, chunk_bytes)
+            chunk = m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
+            reason = core.deliver(req.request_id, chunk)
+            if reason is not None:
+                rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": req.request_id})
+            for warning in core.take_warnings():
+                rec.event(m.EventKind.WARNING, tick, warning, {"request_id": req.request_id})
+
+        budget = cfg.budget
+        while tick < budget:
+            step = core.advance(tick)
+            if isinstance(step, ObservationNeeded):
+                chunks[step.request.request_id] = infer(step.request)
+                continue
+            if isinstance(step, ChunkDue):
+                deliver(step.request)
+                continue
+            if isinstance(step, Failed):
+                rec.event(m.EventKind.ERROR, tick, step.reason)
+                return EpisodeOutcome("error", tick, step.reason, bag_path)
+            t_ns = m.to_ns(sim_time_of_tick(tick))
+            rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, step))
+            state = env.step(step.action)
+            tick += 1
+            ended = state.success or tick >= budget
+            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate, clock=not ended):
+                rec.put_at(topic, ts, data)
+            if state.success:
+                rec.event(m.EventKind.SUCCESS, tick)
+                return EpisodeOutcome("success", tick, "", bag_path)
+        rec.event(m.EventKind.TIMEOUT, tick, f"step budget {budget} reached")
+        return EpisodeOutcome("failure", tick, "timeout", bag_path)
+    except Exception as exc:  # noqa: BLE001 - any crash is an *error*, recorded with its traceback
+        reason = f"{type(exc).__name__}: {exc}"
+        rec.event(m.EventKind.ERROR, tick, reason, {"traceback": traceback.format_exc()})
+        return EpisodeOutcome("error", tick, reason, bag_path)
+    finally:
+        writer.close()
+        if own_env:
+            env.close()

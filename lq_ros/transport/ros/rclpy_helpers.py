@@ -1,0 +1,269 @@
+"""Small rclpy helpers shared by the node programs (imported only by nodes, never by the cores)."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import json
+import traceback
+from collections.abc import Callable
+
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from lq_ros.core.run_config import RunConfig
+from lq_ros.wire import messages as m
+
+#: Every LIBERO-LQ topic: nothing may be lost (reliable, deep history) and a subscriber that
+#: matches a little late still receives what was published before (transient local).
+LOSSLESS_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=10000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+
+def msg_class(msgtype: str):
+    """rclpy message class of a ROS 2 type name such as 'sensor_msgs/msg/JointState'."""
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def publisher(node: Node, topic: m.Topic):
+    return node.create_publisher(msg_class(topic.msgtype), topic.name, LOSSLESS_QOS)
+
+
+def raw_subscription(node: Node, topic: m.Topic, callback: Callable[[object], None]):
+    """Subscribe to serialized bytes and hand the callback the message decoded by the shared codec."""
+
+    def on_raw(data: bytes) -> None:
+        callback(m.deserialize(data, topic.msgtype))
+
+    return node.create_subscription(msg_class(topic.msgtype), topic.name, on_raw, LOSSLESS_QOS, raw=True)
+
+
+def declare_run_config(node: Node) -> RunConfig:
+    """Declare every RunConfig field as a parameter (RunConfig's default, same name) and return the run.
+
+    The launcher writes them once for all nodes (``/**`` in the params file), so no node repeats a
+    default or builds its own protocol configuration.
+    """
+    defaults = RunConfig().ros_parameters()
+    for name, default in defaults.items():
+        node.declare_parameter(name, default)
+    return read_run_config(node)
+
+
+def read_run_config(node: Node) -> RunConfig:
+    """The run as the node's parameters say now (ValueError naming the problem if they are inconsistent)."""
+    return RunConfig.from_ros_parameters({name: node.get_parameter(name).value for name in RunConfig().to_dict()})
+
+
+def json_param(node: Node, name: str, default: dict | None = None) -> dict:
+    node.declare_parameter(name, json.dumps(default or {}))
+    return json.loads(node.get_parameter(name).value)
+
+
+def run(node_factory: Callable[[], Node], stay_alive: bool = False) -> int:
+    """ros2/examples-style main: spin until Ctrl-C or external shutdown; returns the exit code.
+
+    Unless ``stay_alive``, it also returns once the node sets ``finished``.
+    """
+    code = 0
+    try:
+        rclpy.init()
+        node = node_factory()
+        try:
+            while rclpy.ok() and (stay_alive or not getattr(node, "finished", False)):
+                rclpy.spin_once(node, timeout_sec=0.1)
+            code = getattr(node, "exit_code", 0)
+        finally:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        rclpy.try_shutdown()
+    return code
+
+
+# -- managed (lifecycle) nodes ----------------------------------------------------------------------------
+
+_OK, _FAIL = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
+
+
+class EpisodeNode(LifecycleNode):
+    """A managed node that runs one episode per activation (the four LIBERO-LQ nodes).
+
+    The standard lifecycle (``~/change_state``, ``~/get_state``), as ros2_control drives controllers:
+
+    - configure: read the parameters and load what outlives an episode (:meth:`configure`: the task's
+      simulator, the policy); the fields in :attr:`CONFIGURE_FIELDS` are fixed until cleanup;
+    - activate: read the episode's parameters (init state, seed, protocol, latency, bag path...), create
+      the episode's publishers, subscriptions and timers and start it (:meth:`activate`);
+    - deactivate: the episode is over: stop and destroy its endpoints (:meth:`deactivate`);
+    - cleanup: release what configure loaded (:meth:`cleanup`); shutdown: both, then the process exits.
+
+    Endpoints live for one activation, so every episode starts with empty publisher histories: the
+    transient-local topics never replay an earlier episode to a subscriber, and a long-lived stack's
+    memory does not grow with its episodes. Parameters change only while the node is not active.
+    """
+
+    #: RunConfig fields (and node parameters) loaded at configure: changing one needs cleanup + configure.
+    CONFIGURE_FIELDS: tuple[str, ...] = ()
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.cfg: RunConfig = declare_run_config(self)
+        self._configured_values: dict | None = None
+        self._episode_entities: list = []
+        self.active = False
+        self.add_on_set_parameters_callback(self._refuse_while_active)
+
+    # -- what each node implements ---------------------------------------------------------------------
+    def configure(self, cfg: RunConfig) -> None:
+        """Load what outlives an episode. Raise to refuse (the reason is logged)."""
+
+    def activate(self, cfg: RunConfig) -> None:
+        """Create the episode's endpoints (:meth:`episode_publisher` ...) and start it. Raise to refuse."""
+
+    def deactivate(self) -> None:
+        """The episode is over (or was stopped): finish what it left open. Endpoints go afterwards."""
+
+    def cleanup(self) -> None:
+        """Release what :meth:`configure` loaded."""
+
+    # -- endpoints of one episode ---------------------------------------------------------------------
+    def episode_publisher(self, topic: m.Topic):
+        pub = publisher(self, topic)
+        self._episode_entities.append(pub)
+        return pub
+
+    def episode_subscription(self, topic: m.Topic, callback: Callable[[object], None]):
+        def only_while_active(msg) -> None:
+            if self.active:
+                callback(msg)
+
+        sub = raw_subscription(self, topic, only_while_active)
+        self._episode_entities.append(sub)
+        return sub
+
+    def episode_timer(self, period_s: float, callback: Callable[[], None]):
+        timer = self.create_timer(period_s, callback)
+        self._episode_entities.append(timer)
+        return timer
+
+    def _destroy_episode_entities(self) -> None:
+        for entity in self._episode_entities:
+            kind = type(entity).__name__.lower()
+            destroy = {"publisher": self.destroy_publisher, "subscription": self.destroy_subscription}.get(
+                kind, self.destroy_timer
+            )
+            with contextlib.suppress(Exception):  # the context may be shut down already (SIGTERM)
+                destroy(entity)
+        self._episode_entities.clear()
+
+    # -- lifecycle callbacks ------------------------------------------------------------------------
+    def configured_values(self) -> dict:
+        return {name: self.get_parameter(name).value for name in self.CONFIGURE_FIELDS}
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self.cfg = read_run_config(self)
+            self.configure(self.cfg)
+        except Exception as exc:  # noqa: BLE001 - refused with its reason (the launcher reports this line)
+            self.get_logger().error(f"configure failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            with contextlib.suppress(Exception):
+                self.cleanup()
+            return _FAIL
+        self._configured_values = self.configured_values()
+        return _OK
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            changed = [k for k, v in self.configured_values().items() if (self._configured_values or {}).get(k) != v]
+            if changed:
+                raise ValueError(f"{', '.join(changed)} changed since configure: cleanup and configure first")
+            self.cfg = read_run_config(self)
+            self.active = True
+            self.activate(self.cfg)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"activate failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+            self.active = False
+            self._destroy_episode_entities()
+            return _FAIL
+        return _OK
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._end_episode()
+        return _OK
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.cleanup()
+        self._configured_values = None
+        return _OK
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.close()
+        return _OK
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.get_logger().error(f"error in a transition from {state.label}: cleaning up")
+        self.close()
+        return _OK  # back to unconfigured: the manager can configure again
+
+    def _end_episode(self) -> None:
+        if self.active:
+            self.active = False
+            try:
+                self.deactivate()
+            finally:
+                self._destroy_episode_entities()
+
+    def close(self) -> None:
+        """Whatever state the node is in: end the episode, release the configuration (idempotent)."""
+        self._end_episode()
+        if self._configured_values is not None:
+            self._configured_values = None
+            self.cleanup()
+
+    @property
+    def lifecycle_state(self) -> str:
+        return self._state_machine.current_state[1]
+
+    def _refuse_while_active(self, params) -> SetParametersResult:
+        if self.active:
+            names = ", ".join(p.name for p in params)
+            return SetParametersResult(
+                successful=False, reason=f"{names}: parameters change between episodes; deactivate first"
+            )
+        return SetParametersResult(successful=True)
+
+
+def run_managed(node_factory: Callable[[], EpisodeNode]) -> int:
+    """Main of a managed node: spin until the shutdown transition (finalized), Ctrl-C or SIGTERM.
+
+    A signal ends an active episode the same way deactivate does (the recorder closes its bag with a
+    STOPPED event), then releases the configuration; the exit code is 0 either way.
+    """
+    try:
+        rclpy.init()
+        node = node_factory()
+        try:
+            while rclpy.ok() and node.lifecycle_state != "finalized":
+                rclpy.spin_once(node, timeout_sec=0.1)
+        finally:
+            node.close()
+            node.destroy_node()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,432 @@
+"""Launch the ROS stack as OS processes, drive it through episodes, and stop every process afterwards.
+
+No ros2 launch exists for the PyPI wheels, so this is ours. A :class:`RosStack` starts the four managed
+nodes (sim, policy, executor, metrics) and a lifecycle manager (nodes/manager_node.py) once, then runs any
+number of episodes on them: per episode it hands the manager the episode's parameters, and the manager
+moves the nodes through the standard lifecycle (configure, activate, deactivate, cleanup, shutdown;
+docs/lifecycle.md). ``lq run`` uses a stack for one episode; a sweep worker keeps one for all its episodes.
+This process never initialises rclpy: a launcher killed with SIGKILL leaves no Fast DDS file behind.
+
+Each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the stack's ROS_DOMAIN_ID and,
+unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. A node that dies mid-episode ends that
+episode as an error naming it; the stack restarts it and configures it again for the next episode. A
+node killed with SIGKILL leaves Fast DDS files in /dev/shm: the launcher notes which files each node owns
+while it runs and removes the orphaned ones (lq_ros.transport.processes.ShmTracker). Choosing
+Fast DDS's UDP transport alone (FASTDDS_BUILTIN_TRANSPORTS=UDPv4) would not avoid them: with
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, rmw_fastrtps (Jazzy, 8.4) installs its own shared-memory and
+UDP transports and ignores that variable.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from lq_ros.core.run_config import RunConfig
+from lq_ros.transport.processes import ShmTracker, die_with_parent
+
+NODES = ("sim", "policy", "executor", "metrics")
+#: The lifecycle manager's program (nodes/manager_node.py), started with the nodes.
+MANAGER = "manager"
+#: Module of each node program: nodes/<name>_node.py, installed as the package lq_ros_nodes (setup.py).
+NODE_MODULE = "lq_ros_nodes.{}_node"
+#: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
+DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
+DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
+#: Wall seconds between two looks at which /dev/shm files the nodes own.
+SHM_SAMPLE_PERIOD_S = 0.25
+
+
+@dataclass(frozen=True)
+class DomainReservation:
+    id: int
+    #: Descriptor of the lock file: a child started with it (``pass_fds``) keeps the domain reserved until it exits.
+    lock_fd: int
+
+
+@contextmanager
+def reserved_domain(domain_id: int | None = None):
+    """Hold an exclusive lock on a ROS domain id for the duration of a run.
+
+    The lock (``flock``) belongs to the open lock file, so it lasts while any process holding that file
+    lives: the nodes inherit it, and a domain whose nodes outlive a killed launcher is not handed out again.
+    """
+    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
+    candidates = [domain_id] if domain_id is not None else list(DOMAIN_IDS)
+    for did in candidates:
+        handle = open(DOMAIN_LOCK_DIR / f"{did}.lock", "w")  # noqa: SIM115 - held while the run lasts
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        try:
+            yield DomainReservation(did, handle.fileno())
+        finally:
+            handle.close()  # no LOCK_UN: that would release the lock for the nodes that still hold it too
+        return
+    raise RuntimeError(f"no free ROS domain id among {candidates} (another run holds each)")
+
+
+def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env["ROS_DOMAIN_ID"] = str(domain_id)
+    env["ROS_LOG_DIR"] = str(log_dir)
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def node_parameters(
+    cfg: RunConfig, bag_path: Path, cameras: tuple[str, ...], camera_size_px: int, policy_params: dict
+) -> dict:
+    """The params file: the run's parameters once for every node (``/**``), then what only one node needs
+    (derived from the policy: its cameras and render size, its parameters for the bag)."""
+    cams = list(cameras) or [""]  # ROS string arrays cannot be empty in YAML
+    return {
+        "/**": cfg.ros_parameters(),
+        "lq_sim": {"cameras": list(cams), "camera_size_px": camera_size_px},
+        "lq_metrics": {
+            "bag_path": str(bag_path),
+            "cameras": list(cams),
+            "camera_size_px": camera_size_px,
+            "policy_params_json": json.dumps(policy_params),
+        },
+    }
+
+
+def params_yaml(params: dict) -> str:
+    """A ROS 2 params file: ``{node or /**: {ros__parameters: {...}}}``."""
+    return yaml.safe_dump({n: {"ros__parameters": p} for n, p in params.items()}, sort_keys=False)
+
+
+def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
+    """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL whatever is left."""
+    for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        alive = [p for p in procs.values() if p.poll() is None]
+        if not alive:
+            return
+        for p in alive:
+            p.send_signal(sig)
+        deadline = time.monotonic() + wait_s
+        for p in alive:
+            with suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+    if any(p.poll() is None for p in procs.values()):
+        raise RuntimeError("child processes survived SIGKILL")
+
+
+class StackDead(RuntimeError):
+    """The lifecycle manager died: the stack cannot run another episode (start a new one)."""
+
+
+def policy_key(cfg: RunConfig) -> tuple:
+    """What the policy node loads at configure (its CONFIGURE_FIELDS): the policy and its arguments."""
+    return (cfg.policy, json.dumps(cfg.policy_args, sort_keys=True))
+
+
+def configure_keys(cfg: RunConfig, cameras: Sequence[str], camera_size_px: int) -> dict[str, tuple]:
+    """Per node, what it loads at configure (the CONFIGURE_FIELDS of nodes/*_node.py); ``cameras`` and
+    ``camera_size_px`` are those the policy asks for. A changed key means cleanup + configure of that node
+    (a rebuilt env, a reloaded policy); anything else changes with a soft reset at activation. A new policy
+    on the same task keeps the simulator; a new task keeps the policy.
+
+    The single source of that decision: the launcher reconfigures nodes by it and the in-process sweep
+    worker rebuilds its env and policy by it (lq_ros.run.sweep.worker).
+    """
+    return {
+        "sim": (cfg.suite, cfg.task, cfg.physics_rate, tuple(c for c in cameras if c), camera_size_px),
+        "policy": policy_key(cfg),
+        "executor": (),
+        "metrics": (),
+    }
+
+
+class RosStack:
+    """The four managed nodes and their lifecycle manager, kept up for any number of episodes.
+
+    Use as a context manager (or call :meth:`close`): the domain id is reserved and the processes run
+    until then. :meth:`run_episode` never raises for a broken episode; it returns the reason instead.
+    """
+
+    def __init__(self, domain_id: int | None = None) -> None:
+        self._exit = contextlib.ExitStack()
+        self.domain = self._exit.enter_context(reserved_domain(domain_id))
+        self.work = Path(tempfile.mkdtemp(prefix="lq_run_"))
+        self.params_file = self.work / "params.yaml"
+        # A node (re)started reads this file in rclpy.init and dies without it ("Couldn't parse params file"):
+        # processes started before the first episode (start()) get the defaults, which that episode's
+        # set_parameters calls then override, as they override every later episode's file.
+        self._write_params({"/**": RunConfig().ros_parameters()})
+        self.env = child_environment(self.domain.id, self.work / "ros_logs")
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.shm = ShmTracker()
+        ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
+        self._replies = b""
+        self._keys: dict[str, tuple] | None = None  # configure_keys of the configured nodes
+        self._probe: tuple | None = None  # (policy key, cameras, params, render size) of the last policy
+        self.episodes = 0
+        self.restarts: dict[str, int] = {}
+        self.closed = False
+
+    def __enter__(self) -> RosStack:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- processes -----------------------------------------------------------------------------------
+    def _spawn(self, name: str) -> None:
+        log = open(self.work / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        manager = name == MANAGER
+        self.procs[name] = subprocess.Popen(
+            [sys.executable, "-m", NODE_MODULE.format(name), "--ros-args", "--params-file", str(self.params_file)]
+            if not manager
+            else [sys.executable, "-m", NODE_MODULE.format(name)],
+            env=self.env,
+            stdout=subprocess.PIPE if manager else log,
+            stderr=log if manager else subprocess.STDOUT,
+            stdin=subprocess.PIPE if manager else subprocess.DEVNULL,
+            preexec_fn=die_with_parent,
+            pass_fds=(self.domain.lock_fd,),
+        )
+        log.close()
+        if manager:
+            self._replies = b""
+
+    def _write_params(self, params: dict) -> None:
+        """Replace the params file atomically: a node starting meanwhile reads the old or the new one, whole."""
+        tmp = self.params_file.with_suffix(".tmp")
+        tmp.write_text(params_yaml(params))
+        os.replace(tmp, self.params_file)
+
+    def start(self) -> None:
+        """Start whatever is not running (the first episode: all; after a crash: the dead node).
+
+        Every episode calls it; calling it before the first one starts the processes early. A node found dead
+        here is replaced (and counted in ``restarts``): its PID is not the one noted before.
+        """
+        for name in (*NODES, MANAGER):
+            p = self.procs.get(name)
+            if p is not None and p.poll() is None:
+                continue
+            if p is not None:
+                self.restarts[name] = self.restarts.get(name, 0) + 1
+                if name != MANAGER:
+                    # Configure every node again with this episode, not only the fresh (unconfigured) one: a
+                    # node that died during a reconfigure leaves the survivors' configurations unknown, and a
+                    # stale configuration must never be activated.
+                    self._keys = None
+            self._spawn(name)
+
+    def _dead(self) -> list[str]:
+        return [n for n, p in self.procs.items() if p.poll() is not None]
+
+    def _send(self, op: dict) -> None:
+        manager = self.procs[MANAGER]
+        try:
+            manager.stdin.write((json.dumps(op) + "\n").encode())
+            manager.stdin.flush()
+        except (BrokenPipeError, ValueError):
+            pass  # noticed as a dead manager by the caller
+
+    def _await(
+        self, events: tuple[str, ...], deadline: float | None, tolerate: tuple[str, ...] = ()
+    ) -> tuple[dict | None, str]:
+        """Wait for a manager reply in ``events``; returns (reply, "") or (None, why not: crash or timeout).
+
+        A process in ``tolerate`` (known dead already) is no reason to stop waiting; the manager is.
+        """
+        manager = self.procs[MANAGER]
+        fd = manager.stdout.fileno()
+        next_sample = 0.0
+        while True:
+            while b"\n" in self._replies:
+                line, self._replies = self._replies.split(b"\n", 1)
+                reply = json.loads(line)
+                if reply.get("event") in events or reply.get("event") == "failed":
+                    return reply, ""
+            if time.monotonic() >= next_sample:
+                self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
+                next_sample = time.monotonic() + SHM_SAMPLE_PERIOD_S
+            dead = [n for n in self._dead() if n not in tolerate or n == MANAGER]
+            if dead:
+                return None, ", ".join(f"{_label(n)} exited with code {self.procs[n].returncode}" for n in dead)
+            if deadline is not None and time.monotonic() > deadline:
+                return None, "timeout"
+            readable, _, _ = select.select([fd], [], [], 0.05)
+            if readable:
+                chunk = os.read(fd, 65536)
+                if chunk:
+                    self._replies += chunk
+
+    # -- episodes ------------------------------------------------------------------------------------
+    def run_episode(self, cfg: RunConfig, out_dir: Path, timeout_s: float | None = None) -> tuple[Path, str]:
+        """Run one episode into ``out_dir / cfg.episode_name()``; returns its bag folder and the error ("" if none).
+
+        The run (not the task) failed when a node dies, refuses a transition, or the episode does not end
+        within ``timeout_s`` wall seconds (default: 120 s + 1 s per tick of budget, from the request).
+        """
+        from lq_ros.policies import make_policy
+
+        if self.closed:
+            raise StackDead("the stack was closed")
+        bag_path = Path(out_dir) / cfg.episode_name()
+        if self._probe is None or self._probe[0] != policy_key(cfg):
+            # This process's own instance only tells cameras and parameters (the policy node builds its own);
+            # kept while the policy stays the same (a learned policy loads its weights to answer).
+            probe = make_policy(cfg.policy, **cfg.policy_args)
+            self._probe = (policy_key(cfg), probe.camera_names, probe.params(), probe.render_size)
+            probe.close()
+        _, cameras, policy_params, render_size = self._probe
+        camera_size_px = cfg.camera_size_for(render_size)
+        timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
+        params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
+        self._write_params(params)  # what a (re)started node starts with
+        log_marks = self._log_sizes()
+        try:
+            self.start()
+            keys = configure_keys(cfg, cameras, camera_size_px)
+            per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
+            # All after a refused transition or a restarted node (None): configure everything again (cleanup of
+            # an unconfigured node is skipped, so a fresh stack just configures).
+            reconfigure = [n for n in NODES if self._keys is None or keys[n] != self._keys[n]]
+            self._send({"op": "episode", "params": per_node, "reconfigure": reconfigure})
+            deadline = time.monotonic() + timeout_s
+            reply, reason = self._await(("active",), deadline)
+            if reply is not None and reply["event"] == "failed":
+                reason = self._failure_reason(reply)
+                self._keys = None  # configure everything again next time
+            elif reply is not None:
+                self._keys = keys
+                reply, reason = self._await(("done",), deadline)
+            if reason == "timeout":
+                reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"
+            if reason:
+                self._end_broken_episode(logs_to=(bag_path, log_marks))
+        except BaseException:  # Ctrl-C, SIGTERM of a sweep worker: the nodes stop, the recorder closes its bag
+            self.close(logs_to=(bag_path, log_marks))
+            raise
+        self.episodes += 1
+        if not self.closed:  # (closed: collected already)
+            self._collect_logs(bag_path, log_marks)
+        return bag_path, reason
+
+    def _failure_reason(self, reply: dict) -> str:
+        node, transition, why = reply["node"], reply["transition"], reply["reason"]
+        detail = self._last_log_line(node, f"{transition} failed:") if node in NODES else ""
+        return f"{node} node: {transition} failed: {detail or why}"
+
+    def _last_log_line(self, name: str, marker: str) -> str:
+        """The last line of a node's log containing ``marker``, from the marker on (a refused transition's reason)."""
+        try:
+            lines = (self.work / f"{name}.log").read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        for line in reversed(lines):
+            if marker in line:
+                return line.split(marker, 1)[1].strip()
+        return ""
+
+    def _end_broken_episode(self, logs_to: tuple[Path, dict[str, int]]) -> None:
+        """Deactivate the live nodes (the recorder closes its bag with a STOPPED event); keep the stack.
+
+        Dead nodes are restarted (and configured) with the next episode; the manager's death ends the stack.
+        """
+        dead = tuple(self._dead())
+        if MANAGER not in dead:
+            self._send({"op": "stop", "skip": list(dead)})
+            self._await(("stopped",), time.monotonic() + 60.0, tolerate=dead)
+        if MANAGER in self._dead():
+            self.close(logs_to)
+            return
+        if self._dead():
+            self.shm.cleanup()  # the dead nodes' orphaned /dev/shm files (a live node's are never touched)
+
+    def _log_sizes(self) -> dict[str, int]:
+        return {n: (self.work / f"{n}.log").stat().st_size if (self.work / f"{n}.log").exists() else 0
+                for n in (*NODES, MANAGER)}  # fmt: skip
+
+    def _collect_logs(self, bag_path: Path, marks: dict[str, int]) -> None:
+        """Keep this episode's part of every node log inside the bag folder (or beside it when no bag was written)."""
+        dest = bag_path / "logs" if bag_path.exists() else bag_path.with_name(bag_path.name + ".logs")
+        dest.mkdir(parents=True, exist_ok=True)
+        for name, offset in marks.items():
+            src = self.work / f"{name}.log"
+            if src.exists():
+                with open(src, "rb") as f:
+                    f.seek(offset if src.stat().st_size >= offset else 0)
+                    (dest / f"{name}.log").write_bytes(f.read())
+        launcher_log = self.work / "launcher.log"
+        if launcher_log.exists():
+            shutil.copy(launcher_log, dest / "launcher.log")
+
+    # -- shutdown ------------------------------------------------------------------------------------
+    def close(self, logs_to: tuple[Path, dict[str, int]] | None = None) -> None:
+        """Shut the nodes down through the lifecycle, stop whatever is left, remove orphaned /dev/shm files.
+
+        ``logs_to``: (bag folder, log offsets) of an interrupted episode, whose logs are kept with its bag.
+        """
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            manager = self.procs.get(MANAGER)
+            if manager is not None and manager.poll() is None:
+                dead = tuple(self._dead())
+                self._send({"op": "shutdown", "skip": list(dead)})
+                self._await(("shutdown",), time.monotonic() + 30.0, tolerate=dead)
+                for p in self.procs.values():
+                    with suppress(subprocess.TimeoutExpired):
+                        p.wait(timeout=10.0)
+        finally:
+            self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
+            _stop(self.procs)
+            removed = self.shm.cleanup()
+            if removed:
+                with open(self.work / "launcher.log", "a") as f:
+                    f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
+            for p in self.procs.values():
+                for pipe in (p.stdin, p.stdout):
+                    if pipe is not None:
+                        with suppress(OSError):
+                            pipe.close()
+            if logs_to is not None:
+                with suppress(OSError):
+                    self._collect_logs(*logs_to)
+            self._exit.close()
+            shutil.rmtree(self.work, ignore_errors=True)
+
+
+def _label(name: str) -> str:
+    return "lifecycle manager" if name == MANAGER else f"{name} node"
+
+
+def launch_nodes(
+    cfg: RunConfig,
+    out_dir: Path,
+    *,
+    domain_id: int | None = None,
+    timeout_s: float | None = None,
+) -> tuple[Path, str]:
+    """Run one episode on a stack of its own (``lq run``); returns its bag folder and the launch error ("" if none).
+
+    Scoring and the outcome are ``lq_ros.run.episode.run_episode``'s.
+    """
+    with RosStack(domain_id) as stack:
+        return stack.run_episode(cfg, out_dir, timeout_s)

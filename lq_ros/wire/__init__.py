@@ -1,0 +1,1 @@
+"""What travels between processes: topics and the one CDR codec every transport and every bag uses."""

@@ -1,0 +1,168 @@
+"""Latency distributions (lq_ros/core/latency.py): syntax, draws, rounding, reproducibility, applied means."""
+
+import math
+
+import numpy as np
+import pytest
+
+from lq_ros.core.executor_protocol import ChunkDue, ExecutorConfig, ExecutorCore, ObservationNeeded
+from lq_ros.core.latency import (
+    LatencyError,
+    applied_seconds,
+    parse_latency,
+    request_latency,
+    ticks_of_draw,
+)
+
+
+def test_ticks_of_a_draw_round_up_to_the_next_tick_boundary():
+    assert [ticks_of_draw(x) for x in (0.0, 0.001, 0.05, 0.0500001, 0.1, 0.12, 0.15, 0.3)] == [0, 1, 1, 2, 2, 3, 3, 6]
+    assert ticks_of_draw(3 * 0.05) == 3  # 0.15000000000000002 is on the boundary, not past it
+    assert applied_seconds(3) == 0.15
+    with pytest.raises(LatencyError):
+        ticks_of_draw(-0.01)
+
+
+@pytest.mark.parametrize(
+    "text, kind, label",
+    [
+        ("0.2", "constant", "constant"),
+        ("uniform:0.075:0.275", "uniform", "uniform:0.075:0.275"),
+        ("normal:0.2:0.05", "normal", "normal:0.2:0.05"),
+        ("lognormal:0.15:0.5", "lognormal", "lognormal:0.15:0.5"),
+    ],
+)
+def test_parse_and_canonical_text(text, kind, label):
+    dist = parse_latency(text)
+    assert dist.kind == kind and dist.label == label and parse_latency(dist.text) == dist
+    assert parse_latency(0.2) == parse_latency("0.2")
+
+
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("0.075", "not a whole number of 0.05 s control ticks"),
+        ("-0.1", "must be >= 0"),
+        ("gamma:1:2", "unknown distribution 'gamma'"),
+        ("uniform:0.3:0.1", "0 <= LO <= HI"),
+        ("uniform:0.1", "expected uniform:LO:HI"),
+        ("normal:0.2:0", "STD > 0"),
+        ("lognormal:0:1", "MEDIAN > 0"),
+        ("uniform:a:0.2", "is not a number"),
+        ("trace:/nonexistent/file.txt", "cannot read"),
+    ],
+)
+def test_parse_errors_say_what_is_wrong(text, fragment):
+    with pytest.raises(LatencyError, match=fragment):
+        parse_latency(text)
+
+
+@pytest.mark.parametrize("text", ["uniform:0.075:0.275", "normal:0.2:0.05", "lognormal:0.15:0.5"])
+def test_draws_are_a_function_of_seed_and_request_id(text):
+    dist = parse_latency(text)
+    forward = [dist.draw_s(7, k) for k in range(1, 50)]
+    backward = [dist.draw_s(7, k) for k in reversed(range(1, 50))][::-1]
+    assert forward == backward  # no hidden state: the order of draws does not matter
+    assert forward != [dist.draw_s(8, k) for k in range(1, 50)]  # the episode seed matters
+    assert len(set(forward)) == len(forward)
+    n, s = request_latency(text, 7, 3)
+    assert n == ticks_of_draw(forward[2]) and s == applied_seconds(n)
+
+
+def test_constant_latency_applies_the_configured_value():
+    assert request_latency("0.15", 7, 1) == (3, 0.15)
+    assert request_latency(parse_latency(0.2), 1, 99) == (4, 0.2)
+
+
+def test_uniform_draws_and_exact_applied_mean():
+    dist = parse_latency("uniform:0.075:0.275")
+    draws = np.array([dist.draw_s(s, k) for s in range(40) for k in range(1, 251)])
+    assert draws.min() >= 0.075 and draws.max() <= 0.275
+    # ceil over [0.075, 0.275]: N = 2 (1/8), 3, 4, 5 (1/4 each), 6 (1/8) -> mean exactly 4 ticks.
+    assert dist.mean_ticks() == 4.0 and dist.mean_s() == 0.2 and dist.nominal_ticks() == 4
+    assert (dist.min_ticks(), dist.max_ticks()) == (2, 6)
+    ticks = np.array([ticks_of_draw(x) for x in draws])
+    assert abs(ticks.mean() - 4.0) < 0.05
+    assert parse_latency("uniform:0.1:0.3").mean_ticks() == 4.5  # raw mean 0.2 s, applied 0.225 s
+
+
+def test_normal_is_truncated_not_clipped():
+    dist = parse_latency("normal:0:0.1")  # half-normal: mean 0.1 sqrt(2/pi)
+    draws = np.array([dist.draw_s(s, k) for s in range(20) for k in range(1, 501)])
+    assert draws.min() >= 0 and (draws == 0).sum() == 0  # clipping would put half the mass at 0
+    assert abs(draws.mean() - 0.1 * math.sqrt(2 / math.pi)) < 0.003
+    ticks = np.array([ticks_of_draw(x) for x in draws])
+    assert abs(ticks.mean() - dist.mean_ticks()) < 0.05
+
+
+def test_lognormal_median_and_applied_mean():
+    dist = parse_latency("lognormal:0.15:0.5")
+    draws = np.array([dist.draw_s(s, k) for s in range(20) for k in range(1, 501)])
+    assert abs(np.median(draws) - 0.15) < 0.005
+    assert abs(np.mean([ticks_of_draw(x) for x in draws]) - dist.mean_ticks()) < 0.06
+    assert dist.min_ticks() == 0 and dist.max_ticks() is None
+
+
+def test_trace_replays_in_order_wraps_and_pins_its_content(tmp_path):
+    path = tmp_path / "server.txt"
+    path.write_text("# measured Δt_real of a policy server, s\n0.087\n0.12\n\n0.31  # a slow one\n")
+    dist = parse_latency(f"trace:{path}")
+    assert dist.trace == (0.087, 0.12, 0.31) and dist.label == "trace:server.txt"
+    assert [dist.ticks(seed, k) for seed in (1, 2) for k in (1, 2, 3, 4)] == [2, 3, 7, 2] * 2  # seed-free, wrapped
+    assert dist.mean_ticks() == 4.0 and (dist.min_ticks(), dist.max_ticks()) == (2, 7)
+    assert "@sha256:" in dist.text and parse_latency(dist.text) == dist
+    path.write_text("0.2\n")
+    with pytest.raises(LatencyError, match="changed since it was configured"):
+        parse_latency(dist.text)
+    path.write_text("0.1\nfast\n")
+    with pytest.raises(LatencyError, match="line 2"):
+        parse_latency(f"trace:{path}")
+
+
+def test_one_inference_in_flight_chunks_never_arrive_out_of_order():
+    """With a wide distribution a later request could be faster, but the core starts request k + 1 only
+    after chunk k took effect: due ticks strictly increase and chunks apply in request order."""
+    dist = parse_latency("lognormal:0.2:0.9")
+    for merge, threshold in (("replace", None), ("weighted_average", None), ("temporal_ensemble", None)):
+        core = ExecutorCore(
+            ExecutorConfig(mode="async", latency=dist, seed=3, merge=merge, request_threshold=threshold)
+        )
+        requests, applied, pending = [], [], {}
+        for t in range(300):
+            while True:
+                step = core.advance(t)
+                if isinstance(step, ObservationNeeded):
+                    assert not pending, "a request while another is in flight"
+                    requests.append(step.request)
+                    pending[step.request.request_id] = np.zeros((10, 7))
+                elif isinstance(step, ChunkDue):
+                    core.deliver(step.request.request_id, pending.pop(step.request.request_id))
+                    applied.append((t, step.request.request_id))
+                else:
+                    break
+        assert [rid for _, rid in applied] == sorted(rid for _, rid in applied)
+        assert all(b.tick >= a.due_tick for a, b in zip(requests, requests[1:], strict=False))
+        assert all(r.latency_ticks == dist.ticks(3, r.request_id) for r in requests)
+        assert len({r.latency_ticks for r in requests}) > 3  # the draws did vary
+        with pytest.raises(RuntimeError, match="outstanding"):
+            core.deliver(999, np.zeros((10, 7)))
+
+
+def test_sync_hold_lasts_each_draw():
+    dist = parse_latency("uniform:0.0:0.3")
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency=dist, seed=11, replan_steps=2))
+    holds, req = [], None
+    for t in range(60):
+        while True:
+            step = core.advance(t)
+            if isinstance(step, ObservationNeeded):
+                req = step.request
+            elif isinstance(step, ChunkDue):
+                core.deliver(step.request.request_id, np.zeros((4, 7)))
+            else:
+                holds.append((t, step.source.value, req.request_id))
+                break
+    for rid in {r for _, _, r in holds}:
+        held = sum(1 for _, s, r in holds if r == rid and s != 0)
+        n = dist.ticks(11, rid)
+        assert held == n or rid == max(r for _, _, r in holds)  # the last one may be cut by the end

@@ -1,0 +1,112 @@
+"""lq report on real bags from a small real sweep: figures are non-trivial, pages link to existing bags."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+
+from lq_ros.report import sweep_report as rp
+from lq_ros.run import sweep as sw
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def sweep_dir(tmp_path_factory) -> Path:
+    """scripted x {sync, async} x {0, 0.1} s, two init states: 8 real in-process episodes that succeed
+    (trajectory and energy figures are over successful episodes)."""
+    out = tmp_path_factory.mktemp("sweep")
+    spec = sw.expand_spec(
+        {
+            "name": "report-test",
+            "transport": "inprocess",
+            "tasks": [0],
+            "inits": [0, 1],
+            "policies": ["scripted"],
+            "latencies_s": [0.0, 0.1],
+            "modes": ["sync", "async"],
+        }  # fmt: skip
+    )
+    summary = sw.run_sweep(spec, out, workers=2)
+    assert summary.counts == {"success": 8}
+    return out
+
+
+@pytest.fixture(scope="module")
+def report(sweep_dir):
+    result = rp.build_report(sweep_dir, n_boot=300, keep_figures=True)
+    yield result
+    for fig in result.figures.values():
+        plt.close(fig)
+
+
+def _lines_with_data(ax) -> list:
+    return [line for line in ax.get_lines() if len(line.get_xdata()) and np.isfinite(line.get_ydata()).any()]
+
+
+def test_figures_have_the_papers_panels_and_series(report):
+    figs = report.figures
+    fig4 = figs["fig4_success"].axes
+    assert [ax.get_title() for ax in fig4] == ["sync execution", "async execution"]
+    for ax in fig4:
+        (line,) = _lines_with_data(ax)  # one policy
+        assert list(line.get_xdata()) == [0.0, 0.1] and np.allclose(line.get_ydata(), 100.0)
+        assert ax.collections, "no CI band"
+        assert [t.get_text() for t in ax.get_xticklabels()] == ["0\nN=0", "0.1\nN=2"]  # applied latency and N
+    fig5 = figs["fig5_trajectory"].axes
+    assert len(fig5) == 3 and [len(_lines_with_data(ax)) for ax in fig5] == [2, 2, 2]  # scripted x {sync, async}
+    assert "successful episodes; traj 20 Hz, energy substep" in figs["fig5_trajectory"].texts[0].get_text()
+    assert "jerk" in fig5[0].get_ylabel() and "EE-Osc" in fig5[2].get_ylabel()
+    fig6 = figs["fig6_energy_decomposition"].axes
+    # 2 series x 2 latencies bars per stacked part: 3 parts in (a), 2 in (b)
+    assert [len(ax.patches) for ax in fig6] == [2 * 2 * 3, 2 * 2 * 2]
+    assert all(p.get_height() > 0 for p in fig6[0].patches)
+    fig7 = figs["fig7_energy"].axes
+    assert len(fig7) == 2 and [len(_lines_with_data(ax)) for ax in fig7] == [2, 2]
+    totals = np.concatenate([line.get_ydata() for line in _lines_with_data(fig7[1])])
+    assert np.all(totals > 85.0 * 50 * 0.05)  # at least the 85 W overhead over 50 ticks
+
+
+@pytest.mark.parametrize("name", list(rp.FIGURES))
+def test_png_is_not_blank(report, name):
+    image = mpimg.imread(report.files[f"{name}.png"])[..., :3]
+    assert image.shape[0] > 300 and image.shape[1] > 500
+    not_white = (image < 0.95).any(axis=2).mean()
+    assert 0.02 < not_white < 0.9, not_white  # drawn on, but not a solid block
+    assert len(np.unique((image * 255).astype(np.uint8).reshape(-1, 3), axis=0)) > 20  # several colours
+
+
+def test_pages_tables_provenance_and_links(report, sweep_dir):
+    html = report.files["report.html"].read_text()
+    md = report.files["report.md"].read_text()
+    for name in rp.FIGURES:
+        assert f"{name}.png" in html and f"({name}.png)" in md
+    links = re.findall(r"href='([^']+)'", html)
+    assert len(links) == 8
+    for link in links:
+        assert (report.out_dir / link / "metadata.yaml").exists(), link
+    md_links = re.findall(r"\[bag\]\(([^)]+)\)", md)
+    assert sorted(md_links) == sorted(links)
+    for key in ("mujoco", "git_commit", "seeds", "init states", "transports"):
+        assert key in html and key in md
+    assert "2.3.7" in html  # the MuJoCo version the episodes ran on
+    assert "| episodes of the spec not finished | 0 |" in md
+    for table in ("episodes.csv", "episodes.parquet", "aggregates.csv", "aggregates.parquet", "aggregates_pooled.csv"):
+        assert report.files[table].stat().st_size > 100
+    assert len(report.pooled) == 4 and set(report.pooled["n"]) == {2}
+
+
+def test_report_of_a_plain_bag_folder(sweep_dir, tmp_path):
+    """Without a sweep store, the bags themselves are scored."""
+    result = rp.build_report(sweep_dir / "bags", tmp_path / "r", n_boot=100)
+    assert len(result.episodes) == 8 and result.files["report.html"].exists()
+
+
+def test_empty_folder_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no scored episodes"):
+        rp.build_report(tmp_path)

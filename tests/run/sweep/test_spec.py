@@ -1,0 +1,150 @@
+"""Sweep specs: expansion to episodes, validation with clear messages, policy arguments checked up front."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lq_ros.run import sweep as sw
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def small_spec(**over) -> dict:
+    spec = {
+        "name": "small",
+        "transport": "inprocess",
+        "suite": "libero_spatial",
+        "tasks": [0],
+        "inits": [0],
+        "policies": ["sine"],
+        "latencies_s": [0.0, 0.1],
+        "modes": ["sync", "async"],
+        "max_steps": 8,
+    }
+    spec.update(over)
+    return spec
+
+
+def test_expansion_is_the_full_product_in_a_stable_order():
+    raw = {
+        "suites": {"libero_spatial": {"tasks": [0, 3], "inits": [0, 1]}},
+        "seeds": [7, 8],
+        "policies": ["sine", {"name": "scripted", "args": {}}],
+        "latencies_s": [0, 0.1, 0.2, 0.4],
+        "modes": {
+            "sync": {"replan_steps": [4, 8], "hold": "stop"},
+            "async": {"request_threshold": 9, "merge": ["replace", "weighted_average"]},
+        },
+        "max_steps": 30,
+    }
+    spec = sw.expand_spec(raw)
+    # policies 2 x protocol variants (2 sync + 2 async) x latencies 4 x tasks 2 x inits 2 x seeds 2
+    assert len(spec.configs) == 2 * 4 * 4 * 2 * 2 * 2
+    assert len({c.key() for c in spec.configs}) == len(spec.configs)
+    assert {c.replan_steps for c in spec.configs if c.mode == "sync"} == {4, 8}
+    assert {c.merge for c in spec.configs if c.mode == "async"} == {"replace", "weighted_average"}
+    assert all(c.max_steps == 30 for c in spec.configs)
+    assert [c.key() for c in sw.expand_spec(raw).configs] == [c.key() for c in spec.configs]
+
+
+def test_latencies_between_ticks_and_merges_without_overlap_are_refused():
+    base = {"tasks": [0], "inits": [0], "policies": ["sine"]}
+    with pytest.raises(sw.SpecError, match=r"latencies_s: latency 0.075 s .* nearest valid: 0.05 s or 0.1 s"):
+        sw.expand_spec(base | {"latencies_s": [0.075]})
+    rounded = sw.expand_spec(base | {"latencies_s": [0.075, 0.2], "latency_rounding": "nearest"})
+    assert sorted({c.latency_s for c in rounded.configs}) == [0.05, 0.2]
+    with pytest.raises(sw.SpecError, match="never sees overlapping chunks"):
+        sw.expand_spec(base | {"latencies_s": [0.2], "modes": {"async": {"merge": "average", "request_threshold": 4}}})
+
+
+def test_latency_distributions_in_a_spec():
+    base = {"tasks": [0], "inits": [0], "policies": ["sine"], "modes": {"async": {"merge": ["replace", "rtc"]}}}
+    spec = sw.expand_spec(base | {"latencies_s": [0.2, "uniform:0.075:0.275", "lognormal:0.2:0.5"]})
+    assert len(spec.configs) == 2 * 3
+    assert {c.latency_dist for c in spec.configs} == {"", "uniform:0.075:0.275", "lognormal:0.2:0.5"}
+    assert {c.latency_s for c in spec.configs if c.latency_dist.startswith("uniform")} == {0.2}  # applied mean
+    sw.check_policies(spec.configs)  # sine inpaints a prefix in closed form: rtc is fine
+    with pytest.raises(sw.SpecError, match="listed twice"):
+        sw.expand_spec(base | {"latencies_s": ["uniform:0.1:0.3", "uniform:0.1:0.30"]})
+    with pytest.raises(sw.SpecError, match="unknown distribution 'gamma'"):
+        sw.expand_spec(base | {"latencies_s": ["gamma:1:2"]})
+
+
+def test_rtc_with_a_policy_that_takes_no_prefix_is_refused_before_running():
+    spec = sw.expand_spec(
+        {
+            "tasks": [0],
+            "inits": [0],
+            "policies": ["scripted"],
+            "latencies_s": [0.1],
+            "modes": {"async": {"merge": "rtc"}},
+        }
+    )
+    with pytest.raises(sw.SpecError, match="merge 'rtc' .* policy 'scripted' cannot"):
+        sw.check_policies(spec.configs)
+
+
+def test_tasks_all_and_shorthand_and_defaults():
+    spec = sw.expand_spec({"tasks": "all", "inits": [0], "policies": ["sine"], "latencies_s": [0.0]})
+    assert sorted({c.task for c in spec.configs}) == list(range(10))
+    assert {c.mode for c in spec.configs} == {"sync", "async"} and {c.seed for c in spec.configs} == {7}
+    assert spec.transport is None and spec.name == "sweep"
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"latencies": [0.1]}, "unknown key"),
+        ({"policies": ["nope"]}, "unknown policy 'nope'"),
+        ({"policies": [{"name": "sine", "arg": {}}]}, "policies[0]"),
+        ({"latencies_s": [0.1, 0.1]}, "are both N = 2"),
+        ({"latencies_s": [0.12]}, "not a whole number of 0.05 s control ticks"),
+        ({"latencies_s": [-0.1]}, "non-negative"),
+        ({"latencies_s": []}, "empty list"),
+        ({"modes": ["sync", "stream"]}, "unknown mode 'stream'"),
+        ({"modes": {"sync": {"chunk": 3}}}, "modes.sync"),
+        ({"modes": {"sync": {"hold": "freeze"}}}, "hold"),
+        ({"tasks": [10]}, "outside 0..9"),
+        ({"inits": [50]}, "outside 0..49"),
+        ({"suite": "libero_100"}, "unknown suite"),
+        ({"transport": "zmq"}, "transport"),
+        ({"max_steps": -1}, "max_steps"),
+        ({"physics_rate": "yes"}, "physics_rate: expected bool"),
+        ({"suites": {"libero_spatial": {"tasks": [0], "inits": [0]}}}, "not both"),
+        ({"policies": ["sine", "sine"]}, "same episode twice"),
+    ],
+)
+def test_invalid_specs_fail_with_a_clear_message(change, message):
+    with pytest.raises(sw.SpecError, match=None) as info:
+        sw.expand_spec(small_spec(**change))
+    assert message in str(info.value)
+
+
+def test_load_spec_names_the_file(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("policies: [sine\n")
+    with pytest.raises(sw.SpecError, match="bad.yaml: not valid YAML"):
+        sw.load_spec(bad)
+    with pytest.raises(sw.SpecError, match="missing.yaml: cannot read"):
+        sw.load_spec(tmp_path / "missing.yaml")
+    good = tmp_path / "mine.yaml"
+    good.write_text(yaml.safe_dump({k: v for k, v in small_spec().items() if k != "name"}))
+    assert sw.load_spec(good).name == "mine"
+
+
+def test_policy_arguments_are_checked_before_running():
+    spec = sw.expand_spec(small_spec(policies=[{"name": "sine", "args": {"amplitude": 3.0}}]))
+    with pytest.raises(sw.SpecError, match="amplitude must be in"):
+        sw.check_policies(spec.configs)
+
+
+def test_shipped_demo_spec_is_valid():
+    spec = sw.load_spec(REPO / "config" / "sweeps" / "demo.yaml")
+    assert spec.transport == "inprocess"
+    assert {c.latency_s for c in spec.configs} == {0.0, 0.1, 0.2, 0.4}
+    assert {c.mode for c in spec.configs} == {"sync", "async"}
+    assert {c.init for c in spec.configs} == {0, 1}
+    sw.check_policies(spec.configs)

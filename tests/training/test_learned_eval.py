@@ -1,0 +1,65 @@
+"""benchmarks/eval_learned.py --merge --by-weights: runs pool by checkpoint bytes, never by name alone."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def ev():
+    spec = importlib.util.spec_from_file_location("eval_learned", ROOT / "benchmarks" / "eval_learned.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(spec: str, task: int, init: int, status: str = "success", md5: str | None = "a" * 32) -> dict:
+    row = {"suite": "libero_spatial", "policy": spec, "task": task, "init": init, "status": status, "ticks": 120,
+           "replan_steps": 8, "weights": "oft_c8_libero_spatial.json", "wall_s": 1.0}  # fmt: skip
+    if md5:
+        row["weights_md5"] = md5
+    return row
+
+
+def _latency(spec: str) -> dict:
+    return {"suite": "libero_spatial", "policy": spec, "task": 0, "infer_s": [0.001, 0.002]}
+
+
+def test_same_bytes_pool_into_one_column(ev, capsys):
+    copy = "oft:weights=/elsewhere/oft_c8_libero_spatial.json"
+    rows = [_row(copy, 0, 0), _row(copy, 0, 1, "failure"), _latency(copy), _row("oft", 0, 2), _latency("oft")]
+    out, labels, spec_of = ev.by_weights(rows)
+    assert labels == ["oft_c8"] and spec_of == {("libero_spatial", "oft_c8"): copy}
+    assert [r["policy"] for r in out] == ["oft_c8"] * 5 and out[0]["spec"] == copy
+    summary = ev.report(out, labels, isolated=False)["libero_spatial"]["oft_c8"]
+    assert (summary["success"], summary["episodes"], summary["per_task"]) == (2, 3, {0: [2, 3]})
+    assert summary["infer_calls"] == 4
+    assert "oft_c8: weights md5 " + "a" * 32 in capsys.readouterr().out
+
+
+def test_different_bytes_or_a_repeated_episode_are_refused(ev):
+    with pytest.raises(SystemExit, match="oft_c8"):
+        ev.by_weights([_row("oft", 0, 0), _row("oft:weights=/x/oft_c8_libero_spatial.json", 0, 1, md5="b" * 32)])
+    with pytest.raises(SystemExit, match="twice"):
+        ev.by_weights([_row("oft", 0, 0), _row("oft:weights=/x/oft_c8_libero_spatial.json", 0, 0)])
+
+
+def test_a_run_without_recorded_digest_is_checked_against_the_file_it_names(ev, tmp_path):
+    """Old runs did not record the MD5: the spec's weights file (here a copy of the shipped one) is hashed."""
+    shipped = ROOT / "lq_ros" / "policies" / "weights" / "oft_c8_libero_spatial.json"
+    meta = json.loads(shipped.read_text())
+    (tmp_path / shipped.name).write_text(shipped.read_text())
+    (tmp_path / meta["weights_file"]).write_bytes(shipped.with_name(meta["weights_file"]).read_bytes())
+    real = ev.weights_digest(shipped)
+    copy = f"oft:weights={tmp_path / shipped.name}"
+    out, _, _ = ev.by_weights([_row(copy, 0, 0, md5=None), _row("oft", 0, 1, md5=real)])
+    assert {r["policy"] for r in out} == {"oft_c8"}
+    (tmp_path / meta["weights_file"]).write_bytes(b"other bytes")
+    with pytest.raises(SystemExit, match="not recorded"):
+        ev.by_weights([_row("oft", 0, 1, md5=real), _row(copy, 0, 0, md5=None)])
