@@ -1,6 +1,30 @@
+import runpy
+from pathlib import Path
+
 from setuptools import find_packages, setup
+from setuptools.command.build_py import build_py
 
 package_name = "lq_ros"
+HERE = Path(__file__).resolve().parent
+# msg_schemas/ and config/robots/ keep their one copy at the top of the source tree; lq_ros.core.shipped names them.
+_shipped = runpy.run_path(str(HERE / "lq_ros" / "core" / "shipped.py"))
+SHIPPED, SHIPPED_DIR_NAME = _shipped["SHIPPED"], _shipped["SHIPPED_DIR"].name
+
+
+class BuildPyWithShipped(build_py):
+    """Also copy the shipped top-level folders into the built package (lq_ros/_shipped/<path>), where an installed
+    lq_ros finds them (lq_ros.core.shipped.shipped_path). An editable install reads them in the source tree."""
+
+    def run(self) -> None:
+        super().run()
+        if getattr(self, "editable_mode", False):
+            return
+        for folder, pattern in SHIPPED.items():
+            dest = Path(self.build_lib) / package_name / SHIPPED_DIR_NAME / folder
+            self.mkpath(str(dest))
+            for src in sorted((HERE / folder).glob(pattern)):
+                self.copy_file(str(src), str(dest / src.name))
+
 
 setup(
     name=package_name,
@@ -22,6 +46,8 @@ setup(
     maintainer_email="lq-ros@example.com",
     description="LIBERO-LQ on ROS 2: latency-aware evaluation of VLA policies",
     license="Apache-2.0",
+    cmdclass={"build_py": BuildPyWithShipped},
+    # Every node program (nodes/*.py) under its module's name, as `ros2 run lq_ros <name>` would start it.
     entry_points={
         "console_scripts": [
             "lq = lq_ros.cli:main",
@@ -29,6 +55,13 @@ setup(
             "policy_node = lq_ros_nodes.policy_node:main",
             "executor_node = lq_ros_nodes.executor_node:main",
             "metrics_node = lq_ros_nodes.metrics_node:main",
+            "manager_node = lq_ros_nodes.manager_node:main",
+            "bridge_node = lq_ros_nodes.bridge_node:main",
+            "robot_standin = lq_ros_nodes.robot_standin:main",
+            "realtime_sim_node = lq_ros_nodes.realtime_sim_node:main",
+            "realtime_policy_node = lq_ros_nodes.realtime_policy_node:main",
+            "realtime_executor_node = lq_ros_nodes.realtime_executor_node:main",
+            "realtime_recorder_node = lq_ros_nodes.realtime_recorder_node:main",
         ],
     },
 )

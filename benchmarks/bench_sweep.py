@@ -1,11 +1,14 @@
-"""Sweep throughput: episodes per second with 1 and with 2 local workers on the same spec, and the ratio.
+"""Sweep throughput: episodes per wall second and per CPU-second for each worker count on the same spec.
 
 Each run is a fresh sweep folder (nothing skipped) and includes everything a user waits for: worker
-start-up, env creation (once per worker and task), episodes, scoring and the durable store. The
-machine's load average is printed before and after, since a shared machine changes the figures.
+start-up, env creation (once per worker and task), episodes, scoring and the durable store. Episodes per
+CPU-second (the workers' CPU, their node processes included) is what sizes a cluster: a paper-sized run's
+episodes divided by it is the CPU-seconds it needs. The machine's load average is printed before and after,
+since a shared machine changes the figures. ``--spec FILE`` runs a spec file instead of the generated one
+(e.g. benchmarks/specs/demo_sweep.yaml); ``--transport`` then overrides the spec's.
 
-    .venv/bin/python benchmarks/bench_sweep.py [--transport inprocess] [--policy scripted] [--tasks 2]
-        [--inits 2] [--latencies 0 0.2] [--max-steps 0] [--workers 1 2]
+    .venv/bin/python benchmarks/bench_sweep.py [--transport inprocess] [--policy scripted] [--policy-arg K=V]
+        [--tasks 2] [--inits 2] [--latencies 0 0.2] [--max-steps 0] [--workers 1 2] [--spec FILE]
 """
 
 from __future__ import annotations
@@ -36,23 +39,42 @@ def main() -> None:
     parser.add_argument("--latencies", type=float, nargs="+", default=[0.0, 0.2])
     parser.add_argument("--max-steps", type=int, default=0, help="0: the suite's budget (220)")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--policy-arg", action="append", default=[], help="K=V (a number or text), repeatable")
+    parser.add_argument("--spec", type=Path, help="a sweep spec file instead of the generated spec")
     args = parser.parse_args()
+    if args.spec:
+        spec = sw.load_spec(args.spec)
+        spec = sw.SweepSpec(spec.name, spec.configs, args.transport, spec.timeout_s, spec.raw)
+        print(f"spec: {args.spec} ({len(spec.configs)} episodes, {args.transport})")
+        return measure(spec, args.workers, args.transport)
+    policy_args = {k: _value(v) for k, _, v in (a.partition("=") for a in args.policy_arg)}
     raw = {
         "name": "bench",
         "transport": args.transport,
         "tasks": list(range(args.tasks)),
         "inits": list(range(args.inits)),
-        "policies": [args.policy],
+        "policies": [{"name": args.policy, "args": policy_args}],
         "latencies_s": args.latencies,
         "modes": ["sync", "async"],
         "max_steps": args.max_steps,
     }
     spec = sw.expand_spec(raw)
     steps = args.max_steps or "suite"
-    print(f"spec: {len(spec.configs)} episodes ({args.policy}, {args.transport}, tasks {raw['tasks']}, "
+    print(f"spec: {len(spec.configs)} episodes ({args.policy} {policy_args}, {args.transport}, tasks {raw['tasks']}, "
           f"inits {raw['inits']}, latencies {args.latencies} s, sync+async, max_steps {steps})")  # fmt: skip
+    measure(spec, args.workers, args.transport)
+
+
+def _value(text: str) -> float | str:
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def measure(spec: sw.SweepSpec, workers: list[int], transport: str) -> None:
     rates: dict[int, float] = {}
-    for n in args.workers:
+    for n in workers:
         out = Path(tempfile.mkdtemp(prefix=f"lq_bench_sweep_{n}w_"))
         load_before = os.getloadavg()[0]
         cpu_before = _children_cpu_s()
@@ -62,9 +84,9 @@ def main() -> None:
         cpu = _children_cpu_s() - cpu_before
         load_after = os.getloadavg()[0]
         rates[n] = summary.ran / wall
-        print(f"{n} worker(s): {summary.ran} episodes in {wall:.1f} s = {rates[n]:.3f} episodes/s "
-              f"({dict(summary.counts)}; worker CPU {cpu:.0f} s; load avg {load_before:.1f} -> {load_after:.1f} "
-              f"on {os.cpu_count()} cores)")  # fmt: skip
+        print(f"{n} worker(s), {transport}: {summary.ran} episodes in {wall:.1f} s = {rates[n]:.3f} episodes/s, "
+              f"{summary.ran / cpu:.3f} episodes per CPU-second ({dict(summary.counts)}; worker CPU {cpu:.0f} s; "
+              f"load avg {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores)")  # fmt: skip
         shutil.rmtree(out, ignore_errors=True)
     if len(rates) >= 2:
         lo, hi = min(rates), max(rates)

@@ -9,7 +9,14 @@ state cycles over 0..9 so consecutive episodes differ. Then the reset of one env
 the MjSim) against soft (LiberoEnv's default after the first reset), both including LIBERO's 10 wait
 steps, alternated in the same process.
 
+The floor: the same scene's bare robosuite ``env.step`` per tick (LIBERO's ControlEnv, no wrapper, no energy
+integration, no messages, no bag) and raw ``mj_step`` x 25 (the physics alone), and the in-process tick's ratio to
+both (target: within 1.3x of bare env.step). A slow policy: with ``--slow-policy S`` the scripted expert sleeps S
+wall seconds per inference at Δt_sim 0.2 s, in process and through the long-lived stack, where the policy node's
+inference overlaps the simulation of the ticks that do not wait for it.
+
     .venv/bin/python benchmarks/bench_transport.py [--policy scripted] [--episodes 10] [--resets 5]
+        [--floor-ticks 200] [--slow-policy 0.15]
 """
 
 from __future__ import annotations
@@ -37,7 +44,10 @@ def main() -> None:
     parser.add_argument("--latency", type=float, default=0.2)
     parser.add_argument("--max-steps", type=int, default=220)
     parser.add_argument("--resets", type=int, default=5, help="hard and soft resets each (0: skip)")
+    parser.add_argument("--floor-ticks", type=int, default=200, help="ticks of bare env.step and mj_step (0: skip)")
+    parser.add_argument("--slow-policy", type=float, default=0.15, help="sleep per inference, s (0: skip)")
     args = parser.parse_args()
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     cfgs = [
         RunConfig(policy=args.policy, mode=args.mode, latency_s=args.latency, max_steps=args.max_steps, init=i % 10)
         for i in range(args.episodes)
@@ -72,13 +82,81 @@ def main() -> None:
         steps = statistics.mean(ticks[name])
         print(f"{labels[name]:22s} wall per episode {t:6.2f} s  ({steps:.0f} ticks, {1000 * t / steps:.1f} ms per tick;"
               f" first {times[name][0]:.2f} s, median {statistics.median(times[name]):.2f} s)")  # fmt: skip
-    base = statistics.mean(times["inprocess"])
-    print(f"(b)/(a): {statistics.mean(times['ros_stack']) / base:.2f}  (target <= 1.1)")
+    base, base_median = statistics.mean(times["inprocess"]), statistics.median(times["inprocess"])
+    print(f"(b)/(a): {statistics.mean(times['ros_stack']) / base:.2f} on means, "
+          f"{statistics.median(times['ros_stack']) / base_median:.2f} on medians  (target <= 1.1)")  # fmt: skip
     print(f"(c)/(a): {statistics.mean(times['ros_fresh']) / base:.2f}")
+    if args.floor_ticks:
+        # The in-process tick over the episodes after the first (which builds the env): wall per tick.
+        tick_s = statistics.median(t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True))
+        step_s, mj_s = floor_per_tick(args.floor_ticks)
+        print(f"floor per tick: bare env.step {1000 * step_s:.2f} ms, raw mj_step x 25 {1000 * mj_s:.2f} ms; "
+              f"in-process tick {1000 * tick_s:.2f} ms (median, episodes 2..) = {tick_s / step_s:.2f}x env.step "
+              f"(target <= 1.3), {tick_s / mj_s:.2f}x mj_step")  # fmt: skip
+    if args.slow_policy:
+        slow(args.slow_policy, out)
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
     if args.resets:
         hard, soft = reset_times(args.resets)
         print(f"reset of one env (10 wait steps included): hard {hard:.3f} s, soft {soft:.3f} s, "
               f"hard / soft {hard / soft:.1f}  (target soft <= 0.3 s)")  # fmt: skip
+
+
+def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float]:
+    """Wall seconds per tick of robosuite's own env.step and of 25 raw mj_step on the same scene (no cameras)."""
+    import mujoco
+    import numpy as np
+
+    from lq_ros.core.suite_constants import SUBSTEPS_PER_TICK
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    env = LiberoEnv(suite, task)
+    env.reset(0, 7)
+    control_env = env._env  # LIBERO's ControlEnv: what a plain LIBERO loop calls
+    action = np.zeros(7)
+    action[-1] = -1.0
+    start = time.perf_counter()
+    for _ in range(n_ticks):
+        control_env.step(action)
+    step_s = (time.perf_counter() - start) / n_ticks
+    sim = control_env.env.sim
+    model, data = sim.model._model, sim.data._data
+    start = time.perf_counter()
+    for _ in range(n_ticks * SUBSTEPS_PER_TICK):
+        mujoco.mj_step(model, data)
+    mj_s = (time.perf_counter() - start) / n_ticks
+    env.close()
+    return step_s, mj_s
+
+
+def slow(sleep_s: float, out: Path, episodes: int = 3) -> None:
+    """A policy whose inference takes ``sleep_s`` of wall time, at Δt_sim 0.2 s: in process every inference is
+    waited for; through ROS the sim runs on while the policy node computes (lockstep only waits at the due tick)."""
+    cfgs = [
+        RunConfig(policy="lq_ros.policies.sleepy:SleepyPolicy", policy_args={"sleep_s": sleep_s}, mode="async",
+                  latency_s=0.2, init=i)
+        for i in range(episodes)
+    ]  # fmt: skip
+    walls: dict[str, list[float]] = {"inprocess": [], "ros": []}
+    stack, worker = RosStack(), EpisodeWorker("inprocess", out / "slow_inprocess")
+    try:
+        for cfg in cfgs:
+            for name in walls:
+                start = time.perf_counter()
+                if name == "inprocess":
+                    env, policy = worker._env_policy(cfg)
+                    outcome, _ = run_episode(cfg, out / "slow_inprocess", name, env=env, policy=policy)
+                else:
+                    outcome, _ = run_episode(cfg, out / "slow_ros", name, stack=stack)
+                walls[name].append(time.perf_counter() - start)
+                assert outcome.status != "error", f"slow {name}: {outcome.reason}"
+    finally:
+        stack.close()
+        worker.close()
+    a, b = statistics.mean(walls["inprocess"]), statistics.mean(walls["ros"])
+    print(f"slow policy ({sleep_s} s per inference, async Δt_sim 0.2 s, {episodes} episodes each): in process "
+          f"{a:.2f} s, ROS long-lived {b:.2f} s per episode (ROS/in-process {b / a:.2f}; the first ROS episode "
+          f"configures the stack)")  # fmt: skip
 
 
 def reset_times(n: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float]:

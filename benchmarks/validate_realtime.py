@@ -12,7 +12,12 @@ For each L, protocol and init state of LIBERO-Spatial task ``--task`` (seed 7):
   had between each request and its chunk taking effect, replayed per request as a ``trace:`` latency
   (written to ``OUT/traces/``), at the real-time run's request threshold. Real time pays what lockstep's
   Δt_sim leaves out (the observation waiting for the sim's step, transport), a few ms that push some chunks
-  past a tick boundary; this arm tells that apart from a fault of the injection model.
+  past a tick boundary; this arm tells that apart from a fault of the injection model. It is a consistency
+  check, not a prediction: an episode's delays exist only after it ran.
+- lockstep, fitted delays (the prediction): for the held-out second half of the init states only, the
+  request-to-effect delays of the real-time episodes of the *first* half (same L and protocol), pooled into an
+  ``empirical:`` latency (each request draws one of them at random; ``OUT/fits/``), at the real-time request
+  threshold. A second table compares the arms on the held-out init states alone.
 
 Episodes are stored under their configuration, so a rerun resumes. Prints success (Wilson 95% CI) and,
 over successes, completion time, jerk (20 Hz) and energy (bootstrap 95% CIs) side by side, plus the
@@ -36,11 +41,13 @@ import pandas as pd  # noqa: E402
 from lq_ros.core.run_config import RunConfig  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.recording.episode_bag import read_run_metadata, scan_mcap  # noqa: E402
+from lq_ros.recording.episode_folder import SCORE_FILE  # noqa: E402
 from lq_ros.run.episode import run_episode, scored_row  # noqa: E402
 from lq_ros.scoring.aggregate import aggregate, ci_text  # noqa: E402
 from lq_ros.wire import messages as m  # noqa: E402
 
 SLEEPY = "lq_ros.policies.sleepy:SleepyPolicy"
+FITTED = "lockstep, fitted delays"
 METRICS = (("completion s (succ.)", "completion_time_s", 2), ("jerk m/s³ (succ.)", "jerk_mean", 1),
            ("energy J (succ.)", "energy_total_j", 0))  # fmt: skip
 
@@ -54,17 +61,44 @@ def configs(latencies: list[float], modes: list[str], inits: int, task: int, out
                 # Same protocol as lockstep at N = L / 50 ms: async asks for the next chunk when N actions are
                 # left (replace's default threshold is the *injected* N, which is 0 here).
                 threshold = round(lat / CONTROL_DT_S) if mode == "async" else -1
-                realtime = RunConfig(**common, clock="realtime", policy=SLEEPY, policy_args={"sleep_s": lat},
-                                     request_threshold=threshold)  # fmt: skip
+                realtime = realtime_config(lat, mode, init, task)
                 yield lat, "realtime", realtime
                 yield lat, "lockstep", RunConfig(**common, latency_s=lat)
                 trace = replay_trace(out / realtime.episode_name(), out / "traces", lat)
+                fitted = fitted_delays(out, lat, mode, inits, task) if init >= inits // 2 else None
+                if fitted is not None:
+                    yield (
+                        lat,
+                        FITTED,
+                        RunConfig(**common, latency_dist=f"empirical:{fitted}", request_threshold=threshold),
+                    )
                 if trace is not None:
                     yield (
                         lat,
                         "lockstep, replayed delays",
                         RunConfig(**common, latency_dist=f"trace:{trace}", request_threshold=threshold),
                     )
+
+
+def realtime_config(lat: float, mode: str, init: int, task: int) -> RunConfig:
+    threshold = round(lat / CONTROL_DT_S) if mode == "async" else -1
+    return RunConfig(suite="libero_spatial", task=task, init=init, seed=7, mode=mode, clock="realtime",
+                     policy=SLEEPY, policy_args={"sleep_s": lat}, request_threshold=threshold)  # fmt: skip
+
+
+def fitted_delays(out: Path, lat: float, mode: str, inits: int, task: int) -> Path | None:
+    """The pooled request-to-effect delays (s) of the real-time episodes of init states 0 .. inits // 2 - 1, as an
+    ``empirical:`` latency file; None until all of them have run."""
+    bags = [out / realtime_config(lat, mode, i, task).episode_name() for i in range(inits // 2)]
+    if not bags or not all((bag / "metadata.yaml").exists() for bag in bags):
+        return None
+    path = out / "fits" / f"task{task}_{mode}_{round(lat * 1000)}ms_inits0-{inits // 2 - 1}.txt"
+    if not path.exists():
+        delays = [d for bag in bags for d in applied_delays_ticks(bag).values()]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        header = f"# request-to-effect delays (s) of {len(bags)} real-time episodes, {mode}, L = {lat:g} s\n"
+        path.write_text(header + "\n".join(f"{d * CONTROL_DT_S:.3f}" for d in delays) + "\n")
+    return path
 
 
 @cache  # read once per bag: the trace and the table both need it
@@ -136,7 +170,7 @@ def main() -> None:
     rows = []
     for lat, arm, cfg in configs(args.latencies, args.modes, args.inits, args.task, args.out):
         bag = args.out / cfg.episode_name()
-        if not (bag / "score.json").exists() and not (bag / "metadata.yaml").exists():
+        if not (bag / SCORE_FILE).exists() and not (bag / "metadata.yaml").exists():
             if args.table_only:
                 continue
             transport = "ros" if cfg.clock == "realtime" else "inprocess"
@@ -152,6 +186,19 @@ def main() -> None:
         print(json.dumps({k: row.get(k) for k in ("clock", "mode", "L_s", "init", "status", "completion_steps")}),
               file=sys.stderr)  # fmt: skip
     episodes = pd.DataFrame(rows)
+    if episodes.empty:
+        raise SystemExit(f"{args.out}: no episodes stored (run without --table-only)")
+    print(cell_table(episodes))
+    print("\nReal-time chunks by request-to-effect delay:\n" + delay_counts(episodes))
+    print("\nPaired episodes (same L, protocol, init state):\n" + paired_agreement(episodes))
+    held_out = episodes[episodes.init >= args.inits // 2]
+    if (held_out.clock == FITTED).any():
+        print(f"\nHeld-out init states {args.inits // 2}-{args.inits - 1} only (the fitted arm's delays come from "
+              f"init states 0-{args.inits // 2 - 1}):\n" + cell_table(held_out))  # fmt: skip
+
+
+def cell_table(episodes: pd.DataFrame) -> str:
+    """Success and metrics per (L, protocol, arm), with intervals."""
     aggs = aggregate(episodes, by=("clock", "mode", "L_s"))
     table = []
     for _, agg in aggs.iterrows():
@@ -164,9 +211,7 @@ def main() -> None:
         line["overrun ticks / ep"] = f"{group.overrun_ticks.mean():.1f}" if agg.clock == "realtime" else "–"
         line["missed cmds / ep"] = f"{group.missed_commands.mean():.1f}" if agg.clock == "realtime" else "–"
         table.append(line)
-    print(pd.DataFrame(table).sort_values(["L s", "mode", "clock"]).to_markdown(index=False))
-    print("\nReal-time chunks by request-to-effect delay:\n" + delay_counts(episodes))
-    print("\nPaired episodes (same L, protocol, init state):\n" + paired_agreement(episodes))
+    return pd.DataFrame(table).sort_values(["L s", "mode", "clock"]).to_markdown(index=False)
 
 
 if __name__ == "__main__":

@@ -18,11 +18,9 @@ def _pin_openblas_kernels() -> None:
     """
     if "OPENBLAS_CORETYPE" in _os.environ:
         return
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            flags = next((line.split(":", 1)[1].split() for line in cpuinfo if line.startswith("flags")), [])
-    except OSError:
-        return
+    from lq_ros.core.cpu import read_cpuinfo  # no numpy there
+
+    flags = read_cpuinfo()["flags"]
     if "avx2" in flags and "fma" in flags:
         _os.environ["OPENBLAS_CORETYPE"] = "Haswell"
 

@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from lq_ros.core.run_config import RunConfig
+from lq_ros.core.run_config import BUDGET_COUNTS, DEFAULT_CAMERA_SIZE_PX, TRANSPORTS, RunConfig
 from lq_ros.scoring.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
 # Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
@@ -23,13 +23,17 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="LIBERO-LQ: latency-aware VLA evaluation on ROS 2.")
 console = Console(stderr=True)
+#: Largest --n-boot of lq score: the bootstrap holds n_boot x episodes draws per cell in memory.
+MAX_N_BOOT = 100_000
 
 ROW_COLUMNS = [
     ("status", "status"),
     ("mode", "mode"),
     ("latency_s", "Δt_sim s"),
     ("latency_dist", "latency"),
+    ("budget_counts", "budget"),
     ("completion_steps", "steps"),
+    ("action_ticks", "action steps"),
     ("completion_time_s", "time s"),
     ("jerk_mean", "jerk m/s³"),
     ("jerk_p90", "jerk P90"),
@@ -39,7 +43,7 @@ ROW_COLUMNS = [
     ("energy_per_step_j", "J/step"),
     ("hold_ticks", "holds"),
     ("underrun_ticks", "underruns"),
-    ("chunk_switch_jump_mean", "switch jump"),
+    ("switch_executed_step_mean", "switch step"),
 ]
 
 
@@ -52,9 +56,12 @@ class LatencyRounding(StrEnum):
     nearest = "nearest"
 
 
-class Transport(StrEnum):
-    ros = "ros"
-    inprocess = "inprocess"
+#: --budget-counts choices (lq_ros.core.run_config.BUDGET_COUNTS).
+BudgetCounts = StrEnum("BudgetCounts", {v: v for v in BUDGET_COUNTS})
+
+
+#: --transport choices (lq_ros.core.run_config.TRANSPORTS).
+Transport = StrEnum("Transport", {v: v for v in TRANSPORTS})
 
 
 def _refuse(message: str) -> None:
@@ -69,7 +76,9 @@ def _make_room(bag: Path, overwrite: bool) -> None:
     """The episode's bag folder must be new: refuse a rerun into the same --out, or replace it on request."""
     import shutil
 
-    leftovers = [p for p in (bag, bag.with_name(bag.name + ".logs")) if p.exists()]
+    from lq_ros.recording.episode_folder import episode_folders
+
+    leftovers = [p for p in episode_folders(bag) if p.exists()]
     if leftovers and not overwrite:
         _refuse(f"bag folder {bag} already exists (this configuration already ran into this --out); "
                 "pass --overwrite to replace it, or choose another --out")  # fmt: skip
@@ -130,6 +139,13 @@ def run(
     request_threshold: Annotated[
         int, typer.Option(help="async: request at this buffer size; -1: the merge strategy's default (replace: N).")
     ] = _RUN.request_threshold,
+    request_slack: Annotated[
+        int,
+        typer.Option(
+            help="async: request K actions earlier than the threshold (replace: at N + K). 0, the default, is the "
+            "lockstep best case: a chunk lands exactly as the buffer empties (docs/async.md)."
+        ),
+    ] = _RUN.request_slack,
     merge: Annotated[
         str,
         typer.Option(
@@ -140,10 +156,18 @@ def run(
     policy: str = _RUN.policy,
     policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
     camera_size: Annotated[
-        int, typer.Option(help="Camera render size, px; 0: the policy's reference size, else 224.")
+        int,
+        typer.Option(help=f"Camera render size, px; 0: the policy's reference size, else {DEFAULT_CAMERA_SIZE_PX}."),
     ] = _RUN.camera_size,
     physics_rate: Annotated[bool, typer.Option(help="Also record 500 Hz poses and joint states.")] = _RUN.physics_rate,
     max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = _RUN.max_steps,
+    budget_counts: Annotated[
+        BudgetCounts,
+        typer.Option(
+            help="What the tick budget counts: all ticks (the paper's: holds count) or action ticks only (those "
+            "whose command came from a chunk; the episode still stops at 4x the budget; docs/scoring.md)."
+        ),
+    ] = BudgetCounts(_RUN.budget_counts),
     clock: Annotated[
         str,
         typer.Option(
@@ -184,8 +208,9 @@ def run(
         cfg = RunConfig(
             suite=suite, task=task, init=init, seed=seed, mode=mode, **latency_fields,
             replan_steps=replan_steps, hold=hold, request_threshold=request_threshold, merge=merge,
-            policy=policy, policy_args=_parse_policy_args(policy_arg), camera_size=camera_size,
-            physics_rate=physics_rate, max_steps=max_steps, clock=clock, robot=robot,
+            request_slack=request_slack, policy=policy, policy_args=_parse_policy_args(policy_arg),
+            camera_size=camera_size, physics_rate=physics_rate, max_steps=max_steps,
+            budget_counts=budget_counts.value, clock=clock, robot=robot,
         )  # fmt: skip
         if cfg.clock == "realtime" and transport is not Transport.ros:
             raise ValueError("--clock realtime runs through ROS only (--transport ros)")
@@ -297,7 +322,7 @@ def score(
     overhead_w: Annotated[float, typer.Option(help="Constant overhead power, W.")] = OVERHEAD_POWER_W,
     out: Annotated[Path | None, typer.Option(help="Where tables go (directory input: default PATH).")] = None,
     jobs: Annotated[int, typer.Option(help="Scoring processes.")] = 1,
-    n_boot: Annotated[int, typer.Option(help="Bootstrap resamples per confidence interval.")] = 2000,
+    n_boot: Annotated[int, typer.Option(help="Bootstrap resamples per confidence interval, 1..100000.")] = 2000,
     seed: Annotated[int, typer.Option(help="Bootstrap seed.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per episode on stdout.")] = False,
 ) -> None:
@@ -306,6 +331,20 @@ def score(
     from lq_ros.scoring.aggregate import aggregate, markdown_table, score_directory, write_tables
     from lq_ros.scoring.bag_scorer import find_bags
 
+    # Options are checked before any bag is read: a bad one would otherwise surface per bag, or after scoring.
+    if osc_window < 1:
+        _refuse(f"--osc-window must be >= 1 (EE-Osc window K in samples), got {osc_window}")
+    if not 1 <= n_boot <= MAX_N_BOOT:
+        _refuse(f"--n-boot must be 1..{MAX_N_BOOT} bootstrap resamples, got {n_boot}")
+    if seed < 0:
+        _refuse(f"--seed must be >= 0, got {seed}")
+    if jobs < 1:
+        _refuse(f"--jobs must be >= 1 scoring processes, got {jobs}")
+    for name, value in (("--elec-coeff", elec_coeff), ("--overhead-w", overhead_w)):
+        if not 0 <= value < float("inf"):
+            _refuse(f"{name} must be a finite number >= 0, got {value}")
+    if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO would block the read forever
+        _refuse(f"{path}: not a regular file or folder (a FIFO or device is never read as a bag)")
     if not find_bags(path):
         console.print(f"[red]no rosbag2 MCAP bag at or below {path}[/red]")
         raise typer.Exit(2)
@@ -395,7 +434,7 @@ def sweep(
             sweep_spec, out, workers=workers, transport=transport.value if transport else None,
             backend=backend, address=address, retry_errors=retry_errors,
         )  # fmt: skip
-    except sw.RayConnectError as exc:  # a wrong --address or authentication token
+    except (sw.RayConnectError, sw.StoreError) as exc:  # a wrong --address or token; --out busy or unusable
         _refuse(str(exc))
     c = summary.counts
     console.print(
@@ -508,7 +547,10 @@ def replay(
     try:
         result = replay_bag(bag, video=video, cameras=names, size_px=size)
     except ReplayRefused as exc:
-        console.print(f"[red]cannot replay[/red] {bag}: {exc}", soft_wrap=True, highlight=False)
+        from rich.markup import escape
+
+        reason = escape(" ".join(f"{bag}: {exc}".split()))  # one line, brackets in a file's text kept
+        console.print(f"[red]cannot replay[/red] {reason}", soft_wrap=True, highlight=False)
         raise typer.Exit(2) from None
     if as_json:
         print(json.dumps(result.to_dict(), sort_keys=True))
@@ -524,14 +566,17 @@ def reindex(
 ) -> None:
     """Rebuild the metadata.yaml of bags from their .mcap (like ros2 bag reindex), e.g. after the recorder was
     killed; the run metadata is kept, the .mcap is not modified. Exits 1 if any .mcap is damaged."""
+    from lq_ros.recording.episode_bag import BagRefused
     from lq_ros.recording.episode_bag import reindex as reindex_bag
 
     damaged = False
     for bag in bags:
         try:
             result = reindex_bag(bag)
-        except FileNotFoundError as exc:
+        except (FileNotFoundError, BagRefused) as exc:  # no .mcap, a FIFO, a metadata.yaml directory
             _refuse(str(exc))
+        except OSError as exc:  # e.g. a read-only bag folder
+            _refuse(f"{bag}: cannot rebuild metadata.yaml ({exc})")
         state = "; ".join(result.damage) if result.damage else "complete"
         console.print(f"{bag}: {result.messages} messages ({state})", soft_wrap=True, highlight=False, markup=False)
         damaged |= bool(result.damage)

@@ -31,6 +31,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
+from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import versions
 from lq_ros.robot.delta_to_target import DeltaToTarget
 from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, missing_task_objects
@@ -40,6 +41,7 @@ from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import declare_run_config, publisher, raw_subscription, run
 from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
 #: Latest-sample subscriptions: best effort matches any publisher (a robot driver's QoS is its own); depth 1:
 #: a busy bridge skips stale samples instead of working through a 500 Hz backlog.
@@ -59,7 +61,7 @@ def _ns(header) -> int:
 
 class BridgeNode(Node):
     def __init__(self) -> None:
-        super().__init__("lq_bridge")
+        super().__init__(NODE_NAMES["bridge"])
         cfg = declare_run_config(self)
         # What the policy needs (the launcher asks the policy and refuses a robot that lacks it).
         self.declare_parameter("cameras", [""])
@@ -108,7 +110,9 @@ class BridgeNode(Node):
         self.clock: TickClock | None = None
         self.finished = False
         self.last_tick = -1  # last commanded tick
+        self.timeout_tick = 0  # the tick count a TIMEOUT reports
         self.commands = 0
+        self.action_ticks = 0  # commanded ticks whose command came from a chunk (budget_counts action)
         self.versions = versions()
         self.start_timer = self.create_timer(0.05, self.start_when_ready)
         self.create_timer(0.01, self.check_timeout)
@@ -231,14 +235,16 @@ class BridgeNode(Node):
             self.gripper_pub.publish(Float64MultiArray(data=[target.gripper_width_m]))
         self.last_tick = max(self.last_tick, cmd.tick)
         self.commands += 1
+        self.action_ticks += cmd.source == Source.CHUNK
 
     def check_timeout(self) -> None:
         if self.clock is None or self.finished:
             return
-        if time.time_ns() >= self.clock.tick_ns(self.cfg.budget):
-            self.end(
-                m.EventKind.TIMEOUT, f"step budget {self.cfg.budget} reached ({self.cfg.budget * PERIOD_NS / 1e9:g} s)"
-            )
+        ticks = self.clock.tick_at(time.time_ns())  # ticks whose wall time has fully passed
+        spent = self.cfg.budget_spent(ticks, self.action_ticks)
+        if spent:
+            self.timeout_tick = min(ticks, self.cfg.tick_limit)
+            self.end(m.EventKind.TIMEOUT, f"{spent} ({ticks * PERIOD_NS / 1e9:g} s)")
 
     def on_event(self, event) -> None:
         if event.kind in m.EventKind.TERMINAL and not self.finished:
@@ -251,7 +257,7 @@ class BridgeNode(Node):
 
     def end(self, kind: int, reason: str, detail: dict | None = None) -> None:
         # Ticks whose command the robot had: the tick count of the outcome (as the sim's state.tick).
-        tick = self.cfg.budget if kind == m.EventKind.TIMEOUT else self.last_tick + 1
+        tick = self.timeout_tick if kind == m.EventKind.TIMEOUT else self.last_tick + 1
         detail = dict(detail or {}, commands_received=self.commands)
         if self.clock is not None:
             wall0, robot0 = self.started_at

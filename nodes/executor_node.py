@@ -1,10 +1,15 @@
 """Executor node: the sync hold / async buffer protocol at the control rate (lockstep on /clock).
 
-Each /clock message starts a control tick. Per tick (see lq_ros.core.executor_protocol): apply the chunk due now
-(waiting for it if needed), maybe request an observation (and wait until the sim has captured it,
-so the observation is of this tick), then publish the one command for the tick. Malformed chunks
-are rejected with a CHUNK_REJECTED event and never published as commands (lq_ros.transport.ros.endpoints.ExecutorLink,
-shared with the real-time executor).
+Per tick (see lq_ros.core.executor_protocol): apply the chunk due now (waiting for it if needed), maybe request
+an observation (once /clock says the sim is at that tick, and wait until the sim has captured it, so the
+observation is of this tick), then publish the one command for the tick. Ticks that need neither are
+commanded ahead, without waiting for the sim (``advance``). Malformed chunks are rejected with a CHUNK_REJECTED
+event and never published as commands (lq_ros.transport.ros.endpoints.ExecutorLink, shared with the real-time
+executor).
+
+Only the policy node's chunks are heard (lq_ros.transport.ros.senders), and of those only the chunk of the
+outstanding request is held (one at most, the first to arrive): a chunk for any other request id is dropped
+with a WARNING event. A callback that raises ends the episode as an error (an ERROR event); the node lives on.
 
 Managed node: activate builds a fresh protocol core from the episode's parameters (mode, latency,
 merge... may change between episodes); deactivate stops it.
@@ -17,15 +22,19 @@ import time
 
 from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
 from lq_ros.core.run_config import RunConfig
-from lq_ros.core.suite_constants import tick_of_sim_time
+from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
 from lq_ros.transport.ros.endpoints import ExecutorLink
 from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
+
+#: WARNING events one episode publishes at most (dropped chunks); later ones are only logged.
+MAX_WARNING_EVENTS = 100
 
 
 class ExecutorNode(EpisodeNode):
     def __init__(self) -> None:
-        super().__init__("lq_executor")
+        super().__init__(NODE_NAMES["executor"])
         # Wall-clock seconds to wait for a due chunk before ending the episode as an error.
         self.declare_parameter("chunk_timeout_s", 60.0)
         self.finished = False
@@ -35,14 +44,18 @@ class ExecutorNode(EpisodeNode):
         self.core = ExecutorCore(cfg.executor_config())
         self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
         self.finished = False
-        self.tick: int | None = None  # tick waiting for its command
-        self.tick_ns = 0
+        self.tick_limit = cfg.tick_limit  # no command is sent for a tick the episode cannot reach
+        self.next_tick = 0  # the tick whose command comes next
+        self.sim_tick = -1  # the last tick the sim announced on /clock (its state is of that tick)
+        self.pending_request = None  # a Request of next_tick, sent once the sim has reached that tick
         self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
-        self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
+        self.outstanding: int | None = None  # the request id whose chunk is awaited (one inference in flight)
+        self.chunk = None  # its ActionChunk, once arrived: the only chunk ever held
+        self.warnings_published = 0
         self.waiting_since: float | None = None
 
         self.link = ExecutorLink(
-            self.core, self.episode_publisher, self.get_logger(), stamp=lambda: (self.tick_ns, self.tick or 0)
+            self.core, self.episode_publisher, self.get_logger(), stamp=lambda: (self.tick_ns, self.next_tick)
         )
         self.episode_subscription(m.CLOCK, self.on_clock)
         self.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
@@ -55,15 +68,31 @@ class ExecutorNode(EpisodeNode):
         self.waiting_since = None
 
     # -- callbacks --------------------------------------------------------------------------
+    @property
+    def tick_ns(self) -> int:
+        """Sim time of ``next_tick``, ns: the stamp of its command, request and events (as in process)."""
+        return m.to_ns(sim_time_of_tick(self.next_tick))
+
     def on_clock(self, msg) -> None:
         if self.finished:
             return
-        self.tick_ns = m.stamp_ns(msg)
-        self.tick = tick_of_sim_time(self.tick_ns / 1e9)
+        self.sim_tick = tick_of_sim_time(m.stamp_ns(msg) / 1e9)
         self.advance()
 
     def on_chunk(self, msg) -> None:
-        self.chunks[msg.request_id] = msg
+        """Hold the chunk of the outstanding request; any other (a stale, duplicate or foreign request id) is
+        dropped with a WARNING event, so nothing accumulates and no later chunk replaces the policy's."""
+        rid = msg.request_id
+        if self.finished:
+            return
+        if rid != self.outstanding:
+            expected = f"request {self.outstanding}" if self.outstanding is not None else "no request"
+            self.warn(f"dropped a chunk for request {rid}: {expected} is outstanding", {"request_id": rid})
+            return
+        if self.chunk is not None:
+            self.warn(f"dropped a second chunk for request {rid}: the first to arrive is applied", {"request_id": rid})
+            return
+        self.chunk = msg
         self.advance()
 
     def on_observation(self, msg) -> None:
@@ -77,13 +106,28 @@ class ExecutorNode(EpisodeNode):
 
     # -- the tick state machine -------------------------------------------------------------
     def advance(self) -> None:
-        """Do as much of the current tick as the messages in hand allow (lq_ros.core.executor_protocol's loop)."""
-        while not self.finished and self.tick is not None and self.awaiting_observation is None:
-            step = self.core.advance(self.tick)
+        """Command as many ticks as the messages in hand allow (lq_ros.core.executor_protocol's loop).
+
+        A tick's command depends on a new observation only at a request tick and on a new chunk only at its
+        due tick; every other command (buffered actions, holds) is known already. So the commands run ahead of
+        the sim up to the next tick that needs either, and the sim steps through them without a round trip per
+        tick. A request is sent once the sim has reached its tick (/clock), and the tick's command only once the
+        sim has captured that observation, so the observation is of that tick, exactly as in process.
+        """
+        while not self.finished and self.sim_tick >= 0 and self.awaiting_observation is None:
+            if self.next_tick >= self.tick_limit:
+                return  # the episode ends there at the latest (the sim's budget rule)
+            if self.pending_request is not None:
+                if self.sim_tick < self.next_tick:
+                    return  # on_clock calls advance again when the sim gets there
+                request, self.pending_request = self.pending_request, None
+                self.awaiting_observation = self.outstanding = request.request_id
+                self.chunk = None
+                self.link.request_observation(self.tick_ns, request)
+                continue
+            step = self.core.advance(self.next_tick)
             if isinstance(step, ObservationNeeded):
-                # Continue once the sim has captured the observation of this tick.
-                self.awaiting_observation = step.request.request_id
-                self.link.request_observation(self.tick_ns, step.request)
+                self.pending_request = step.request
             elif isinstance(step, ChunkDue):
                 if not self.deliver(step.request):
                     return  # not arrived yet: on_chunk calls advance again
@@ -91,14 +135,15 @@ class ExecutorNode(EpisodeNode):
                 self.end_with_error(step.reason)
             else:
                 self.link.command(self.tick_ns, step)
-                self.tick = None
+                self.next_tick += 1
 
     def deliver(self, due) -> bool:
         """Apply the chunk due at this tick; False while it has not arrived."""
-        msg = self.chunks.pop(due.request_id, None)
+        msg = self.chunk if due.request_id == self.outstanding else None
         if msg is None:
             self.waiting_since = self.waiting_since or time.monotonic()
             return False
+        self.chunk = self.outstanding = None
         self.waiting_since = None
         error = self.link.apply_chunk(due.request_id, msg)
         if error:
@@ -113,6 +158,23 @@ class ExecutorNode(EpisodeNode):
         self.link.error(reason)
         self.finished = True
         self.waiting_since = None
+
+    def warn(self, reason: str, detail: dict | None = None) -> None:
+        """A WARNING event (recorded in the bag), at most MAX_WARNING_EVENTS per episode; the rest are logged."""
+        self.warnings_published += 1
+        if self.warnings_published > MAX_WARNING_EVENTS:
+            self.get_logger().warning(reason)
+            return
+        if self.warnings_published == MAX_WARNING_EVENTS:
+            reason += f" (warning {MAX_WARNING_EVENTS}: further ones of this episode are logged only)"
+        self.get_logger().warning(reason)
+        self.link.event(m.EventKind.WARNING, reason, {"node": "executor", **(detail or {})})
+
+    def on_callback_error(self, reason: str) -> None:
+        """A callback failed: the tick state machine is in an unknown state, so the episode ends as an error
+        (recorded), and the node lives on for the next one."""
+        if self.active and not self.finished:
+            self.end_with_error(f"executor: {reason}")
 
 
 def main() -> None:

@@ -33,8 +33,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-#: Launcher name -> ROS node name.
-NODE_NAMES = {"sim": "lq_sim", "policy": "lq_policy", "executor": "lq_executor", "metrics": "lq_metrics"}
+from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES
+
 #: Activation order: the recorder before anything is published, the simulator (which starts the episode) last.
 ACTIVATE_ORDER = ("metrics", "policy", "executor", "sim")
 #: Deactivation order of a stop: stepping ends first, the recorder closes its bag last.
@@ -54,10 +54,12 @@ class TransitionFailed(Exception):
 
 class LifecycleManager(Node):
     def __init__(self) -> None:
-        super().__init__("lq_manager")
-        self.change = {n: self.create_client(ChangeState, f"/{r}/change_state") for n, r in NODE_NAMES.items()}
-        self.get = {n: self.create_client(GetState, f"/{r}/get_state") for n, r in NODE_NAMES.items()}
-        self.set_params = {n: self.create_client(SetParameters, f"/{r}/set_parameters") for n, r in NODE_NAMES.items()}
+        super().__init__(NODE_NAMES["manager"])
+        self.change = {n: self.create_client(ChangeState, f"/{r}/change_state") for n, r in MANAGED_NODE_NAMES.items()}
+        self.get = {n: self.create_client(GetState, f"/{r}/get_state") for n, r in MANAGED_NODE_NAMES.items()}
+        self.set_params = {
+            n: self.create_client(SetParameters, f"/{r}/set_parameters") for n, r in MANAGED_NODE_NAMES.items()
+        }
 
     # -- service calls --------------------------------------------------------------------------------
     def _wait(self, node: str, what: str, futures_timeout_s: float, *futures) -> list:

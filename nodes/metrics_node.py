@@ -8,30 +8,43 @@ the bag is closed, scored with lq_ros.scoring.bag_scorer and the score written n
 Stopped early (deactivated, Ctrl-C), it records a STOPPED event so the episode scores as an error, not
 a failure.
 
+Episode events are recorded only from the sim and executor nodes, chunks only from the policy node
+(lq_ros.transport.ros.senders): a message another participant of the domain publishes there (a forged SUCCESS)
+is recorded as a WARNING event instead, never as the outcome. A message that cannot be recorded (e.g. a chunk
+whose latency is no whole number of ticks) is dropped with a WARNING event; no callback ends the node.
+
 Managed node: activate opens the episode's bag (``bag_path``); once the bag is closed and scored the
 node deactivates itself, which tells the lifecycle manager the episode is over.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig, versions
-from lq_ros.core.suite_constants import sim_time_of_tick
+from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
 from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
+from lq_ros.recording.episode_folder import SCORE_FILE
 from lq_ros.scoring.bag_scorer import score_bag, to_json
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, msg_class, run_managed
+from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
-SCORE_FILE = "score.json"
+#: WARNING events the recorder writes per episode at most (rogue or unusable messages); then one count.
+MAX_WARNING_EVENTS = 100
+#: Topics whose messages the recorder reads (episode events: outcome; commands: the last tick).
+_DECODED = (m.EPISODE_EVENTS.name, m.COMMAND.name)
 
 
 class MetricsNode(EpisodeNode):
     def __init__(self) -> None:
-        super().__init__("lq_metrics")
+        super().__init__(NODE_NAMES["metrics"])
         self.declare_parameter("bag_path", "")
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
@@ -53,14 +66,21 @@ class MetricsNode(EpisodeNode):
         self.started_detail: dict = {}
         self.last_message = time.monotonic()
         self.terminal_seen = False
-        self.last_tick = 0
+        self.last_tick = 0  # the last tick whose command was recorded
+        self.sim_tick = 0  # the last tick whose state the sim published
+        self.end_tick: int | None = None  # commands of this tick and later were never applied (terminal event)
+        self.held_commands: list[tuple[int, int, bytes]] = []  # (tick, log ns, bytes) not yet known applied
+        self.warnings_written = 0
+        self.warnings_suppressed = 0
         self.writer = EpisodeBagWriter(self.bag_path, self.topics)
         self.finished = False
         self.writer.set_run_metadata(self._run_metadata(self.versions))
         for topic in self.topics:
-            sub = self.create_subscription(
-                msg_class(topic.msgtype), topic.name, self._recorder(topic), LOSSLESS_QOS, raw=True
-            )
+            record = self._recorder(topic)
+            if topic.name in EXPECTED_SENDERS:  # only its stack nodes: others' are recorded as warnings
+                sub = SenderSubscription(self, msg_class(topic.msgtype), topic.name, LOSSLESS_QOS, record)
+            else:
+                sub = self.create_subscription(msg_class(topic.msgtype), topic.name, record, LOSSLESS_QOS, raw=True)
             self._episode_entities.append(sub)
         self.episode_timer(0.1, self.finish_when_quiet)
 
@@ -73,17 +93,109 @@ class MetricsNode(EpisodeNode):
             self.finish()
 
     def _recorder(self, topic: m.Topic):
-        def record(data: bytes) -> None:
+        checked = topic.name in EXPECTED_SENDERS
+
+        def record(data: bytes, sender: str | None = None) -> None:
             if self.finished:
                 return
-            self.writer.write(topic, log_time_ns(topic, data), data)
-            self.last_message = time.monotonic()
-            if topic.name == m.EPISODE_EVENTS.name:
-                self.on_event(m.deserialize(data, topic.msgtype))
-            elif topic.name == m.COMMAND.name:
-                self.last_tick = m.deserialize(data, topic.msgtype).tick
+            if checked and not expected_sender(self, topic.name, sender):
+                self.on_rogue_message(topic, sender, data)
+                return
+            try:
+                log_ns = log_time_ns(topic, data)
+                message = m.deserialize(data, topic.msgtype) if topic.name in _DECODED else None
+            except Exception as exc:  # noqa: BLE001 - e.g. a chunk whose latency is no whole number of ticks
+                self.get_logger().error(f"unusable message on {topic.name}: {exc}\n{traceback.format_exc()}")
+                source = sender_text(sender) if checked else "its publisher"
+                self.record_warning(
+                    f"recorder: dropped a message on {topic.name} from {source} ({len(data)} bytes): "
+                    f"{type(exc).__name__}: {exc}",
+                    {"topic": topic.name},
+                )
+                return
+            try:
+                self.last_message = time.monotonic()
+                if topic.name == m.COMMAND.name:
+                    self.hold_command(message.tick, log_ns, data)
+                    return
+                self.writer.write(topic, log_ns, data)
+                if topic.name == m.EPISODE_EVENTS.name:
+                    self.on_event(message)
+                elif topic.name == m.JOINT_STATES.name:
+                    self.sim_reached(tick_of_sim_time(log_ns / 1e9))
+            except Exception as exc:  # noqa: BLE001 - never out of the spin loop: the recorder must live
+                self.get_logger().error(f"recording {topic.name} failed: {exc}\n{traceback.format_exc()}")
+                self.record_warning(f"recorder: a message on {topic.name} failed: {type(exc).__name__}: {exc}")
 
         return record
+
+    def on_rogue_message(self, topic: m.Topic, sender: str | None, data: bytes) -> None:
+        """Not recorded on its topic (it is not the episode's), but as a WARNING event saying what came from whom."""
+        what = ""
+        if topic.name == m.EPISODE_EVENTS.name:
+            with contextlib.suppress(Exception):
+                event = m.deserialize(data, topic.msgtype)
+                what = f" ({m.EventKind.NAMES.get(event.kind, event.kind)} event, tick {event.tick})"
+        elif topic.name == m.ACTION_CHUNK.name:
+            with contextlib.suppress(Exception):
+                what = f" (chunk for request {m.deserialize(data, topic.msgtype).request_id})"
+        self.get_logger().warning(f"ignored a message on {topic.name} from {sender_text(sender)}{what}")
+        self.record_warning(
+            f"recorder: ignored a message on {topic.name} from {sender_text(sender)}{what}: only "
+            f"{', '.join(EXPECTED_SENDERS[topic.name])} publish there",
+            {"topic": topic.name, "sender": sender or ""},
+        )
+
+    def on_callback_error(self, reason: str) -> None:
+        self.record_warning(f"recorder: {reason}")
+
+    def record_warning(self, reason: str, detail: dict | None = None) -> None:
+        """A WARNING event in the bag (at the last commanded tick), at most MAX_WARNING_EVENTS per episode."""
+        if self.finished:
+            return
+        if self.warnings_written >= MAX_WARNING_EVENTS:
+            self.warnings_suppressed += 1
+            return
+        self.warnings_written += 1
+        t_ns = m.to_ns(sim_time_of_tick(self.last_tick))
+        data = m.event_msg(t_ns, m.EventKind.WARNING, self.last_tick, reason, {"node": "recorder", **(detail or {})})
+        try:
+            self.writer.write(m.EPISODE_EVENTS, t_ns, data)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f"cannot record the warning {reason!r}: {exc}")
+
+    # -- commands: recorded once applied --------------------------------------------------------------------
+    def hold_command(self, tick: int, log_ns: int, data: bytes) -> None:
+        """Record the command of ``tick`` once the sim has stepped it (its state of tick + 1 arrived).
+
+        The executor sends the commands of ticks that need no new observation or chunk ahead of the sim; the
+        episode may end (success, budget) before the sim reaches them. Those were never applied, and the bag
+        records what the robot did, as the in-process transport does."""
+        if self.end_tick is not None and tick >= self.end_tick:
+            return
+        if tick < self.sim_tick:
+            self.write_command(tick, log_ns, data)
+        else:
+            self.held_commands.append((tick, log_ns, data))
+
+    def sim_reached(self, tick: int) -> None:
+        """The sim's state of ``tick`` arrived: every command before it was applied."""
+        self.sim_tick = max(self.sim_tick, tick)
+        self.flush_commands(self.sim_tick)
+
+    def flush_commands(self, before_tick: int) -> None:
+        """Write the held commands of ticks before ``before_tick``; keep the rest."""
+        keep = []
+        for tick, log_ns, data in self.held_commands:
+            if tick < before_tick:
+                self.write_command(tick, log_ns, data)
+            else:
+                keep.append((tick, log_ns, data))
+        self.held_commands = keep
+
+    def write_command(self, tick: int, log_ns: int, data: bytes) -> None:
+        self.writer.write(m.COMMAND, log_ns, data)
+        self.last_tick = max(self.last_tick, tick)
 
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED:
@@ -91,12 +203,20 @@ class MetricsNode(EpisodeNode):
             self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
         elif event.kind in m.EventKind.TERMINAL:
             self.terminal_seen = True
+            # SUCCESS and TIMEOUT at tick T come after the sim stepped T - 1: commands of T on were never applied.
+            # An ERROR at T (e.g. the step of T failed) keeps the command of T, as the in-process runner does.
+            stepped = event.kind in (m.EventKind.SUCCESS, m.EventKind.TIMEOUT)
+            self.end_tick = event.tick if stepped else event.tick + 1
+            self.flush_commands(self.end_tick)
+            self.held_commands = []
 
     def finish_when_quiet(self) -> None:
         if self.terminal_seen and not self.finished and time.monotonic() - self.last_message > self.quiet_period_s:
-            self.finish()
-            # The episode is recorded: leave the active state (the manager waits for this transition).
-            self.trigger_deactivate()
+            try:
+                self.finish()
+            finally:
+                # The episode is recorded: leave the active state (the manager waits for this transition).
+                self.trigger_deactivate()
 
     def _env_versions(self) -> dict:
         """The simulator's versions (from its STARTED event), with this node's rclpy."""
@@ -109,10 +229,19 @@ class MetricsNode(EpisodeNode):
         return run_metadata(self.cfg, self.policy_params, "ros", env_versions, camera_size_px)
 
     def finish(self) -> None:
+        if self.warnings_suppressed:
+            self.warnings_written = 0
+            self.record_warning(f"recorder: {self.warnings_suppressed} more warnings of this episode not recorded")
+        if self.end_tick is not None:  # applied commands that arrived after the sim's last state
+            self.flush_commands(self.end_tick)
         self.finished = True
         self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
         self.writer.close()
-        row = score_bag(self.bag_path)
+        try:
+            row = score_bag(self.bag_path)
+        except Exception as exc:  # noqa: BLE001 - the bag is closed and kept; the launcher scores it again
+            self.get_logger().error(f"scoring {self.bag_path} failed: {exc}\n{traceback.format_exc()}")
+            return
         (self.bag_path / SCORE_FILE).write_text(to_json(row) + "\n")
         self.get_logger().info(f"episode {row['status']}; bag {self.bag_path}")
 

@@ -12,27 +12,97 @@ wall time instead).
 Managed node: configure builds the policy (``policy``, ``policy_args``); activate checks it can run the
 episode's protocol (merge) and resets the episode state; the policy itself is reset for the task and
 seed when the sim announces the episode (STARTED).
+
+Who chooses the policy: any participant of the ROS domain can set this node's parameters between
+episodes (``/lq_policy/set_parameters``), but a ``package.module:Class`` policy runs code, so it is built
+only if the launching user chose it: it (with the same ``policy_args``) is what the process was started
+with (``--params-file`` / ``-p``), or what the params file it was started with says at configure (the
+launcher rewrites that file, in its private folder, before every episode). A registered policy name
+(``scripted``, ``oft``, ``flow``, ``openpi``, ``openvla``...) may be switched at runtime. Anything else is
+refused at configure, with the reason, before the module is imported.
 """
 
 from __future__ import annotations
 
+import fnmatch
+import json
 import sys
+from pathlib import Path
+
+import yaml
 
 from lq_ros.core.run_config import RunConfig
-from lq_ros.policies import Policy, make_policy
+from lq_ros.policies import REGISTRY, Policy, is_registered, make_policy
 from lq_ros.transport.ros.endpoints import ChunkServer
 from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
+
+NODE_NAME = NODE_NAMES["policy"]
+
+
+def params_file_paths(argv: list[str]) -> list[Path]:
+    """The ``--params-file`` arguments among the ROS arguments of ``argv`` (in order)."""
+    paths, in_ros_args = [], False
+    for i, arg in enumerate(argv):
+        if arg == "--ros-args":
+            in_ros_args = True
+        elif arg == "--" and in_ros_args:
+            in_ros_args = False
+        elif in_ros_args and arg == "--params-file" and i + 1 < len(argv):
+            paths.append(Path(argv[i + 1]))
+    return paths
+
+
+def policy_in_params_file(path: Path, node_name: str = NODE_NAME) -> tuple[str, dict] | None:
+    """(policy, policy_args) a ROS params file sets for the node (``/**``, ``/node`` sections, later ones win);
+    None if it sets no policy or cannot be read."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    merged: dict = {}
+    for pattern, section in (data or {}).items() if isinstance(data, dict) else ():
+        key = str(pattern) if str(pattern).startswith("/") else f"/{pattern}"
+        if fnmatch.fnmatchcase(f"/{node_name}", key) and isinstance(section, dict):
+            merged.update(section.get("ros__parameters") or {})
+    if not isinstance(merged.get("policy"), str):
+        return None
+    try:
+        args = json.loads(merged.get("policy_args", "{}"))
+    except (TypeError, ValueError):
+        return None
+    return (merged["policy"], args) if isinstance(args, dict) else None
+
+
+def refuse_untrusted_policy(policy: str, args: dict, chosen_by_user: list[tuple[str, dict]]) -> None:
+    """ValueError unless ``policy`` is a registry name or exactly a (policy, args) the launching user chose."""
+    if is_registered(policy) or (policy, args) in chosen_by_user:
+        return
+    raise ValueError(
+        f"policy {policy!r} with these policy_args was set at runtime, not by the user who launched this node: "
+        "a package.module:Class policy runs code, so it is accepted only from the launch (params file or "
+        f"--ros-args -p policy:=...); at runtime choose a registered policy ({', '.join(sorted(REGISTRY))})"
+    )
 
 
 class PolicyNode(EpisodeNode):
     CONFIGURE_FIELDS = ("policy", "policy_args")
 
     def __init__(self) -> None:
-        super().__init__("lq_policy")
+        super().__init__(NODE_NAME)
         self.policy: Policy | None = None
+        # What the launching user chose: the parameters this process starts with (no service call has been
+        # served yet), and the params files named on its command line (re-read at configure).
+        self.launch_policy = (self.cfg.policy, self.cfg.policy_args)
+        self.params_files = params_file_paths(sys.argv)
+
+    def chosen_by_user(self) -> list[tuple[str, dict]]:
+        from_files = [policy_in_params_file(path) for path in self.params_files]
+        return [self.launch_policy, *(p for p in from_files if p is not None)]
 
     def configure(self, cfg: RunConfig) -> None:
+        refuse_untrusted_policy(cfg.policy, cfg.policy_args, self.chosen_by_user())  # before any import
         self.policy = make_policy(cfg.policy, **cfg.policy_args)
 
     def activate(self, cfg: RunConfig) -> None:

@@ -26,13 +26,14 @@ from lq_ros.transport.ros.endpoints import ExecutorLink
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
 from lq_ros.transport.ros.wall_clock import COMMAND_DEADLINE_S, OverrunCounter, TickClock
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
 STATS_TOPIC = "/lq/realtime_stats"
 
 
 class RealtimeExecutorNode(Node):
     def __init__(self) -> None:
-        super().__init__("lq_executor")
+        super().__init__(NODE_NAMES["executor"])
         self.core = ExecutorCore(declare_run_config(self).executor_config())
         # Wall-clock seconds to wait for a requested chunk before ending the episode as an error.
         self.declare_parameter("chunk_timeout_s", 60.0)

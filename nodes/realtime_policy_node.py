@@ -19,11 +19,12 @@ from lq_ros.policies import make_policy
 from lq_ros.transport.ros.endpoints import ChunkServer
 from lq_ros.transport.ros.rclpy_helpers import declare_run_config, publisher, raw_subscription, run
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
 
 class RealtimePolicyNode(Node):
     def __init__(self) -> None:
-        super().__init__("lq_policy")
+        super().__init__(NODE_NAMES["policy"])
         cfg = declare_run_config(self)
         self.policy = make_policy(cfg.policy, **cfg.policy_args)
         self.policy.check_merge(cfg.merge)

@@ -29,11 +29,12 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from lq_ros.core.run_config import versions
 from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
+from lq_ros.recording.episode_folder import SCORE_FILE
 from lq_ros.scoring.bag_scorer import score_bag, to_json
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, json_param, msg_class, run
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
-SCORE_FILE = "score.json"
 STATS = m.Topic("/lq/realtime_stats", "std_msgs/msg/String")
 ROBOT_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE,
@@ -46,7 +47,7 @@ _HEADER_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped", 
 
 class RealtimeRecorderNode(Node):
     def __init__(self) -> None:
-        super().__init__("lq_metrics")
+        super().__init__(NODE_NAMES["metrics"])
         self.cfg = declare_run_config(self)
         for name, default in (("bag_path", ""), ("cameras", [""]), ("camera_size_px", 224), ("quiet_period_s", 0.3),
                               ("ee_topic", m.EE_POSE.name), ("joint_topic", m.JOINT_STATES.name),

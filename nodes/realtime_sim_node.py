@@ -21,6 +21,7 @@ import numpy as np
 from rclpy.node import Node
 from std_msgs.msg import String
 
+from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import versions
 from lq_ros.core.suite_constants import DUMMY_ACTION
 from lq_ros.sim.libero_env import LiberoEnv
@@ -28,13 +29,14 @@ from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
 from lq_ros.transport.ros.wall_clock import SIM_STEP_OFFSET_S, START_DELAY_S, OverrunCounter, TickClock, tick_state_msgs
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
 STATS_TOPIC = "/lq/realtime_stats"
 
 
 class RealtimeSimNode(Node):
     def __init__(self) -> None:
-        super().__init__("lq_sim")
+        super().__init__(NODE_NAMES["sim"])
         cfg = declare_run_config(self)
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", cfg.camera_size_for(None))
@@ -58,7 +60,8 @@ class RealtimeSimNode(Node):
             cfg.suite, cfg.task, camera_names=cameras, camera_size=self.get_parameter("camera_size_px").value
         )
         self.state = self.env.reset(cfg.init, cfg.seed)
-        self.commands: dict[int, np.ndarray] = {}  # tick -> action, as they arrive
+        self.commands: dict[int, tuple[np.ndarray, int]] = {}  # tick -> (action, source), as they arrive
+        self.action_ticks = 0  # ticks whose command came from a chunk (budget_counts action)
         self.last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
         self.clock: TickClock | None = None
         self.finished = False
@@ -84,7 +87,7 @@ class RealtimeSimNode(Node):
 
     def on_command(self, cmd) -> None:
         if self.clock is not None and not self.finished and cmd.tick >= self.state.tick:
-            self.commands[cmd.tick] = np.asarray(cmd.action, dtype=np.float64)
+            self.commands[cmd.tick] = (np.asarray(cmd.action, dtype=np.float64), cmd.source)
 
     def on_request(self, req) -> None:
         if self.finished or self.clock is None:
@@ -110,11 +113,12 @@ class RealtimeSimNode(Node):
         if start < scheduled:
             return
         self.drain_commands()
-        action = self.commands.pop(tick, None)
+        action, source = self.commands.pop(tick, (None, None))
         if action is None:
             self.missed.append(tick)
             action = np.zeros(7)
             action[-1] = self.last_action[-1]
+        self.action_ticks += source == Source.CHUNK
         self.last_action = action
         try:
             self.state = self.env.step(action)
@@ -124,10 +128,11 @@ class RealtimeSimNode(Node):
             return self.fail(f"env.step failed at tick {tick}: {exc}", traceback.format_exc())
         self.publish_state()
         self.overruns.record(tick, start - scheduled, time.time_ns() - start)
+        spent = self.cfg.budget_spent(self.state.tick, self.action_ticks)
         if self.state.success:
             self.end(m.EventKind.SUCCESS, "")
-        elif self.state.tick >= self.cfg.budget:
-            self.end(m.EventKind.TIMEOUT, f"step budget {self.cfg.budget} reached")
+        elif spent:
+            self.end(m.EventKind.TIMEOUT, spent)
 
     def drain_commands(self) -> None:
         """Take every command that has arrived before stepping.

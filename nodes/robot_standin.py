@@ -46,6 +46,7 @@ from lq_ros.robot.delta_to_target import width_to_gripper_action
 from lq_ros.robot.robot_config import CLOCK_TOPIC, load_robot_config
 from lq_ros.sim.standin_robot import StandinRobot
 from lq_ros.transport.ros.rclpy_helpers import run
+from lq_ros.wire.node_names import NODE_NAMES
 
 #: What a robot driver typically offers: reliable, volatile (no history for late joiners).
 ROBOT_QOS = QoSProfile(
@@ -73,7 +74,7 @@ def _stamp(msg, t_ns: int) -> None:
 
 class RobotStandin(Node):
     def __init__(self) -> None:
-        super().__init__("robot_standin")
+        super().__init__(NODE_NAMES["robot"])
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default)
         p = {n: self.get_parameter(n).value for n in PARAMETERS}

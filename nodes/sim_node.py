@@ -15,19 +15,21 @@ from __future__ import annotations
 import sys
 import traceback
 
+from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.wire import messages as m
+from lq_ros.wire.node_names import NODE_NAMES
 
 
 class SimNode(EpisodeNode):
     CONFIGURE_FIELDS = ("suite", "task", "cameras", "camera_size_px", "physics_rate")
 
     def __init__(self) -> None:
-        super().__init__("lq_sim")
+        super().__init__(NODE_NAMES["sim"])
         # What the policy needs rendered (the launcher asks the policy).
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
@@ -51,7 +53,9 @@ class SimNode(EpisodeNode):
         self.state = self.env.reset(cfg.init, cfg.seed)  # the hard reset (MjSim built) belongs to configure
 
     def activate(self, cfg: RunConfig) -> None:
-        self.init_index, self.seed, self.budget = cfg.init, cfg.seed, cfg.budget
+        self.init_index, self.seed, self.run_cfg = cfg.init, cfg.seed, cfg
+        self.action_ticks = 0  # ticks whose command came from a chunk (budget_counts action)
+        self.queued: dict = {}  # tick -> ActionCommand received ahead of its tick
         self.min_subscribers = self.get_parameter("min_subscribers").value
         self.min_clock_subscribers = self.get_parameter("min_clock_subscribers").value
         self.finished = False
@@ -101,18 +105,33 @@ class SimNode(EpisodeNode):
         publish_observation(self.pubs, obs, req.request_id)
 
     def on_command(self, cmd) -> None:
-        if self.finished or not self._expect_tick(cmd.tick, "command"):
+        """Queue the command of a tick at or after the current one; step through every queued tick in order.
+
+        The executor may send the commands of several ticks ahead (those that need neither a new observation
+        nor a new chunk), so the sim steps through them without waiting for a round trip per tick.
+        """
+        if self.finished:
             return
+        late = cmd.tick < self.state.tick or cmd.tick in self.queued
+        if not self.started or late or cmd.tick >= self.run_cfg.tick_limit:  # (the limit bounds the queue)
+            self.get_logger().error(f"command for tick {cmd.tick} ignored: the sim is at tick {self.state.tick}")
+            return
+        self.queued[cmd.tick] = cmd
+        while not self.finished and self.state.tick in self.queued:
+            self.step(self.queued.pop(self.state.tick))
+
+    def step(self, cmd) -> None:
         try:
             self.state = self.env.step(cmd.action)
         except Exception as exc:  # noqa: BLE001
             return self.fail(f"env.step failed at tick {cmd.tick}: {exc}", traceback.format_exc())
-        ended = self.state.success or self.state.tick >= self.budget
-        self.publish_state(clock=not ended)
+        self.action_ticks += cmd.source == Source.CHUNK
+        spent = None if self.state.success else self.run_cfg.budget_spent(self.state.tick, self.action_ticks)
+        self.publish_state(clock=not (self.state.success or spent))
         if self.state.success:
             self.end(m.EventKind.SUCCESS, "")
-        elif ended:
-            self.end(m.EventKind.TIMEOUT, f"step budget {self.budget} reached")
+        elif spent:
+            self.end(m.EventKind.TIMEOUT, spent)
 
     def on_event(self, event) -> None:
         # Another node (executor, policy) ended the episode: stop stepping.

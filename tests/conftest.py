@@ -2,9 +2,35 @@
 
 import os
 import tempfile
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="lq_test_roslog_"))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import lq_ros  # noqa: E402,F401 - its OpenBLAS kernel pinning must precede numpy, as in every entry point
+
+#: Every test below this folder starts ROS nodes or imports rclpy: marked ``ros`` (pyproject.toml's markers).
+ROS_TESTS = Path(__file__).resolve().parent / "transport" / "ros"
+
+
+def pytest_collection_modifyitems(items) -> None:
+    for item in items:
+        if item.path.is_relative_to(ROS_TESTS):
+            item.add_marker(pytest.mark.ros)
+
+
+@pytest.fixture(scope="session")
+def spatial_env():
+    """One LIBERO-Spatial task 0 scene without cameras for the whole session.
+
+    For tests that need a scene and reset it before use (a soft reset gives the episode of a fresh env:
+    tests/transport/test_inprocess.py checks it), instead of building one each. Do not close it.
+    """
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    env = LiberoEnv("libero_spatial", 0)
+    yield env
+    env.close()

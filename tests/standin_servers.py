@@ -10,6 +10,15 @@ Both bind 127.0.0.1 on an ephemeral port, check every request (keys, shapes, dty
 instruction), keep what they received, and answer with a deterministic small move computed from
 the robot state, unless told to misbehave (``fault``) from request ``at_request`` (1-based) on
 (REST ``crash``: the server stops listening after answering request ``at_request - 1``).
+
+Hostile servers (a peer that attacks the client rather than failing), also on 127.0.0.1, each bounded
+in time and in the bytes it sends:
+
+- ``HostileOpenPIServer``: openpi's handshake and metadata frame, then every request answered by a
+  given ``reply(ws)`` (e.g. a msgpack-numpy array of object dtype, or a frame header announcing
+  200 MiB followed by a bounded amount of data written to the raw socket).
+- ``RawHTTPServer``: reads one HTTP request per connection and hands the socket to ``respond(sock)``
+  (a body or headers dripping one byte at a time, a huge Content-Length, a redirect, a chunked stream).
 """
 
 from __future__ import annotations
@@ -17,22 +26,29 @@ from __future__ import annotations
 import http
 import json
 import socket
+import struct
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import json_numpy
+import msgpack
 import numpy as np
 from openpi_client import msgpack_numpy
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 from websockets.sync.server import serve
 
+from lq_ros.core.types import Observation
+
 OPENPI_FAULTS = ("none", "slow", "nan", "shape", "nonnumeric", "missing", "error", "close", "garbage")
 OPENVLA_FAULTS = ("none", "slow", "nan", "shape", "nonnumeric", "error", "http500", "close", "garbage", "crash")
 OPENPI_KEYS = {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
 IMAGE_SHAPE = (224, 224, 3)
+#: LIBERO camera names (MuJoCo) of the third-person and wrist views.
+CAMERAS = ("agentview", "robot0_eye_in_hand")
 #: Where the stand-in policy steers the end effector (m, LIBERO world frame), and its gain (1/m).
 TARGET_EEF_POS = np.array([-0.15, 0.05, 1.15])
 GAIN_PER_M = 10.0
@@ -103,6 +119,7 @@ class OpenPIStandin(_Standin):
             raise ValueError(f"fault must be one of {OPENPI_FAULTS}")
         super().__init__(fault, at_request, slow_s, horizon, prompt)
         self.api_key = api_key
+        self.connections = 0  # handshakes (and /healthz requests) received
         self.metadata = {"policy": "openpi-standin", "action_horizon": horizon}
         self._server = serve(
             self._handle, "127.0.0.1", 0, compression=None, max_size=None, process_request=self._http_request
@@ -119,6 +136,7 @@ class OpenPIStandin(_Standin):
         self._thread.join(timeout=5)
 
     def _http_request(self, connection, request):
+        self.connections += 1
         if request.path == "/healthz":
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         if self.api_key is not None and request.headers.get("Authorization") != f"Api-Key {self.api_key}":
@@ -326,3 +344,215 @@ class OpenVLAStandin(_Standin):
             handler.wfile.write(data)
         except OSError:
             pass  # the client gave up (e.g. after its timeout)
+
+
+# -- hostile servers ----------------------------------------------------------------------------
+def standin_observation(size: int = 224, tick: int = 0) -> Observation:
+    """A synthetic observation with both LIBERO cameras (random images): enough for a remote client's request."""
+    rng = np.random.default_rng(tick)
+    quat = np.array([0.99, 0.05, 0.1, 0.02])
+    return Observation(
+        tick=tick,
+        sim_time_s=0.5,
+        eef_pos=np.array([-0.2, 0.01, 1.17]),
+        eef_quat_xyzw=quat / np.linalg.norm(quat),
+        gripper_qpos=np.array([0.039, -0.039]),
+        joint_pos=np.zeros(7),
+        joint_vel=np.zeros(7),
+        images={cam: rng.integers(0, 256, (size, size, 3), dtype=np.uint8) for cam in CAMERAS},
+    )
+
+
+def object_dtype_reply() -> bytes:
+    """The openpi answer that crashes openpi-client's decoder: msgpack-numpy "arrays" of object dtype whose
+    data are 56 bytes of ``A``, i.e. seven object pointers 0x4141414141414141."""
+    o = {b"__ndarray__": True, b"data": b"A" * 56, b"dtype": "O", b"shape": [7]}
+    return msgpack.packb({"actions": [o, o]})
+
+
+def websocket_frame_header(length: int, opcode: int = 2) -> bytes:
+    """Header of a final, unmasked server-to-client websocket frame announcing ``length`` payload bytes."""
+    if length < 126:
+        return bytes([0x80 | opcode, length])
+    if length < 2**16:
+        return bytes([0x80 | opcode, 126]) + struct.pack("!H", length)
+    return bytes([0x80 | opcode, 127]) + struct.pack("!Q", length)
+
+
+class HostileOpenPIServer:
+    """openpi's handshake and metadata frame, then every request answered by ``reply(server, ws)``.
+
+    ``reply`` may write to ``ws.socket`` directly (frames websockets itself would never send); it adds what it
+    wrote to ``sent_bytes``. Use as a context manager.
+    """
+
+    def __init__(self, reply: Callable[[HostileOpenPIServer, object], None]) -> None:
+        self.reply = reply
+        self.requests = 0
+        self.sent_bytes = 0
+        self.handled = threading.Event()  # a connection's handler returned
+        self._server = serve(self._handle, "127.0.0.1", 0, compression=None, max_size=None)
+        self.port: int = self._server.socket.getsockname()[1]
+        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
+
+    def __enter__(self) -> HostileOpenPIServer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._server.shutdown()
+        self._thread.join(timeout=5)
+
+    def _handle(self, ws) -> None:
+        ws.send(msgpack_numpy.packb({"policy": "hostile"}))
+        try:
+            while True:
+                ws.recv()
+                self.requests += 1
+                self.reply(self, ws)
+        except (ConnectionClosed, OSError):
+            return
+        finally:
+            self.handled.set()
+
+
+def send_bytes(server, ws, data: bytes) -> None:
+    """A ``HostileOpenPIServer`` reply: ``data`` as is (e.g. a msgpack message websockets frames normally)."""
+    ws.send(data)
+    server.sent_bytes += len(data)
+
+
+def announce_and_stream(announced: int, limit: int, block: int = 2**20):
+    """A ``HostileOpenPIServer`` reply: a binary frame header announcing ``announced`` bytes, then zero bytes in
+    ``block``-sized writes on the raw socket until ``limit`` bytes are sent or the client hangs up."""
+
+    def reply(server, ws) -> None:
+        sock = ws.socket
+        sock.sendall(websocket_frame_header(announced))
+        zeros = bytes(block)
+        while server.sent_bytes < limit:
+            sock.sendall(zeros)
+            server.sent_bytes += block
+
+    return reply
+
+
+class RawHTTPServer:
+    """Reads one HTTP/1.1 request per connection (headers and Content-Length body), then calls
+    ``respond(server, sock)``, which writes whatever it likes; the connection is closed afterwards.
+    ``requests`` counts the requests read (``heads`` keeps their request lines and headers), ``sent_bytes`` what
+    the responders wrote, ``wait_responded`` waits for the responders to return. Context manager."""
+
+    def __init__(self, respond: Callable[[RawHTTPServer, socket.socket], None]) -> None:
+        self.respond = respond
+        self.requests = 0
+        self.heads: list[bytes] = []
+        self.sent_bytes = 0
+        self._responded = threading.Semaphore(0)
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self._listener.settimeout(0.05)
+        self.port: int = self._listener.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}/act"
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._accept, daemon=True)
+
+    def __enter__(self) -> RawHTTPServer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self._listener.close()
+
+    def _accept(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        with conn:
+            conn.settimeout(10.0)
+            try:
+                if self._read_request(conn):
+                    self.requests += 1
+                    self.respond(self, conn)
+            except OSError:
+                pass  # the client hung up
+            finally:
+                self._responded.release()
+
+    def wait_responded(self, timeout_s: float = 10.0) -> bool:
+        """Whether a connection's responder returned (the client hung up, or it wrote all) within ``timeout_s``."""
+        return self._responded.acquire(timeout=timeout_s)
+
+    def _read_request(self, conn: socket.socket) -> bool:
+        data = b""
+        while b"\r\n\r\n" not in data:
+            chunk = conn.recv(65536)
+            if not chunk:
+                return False
+            data += chunk
+        head, _, body = data.partition(b"\r\n\r\n")
+        self.heads.append(head)
+        length = 0
+        for line in head.split(b"\r\n")[1:]:
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-length":
+                length = int(value)
+        while len(body) < length:
+            chunk = conn.recv(65536)
+            if not chunk:
+                return False
+            body += chunk
+        return True
+
+    def send(self, conn: socket.socket, data: bytes) -> None:
+        conn.sendall(data)
+        self.sent_bytes += len(data)
+
+
+def http_head(status: str = "200 OK", **headers: object) -> bytes:
+    """Status line and headers (``Content_Length=5`` -> ``Content-Length: 5``), blank line included."""
+    lines = [f"HTTP/1.1 {status}"] + [f"{k.replace('_', '-')}: {v}" for k, v in headers.items()]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode()
+
+
+def fixed_response(data: bytes):
+    """A ``RawHTTPServer`` responder: ``data`` at once."""
+    return lambda server, conn: server.send(conn, data)
+
+
+def dripping_response(prefix: bytes, dripped: bytes, period_s: float = 0.9, max_s: float = 4.0):
+    """A ``RawHTTPServer`` responder: ``prefix`` at once, then ``dripped`` one byte per ``period_s`` (each byte
+    well within a per-read timeout), for at most ``max_s`` seconds."""
+
+    def respond(server: RawHTTPServer, conn: socket.socket) -> None:
+        server.send(conn, prefix)
+        started = time.monotonic()
+        for byte in dripped:
+            if time.monotonic() - started + period_s > max_s:
+                return
+            time.sleep(period_s)
+            server.send(conn, bytes([byte]))
+
+    return respond
+
+
+def streaming_response(head: bytes, limit: int, chunked: bool = False, block: int = 2**20):
+    """A ``RawHTTPServer`` responder: ``head``, then zero bytes in ``block``-sized writes (chunked encoding if
+    ``chunked``) until ``limit`` bytes are written or the client hangs up; never more than ``limit``."""
+
+    def respond(server: RawHTTPServer, conn: socket.socket) -> None:
+        server.send(conn, head)
+        payload = bytes(block)
+        piece = f"{block:x}\r\n".encode() + payload + b"\r\n" if chunked else payload
+        while server.sent_bytes + len(piece) <= limit:
+            server.send(conn, piece)
+
+    return respond

@@ -69,6 +69,7 @@ def test_lq_run_refuses_in_one_line(tmp_path, case):
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_rerun_into_the_same_out_is_refused_unless_overwrite(tmp_path):
     args = ["run", "--policy", "sine", "--max-steps", "3", "--transport", "inprocess", "--out", str(tmp_path)]
     first = lq(*args)
@@ -124,3 +125,27 @@ def test_lq_sweep_refuses_an_unreadable_spec(tmp_path):
 
 def test_lq_reindex_of_a_folder_without_a_bag_is_refused(tmp_path):
     assert_refused(lq("reindex", str(tmp_path)), "no .mcap file")
+
+
+# -- lq score: options are checked before any bag is read -----------------------------------------------------
+
+SCORE_CASES = {
+    "zero EE-Osc window": (["--osc-window", "0"], ["--osc-window must be >= 1", "got 0"]),
+    "zero bootstrap resamples": (["--n-boot", "0"], ["--n-boot must be 1..100000", "got 0"]),
+    "too many bootstrap resamples": (["--n-boot", "100000000"], ["--n-boot must be 1..100000"]),
+    "negative seed": (["--seed", "-1"], ["--seed must be >= 0"]),
+    "zero jobs": (["--jobs", "0"], ["--jobs must be >= 1"]),
+    "negative overhead power": (["--overhead-w", "-5"], ["--overhead-w must be a finite number >= 0"]),
+}
+
+
+@pytest.mark.parametrize("case", list(SCORE_CASES))
+def test_lq_score_refuses_a_bad_option_before_scoring(tmp_path, case):
+    from tests.scoring.test_bag_scorer import write_episode_bag
+
+    args, expected = SCORE_CASES[case]
+    root = tmp_path / "bags"
+    write_episode_bag(root / "ep", n_ticks=20)
+    write_episode_bag(root / "ep2", n_ticks=20)
+    assert_refused(lq("score", str(root), *args), *expected)
+    assert not (root / "episodes.csv").exists()  # nothing was scored or written

@@ -13,7 +13,7 @@ drives each control tick ``m`` by calling :meth:`ExecutorCore.advance` until it 
 
 Because a chunk requested at tick n is applied exactly at tick n + N whatever its wall-clock
 inference time, results never depend on the measured latency (lockstep determinism). With a latency
-distribution (lq_ros/core/latency.py) each request draws its own N from (episode seed, request id).
+distribution (lq_ros/core/latency.py) each request draws its own N from (the episode's latency stream, request id).
 
 **One inference in flight.** A request is made only when no other is outstanding, as with a policy server
 that answers one request at a time (openpi, LeRobot's and OpenVLA's servers, this stack's policy node).
@@ -81,13 +81,17 @@ class ExecutorConfig:
     #: async: request the next chunk when at most this many actions remain buffered
     #: (None: the merge strategy's default, lq_ros.core.merge.default_threshold; replace: N).
     request_threshold: int | None = None
+    #: async: actions of slack added to the threshold (request at N + K with replace). With K = 0 a chunk
+    #: of ``replace`` lands exactly as the buffer empties in lockstep: the best case, where any real-time
+    #: jitter is an underrun. K > 0 absorbs up to K ticks of lateness at the price of K replanned actions.
+    request_slack: int = 0
     merge: Merge = Merge.REPLACE
     #: async, merge=temporal_ensemble: ACT's m in w_i = exp(-m i).
     ensemble_coeff: float = ENSEMBLE_COEFF
     #: The latency distribution each request draws its N from (None: the constant ``latency_ticks``).
     latency: LatencyDist | None = None
-    #: Episode seed: with ``latency``, request k's draw is seeded by (seed, k).
-    seed: int = 0
+    #: The episode's latency stream (lq_ros.core.latency.latency_stream): request k's draw is seeded by (stream, k).
+    latency_stream: tuple[int, ...] = (0,)
     #: Consecutive rejected chunks after which the episode ends as an error.
     max_consecutive_rejections: int = 3
 
@@ -106,20 +110,25 @@ class ExecutorConfig:
             raise ValueError(f"replan_steps must be >= 1, got {self.replan_steps}")
         if self.request_threshold is not None and self.request_threshold < 0:
             raise ValueError(f"request_threshold must be >= 0, got {self.request_threshold}")
+        if self.request_slack < 0:
+            raise ValueError(f"request_slack must be >= 0 actions, got {self.request_slack}")
+        if self.request_slack and self.mode is not Mode.ASYNC:
+            raise ValueError("request_slack applies to the async protocol only (sync requests when a chunk is done)")
         if not self.ensemble_coeff >= 0.0:
             raise ValueError(f"ensemble_coeff must be >= 0, got {self.ensemble_coeff}")
         if self.merge is not Merge.REPLACE and self.mode is not Mode.ASYNC:
             raise ValueError(f"merge {self.merge.value!r} applies to the async protocol only; use merge 'replace'")
         same_as = NEEDS_OVERLAP.get(self.merge)
-        if same_as is not None and self.request_threshold is not None and self.request_threshold <= self.min_ticks:
+        explicit = None if self.request_threshold is None else self.request_threshold + self.request_slack
+        if same_as is not None and explicit is not None and explicit <= self.min_ticks:
             # The buffered rest of the old plan overlaps the new chunk only if more than N actions were
             # left when it was requested; otherwise the buffer is empty when it lands.
             n = f"N={self.min_ticks}"
             if self.latency is not None and self.latency.kind != "constant":
                 n = f"the smallest N={self.min_ticks} of {self.latency.text}"
             raise ValueError(
-                f"merge {self.merge.value!r} never sees overlapping chunks with request_threshold "
-                f"{self.request_threshold} <= latency ticks {n} (the buffer is empty when the next chunk lands: "
+                f"merge {self.merge.value!r} never sees overlapping chunks with request_threshold + request_slack "
+                f"{explicit} <= latency ticks {n} (the buffer is empty when the next chunk lands: "
                 f"identical to {same_as.value!r}); set request_threshold > {self.min_ticks}, leave it at the "
                 f"strategy's default (-1), or use merge {same_as.value!r}"
             )
@@ -130,16 +139,17 @@ class ExecutorConfig:
         return self.latency_ticks if self.latency is None else self.latency.min_ticks()
 
     def threshold(self, horizon: int | None = None) -> int:
-        """Request threshold (actions left): the run's, else the strategy's default for chunks of ``horizon``."""
+        """Request threshold (actions left): the run's, else the strategy's default for chunks of ``horizon``,
+        plus the request slack."""
         if self.request_threshold is not None:
-            return self.request_threshold
-        return default_threshold(self.merge, self.latency_ticks, horizon)
+            return self.request_threshold + self.request_slack
+        return default_threshold(self.merge, self.latency_ticks, horizon) + self.request_slack
 
     def request_latency(self, request_id: int) -> tuple[int, float]:
         """(N, applied Δt_sim s) of request ``request_id`` (lq_ros.core.latency.request_latency)."""
         if self.latency is None:
             return self.latency_ticks, applied_seconds(self.latency_ticks)
-        return request_latency(self.latency, self.seed, request_id)
+        return request_latency(self.latency, self.latency_stream, request_id)
 
 
 @dataclass(frozen=True)

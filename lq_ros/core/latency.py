@@ -6,15 +6,23 @@ Syntax (``--latency``, sweep ``latencies_s`` entries, ``RunConfig.latency_dist``
 - ``uniform:LO:HI``: uniform on [LO, HI] s;
 - ``normal:MEAN:STD``: normal truncated at 0 (the draw is conditioned on Δt >= 0, not clipped);
 - ``lognormal:MEDIAN:SIGMA``: exp(ln MEDIAN + SIGMA z), z standard normal;
+- ``empirical:FILE``: the same file format, drawn i.i.d. (each request picks a line uniformly at random): the
+  empirical distribution of measured delays, e.g. fitted on some real-time episodes and used on others;
 - ``trace:FILE``: seconds, one per line (blank lines and ``#`` comments ignored), e.g. the Δt_real series of a
-  real policy server; request k (1, 2, ...) gets line ``(k - 1) mod len``: replayed in order and wrapped. The
+  real policy server; request k (1, 2, ...) gets line ``(offset + k - 1) mod len``, the episode's seeded offset
+  (below): replayed in order and wrapped. The
   canonical text carries the content hash (``trace:FILE@sha256:0123abcd...``) so a changed file is a
   different configuration (and a stale hash is refused).
 
-**One draw per inference, reproducible.** Request k of an episode with seed s draws u ~ U[0, 1) from its
-own generator (PCG64 seeded with the sequence (s, k, a fixed tag)): the draw does not depend on how many
-draws came before, on the transport, or on wall-clock time, so lockstep episodes stay bit-reproducible.
-The sample is the distribution's inverse CDF at u (pure-Python, ``statistics.NormalDist``).
+**One draw per inference, reproducible, independent across episodes.** Request k of an episode draws
+u ~ U[0, 1) from its own generator: PCG64 seeded with the sequence (seed, suite, task, init, k, a fixed
+tag), the episode's *latency stream* (:func:`latency_stream`) followed by k. The draw does not depend on how
+many draws came before, on the transport, or on wall-clock time, so lockstep episodes stay bit-reproducible;
+and because the stream names the episode, the episodes of a sweep cell (same seed, other tasks and init
+states) get independent draws: a 10-episode ``uniform`` cell samples the distribution ten times over, not
+one realisation ten times. A trace starts at a seeded offset per episode (drawn from the same stream with
+k = 0) and is replayed in order from there, wrapped. The sample is the distribution's inverse CDF at u
+(pure-Python, ``statistics.NormalDist``).
 
 **Rounding: up to the next tick boundary.** An inference taking Δt s delivers its chunk Δt after the
 observation; the simulator advances in whole ticks of dt_c = 0.05 s, so the chunk can take effect at the
@@ -26,13 +34,15 @@ average, ``uniform:0.075:0.275`` exactly 0.2 s). :meth:`LatencyDist.mean_ticks` 
 computed exactly (a sum over ticks of the survival function), and is what rows and plots are labelled by.
 
 The executor core and the ROS policy node both call :func:`request_latency` with the run's distribution,
-episode seed and request id: one function, one answer.
+latency stream and request id: one function, one answer.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
+import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -42,12 +52,17 @@ import numpy as np
 
 from lq_ros.core.suite_constants import CONTROL_DT_S, latency_ticks
 
-KINDS = ("constant", "uniform", "normal", "lognormal", "trace")
+KINDS = ("constant", "uniform", "normal", "lognormal", "trace", "empirical")
+#: Kinds whose values come from a file (trace: replayed in order; empirical: resampled).
+FILE_KINDS = ("trace", "empirical")
 #: Mixed into every draw's seed sequence so latency draws never coincide with other seeded streams.
 _TAG = 0x4C51_4C41  # "LQLA"
 #: A draw this close (in ticks) above a tick boundary is on the boundary (floating point of e.g. 0.15 / 0.05).
 _TICK_TOL = 1e-9
 _STD_NORMAL = NormalDist()
+#: The words that name an episode's latency draws: (seed, suite, task, init) as unsigned 32-bit integers
+#: (:func:`latency_stream`). A bare integer is read as the one-word stream (seed,).
+Stream = Sequence[int] | int
 
 
 class LatencyError(ValueError):
@@ -76,11 +91,42 @@ def _number(text: str, what: str, spec: str) -> float:
     return value
 
 
+#: The largest trace file read (bytes): a trace is a text file of seconds, one per line.
+MAX_TRACE_BYTES = 1 << 20
+
+
 def _read_trace(path: Path, spec: str) -> tuple[float, ...]:
+    """The values of a trace file: a regular text file of at most MAX_TRACE_BYTES (never a device or pipe)."""
+    import os
+    import stat
+
     try:
-        lines = path.read_text().splitlines()
+        # Non-blocking open and fstat of what was opened: a FIFO or device is refused without reading from it.
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise LatencyError(f"latency {spec!r}: cannot read {path} ({exc.strerror})") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise LatencyError(f"latency {spec!r}: {path} is not a regular file (a trace is a text file of seconds)")
+        if info.st_size > MAX_TRACE_BYTES:
+            raise LatencyError(
+                f"latency {spec!r}: {path} has {info.st_size} bytes; a trace has at most {MAX_TRACE_BYTES}"
+            )
+        data = os.read(fd, MAX_TRACE_BYTES + 1)
+    except OSError as exc:
+        raise LatencyError(f"latency {spec!r}: cannot read {path} ({exc.strerror})") from None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_TRACE_BYTES:
+        raise LatencyError(f"latency {spec!r}: {path} grew beyond {MAX_TRACE_BYTES} bytes while read")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        text = "\0"
+    if "\0" in text:
+        raise LatencyError(f"latency trace {path}: not a text file (a trace is seconds as text, one number per line)")
+    lines = text.splitlines()
     values = []
     for i, line in enumerate(lines, 1):
         text = line.split("#", 1)[0].strip()
@@ -114,8 +160,8 @@ class LatencyDist:
         """Canonical text: parses back to this distribution (RunConfig stores it)."""
         if self.kind == "constant":
             return f"{self.params[0]:g}"
-        if self.kind == "trace":
-            return f"trace:{self.trace_path}@sha256:{self.trace_sha}"
+        if self.kind in FILE_KINDS:
+            return f"{self.kind}:{self.trace_path}@sha256:{self.trace_sha}"
         return ":".join([self.kind, *(f"{p:g}" for p in self.params)])
 
     @property
@@ -123,17 +169,19 @@ class LatencyDist:
         """Short label for rows and plots: e.g. ``uniform:0.075:0.275``, ``trace:server.txt``, ``constant``."""
         if self.kind == "constant":
             return "constant"
-        if self.kind == "trace":
-            return f"trace:{Path(self.trace_path).name}"
+        if self.kind in FILE_KINDS:
+            return f"{self.kind}:{Path(self.trace_path).name}"
         return self.text
 
-    def draw_s(self, seed: int, request_id: int) -> float:
-        """The raw Δt (s) of request ``request_id`` (1, 2, ...) in an episode with seed ``seed``."""
+    def draw_s(self, stream: Stream, request_id: int) -> float:
+        """The raw Δt (s) of request ``request_id`` (1, 2, ...) in the episode of latency stream ``stream``."""
         if self.kind == "constant":
             return self.params[0]
         if self.kind == "trace":
-            return self.trace[(request_id - 1) % len(self.trace)]
-        u = _uniform(seed, request_id)
+            return self.trace[(self.trace_offset(stream) + request_id - 1) % len(self.trace)]
+        u = _uniform(stream, request_id)
+        if self.kind == "empirical":
+            return self.trace[min(int(u * len(self.trace)), len(self.trace) - 1)]
         if self.kind == "uniform":
             lo, hi = self.params
             return lo + (hi - lo) * u
@@ -145,11 +193,17 @@ class LatencyDist:
         median, sigma = self.params
         return median * math.exp(sigma * _STD_NORMAL.inv_cdf(min(max(u, 2.0**-60), 1.0 - 2.0**-53)))
 
-    def ticks(self, seed: int, request_id: int) -> int:
+    def trace_offset(self, stream: Stream) -> int:
+        """trace: the line (0-based) request 1 of the episode of ``stream`` replays; 0 for other kinds."""
+        if self.kind != "trace":
+            return 0
+        return min(int(_uniform(stream, 0) * len(self.trace)), len(self.trace) - 1)
+
+    def ticks(self, stream: Stream, request_id: int) -> int:
         """Applied N of request ``request_id``: the draw rounded up to whole ticks (constant: exact)."""
         if self.kind == "constant":
             return latency_ticks(self.params[0])
-        return ticks_of_draw(self.draw_s(seed, request_id))
+        return ticks_of_draw(self.draw_s(stream, request_id))
 
     def survival(self, x_s: float) -> float:
         """P(Δt > x) of the raw draw (continuous kinds)."""
@@ -183,7 +237,7 @@ class LatencyDist:
         """The smallest N a draw can apply (an explicit request threshold at or below it never overlaps)."""
         if self.kind == "constant":
             return latency_ticks(self.params[0])
-        if self.kind == "trace":
+        if self.kind in FILE_KINDS:
             return min(ticks_of_draw(v) for v in self.trace)
         if self.kind == "uniform":
             return ticks_of_draw(self.params[0])
@@ -193,7 +247,7 @@ class LatencyDist:
         """The largest N a draw can apply (None: unbounded)."""
         if self.kind == "constant":
             return latency_ticks(self.params[0])
-        if self.kind == "trace":
+        if self.kind in FILE_KINDS:
             return max(ticks_of_draw(v) for v in self.trace)
         if self.kind == "uniform":
             return ticks_of_draw(self.params[1])
@@ -204,7 +258,7 @@ class LatencyDist:
 def _mean_ticks(dist: LatencyDist) -> float:
     if dist.kind == "constant":
         return float(latency_ticks(dist.params[0]))
-    if dist.kind == "trace":
+    if dist.kind in FILE_KINDS:
         return float(np.mean([ticks_of_draw(v) for v in dist.trace]))
     # P(N > k) = P(Δt > (k + tol) dt_c), the rounding of ticks_of_draw.
     total, k = 0.0, 0
@@ -223,9 +277,18 @@ def _mean_ticks(dist: LatencyDist) -> float:
         k += 1
 
 
-def _uniform(seed: int, request_id: int) -> float:
-    """u ~ U[0, 1) of one request: its own PCG64 stream seeded by (episode seed, request id, tag)."""
-    gen = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(request_id), _TAG])))
+def latency_stream(seed: int, suite: str, task: int, init: int) -> tuple[int, ...]:
+    """The latency stream of one episode: its draws differ from every other episode's of the same sweep.
+
+    The suite enters as its CRC-32 (stable across Python processes, unlike ``hash``).
+    """
+    return (int(seed) & 0xFFFFFFFF, zlib.crc32(suite.encode()), int(task) & 0xFFFFFFFF, int(init) & 0xFFFFFFFF)
+
+
+def _uniform(stream: Stream, request_id: int) -> float:
+    """u ~ U[0, 1) of one request: its own PCG64 stream seeded by (latency stream..., request id, tag)."""
+    words = [int(stream) & 0xFFFFFFFF] if isinstance(stream, int) else [int(w) & 0xFFFFFFFF for w in stream]
+    gen = np.random.Generator(np.random.PCG64(np.random.SeedSequence([*words, int(request_id), _TAG])))
     return float(gen.random())
 
 
@@ -244,7 +307,7 @@ def parse_latency(spec: str | float | int) -> LatencyDist:
         except ValueError as exc:
             raise LatencyError(str(exc)) from None
         return LatencyDist("constant", (value,))
-    if kind == "trace":
+    if kind in FILE_KINDS:
         path_text, _, sha = rest.partition("@sha256:")
         path = Path(path_text).expanduser()
         values = _read_trace(path, text)
@@ -254,11 +317,11 @@ def parse_latency(spec: str | float | int) -> LatencyDist:
                 f"latency {text!r}: {path} changed since it was configured (content sha256 {digest}..., "
                 f"configured {sha}...)"
             )
-        return LatencyDist("trace", (), values, str(path), digest)
+        return LatencyDist(kind, (), values, str(path), digest)
     if kind not in KINDS:
         raise LatencyError(
             f"latency {text!r}: unknown distribution {kind!r}; use seconds or one of uniform:LO:HI, "
-            "normal:MEAN:STD, lognormal:MEDIAN:SIGMA, trace:FILE"
+            "normal:MEAN:STD, lognormal:MEDIAN:SIGMA, trace:FILE, empirical:FILE"
         )
     parts = rest.split(":")
     if len(parts) != 2:
@@ -280,8 +343,9 @@ def label_of(text: str | None) -> str:
     text = (text or "").strip()
     if not text or ":" not in text:
         return "constant"
-    if text.startswith("trace:"):
-        return "trace:" + Path(text[len("trace:") :].partition("@sha256:")[0]).name
+    kind, _, rest = text.partition(":")
+    if kind in FILE_KINDS:
+        return f"{kind}:" + Path(rest.partition("@sha256:")[0]).name
     return text
 
 
@@ -290,9 +354,9 @@ def _parsed(text: str) -> LatencyDist:
     return parse_latency(text)
 
 
-def request_latency(dist: LatencyDist | str, seed: int, request_id: int) -> tuple[int, float]:
-    """(N, applied Δt_sim s) of request ``request_id`` in an episode with seed ``seed``: the one function
-    both the executor core and the ROS policy node call."""
+def request_latency(dist: LatencyDist | str, stream: Stream, request_id: int) -> tuple[int, float]:
+    """(N, applied Δt_sim s) of request ``request_id`` in the episode of latency stream ``stream``
+    (:func:`latency_stream`): the one function both the executor core and the ROS policy node call."""
     d = _parsed(dist) if isinstance(dist, str) else dist
-    n = d.ticks(seed, request_id)
+    n = d.ticks(stream, request_id)
     return n, (d.params[0] if d.kind == "constant" else applied_seconds(n))

@@ -10,17 +10,23 @@ from dataclasses import asdict, dataclass, field
 from importlib import metadata
 from pathlib import Path
 
+from lq_ros.core.cpu import SIMD_FLAGS, read_cpuinfo
 from lq_ros.core.executor_protocol import ExecutorConfig
-from lq_ros.core.latency import LatencyDist, parse_latency
+from lq_ros.core.latency import LatencyDist, latency_stream, parse_latency
+from lq_ros.core.redact import redact_config
+from lq_ros.core.shipped import REPO_ROOT
 from lq_ros.core.suite_constants import latency_ticks, step_budget
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+#: How an episode runs: the four-node ROS stack, or one process without ROS (the same bag either way).
+TRANSPORTS = ("ros", "inprocess")
+#: ``lockstep`` (deterministic, sim time) or ``realtime`` (wall-clock ticks); RunConfig.clock.
+CLOCKS = ("lockstep", "realtime")
 
 #: RunConfig fields of the execution protocol besides the mode (a sweep spec's ``modes`` entries set them).
-PROTOCOL_FIELDS = ("replan_steps", "hold", "request_threshold", "merge")
+PROTOCOL_FIELDS = ("replan_steps", "hold", "request_threshold", "merge", "request_slack")
 #: Run configuration fields besides the group keys that tell variants of a policy or protocol apart.
 #: Every parameter that changes outcomes is one: results that differ in any of them never pool.
-VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "camera_size", "clock", "robot")
+VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "budget_counts", "camera_size", "clock", "robot")
 #: Camera render size when neither the run nor the policy names one, px.
 DEFAULT_CAMERA_SIZE_PX = 224
 #: What an aggregate row (and a figure's series point) is computed over: one policy variant, protocol,
@@ -31,7 +37,19 @@ GROUP_KEYS = (
 )  # fmt: skip
 #: Fields added after results were first stored: left out of ``RunConfig.key()`` while at their default,
 #: so the keys (episode names, resumable sweeps) of configurations that do not use them never change.
-_KEY_OPTIONAL_FIELDS = {"latency_dist": "", "clock": "lockstep", "robot": ""}
+_KEY_OPTIONAL_FIELDS = {
+    "latency_dist": "",
+    "clock": "lockstep",
+    "robot": "",
+    "budget_counts": "all",
+    "request_slack": 0,
+}
+#: What the step budget counts (``budget_counts``): ``all`` ticks (the paper's and OpenVLA's loop: holds count
+#: against it) or only ``action`` ticks, whose command came from a chunk.
+BUDGET_COUNTS = ("all", "action")
+#: budget_counts ``action``: the episode still ends after this many times the budget in ticks of any kind, so a
+#: policy that never delivers a usable chunk cannot run forever.
+ACTION_BUDGET_HARD_STOP = 4
 
 
 @dataclass(frozen=True)
@@ -53,7 +71,8 @@ class RunConfig:
     merge: str = "replace"
     policy: str = "scripted"
     policy_args: dict = field(default_factory=dict)
-    #: Camera render size, px (square); 0: the policy's reference size (Policy.render_size), else 224.
+    #: Camera render size, px (square); 0: the policy's reference size (Policy.render_size), else
+    #: DEFAULT_CAMERA_SIZE_PX.
     camera_size: int = 0
     #: Also record 500 Hz joint states and EE poses (per physics substep).
     physics_rate: bool = False
@@ -68,11 +87,17 @@ class RunConfig:
     #: Robot interface YAML (a shipped name such as ``standin`` or a path; lq_ros/robot/robot_config.py): the
     #: episode runs against a robot's standard topics through the bridge instead of the sim node (real time).
     robot: str = ""
+    #: What the step budget counts: ``all`` ticks (default, the paper's) or ``action`` ticks only (BUDGET_COUNTS).
+    budget_counts: str = "all"
+    #: async: request the next chunk K actions earlier than the threshold (lq_ros.core.executor_protocol).
+    request_slack: int = 0
 
     def __post_init__(self) -> None:
         step_budget(self.suite)  # validates the suite name
-        if self.clock not in ("lockstep", "realtime"):
-            raise ValueError(f"clock must be lockstep or realtime, got {self.clock!r}")
+        if self.clock not in CLOCKS:
+            raise ValueError(f"clock must be {' or '.join(CLOCKS)}, got {self.clock!r}")
+        if self.budget_counts not in BUDGET_COUNTS:
+            raise ValueError(f"budget_counts must be one of {', '.join(BUDGET_COUNTS)}, got {self.budget_counts!r}")
         if self.robot and self.clock != "realtime":
             raise ValueError("a robot runs on wall-clock time: --robot needs --clock realtime")
         if self.latency_dist:
@@ -105,10 +130,32 @@ class RunConfig:
 
     @property
     def budget(self) -> int:
+        """The step budget, ticks: what ``budget_counts`` counts against."""
         return self.max_steps or step_budget(self.suite)
 
+    @property
+    def tick_limit(self) -> int:
+        """Ticks of any kind after which the episode ends at the latest: the budget, or with budget_counts
+        ``action`` ACTION_BUDGET_HARD_STOP times it."""
+        return self.budget if self.budget_counts == "all" else ACTION_BUDGET_HARD_STOP * self.budget
+
+    def budget_spent(self, ticks: int, action_ticks: int) -> str | None:
+        """Why an episode that ran ``ticks`` ticks, ``action_ticks`` of them from chunks, times out now; None: it
+        goes on. The one rule every tick driver (sim node, in-process runner, real-time sim, robot bridge) applies."""
+        if self.budget_counts == "all":
+            return f"step budget {self.budget} reached" if ticks >= self.budget else None
+        if action_ticks >= self.budget:
+            return f"action budget {self.budget} reached after {ticks} ticks"
+        if ticks >= self.tick_limit:
+            return f"hard stop at {self.tick_limit} ticks ({action_ticks} of the action budget {self.budget} used)"
+        return None
+
+    def latency_stream(self) -> tuple[int, ...]:
+        """The words every latency draw of this episode is seeded by (lq_ros.core.latency.latency_stream)."""
+        return latency_stream(self.seed, self.suite, self.task, self.init)
+
     def camera_size_for(self, policy_render_size: int | None) -> int:
-        """Render size in px: this run's, else the policy's reference evaluation's, else 224."""
+        """Render size in px: this run's, else the policy's reference evaluation's, else DEFAULT_CAMERA_SIZE_PX."""
         return self.camera_size or policy_render_size or DEFAULT_CAMERA_SIZE_PX
 
     def ros_parameters(self) -> dict:
@@ -136,9 +183,10 @@ class RunConfig:
             replan_steps=self.replan_steps,
             hold=self.hold,
             request_threshold=None if self.request_threshold < 0 else self.request_threshold,
+            request_slack=self.request_slack,
             merge=self.merge,
             latency=self.latency_model(),
-            seed=self.seed,
+            latency_stream=self.latency_stream(),
         )
 
     def to_dict(self) -> dict:
@@ -146,7 +194,7 @@ class RunConfig:
 
     def key(self) -> str:
         """Stable hash of the configuration (for resumable sweeps and file names)."""
-        fields = {k: v for k, v in self.to_dict().items() if _KEY_OPTIONAL_FIELDS.get(k, object()) != v}
+        fields = {k: v for k, v in redact_config(self.to_dict()).items() if _KEY_OPTIONAL_FIELDS.get(k, object()) != v}
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
     def episode_name(self) -> str:
@@ -168,7 +216,13 @@ def _dist_version(name: str) -> str | None:
 
 
 def git_commit() -> str:
-    """HEAD commit of the checkout, suffixed '+dirty' when tracked files changed ('unknown' outside git)."""
+    """HEAD commit of the checkout, suffixed '+dirty' when tracked files changed ('unknown' outside git).
+
+    An installed package has no checkout: above it is site-packages, maybe inside another project's repository,
+    whose commit is not this code's.
+    """
+    if not (REPO_ROOT / ".git").exists():
+        return "unknown"
     try:
         head = subprocess.run(
             ["git", "-C", str(REPO_ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True
@@ -184,10 +238,6 @@ def git_commit() -> str:
         return "unknown"
 
 
-#: x86 SIMD extensions that select different floating-point code paths in MuJoCo, BLAS and numpy.
-_SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni")
-
-
 def cpu_info() -> dict:
     """CPU vendor, model, SIMD flags and the class within which lockstep results are bit-identical.
 
@@ -196,21 +246,12 @@ def cpu_info() -> dict:
     an AMD EPYC and 111 on an Intel Xeon, both with AVX-512. So the class is architecture, vendor and
     the widest vector extension; results are compared within one class.
     """
-    model, vendor, flags = platform.processor() or platform.machine(), "", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            key = key.strip()
-            if key == "vendor_id" and not vendor:
-                vendor = value.strip()
-            elif key == "model name" and model in ("", platform.machine(), platform.processor()):
-                model = value.strip()
-            elif key == "flags":
-                flags = set(value.split())
-                break
-    except OSError:
-        pass
-    simd = [f for f in _SIMD_FLAGS if f in flags]
+    model = platform.processor() or platform.machine()
+    info = read_cpuinfo()
+    vendor, flags = info.get("vendor_id", ""), info["flags"]
+    if "model name" in info and model in ("", platform.machine(), platform.processor()):
+        model = info["model name"]
+    simd = [f for f in SIMD_FLAGS if f in flags]
     widest = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "AVX" if "avx" in flags else "SSE"
     return {
         "model": model,

@@ -19,13 +19,36 @@ REGISTRY: dict[str, str] = {
 }
 
 
+def is_registered(name: str) -> bool:
+    """Whether ``name`` is a registry name (one of ours), not a user's ``package.module:Class``."""
+    return name in REGISTRY
+
+
 def policy_class(name: str) -> type[Policy]:
-    """The class of a registered policy, or of any ``package.module:Class``, without instantiating it."""
+    """The class of a registered policy, or of any ``package.module:Class``, without instantiating it.
+
+    ``package.module:Class`` is trusted input (its module is imported: code runs), but only a class that
+    subclasses :class:`Policy` is accepted, so no other importable callable (``subprocess:Popen``) is ever
+    called with the policy arguments: anything else is refused before it is called (ValueError, one line; a
+    module that cannot be imported: ImportError, one line). ``lq_ros.run.validation.policy_class`` gives the same
+    refusals as the user's input errors.
+    """
+    known = f"known: {', '.join(sorted(REGISTRY))} or package.module:Class (a subclass of {Policy.__module__}.Policy)"
     target = REGISTRY.get(name, name)
-    if ":" not in target:
-        raise ValueError(f"unknown policy {name!r}; known: {', '.join(sorted(REGISTRY))} or 'module:Class'")
-    module, cls = target.split(":")
-    return getattr(importlib.import_module(module), cls)
+    module_name, sep, cls_name = target.partition(":")
+    if not sep or not module_name or not cls_name or ":" in cls_name:
+        raise ValueError(f"unknown policy {name!r}; {known}")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ImportError(f"policy {name!r}: cannot import module {module_name!r} ({exc}); {known}") from exc
+    obj = getattr(module, cls_name, None)
+    if obj is None:
+        raise ValueError(f"policy {name!r}: module {module_name!r} has no class {cls_name!r}; {known}")
+    if not (isinstance(obj, type) and issubclass(obj, Policy)):
+        what = "nothing" if obj is None else f"{type(obj).__name__} {obj!r}"[:120]
+        raise ValueError(f"policy {name!r} is not a Policy class ({module_name}:{cls_name} is {what}); {known}")
+    return obj
 
 
 def make_policy(name: str, **params) -> Policy:
@@ -33,4 +56,4 @@ def make_policy(name: str, **params) -> Policy:
     return policy_class(name)(**params)
 
 
-__all__ = ["ActionPrefix", "Policy", "PolicyError", "REGISTRY", "make_policy", "policy_class"]
+__all__ = ["ActionPrefix", "Policy", "PolicyError", "REGISTRY", "is_registered", "make_policy", "policy_class"]

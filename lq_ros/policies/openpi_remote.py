@@ -7,20 +7,35 @@ Observation keys are those of openpi's ``examples/libero/main.py``; see docs/rem
 
 Every way the server can fail us (down, slower than ``timeout_s``, an error frame, a closed socket,
 a response that is not an (H, 7) finite numeric chunk) raises PolicyError, so the episode ends as
-an *error* with the reason, never as a hang, a success or a plain failure.
+an *error* with the reason, never as a hang, a success or a plain failure. The server is untrusted
+(lq_ros/policies/remote_wire.py): replies are decoded by our own msgpack hook (plain numeric dtypes only,
+never openpi-client's, which builds object arrays from the server's bytes), capped at MAX_REPLY_BYTES,
+bounded by one deadline per exchange, and a redirect is refused.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
+from urllib.parse import urlsplit
 
 import numpy as np
 
+from lq_ros.core.redact import strip_userinfo
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
+from lq_ros.policies.remote_wire import (
+    MAX_REPLY_BYTES,
+    Deadline,
+    UnsafeReply,
+    mib,
+    refuse_credentials_in_clear,
+    shutdown_socket,
+    unpack_msgpack_numpy,
+)
 
 #: LIBERO camera names (MuJoCo) of the third-person and wrist views.
 AGENTVIEW = "agentview"
@@ -157,14 +172,26 @@ class OpenPIPolicy(Policy):
         prompt: str | None = None,
         resize: int = 224,
         clip: bool = False,
+        allow_insecure: bool = False,
     ) -> None:
         timeout_s = positive_number("timeout_s", timeout_s)
         resize = int(positive_number("resize", resize, integer=True))
         host = str(host)
-        self.uri = host if host.startswith(("ws://", "wss://")) else f"ws://{host}"
+        uri = host if host.startswith(("ws://", "wss://")) else f"ws://{host}"
         if port is not None:
-            self.uri += f":{int(positive_number('port', port, integer=True))}"
+            uri += f":{int(positive_number('port', port, integer=True))}"
+        self._connect_uri = uri
+        #: The server's URI as shown in messages and recorded (without user-info).
+        self.uri = strip_userinfo(uri)
         self._api_key = str(api_key) if api_key is not None else os.environ.get(API_KEY_ENV)
+        self.allow_insecure = flag("allow_insecure", allow_insecure)
+        try:
+            parts = urlsplit(uri)
+            hostname = parts.hostname
+        except ValueError as exc:
+            raise ValueError(f"host {self.uri!r} is not a valid ws:// or wss:// URI ({exc})") from None
+        secrets = [what for what, there in (("an API key", self._api_key), ("a URL password", parts.password)) if there]
+        refuse_credentials_in_clear("openpi", parts.scheme, hostname, " and ".join(secrets), self.allow_insecure)
         self.timeout_s = float(timeout_s)
         self.prompt_override = prompt
         self.resize = int(resize)
@@ -178,7 +205,8 @@ class OpenPIPolicy(Policy):
         self._ws = None
         from openpi_client import msgpack_numpy
 
-        self._codec = msgpack_numpy
+        # Requests are packed with openpi-client's packer (it refuses object arrays); replies are never
+        # unpacked with its hook (it builds arrays of any dtype the server names): unpack_msgpack_numpy.
         self._packer = msgpack_numpy.Packer()
 
     # -- Policy interface -------------------------------------------------------------------
@@ -224,6 +252,7 @@ class OpenPIPolicy(Policy):
             "prompt": self.prompt_override,
             "resize": self.resize,
             "clip": self.clip,
+            "allow_insecure": self.allow_insecure,
         }
 
     def close(self) -> None:
@@ -233,26 +262,35 @@ class OpenPIPolicy(Policy):
 
     # -- wire protocol ----------------------------------------------------------------------
     def _connect(self) -> None:
-        from websockets.exceptions import InvalidHandshake, WebSocketException
-        from websockets.sync.client import connect
+        """Handshake and metadata frame, within ``timeout_s`` together; a redirect is refused, not followed."""
+        from websockets.exceptions import InvalidHandshake, InvalidStatus, WebSocketException
 
         headers = {"Authorization": f"Api-Key {self._api_key}"} if self._api_key else None
+        deadline = Deadline(self.timeout_s)
         try:
-            ws = connect(
-                self.uri,
+            ws = _connect_without_redirects(
+                self._connect_uri,
                 compression=None,
-                max_size=None,
+                max_size=MAX_REPLY_BYTES,  # a larger frame is refused from its header, before it is read
                 additional_headers=headers,
                 open_timeout=self.timeout_s,
                 close_timeout=1.0,
-                legacy=True,  # websockets >= 17.1: a connection kept across calls, not a with-block
             )
         except TimeoutError:
             raise PolicyError(f"openpi server {self.uri}: no websocket handshake within {self.timeout_s} s") from None
+        except InvalidStatus as exc:
+            status = exc.response.status_code
+            if 300 <= status < 400:
+                location = strip_userinfo(str(exc.response.headers.get("Location", "(no Location header)")))
+                raise PolicyError(
+                    f"openpi server {self.uri}: HTTP {status} redirect to {location[:200]!r} refused (redirects "
+                    "are not followed: give the final address as host)"
+                ) from None
+            raise PolicyError(f"openpi server {self.uri} unreachable: {type(exc).__name__}: {exc}") from None
         except (OSError, InvalidHandshake, WebSocketException) as exc:
             raise PolicyError(f"openpi server {self.uri} unreachable: {type(exc).__name__}: {exc}") from None
         self._ws = ws
-        metadata = self._receive("metadata frame")
+        metadata = self._receive("metadata frame", deadline)
         if not isinstance(metadata, dict):
             self.close()
             kind = type(metadata).__name__
@@ -260,33 +298,49 @@ class OpenPIPolicy(Policy):
         self.server_metadata = metadata
 
     def _round_trip(self, request: dict) -> object:
+        """Send ``request`` and receive its answer, both within ``timeout_s`` (a stalled send included)."""
+        from websockets.exceptions import ConnectionClosed
+
+        ws = self._ws
+        with Deadline(self.timeout_s, abort=lambda: shutdown_socket(ws.socket)) as deadline:
+            try:
+                ws.send(self._packer.pack(request))
+            except (ConnectionClosed, OSError) as exc:
+                self.close()
+                if deadline.expired:
+                    raise PolicyError(f"openpi server {self.uri}: no response within {self.timeout_s} s") from None
+                raise PolicyError(f"openpi server {self.uri} closed the connection ({_close_text(exc)})") from None
+            return self._receive("response", deadline)
+
+    def _receive(self, what: str, deadline: Deadline) -> object:
+        """One binary frame by ``deadline``, decoded; any failure closes the connection and raises PolicyError."""
         from websockets.exceptions import ConnectionClosed
 
         try:
-            self._ws.send(self._packer.pack(request))
-        except ConnectionClosed as exc:
-            self.close()
-            raise PolicyError(f"openpi server {self.uri} closed the connection ({_close_text(exc)})") from None
-        return self._receive("response")
-
-    def _receive(self, what: str) -> object:
-        """One binary frame, decoded; any failure closes the connection and raises PolicyError."""
-        from websockets.exceptions import ConnectionClosed
-
-        try:
-            frame = self._ws.recv(timeout=self.timeout_s)
+            frame = self._ws.recv(timeout=deadline.remaining())
         except TimeoutError:
             self.close()  # a late answer would pair with the next request: never reuse this socket
             raise PolicyError(f"openpi server {self.uri}: no {what} within {self.timeout_s} s") from None
         except ConnectionClosed as exc:
             self.close()
+            sent = getattr(exc, "sent", None)
+            if deadline.expired:
+                raise PolicyError(f"openpi server {self.uri}: no {what} within {self.timeout_s} s") from None
+            if sent is not None and int(sent.code) == 1009:  # ours: "message too big", refused from its header
+                raise PolicyError(
+                    f"openpi server {self.uri}: {what} refused: larger than the {mib(MAX_REPLY_BYTES)} limit "
+                    f"({sent.reason})"
+                ) from None
             raise PolicyError(f"openpi server {self.uri} closed the connection ({_close_text(exc)})") from None
         if isinstance(frame, str):  # openpi sends its traceback as text, then closes
             self.close()
             self.last_server_error = frame
             raise PolicyError(f"openpi server error: {_exception_text(frame)}")
         try:
-            return self._codec.unpackb(frame)
+            return unpack_msgpack_numpy(frame)
+        except UnsafeReply as exc:
+            self.close()
+            raise PolicyError(f"openpi server {self.uri}: {what} refused: {exc}") from None
         except Exception as exc:  # noqa: BLE001 - any undecodable frame is garbage
             self.close()
             raise PolicyError(f"openpi server {what} is not msgpack-numpy: {type(exc).__name__}: {exc}") from None
@@ -304,6 +358,25 @@ class OpenPIPolicy(Policy):
             "server_prev_total_ms": _ms(server_timing.get("prev_total_ms")),
         }
         self.timings.append(self.last_timing)
+
+
+@functools.cache
+def _no_redirect_connector() -> type:
+    """websockets' connector (``websockets.sync.client.reconnect``) with redirects refused instead of followed."""
+    from websockets.sync.client import reconnect
+
+    class NoRedirects(reconnect):
+        def process_redirect(self, exc: Exception) -> Exception:
+            return exc  # raised as is (InvalidStatus naming the 3xx)
+
+    return NoRedirects
+
+
+def _connect_without_redirects(uri: str, **kwargs):
+    """``websockets.sync.client.connect(uri, legacy=True, **kwargs)``, except that a 3xx answer raises."""
+    connection = _no_redirect_connector()(uri, **kwargs).connect()
+    connection.pending_legacy_warning = False  # as connect(..., legacy=True): kept across calls
+    return connection
 
 
 def _close_text(exc: Exception) -> str:

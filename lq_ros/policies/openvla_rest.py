@@ -15,21 +15,32 @@ crop server-side).
 
 Server down, slower than ``timeout_s``, HTTP errors, the ``"error"`` answer and any response that is
 not a finite numeric (H, 7) chunk raise PolicyError: the episode ends as an error with the reason.
+The server is untrusted (lq_ros/policies/remote_wire.py): ``timeout_s`` bounds the whole request (however
+the server paces its bytes), a reply larger than MAX_REPLY_BYTES is refused before it is read, a redirect
+is an error (never followed: the image would go elsewhere), and arrays are decoded by our own json-numpy
+hook (plain numeric dtypes only). The client speaks HTTP/1.1 itself (``http.client``, keep-alive) and
+connects directly: proxies from the environment are not used.
 """
 
 from __future__ import annotations
 
+import base64
 import ctypes
 import ctypes.util
 import functools
+import http.client
 import io
 import math
 import re
+import select
 import time
 from collections.abc import Callable
+from typing import NamedTuple
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
+from lq_ros.core.redact import strip_userinfo
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
 from lq_ros.policies.openpi_remote import (
@@ -42,6 +53,15 @@ from lq_ros.policies.openpi_remote import (
     libero_training_image,
     positive_number,
 )
+from lq_ros.policies.remote_wire import (
+    MAX_REPLY_BYTES,
+    Deadline,
+    UnsafeReply,
+    loads_json_numpy,
+    mib,
+    refuse_credentials_in_clear,
+    shutdown_socket,
+)
 
 STYLES = ("openvla", "oft")
 #: Image area kept by ``center_crop`` (OpenVLA's crop scale).
@@ -49,6 +69,8 @@ CENTER_CROP_AREA = 0.9
 GRIPPER_MODES = ("openvla", "raw")
 #: Longest response excerpt kept in an error reason, characters.
 MAX_BODY_CHARS = 300
+#: Bytes asked of the socket per read of a reply (the deadline and MAX_REPLY_BYTES are checked between reads).
+READ_CHUNK_BYTES = 64 * 1024
 #: Camera size OpenVLA's and OFT's LIBERO evaluations render at (``get_libero_env(resolution=256)``,
 #: OFT's ``env_img_res``), before their own resize to 224.
 OPENVLA_RENDER_SIZE = 256
@@ -231,6 +253,7 @@ class OpenVLARestPolicy(Policy):
         resize: int = 224,
         center_crop: bool | None = None,
         clip: bool = False,
+        allow_insecure: bool = False,
     ) -> None:
         if style not in STYLES:
             raise ValueError(f"style must be one of {STYLES}, got {style!r}")
@@ -238,7 +261,13 @@ class OpenVLARestPolicy(Policy):
             raise ValueError(f"gripper must be one of {GRIPPER_MODES}, got {gripper!r}")
         timeout_s = positive_number("timeout_s", timeout_s)
         resize = int(positive_number("resize", resize, integer=True))
-        self.url = url or f"http://{host}:{int(positive_number('port', port, integer=True))}/act"
+        full_url = url or f"http://{host}:{int(positive_number('port', port, integer=True))}/act"
+        #: The server's URL as shown in messages and recorded (without user-info).
+        self.url = strip_userinfo(full_url)
+        self.allow_insecure = flag("allow_insecure", allow_insecure)
+        self._target = _http_target(full_url)
+        password = "a URL password" if self._target.auth else ""
+        refuse_credentials_in_clear("OpenVLA", self._target.scheme, self._target.host, password, self.allow_insecure)
         self.timeout_s = float(timeout_s)
         self.unnorm_key_override = unnorm_key
         self.prompt_override = prompt
@@ -259,7 +288,7 @@ class OpenVLARestPolicy(Policy):
         self.timings: list[dict[str, float | None]] = []
         self._prompt = ""
         self._unnorm_key: str | None = None
-        self._session = None
+        self._conn: http.client.HTTPConnection | None = None  # kept alive across requests
 
     # -- Policy interface -------------------------------------------------------------------
     def reset(self, task: TaskInfo, seed: int) -> None:
@@ -309,12 +338,13 @@ class OpenVLARestPolicy(Policy):
             "resize": self.resize,
             "center_crop": self.center_crop,
             "clip": self.clip,
+            "allow_insecure": self.allow_insecure,
         }
 
     def close(self) -> None:
-        session, self._session = self._session, None
-        if session is not None:
-            session.close()
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            conn.close()
 
     # -- internals --------------------------------------------------------------------------
     def _image(self, obs: Observation, camera: str) -> np.ndarray:
@@ -325,39 +355,96 @@ class OpenVLARestPolicy(Policy):
         return openvla_center_crop(image) if self.center_crop else image
 
     def _post(self, body: str) -> object:
-        import json_numpy
-        import requests
-
-        if self._session is None:
-            self._session = requests.Session()
+        """POST ``body`` to the server and decode its answer, all within ``timeout_s``; PolicyError otherwise."""
+        deadline = Deadline(self.timeout_s)
         try:
-            resp = self._session.post(
-                self.url, data=body, headers={"Content-Type": "application/json"}, timeout=self.timeout_s
-            )
-        except requests.Timeout:
-            self.close()  # the late answer must never be read as the next one
-            raise PolicyError(f"OpenVLA server {self.url}: no response within {self.timeout_s} s") from None
-        except requests.RequestException as exc:
+            status, location, payload = self._exchange(body.encode(), deadline)
+        except UnsafeReply as exc:
             self.close()
+            raise PolicyError(f"OpenVLA server {self.url}: response refused: {exc}") from None
+        except (OSError, http.client.HTTPException) as exc:  # TimeoutError and ssl.SSLError are OSErrors
+            self.close()  # a late answer must never be read as the next one
+            if deadline.expired or isinstance(exc, TimeoutError):
+                raise PolicyError(f"OpenVLA server {self.url}: no response within {self.timeout_s} s") from None
             raise PolicyError(f"OpenVLA server {self.url}: request failed ({_root_cause(exc)})") from None
-        if resp.status_code != 200:
-            raise PolicyError(f"OpenVLA server {self.url}: HTTP {resp.status_code}: {_excerpt(resp.text)}")
+        finally:
+            deadline.disarm()
+        if 300 <= status < 400:
+            raise PolicyError(
+                f"OpenVLA server {self.url}: HTTP {status} redirect to {strip_userinfo(location or '(none)')[:200]!r} "
+                "refused (redirects are not followed: give the final address as url)"
+            )
+        text = payload.decode("utf-8", errors="replace")
+        if status != 200:
+            raise PolicyError(f"OpenVLA server {self.url}: HTTP {status}: {_excerpt(text)}")
         try:
-            return json_numpy.loads(resp.text)
+            return loads_json_numpy(text)
+        except UnsafeReply as exc:
+            raise PolicyError(f"OpenVLA server {self.url}: response refused: {exc}") from None
         except Exception as exc:  # noqa: BLE001 - any undecodable body is garbage
             raise PolicyError(
-                f"OpenVLA server {self.url}: response is not json-numpy ({type(exc).__name__}: {exc}): "
-                f"{_excerpt(resp.text)}"
+                f"OpenVLA server {self.url}: response is not json-numpy ({type(exc).__name__}: {exc}): {_excerpt(text)}"
             ) from None
 
-    def _actions_of(self, answer: object) -> object:
-        import json_numpy
+    def _exchange(self, body: bytes, deadline: Deadline) -> tuple[int, str | None, bytes]:
+        """(status, Location header, reply body) of one POST; ``deadline`` shuts the socket down when it is over
+        (a server dripping bytes is cut off), a reply over MAX_REPLY_BYTES is refused (UnsafeReply) before or
+        while it is read, a 3xx is returned unread (never followed)."""
+        conn = self._connection(deadline)
+        sock = conn.sock  # http.client drops conn.sock once a "Connection: close" reply starts; the read goes on
+        deadline.arm(lambda: shutdown_socket(sock))
+        conn.request("POST", self._target.path, body=body, headers=self._target.headers)
+        resp = conn.getresponse()
+        if 300 <= resp.status < 400:
+            location = resp.getheader("Location")
+            self.close()
+            return resp.status, location, b""
+        length = resp.getheader("Content-Length") or ""
+        if length.strip().isdigit() and int(length) > MAX_REPLY_BYTES:
+            raise UnsafeReply(f"Content-Length {int(length)} exceeds the {mib(MAX_REPLY_BYTES)} limit")
+        chunks, size = [], 0
+        while chunk := resp.read(READ_CHUNK_BYTES):
+            size += len(chunk)
+            if size > MAX_REPLY_BYTES:
+                raise UnsafeReply(f"reply exceeds the {mib(MAX_REPLY_BYTES)} limit (stopped reading at {size} bytes)")
+            chunks.append(chunk)
+        if deadline.expired:
+            raise TimeoutError("deadline")  # the socket was shut down: what was read may be cut short
+        if resp.will_close:
+            self.close()
+        return resp.status, None, b"".join(chunks)
 
+    def _connection(self, deadline: Deadline) -> http.client.HTTPConnection:
+        """The kept-alive connection, or a new one if there is none or the server has closed it (idle timeout)."""
+        conn = self._conn
+        if conn is not None and conn.sock is not None and _readable(conn.sock):
+            self.close()  # EOF (or stray bytes) on an idle connection: never reuse it
+            conn = None
+        if conn is None:
+            target = self._target
+            if target.scheme == "https":
+                import ssl
+
+                conn = http.client.HTTPSConnection(
+                    target.host, target.port, timeout=self.timeout_s, context=ssl.create_default_context()
+                )
+            else:
+                conn = http.client.HTTPConnection(target.host, target.port, timeout=self.timeout_s)
+            self._conn = conn
+        if conn.sock is None:
+            conn.timeout = max(deadline.remaining(), 1e-3)  # connect (and TLS) within what is left
+            conn.connect()
+            conn.sock.settimeout(self.timeout_s)  # each read: the deadline bounds the total
+        return conn
+
+    def _actions_of(self, answer: object) -> object:
         if isinstance(answer, str):
             if answer.strip() == "error":
                 raise PolicyError(f"OpenVLA server {self.url} answered 'error' (its log has the traceback)")
             try:  # the "double-encoded" form: a JSON string holding json-numpy
-                answer = json_numpy.loads(answer)
+                answer = loads_json_numpy(answer)
+            except UnsafeReply as exc:
+                raise PolicyError(f"OpenVLA server {self.url}: response refused: {exc}") from None
             except Exception:  # noqa: BLE001
                 raise PolicyError(f"OpenVLA server {self.url} answered text: {_excerpt(answer)}") from None
         if isinstance(answer, dict):
@@ -368,12 +455,51 @@ class OpenVLARestPolicy(Policy):
         return answer
 
 
+class _HttpTarget(NamedTuple):
+    scheme: str
+    host: str
+    port: int
+    #: Path and query of the request line.
+    path: str
+    headers: dict[str, str]
+    #: Whether the URL carried user-info (sent as HTTP Basic authorization).
+    auth: bool
+
+
+def _http_target(url: str) -> _HttpTarget:
+    """Where and how to POST for ``url`` (``http[s]://[user:pw@]host[:port]/path``); ValueError names a bad one."""
+    shown = strip_userinfo(url)
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as exc:
+        raise ValueError(f"url {shown!r} is not a valid http:// or https:// URL ({exc})") from None
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise ValueError(f"url {shown!r} is not an http:// or https:// URL with a host")
+    headers = {"Content-Type": "application/json"}
+    auth = parts.username is not None or parts.password is not None
+    if auth:
+        user_pw = f"{unquote(parts.username or '')}:{unquote(parts.password or '')}"
+        headers["Authorization"] = "Basic " + base64.b64encode(user_pw.encode()).decode()
+    path = (parts.path or "/") + (f"?{parts.query}" if parts.query else "")
+    default_port = 443 if parts.scheme == "https" else 80
+    return _HttpTarget(parts.scheme, parts.hostname, port or default_port, path, headers, auth)
+
+
+def _readable(sock) -> bool:
+    """Whether an idle kept-alive socket has something to read: the server closed it (or sent stray bytes)."""
+    try:
+        return bool(select.select([sock], [], [], 0)[0])
+    except (OSError, ValueError):
+        return True
+
+
 def _root_cause(exc: Exception) -> str:
-    """The OS-level reason (e.g. '[Errno 111] Connection refused') buried in requests' exception chain."""
+    """The OS-level reason (e.g. '[Errno 111] Connection refused') buried in an exception's text."""
     found = re.search(r"\[Errno -?\d+\][^'\")]*", str(exc))
     return found.group(0).strip() if found else f"{type(exc).__name__}: {_excerpt(str(exc))}"
 
 
 def _excerpt(text: str) -> str:
-    text = text.strip()
+    text = " ".join(text.split())  # one line, whatever the server sent
     return text if len(text) <= MAX_BODY_CHARS else text[:MAX_BODY_CHARS] + "..."

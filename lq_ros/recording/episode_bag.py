@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import json
 import os
-import struct
-import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lq_ros.core.redact import redact_args, redact_config
 from lq_ros.core.suite_constants import CONTROL_DT_S, latency_ticks
 from lq_ros.wire import messages as m
 
@@ -56,10 +55,10 @@ def run_metadata(
     ``camera_size_px``: the render size actually used (None: no camera rendered).
     """
     return {
-        "config": cfg.to_dict(),
+        "config": redact_config(cfg.to_dict()),  # no secrets in results (lq_ros/core/redact.py)
         "config_key": cfg.key(),
         "camera_size_px": camera_size_px,
-        "policy_params": policy_params,
+        "policy_params": redact_args(policy_params),
         "transport": transport,
         "lockstep": cfg.clock == "lockstep",
         # Real-time runs depend on wall-clock timing (lq_ros/transport/ros/wall_clock.py): never bit-identical
@@ -309,25 +308,54 @@ def _library() -> str:
 
 
 def read_run_metadata(path: Path) -> dict:
-    """Run metadata stored by EpisodeBagWriter ({} for bags from other tools)."""
+    """Run metadata stored by EpisodeBagWriter ({} for bags from other tools).
+
+    Raises ValueError naming metadata.yaml when it is not a regular file (a directory, a FIFO: never
+    opened), not a rosbag2 metadata file, or its run metadata is not a JSON object; OSError when unreadable.
+    """
     raw = _custom_data(path).get(RUN_METADATA_KEY)
-    return json.loads(raw) if raw else {}
+    if not raw:
+        return {}
+    where = Path(path) / "metadata.yaml"
+    try:
+        metadata = json.loads(raw)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: custom_data {RUN_METADATA_KEY} is not JSON ({exc})") from None
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{where}: custom_data {RUN_METADATA_KEY} is not a JSON object")
+    return metadata
 
 
 def _custom_data(path: Path) -> dict:
     import yaml
 
+    from lq_ros.recording.mcap_reader import McapDamage, open_regular
+
     meta_file = Path(path) / "metadata.yaml"
+    try:
+        with open_regular(meta_file) as f:
+            text = f.read()
+    except McapDamage as exc:  # a directory or a FIFO named metadata.yaml
+        raise ValueError(str(exc).replace("not a bag file", "not a metadata file")) from None
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: ~10x faster, matters when scoring many bags
-    info = yaml.load(meta_file.read_text(), Loader=loader)["rosbag2_bagfile_information"]
-    return dict(info.get("custom_data") or {})
+    try:
+        document = yaml.load(text, Loader=loader)  # safe: a !!python tag is refused, never constructed
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{meta_file}: not valid YAML ({' '.join(str(exc).split())})") from None
+    info = document.get("rosbag2_bagfile_information") if isinstance(document, dict) else None
+    if not isinstance(info, dict):
+        raise ValueError(f"{meta_file}: not a rosbag2 metadata file (no rosbag2_bagfile_information mapping)")
+    custom = info.get("custom_data") or {}
+    if not isinstance(custom, dict):
+        raise ValueError(f"{meta_file}: custom_data is not a mapping")
+    return dict(custom)
 
 
 # -- reindex: metadata.yaml rebuilt from the .mcap ----------------------------------------------------------
 
-_MAGIC = b"\x89MCAP0\r\n"
-_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_DATA_END = 0x03, 0x04, 0x05, 0x06, 0x0F
-_RECORD = struct.Struct("<BQ")
+
+class BagRefused(ValueError):
+    """A bag folder that cannot be reindexed as it is; the message names the file and the problem."""
 
 
 @dataclass
@@ -355,17 +383,29 @@ def reindex(bag: Path) -> ReindexResult:
 
     Counts every readable message; a truncated file or a corrupt chunk is named in ``damage`` and what
     follows a truncation is not counted. The run metadata of an existing metadata.yaml is kept. The
-    ``.mcap`` is not modified: the scorer still sees (and reports) its damage.
+    ``.mcap`` is not modified: the scorer still sees (and reports) its damage. Raises FileNotFoundError
+    for a folder without a .mcap and BagRefused for one holding something other than regular files
+    (a FIFO would block the read forever; a metadata.yaml directory cannot be replaced).
     """
+    from lq_ros.recording.mcap_reader import McapDamage, open_regular
+
     bag = Path(bag)
+    if not bag.is_dir():
+        raise BagRefused(f"{bag}: not a bag folder (a rosbag2 bag is a folder holding .mcap files)")
     files = sorted(bag.glob("*.mcap"))
     if not files:
         raise FileNotFoundError(f"{bag}: no .mcap file (not a rosbag2 MCAP bag folder)")
+    meta_file = bag / "metadata.yaml"
+    for file in [*files, meta_file] if meta_file.exists() else files:
+        try:
+            open_regular(file).close()
+        except (McapDamage, OSError) as exc:
+            raise BagRefused(str(exc) if isinstance(exc, McapDamage) else f"{file}: cannot read ({exc})") from None
     custom: dict[str, str] = {}
-    if (bag / "metadata.yaml").exists():
+    if meta_file.exists():
         try:
             custom = _custom_data(bag)
-        except Exception:  # noqa: BLE001 - an unreadable metadata.yaml is what reindex replaces
+        except (ValueError, OSError):  # an unreadable metadata.yaml is what reindex replaces
             custom = {}
     scans = [scan_mcap(file) for file in files]
     damage = [f"{file.name}: {d}" for file, scan in zip(files, scans) for d in scan.damage]
@@ -376,89 +416,43 @@ def reindex(bag: Path) -> ReindexResult:
 
 
 def scan_mcap(path: Path, keep_messages: bool = False) -> McapScan:
-    """Walk one .mcap to its end or its damage: topics, counts, log-time span (and the messages)."""
+    """Walk one .mcap to its end or its damage: topics, counts, log-time span (and the messages).
+
+    Streams the file with the scorer's reader (one chunk in memory at a time, every record walked);
+    topics are listed in the order their channels are defined. A file that cannot be read from the start
+    (not MCAP, not a regular file) is damage too.
+    """
+    from lq_ros.recording.mcap_reader import McapDamage, StreamingMcapReader
+
     path = Path(path)
     scan = McapScan(_FileStats(path.name), [], False, [] if keep_messages else None)
-    schemas: dict[int, str] = {}
-    channels: dict[int, str] = {}
-
-    def record(op: int, body: memoryview) -> None:
-        if op == _OP_SCHEMA:
-            (sid,) = struct.unpack_from("<H", body)
-            schemas[sid] = _string(body, 2)[0]
-        elif op == _OP_CHANNEL:
-            cid, sid = struct.unpack_from("<HH", body)
-            topic, _ = _string(body, 4)
-            channels[cid] = topic
-            if topic not in scan.stats.topics:
-                msgtype = schemas.get(sid, "")
-                known = msgtype in m.typestore().types
-                type_hash = m.typestore().hash_rihs01(msgtype) if known else ""
-                scan.stats.topics[topic] = _TopicStats(m.Topic(topic, msgtype), type_hash)
-        elif op == _OP_MESSAGE:
-            cid, _seq, log_ns = struct.unpack_from("<HIQ", body)
-            if cid in channels:
-                scan.stats.add(channels[cid], log_ns)
-                if scan.messages is not None:
-                    scan.messages.append((channels[cid], log_ns, bytes(body[22:])))
-
-    data = path.read_bytes()
-    if data[:8] != _MAGIC:
-        scan.damage.append("not an MCAP file (bad magic bytes)")
-        return scan
-    off = 8
-    while True:
-        if off + 9 > len(data):
-            scan.damage.append(f"truncated at byte {len(data)}: no end record (the recorder died)")
-            return scan
-        op, length = _RECORD.unpack_from(data, off)
-        if off + 9 + length > len(data):
-            scan.damage.append(f"truncated at byte {len(data)}: the record at byte {off} is cut (the recorder died)")
-            return scan
-        body = memoryview(data)[off + 9 : off + 9 + length]
-        if op == _OP_CHUNK:
-            try:
-                inner = _chunk_records(body)
-            except Exception as exc:  # noqa: BLE001 - a corrupt chunk is named and skipped
-                scan.damage.append(f"chunk at byte {off}: {exc}")
-                inner = []
-            for inner_op, inner_body in inner:
-                record(inner_op, inner_body)
-        elif op == _OP_DATA_END:
-            scan.complete = True
-            return scan
-        else:
-            record(op, body)
-        off += 9 + length
-
-
-def _string(buf: memoryview, off: int) -> tuple[str, int]:
-    (n,) = struct.unpack_from("<I", buf, off)
-    return bytes(buf[off + 4 : off + 4 + n]).decode(), off + 4 + n
-
-
-def _chunk_records(body: memoryview) -> list[tuple[int, memoryview]]:
-    _start, _end, raw_size, crc = struct.unpack_from("<QQQI", body)
-    compression, off = _string(body, 28)
-    (size,) = struct.unpack_from("<Q", body, off)
-    payload = body[off + 8 : off + 8 + size]
-    if compression == "zstd":
-        import zstandard
-
-        raw = zstandard.ZstdDecompressor().decompress(payload, max_output_size=raw_size)
-    elif compression == "lz4":
-        import lz4.frame
-
-        raw = lz4.frame.decompress(payload)
-    elif compression == "":
-        raw = bytes(payload)
-    else:
-        raise ValueError(f"unsupported compression {compression!r}")
-    if len(raw) != raw_size or (crc and zlib.crc32(raw) != crc):
-        raise ValueError("CRC or size mismatch (corrupt data)")
-    out, view, pos = [], memoryview(raw), 0
-    while pos + 9 <= len(raw):
-        op, length = _RECORD.unpack_from(raw, pos)
-        out.append((op, view[pos + 9 : pos + 9 + length]))
-        pos += 9 + length
-    return out
+    reader = StreamingMcapReader(path, None)
+    counts: dict[str, list[int]] = {}  # topic -> [count, first log time, last log time]
+    try:
+        for channel, log_ns, payload in reader.messages():
+            seen = counts.get(channel.topic)
+            if seen is None:
+                counts[channel.topic] = [1, log_ns, log_ns]
+            else:
+                seen[0] += 1
+                seen[1], seen[2] = min(seen[1], log_ns), max(seen[2], log_ns)
+            if scan.messages is not None:
+                scan.messages.append((channel.topic, log_ns, bytes(payload)))
+    except McapDamage as exc:
+        reader.damage.append(str(exc).removeprefix(f"{path}: "))
+    except OSError as exc:
+        reader.damage.append(f"cannot read: {exc}")
+    store = m.typestore()
+    for channel in reader.channels.values():
+        if channel.topic in scan.stats.topics:
+            continue
+        known = channel.msgtype in store.types
+        type_hash = store.hash_rihs01(channel.msgtype) if known else ""
+        scan.stats.topics[channel.topic] = stats = _TopicStats(m.Topic(channel.topic, channel.msgtype), type_hash)
+        count, first, last = counts.get(channel.topic, (0, None, None))
+        stats.count = count
+        if count:
+            scan.stats.start_ns = first if scan.stats.start_ns is None else min(scan.stats.start_ns, first)
+            scan.stats.end_ns = last if scan.stats.end_ns is None else max(scan.stats.end_ns, last)
+    scan.damage, scan.complete = reader.damage, reader.complete
+    return scan

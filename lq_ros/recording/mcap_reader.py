@@ -4,8 +4,12 @@ Why not a generic reader: scoring must stay fast on bags that also hold 500 Hz p
 flat in memory, and must score what is readable in a truncated file (a recorder killed mid-episode
 leaves no summary, so index-based readers refuse the file). This reader walks the data section once,
 holds at most one chunk in memory, and uses each chunk's message indexes to touch only the wanted
-channels. Record layouts follow the MCAP specification (https://mcap.dev/spec); chunk decompression
-uses the ``mcap`` package.
+channels. Record layouts follow the MCAP specification (https://mcap.dev/spec). It is also the record
+walker of ``lq reindex`` (:meth:`StreamingMcapReader.messages`): one reader, one notion of damage.
+
+Hostile files are damage, never a hang or an allocation they dictate: only regular files are opened, a
+chunk is decompressed with an output bound (:data:`MAX_CHUNK_BYTES`, and never more than it declares),
+and a record header that cannot start a record (opcode 0, length 0) ends the walk of its chunk or file.
 
 Payload decoding of the few fields the scorer needs (stamps, EE position, joint velocity/effort,
 command source, energy integrals) walks the CDR layout directly: ~40x cheaper than a generic deserializer per message.
@@ -15,6 +19,8 @@ from __future__ import annotations
 
 import contextlib
 import mmap
+import os
+import stat
 import struct
 import threading
 import zlib
@@ -30,10 +36,65 @@ OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX, OP_DATA_END = 0x0
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _RECORD_HEADER = struct.Struct("<BQ")  # opcode, length
 _MESSAGE_HEADER = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+#: The largest uncompressed chunk read. The writer's chunks hold about 1 MiB (episode_bag.CHUNK_BYTES, plus at
+#: most one message), other tools' a few MiB: a chunk declaring more is damage, never an allocation.
+MAX_CHUNK_BYTES = 256 << 20
+#: A chunk declaring more than this is decompressed in steps of this size, its record headers checked as they
+#: arrive: a zero-filled chunk (a decompression bomb) is stopped after its first step.
+_STEP_BYTES = 8 << 20
+#: The reader gives back the memory-mapped pages of the file it has walked past every this many bytes.
+_RELEASE_BYTES = 8 << 20
+#: Problems after which a file is given up (a file of millions of malformed records is not walked to its end).
+MAX_DAMAGE = 100
+#: Smallest body of each record type read (MCAP spec): a shorter one is damage, skipped.
+_MIN_LENGTH = {OP_SCHEMA: 14, OP_CHANNEL: 16, OP_MESSAGE: 22, OP_CHUNK: 40, OP_MESSAGE_INDEX: 6}
 
 
 class McapDamage(ValueError):
-    """The file cannot be read from the start (not MCAP, unsupported encoding)."""
+    """The file cannot be read from the start (not MCAP, not a regular file, unsupported encoding)."""
+
+
+def _record_problem(op: int, length: int) -> str | None:
+    """Why a record header cannot start a record (None when it can): nothing after it can be found.
+
+    Opcode 0 is reserved and no record is empty: a zero-filled region (a decompression bomb, a file
+    preallocated by a crash) would otherwise be walked as millions of 9-byte records.
+    """
+    if op == 0 or length == 0:
+        return f"invalid record header (opcode 0x{op:02x}, length {length})"
+    return None
+
+
+def _too_short(op: int, length: int) -> str | None:
+    """Why a well-framed record of a type read here is malformed (None when it is long enough)."""
+    need = _MIN_LENGTH.get(op, 0)
+    return f"record 0x{op:02x} of {length} bytes, shorter than the {need} it needs; skipped" if length < need else None
+
+
+def open_regular(path: Path) -> BinaryIO:
+    """``path`` opened for reading if it is a regular file; McapDamage naming it otherwise.
+
+    A FIFO (or a device) is never opened: reading one blocks forever. The check is repeated on the open
+    descriptor (opened non-blocking) so a file swapped for a FIFO in between cannot hang the reader either.
+    """
+    path = Path(path)
+
+    def refuse(mode: int) -> McapDamage:
+        kind = "a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        return McapDamage(f"{path}: {kind}, not a bag file (only regular files are read)")
+
+    mode = path.stat().st_mode
+    if not stat.S_ISREG(mode):
+        raise refuse(mode)
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise refuse(mode)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 @dataclass(frozen=True)
@@ -96,7 +157,10 @@ def _gather(u8: np.ndarray, starts: np.ndarray, dtype: str, count: int = 1) -> n
 
 
 def _string(buf: bytes | memoryview, off: int) -> tuple[str, int]:
+    """A length-prefixed UTF-8 string; ValueError if it runs past the record or is not UTF-8."""
     (n,) = _U32.unpack_from(buf, off)
+    if off + 4 + n > len(buf):
+        raise ValueError(f"a string of {n} bytes at record offset {off} runs past the record's {len(buf)} bytes")
     return bytes(buf[off + 4 : off + 4 + n]).decode(), off + 4 + n
 
 
@@ -122,51 +186,83 @@ def _zstd_decompressor():
     return _THREAD.zstd
 
 
+def _check_headers(data: bytearray, off: int, at: int) -> int:
+    """Check the record headers of a chunk being decompressed from ``off`` on; the next header's offset."""
+    while off + 9 <= len(data):
+        op, length = _RECORD_HEADER.unpack_from(data, off)
+        if problem := _record_problem(op, length):
+            raise ValueError(f"chunk at byte {at}: {problem} at chunk offset {off}; chunk skipped")
+        off += 9 + length
+    return off
+
+
+def _decompress(compression: str, payload: memoryview, raw_size: int, at: int) -> bytes | bytearray | memoryview:
+    """A chunk's records, never more than ``raw_size`` + 1 bytes (the one more tells a size mismatch)."""
+    if compression == "":
+        return payload
+    if compression == "zstd":
+        reader = _zstd_decompressor().stream_reader(payload, read_across_frames=True)
+        read = reader.read
+    elif compression == "lz4":
+        import lz4.frame
+
+        lz4_stream = lz4.frame.LZ4FrameDecompressor()
+        pending = [payload]
+
+        def read(n: int) -> bytes:
+            if lz4_stream.eof:
+                return b""
+            return lz4_stream.decompress(pending.pop() if pending else b"", max_length=n)
+    else:
+        raise ValueError(f"chunk at byte {at}: unsupported compression {compression!r}")
+    limit = raw_size + 1
+    if raw_size <= _STEP_BYTES:  # the usual chunk: one call (a read returns all it can, up to its limit)
+        first = read(limit)
+        if len(first) >= raw_size or not first:
+            return first
+        parts = bytearray(first)
+    else:
+        parts = bytearray()
+    checked = 0
+    while len(parts) < limit:
+        piece = read(min(_STEP_BYTES, limit - len(parts)))
+        if not piece:
+            break
+        parts += piece
+        if raw_size > _STEP_BYTES:
+            checked = _check_headers(parts, checked, at)
+    return parts
+
+
 class StreamingMcapReader:
-    """Yield ``(channel, log_time_ns, cdr_payload)`` of the wanted topics, in file order within chunks.
+    """The messages of the wanted topics: :meth:`batches` (index-driven, for the scorer) or :meth:`messages`.
 
     After iteration, ``damage`` lists what was wrong (empty for an intact file): a corrupt chunk is
     skipped and reading goes on; a truncation ends the read. ``complete`` says whether the data section
     ended properly. Damage never raises: everything readable has been yielded.
     """
 
-    def __init__(self, path: Path, topics: Collection[str]) -> None:
+    def __init__(self, path: Path, topics: Collection[str] | None) -> None:
         self.path = Path(path)
-        self.topics = set(topics)
+        self.topics = None if topics is None else set(topics)  # None: every topic
         self.channels: dict[int, Channel] = {}
         self._schemas: dict[int, str] = {}
         self.damage: list[str] = []
         self.complete = False
+        self._size = 0
 
     # -- top level ---------------------------------------------------------------------------------
     def batches(self) -> Iterator[Batch]:
         """Messages of the wanted topics, one batch per channel and chunk (file order within a batch)."""
-        size = self.path.stat().st_size
-        with self.path.open("rb") as file, _mapped(file, size) as f:
-            if f.read(8) != MAGIC:
-                raise McapDamage(f"{self.path}: not an MCAP file (bad magic bytes)")
+        with self._open() as f:
             # chunk offset, chunk record, message indexes of wanted or unknown channels, index records seen
             pending: tuple[int, bytes, list, list[int]] | None = None
-            while True:
-                at = f.tell()
-                head = f.read(9)
-                if len(head) < 9:
-                    self.damage.append(f"truncated at byte {at}: the data section has no end record")
-                    break
-                op, length = _RECORD_HEADER.unpack(head)
-                if at + 9 + length > size:
-                    self.damage.append(
-                        f"truncated at byte {size}: record 0x{op:02x} at byte {at} needs {length} bytes, "
-                        f"{size - at - 9} remain"
-                    )
-                    break
+            for at, op, length in self._top_level(f):
                 if op == OP_MESSAGE_INDEX and pending is not None:
                     pending[3][0] += 1
                     channel_id = _U16.unpack(f.read(2))[0]
                     if self._wanted(channel_id) or channel_id not in self.channels:
                         pending[2].append((channel_id, f.read(length - 2)))
-                    else:
-                        f.seek(length - 2, 1)
                     continue
                 if pending is not None:
                     yield from self._chunk_batches(*pending)
@@ -174,52 +270,142 @@ class StreamingMcapReader:
                 if op == OP_CHUNK:
                     pending = (at, f.read(length), [], [0])
                 elif op in (OP_SCHEMA, OP_CHANNEL):
-                    self._definition(op, f.read(length))
+                    self._definition(op, f.read(length), f"byte {at}")
                 elif op == OP_MESSAGE:  # a message outside any chunk (unchunked files)
                     body = memoryview(f.read(length))
                     channel_id = _U16.unpack_from(body)[0]
                     if self._wanted(channel_id):
                         one = np.array([22], dtype=np.int64)
                         yield Batch(self.channels[channel_id], body, one, np.array([length - 22], dtype=np.int64))
-                elif op == OP_DATA_END:
-                    self.complete = True
-                    break
-                else:
-                    f.seek(length, 1)
-            if pending is not None:
+            if pending is not None and self.complete:
+                yield from self._chunk_batches(*pending)
+            elif pending is not None:
                 # The chunk itself was read whole; its indexes may have been cut, so scan it instead.
-                yield from self._chunk_batches(pending[0], pending[1], [] if self.damage else pending[2], 0)
+                yield from self._chunk_batches(pending[0], pending[1], [], 0)
+
+    def messages(self) -> Iterator[tuple[Channel, int, memoryview]]:
+        """``(channel, log time ns, CDR payload)`` of every message of the wanted topics, in file order.
+
+        Walks every record of every chunk (no index needed), one chunk in memory at a time: what
+        ``lq reindex`` counts. A payload is a view of the chunk being walked: copy what must outlive the step.
+        """
+        with self._open() as f:
+            for at, op, length in self._top_level(f):
+                if op == OP_CHUNK:
+                    try:
+                        data = self._chunk_data(at, f.read(length))
+                    except Exception as exc:  # noqa: BLE001 - a corrupt header or payload, whatever the decoder raises
+                        self._damaged(_chunk_damage(at, exc))
+                        continue
+                    for off, inner_op, inner_length in self._chunk_records(data, at):
+                        body = data[off + 9 : off + 9 + inner_length]
+                        if inner_op in (OP_SCHEMA, OP_CHANNEL):
+                            self._definition(inner_op, body, f"chunk at byte {at}, chunk offset {off}")
+                        elif inner_op == OP_MESSAGE:
+                            yield from self._message(body)
+                elif op in (OP_SCHEMA, OP_CHANNEL):
+                    self._definition(op, f.read(length), f"byte {at}")
+                elif op == OP_MESSAGE:
+                    yield from self._message(memoryview(f.read(length)))
+
+    def _message(self, body: memoryview) -> Iterator[tuple[Channel, int, memoryview]]:
+        channel_id, _sequence, log_ns = struct.unpack_from("<HIQ", body)
+        if self._wanted(channel_id):
+            yield self.channels[channel_id], log_ns, body[22:]
+
+    @contextlib.contextmanager
+    def _open(self) -> Iterator[BinaryIO | mmap.mmap]:
+        """The file, memory-mapped, past its magic bytes (McapDamage: not a regular file, not MCAP)."""
+        with open_regular(self.path) as file:
+            size = os.fstat(file.fileno()).st_size
+            with _mapped(file, size) as f:
+                if f.read(8) != MAGIC:
+                    raise McapDamage(f"{self.path}: not an MCAP file (bad magic bytes)")
+                self._size = size
+                yield f
+
+    def _top_level(self, f: BinaryIO | mmap.mmap) -> Iterator[tuple[int, int, int]]:
+        """(byte offset, opcode, body length) of each data-section record, the file positioned at its body.
+
+        Ends at the data end record (``complete``) or at damage that stops the read (recorded): a cut record,
+        or a header that cannot be a record (nothing after it can be found).
+        """
+        size, at = self._size, 8
+        # Memory-mapped pages stay resident once read: drop those walked past, or a big file ends up all in memory.
+        release = getattr(f, "madvise", None) if hasattr(mmap, "MADV_DONTNEED") else None
+        released = 0
+        while True:
+            if release is not None and at - released >= _RELEASE_BYTES:
+                upto = min(at, size) // mmap.PAGESIZE * mmap.PAGESIZE
+                release(mmap.MADV_DONTNEED, released, upto - released)
+                released = upto
+            if len(self.damage) >= MAX_DAMAGE:
+                self._damaged(f"more than {MAX_DAMAGE} problems: reading stopped at byte {at}")
+                return
+            f.seek(at)
+            head = f.read(9)
+            if len(head) < 9:
+                self._damaged(f"truncated at byte {at}: the data section has no end record")
+                return
+            op, length = _RECORD_HEADER.unpack(head)
+            if at + 9 + length > size:
+                self._damaged(
+                    f"truncated at byte {size}: record 0x{op:02x} at byte {at} needs {length} bytes, "
+                    f"{size - at - 9} remain"
+                )
+                return
+            if op == OP_DATA_END:
+                self.complete = True
+                return
+            if problem := _record_problem(op, length):
+                self._damaged(f"{problem} at byte {at}: the rest of the file is unreadable")
+                return
+            if short := _too_short(op, length):
+                self._damaged(f"byte {at}: {short}")
+            else:
+                yield at, op, length
+            at += 9 + length
+
+    def _damaged(self, message: str) -> None:
+        if message not in self.damage:  # a chunk walked twice (definitions, then messages) is named once
+            self.damage.append(message)
 
     def _all_wanted_known(self) -> bool:
         """Every wanted topic has a known channel (else an unread chunk might hold its definition)."""
         known = {c.topic for c in self.channels.values()}
-        return self.topics <= known
+        return self.topics is not None and self.topics <= known
 
     def _wanted(self, channel_id: int) -> bool:
         channel = self.channels.get(channel_id)
-        return channel is not None and channel.topic in self.topics
+        return channel is not None and (self.topics is None or channel.topic in self.topics)
 
-    def _definition(self, op: int, body: bytes | memoryview) -> None:
-        if op == OP_SCHEMA:
-            (schema_id,) = _U16.unpack_from(body)
-            name, _ = _string(body, 2)
-            self._schemas[schema_id] = name
-        else:
-            channel_id, schema_id = struct.unpack_from("<HH", body)
-            topic, off = _string(body, 4)
-            encoding, _ = _string(body, off)
-            self.channels[channel_id] = Channel(channel_id, topic, self._schemas.get(schema_id, ""), encoding)
+    def _definition(self, op: int, body: bytes | memoryview, where: str) -> None:
+        """Read a schema or channel record; a malformed one is damage (its messages stay unattributed)."""
+        try:
+            if op == OP_SCHEMA:
+                (schema_id,) = _U16.unpack_from(body)
+                name, _ = _string(body, 2)
+                self._schemas[schema_id] = name
+            else:
+                channel_id, schema_id = struct.unpack_from("<HH", body)
+                topic, off = _string(body, 4)
+                encoding, _ = _string(body, off)
+                self.channels[channel_id] = Channel(channel_id, topic, self._schemas.get(schema_id, ""), encoding)
+        except (struct.error, ValueError) as exc:  # a short record, a string past its end, not UTF-8
+            kind = "schema" if op == OP_SCHEMA else "channel"
+            self._damaged(f"{where}: malformed {kind} record ({exc}); skipped")
 
     # -- chunks ------------------------------------------------------------------------------------
     def _chunk_batches(self, at: int, record: bytes, indexes: list, index_records: list[int] | int) -> Iterator[Batch]:
         n_index_records = index_records[0] if isinstance(index_records, list) else index_records
+        if any((len(raw) - 4) % 16 for _, raw in indexes):  # a malformed message index: walk the chunk instead
+            indexes, n_index_records = [], 0
         if n_index_records and not indexes and self._all_wanted_known():
             return  # indexed, and none of its channels is wanted: not even decompressed
         try:
             data = self._chunk_data(at, record)
         except Exception as exc:  # noqa: BLE001 - a corrupt header or payload, whatever the decoder raises
-            message = str(exc) if str(exc).startswith("chunk at byte") else f"chunk at byte {at}: {exc}"
-            self.damage.append(message)
+            self._damaged(_chunk_damage(at, exc))
             return
         # Channel definitions live inside chunks in rosbag2 files: pick up any this chunk introduces.
         if n_index_records and not indexes:
@@ -246,10 +432,10 @@ class StreamingMcapReader:
         offs, owner = offs[order].astype(np.int64), owner[order]
         # One vectorised pass over every wanted message of the chunk (numpy's per-call cost dominates here).
         u8 = np.frombuffer(data, dtype=np.uint8)
-        past_end = offs + 31 > len(data)
+        past_end = (offs + 31 > len(data)) | (offs < 0)
         if past_end.any():
             for cid in np.unique(owner[past_end]).tolist():
-                self.damage.append(f"chunk at byte {at}: message index of channel {cid} points past the chunk end")
+                self._damaged(f"chunk at byte {at}: message index of channel {cid} points past the chunk end")
             keep = ~np.isin(owner, owner[past_end])
             offs, owner = offs[keep], owner[keep]
             if not len(offs):
@@ -259,7 +445,7 @@ class StreamingMcapReader:
         bad |= _gather(u8, offs + 9, "<u2") != owner
         if bad.any():
             first = int(offs[bad][0])
-            self.damage.append(f"chunk at byte {at}: bad message record at chunk offset {first}; chunk skipped")
+            self._damaged(f"chunk at byte {at}: bad message record at chunk offset {first}; chunk skipped")
             return
         # Pack the wanted payloads (the batches own their bytes; the decompressed chunk is freed).
         payload_lengths = lengths - 22
@@ -277,44 +463,71 @@ class StreamingMcapReader:
         ``definitions_only`` stops at the first message (writers put a chunk's new schemas/channels first).
         """
         offsets: dict[int, list[int]] = {}
-        off = 0
-        while off < len(data):
-            if off + 9 > len(data):
-                self.damage.append(f"chunk at byte {at}: record header cut at chunk offset {off}")
-                break
-            op, length = _RECORD_HEADER.unpack_from(data, off)
-            if off + 9 + length > len(data):
-                self.damage.append(f"chunk at byte {at}: record at chunk offset {off} overruns the chunk")
-                break
+        for off, op, length in self._chunk_records(data, at):
             if op in (OP_SCHEMA, OP_CHANNEL):
-                self._definition(op, data[off + 9 : off + 9 + length])
+                self._definition(op, data[off + 9 : off + 9 + length], f"chunk at byte {at}, chunk offset {off}")
             elif op == OP_MESSAGE and definitions_only:
                 break
             elif op == OP_MESSAGE and self._wanted(cid := _U16.unpack_from(data, off + 9)[0]):
                 offsets.setdefault(cid, []).append(off)
-            off += 9 + length
         return offsets
 
-    def _chunk_data(self, at: int, record: bytes) -> memoryview:
-        _start, _end, raw_size, crc = struct.unpack_from("<QQQI", record)
-        compression, off = _string(record, 28)
-        (size,) = _U64.unpack_from(record, off)
-        payload = memoryview(record)[off + 8 : off + 8 + size]
-        if compression == "":
-            data = payload
-        elif compression == "zstd":
-            data = _zstd_decompressor().decompress(payload, max_output_size=raw_size)
-        elif compression == "lz4":
-            import lz4.frame
+    def _chunk_records(self, data: memoryview, at: int) -> Iterator[tuple[int, int, int]]:
+        """(chunk offset, opcode, body length) of each record of a decompressed chunk, up to any damage.
 
-            data = lz4.frame.decompress(payload)
-        else:
-            raise ValueError(f"chunk at byte {at}: unsupported compression {compression!r}")
+        The records before a cut or invalid record are used; the rest of the chunk is skipped (named).
+        """
+        off = 0
+        while off < len(data):
+            if len(self.damage) >= MAX_DAMAGE:
+                self._damaged(f"more than {MAX_DAMAGE} problems: reading stopped in the chunk at byte {at}")
+                return
+            if off + 9 > len(data):
+                self._damaged(f"chunk at byte {at}: record header cut at chunk offset {off}")
+                return
+            op, length = _RECORD_HEADER.unpack_from(data, off)
+            if problem := _record_problem(op, length):
+                self._damaged(f"chunk at byte {at}: {problem} at chunk offset {off}; the rest of the chunk skipped")
+                return
+            if off + 9 + length > len(data):
+                self._damaged(f"chunk at byte {at}: record at chunk offset {off} overruns the chunk")
+                return
+            if short := _too_short(op, length):
+                self._damaged(f"chunk at byte {at}, chunk offset {off}: {short}")
+            else:
+                yield off, op, length
+            off += 9 + length
+
+    def _chunk_data(self, at: int, record: bytes) -> memoryview:
+        """The decompressed records of a chunk; ValueError naming the chunk when it cannot be read."""
+        try:
+            _start, _end, raw_size, crc = struct.unpack_from("<QQQI", record)
+            compression, off = _string(record, 28)
+            (size,) = _U64.unpack_from(record, off)
+        except (struct.error, ValueError) as exc:
+            raise ValueError(f"chunk at byte {at}: malformed chunk header ({exc})") from None
+        if off + 8 + size > len(record):
+            held = len(record) - off - 8
+            raise ValueError(f"chunk at byte {at}: {size} compressed bytes declared, the record holds {held}")
+        if raw_size > MAX_CHUNK_BYTES:
+            raise ValueError(
+                f"chunk at byte {at}: declares {raw_size} bytes uncompressed, more than the "
+                f"{MAX_CHUNK_BYTES >> 20} MiB a chunk may hold (corrupt or hostile); chunk skipped"
+            )
+        data = _decompress(compression, memoryview(record)[off + 8 : off + 8 + size], raw_size, at)
+        if len(data) > raw_size:
+            raise ValueError(f"chunk at byte {at}: decompresses to more than the {raw_size} bytes its header declares")
         if len(data) != raw_size:
             raise ValueError(f"chunk at byte {at}: {len(data)} bytes after decompression, header says {raw_size}")
         if crc and zlib.crc32(data) != crc:
             raise ValueError(f"chunk at byte {at}: CRC mismatch (corrupt data)")
         return memoryview(data)
+
+
+def _chunk_damage(at: int, exc: Exception) -> str:
+    """The damage line of a chunk that could not be read: never an empty reason."""
+    reason = str(exc) or f"{type(exc).__name__} while decompressing"
+    return reason if reason.startswith("chunk at byte") else f"chunk at byte {at}: {reason}"
 
 
 # -- CDR decoding of the scorer's fields -------------------------------------------------------------------

@@ -23,13 +23,19 @@ TITLE = "Fig. 8 - success and chunk-boundary quality vs latency, per merge strat
 #: property on success would compare different episodes (the success-only means are in the tables).
 PANELS = (
     ("success_rate", "success rate (%) [95% CI]", 100.0),
-    ("chunk_switch_jump_mean", "switch jump, mean (action units) [95% CI]", 1.0),
-    ("chunk_switch_jump_p90", "switch jump, P90 (action units) [95% CI]", 1.0),
+    # The executed command step ‖c_t - c_{t-1}‖ at every handover (switches and overlap ends): the same quantity
+    # for every strategy (not the jump against the old plan, which a blend shrinks by definition).
+    ("switch_executed_step_mean", "executed step at handovers, mean (action units) [95% CI]", 1.0),
+    ("switch_executed_step_max", "executed step at handovers, max (action units) [95% CI]", 1.0),
+    # Before merging: how far the new chunk's rows are from the old plan where they overlap (null: no overlap).
+    ("chunk_disagreement_mean", "chunk disagreement on overlap (action units) [95% CI]", 1.0),
     ("chunk_switch_jerk_ratio", "jerk near switches / elsewhere [95% CI]", 1.0),
     # Null when switches come every 5 ticks or less (docs/async.md); the episode's mean jerk always exists.
     ("jerk_mean", "mean jerk, 20 Hz (m/s³) [95% CI]", 1.0),
 )
 POPULATION = "_all"
+#: Panels per row of the figure.
+COLUMNS = 3
 #: Line style per latency kind (constant and the distributions).
 KIND_STYLE = {"constant": "-", "uniform": "--", "normal": "-.", "lognormal": ":", "trace": (0, (1, 1))}
 SERIES = ("base", "merge", "latency_kind")
@@ -52,9 +58,15 @@ def boundary_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int
 
 def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> plt.Figure:
     pooled = boundary_aggregates(episodes, n_boot=n_boot, seed=seed)
-    fig, axes = plt.subplots(1, len(PANELS), figsize=(4.6 * len(PANELS), 4.3), squeeze=False)
+    n_cols = COLUMNS
+    n_rows = -(-len(PANELS) // n_cols)
+    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.6 * n_cols, 4.3 * n_rows), squeeze=False)
+    axes = list(grid.flat)
+    for ax in axes[len(PANELS) :]:
+        ax.set_visible(False)
+    axes = axes[: len(PANELS)]
     if pooled.empty:
-        for ax in axes[0]:
+        for ax in axes:
             ax.text(0.5, 0.5, "no async episodes", ha="center", va="center", transform=ax.transAxes)
         fig.suptitle(TITLE)
         return fig
@@ -64,7 +76,7 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
     bases = sorted(pooled["base"].astype(str).unique())
     markers = dict(zip(bases, "osD^v<>p*h", strict=False))
     latencies = sorted(pooled["latency_s"].astype(float).unique())
-    for ax, (metric, label, scale) in zip(axes[0], PANELS, strict=True):
+    for ax, (metric, label, scale) in zip(axes, PANELS, strict=True):
         keys = sorted(pooled.groupby(list(SERIES)).groups, key=lambda k: (str(k[0]), order.get(k[1], 99), str(k[2])))
         for base, merge, kind in keys:
             rows = pooled[(pooled["base"] == base) & (pooled["merge"] == merge) & (pooled["latency_kind"] == kind)]
@@ -89,7 +101,7 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
         ax.set_xlabel(f"applied latency Δt_sim (mean of a distribution) = N × {CONTROL_DT_S:g} s")
         ax.set_xticks(latencies, [f"{v:g}\nN={v / CONTROL_DT_S:.3g}" for v in latencies])
         ax.grid(alpha=0.3)
-    axes[0][0].legend(title="merge strategy", fontsize=7)
+    axes[0].legend(title="merge strategy", fontsize=7)
     fig.suptitle(f"{TITLE}; boundary metrics over all episodes with an outcome")
     fig.tight_layout()
     return fig

@@ -17,26 +17,28 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 
 import numpy as np
+from rosbags.serde import SerdeError
 
+from lq_ros.core.cpu import SIMD_FLAGS
 from lq_ros.core.executor_protocol import Source
+from lq_ros.core.run_config import TRANSPORTS, cpu_info
 from lq_ros.core.suite_constants import CONTROL_DT_S, FPS
 from lq_ros.recording.episode_bag import RUN_METADATA_KEY, read_run_metadata
 from lq_ros.wire import messages as m
 
 DEFAULT_CAMERAS = ("agentview", "robot0_eye_in_hand")
 DEFAULT_SIZE_PX = 256
-#: Transports whose bags are lockstep simulations (anything else, e.g. a robot, cannot be re-simulated).
-SIMULATED_TRANSPORTS = ("inprocess", "ros")
+#: Transports whose bags are lockstep simulations (anything else, e.g. a robot, cannot be re-simulated): both.
+SIMULATED_TRANSPORTS = TRANSPORTS
 #: Versions that can change a trajectory; a difference is reported next to any divergence.
 RESULT_VERSIONS = ("mujoco", "robosuite", "libero", "numpy")
-#: x86 SIMD flags worth naming: MuJoCo results differ across some of them.
-SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512dq", "avx512bw", "avx512vl", "avx512_vnni")
 
 #: Display name and RGB colour of each command source (overlay, timeline, figures).
 SOURCE_STYLE: dict[int, tuple[str, tuple[int, int, int]]] = {
@@ -111,7 +113,7 @@ class Recording:
 def bag_folder(bag: Path) -> Path:
     """The rosbag2 folder of ``bag`` (a folder, or the .mcap file inside one)."""
     bag = Path(bag)
-    return bag.parent if bag.suffix == ".mcap" and bag.is_file() else bag
+    return bag.parent if bag.suffix == ".mcap" and bag.exists() and not bag.is_dir() else bag
 
 
 def read_recording(bag: Path, *, poses: bool = True) -> Recording:
@@ -126,7 +128,10 @@ def read_recording(bag: Path, *, poses: bool = True) -> Recording:
     files = sorted(folder.glob("*.mcap")) if folder.is_dir() else []
     if not files:
         raise ReplayRefused("no .mcap file (not a rosbag2 MCAP bag folder)")
-    metadata = read_run_metadata(folder) if (folder / "metadata.yaml").exists() else {}
+    try:
+        metadata = read_run_metadata(folder) if (folder / "metadata.yaml").exists() else {}
+    except (ValueError, OSError) as exc:  # not a rosbag2 metadata file, a directory, unreadable
+        raise ReplayRefused(f"unreadable run metadata: {exc}") from None
     wanted = {
         m.COMMAND.name: m.COMMAND.msgtype,
         **({m.EE_POSE.name: m.EE_POSE.msgtype} if poses else {}),
@@ -143,7 +148,10 @@ def read_recording(bag: Path, *, poses: bool = True) -> Recording:
                     raise ReplayRefused(f"{file}: {topic} holds {msgtype or '?'}, expected {wanted[topic]}")
                 # At most a few hundred messages per topic: the generic deserializer is fast enough.
                 for i in range(len(batch)):
-                    _collect(rec, topic, m.deserialize(batch.payload(i), msgtype))
+                    try:
+                        _collect(rec, topic, m.deserialize(batch.payload(i), msgtype))
+                    except (SerdeError, ValueError, struct.error) as exc:  # damage: named, refused by the checks
+                        reader.damage.append(f"{file}: undecodable {topic} message ({exc})")
         except McapDamage as exc:
             raise ReplayRefused(str(exc)) from exc
         except OSError as exc:
@@ -244,27 +252,8 @@ def format_cpu(cpu) -> str:
 
 @cache
 def cpu_here() -> str:
-    """This machine's CPU model, class and SIMD flags.
-
-    From lq_ros.core.run_config.cpu_info when it exists, else /proc/cpuinfo.
-    """
-    try:
-        from lq_ros.core.run_config import cpu_info
-    except ImportError:  # older checkouts: read /proc/cpuinfo here
-        cpu_info = None
-    if cpu_info is not None:
-        return format_cpu(cpu_info())
-    model, flags = "unknown", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and model == "unknown":
-                model = value.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(value.split())
-    except OSError:
-        return "unknown"
-    return format_cpu({"model": model, "simd": [f for f in SIMD_FLAGS if f in flags]})
+    """This machine's CPU model, class and SIMD flags (lq_ros.core.run_config.cpu_info, as recorded in bags)."""
+    return format_cpu(cpu_info())
 
 
 def cpu_recorded(metadata: dict) -> str:

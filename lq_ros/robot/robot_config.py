@@ -17,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from lq_ros.core.run_config import REPO_ROOT
+from lq_ros.core.shipped import shipped_path
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -27,8 +27,8 @@ FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 CLOCK = "rosgraph_msgs/msg/Clock"
 #: Where a robot on simulated time (``clock: sim``) publishes its clock (the ROS convention, use_sim_time).
 CLOCK_TOPIC = "/clock"
-#: Shipped configurations, by name (``--robot standin`` = config/robots/standin.yaml).
-ROBOTS_DIR = REPO_ROOT / "config" / "robots"
+#: Shipped configurations, by name (``--robot standin`` = config/robots/standin.yaml, shipped with the package).
+ROBOTS_DIR = shipped_path("config/robots")
 
 
 class RobotConfigError(ValueError):

@@ -13,15 +13,14 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from lq_ros.core.run_config import RunConfig
+from lq_ros.core.run_config import TRANSPORTS, RunConfig
+from lq_ros.recording.episode_folder import SCORE_FILE
 from lq_ros.transport.outcome import EpisodeOutcome
 
 if TYPE_CHECKING:  # imported when an episode runs: `lq run --help` and sweep specs stay light
     from lq_ros.policies import Policy
     from lq_ros.sim.libero_env import LiberoEnv
     from lq_ros.transport.ros.stack import RosStack
-
-TRANSPORTS = ("ros", "inprocess")
 
 
 def run_episode(
@@ -85,7 +84,7 @@ def scored_row(bag_path: Path) -> dict:
     """
     from lq_ros.scoring.bag_scorer import score_bag, to_json
 
-    score_file = bag_path / "score.json"
+    score_file = bag_path / SCORE_FILE
     if score_file.exists():
         return json.loads(score_file.read_text())
     if (bag_path / "metadata.yaml").exists():

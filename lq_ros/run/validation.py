@@ -7,7 +7,6 @@ values; the CLI prints it and exits with code 2, with no traceback and no bag.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import inspect
 import io
 import sys
@@ -15,6 +14,7 @@ import types
 import typing
 from functools import cache
 
+from lq_ros.core.redact import redact_args
 from lq_ros.core.suite_constants import NUM_INIT_STATES, STEP_BUDGETS
 
 
@@ -55,22 +55,18 @@ def check_init(init: int) -> None:
 
 
 def policy_class(name: str) -> type:
-    """The class a policy name stands for: a registry name or ``package.module:Class``."""
-    from lq_ros.policies import REGISTRY
+    """The class a policy name stands for: a registry name or ``package.module:Class``.
 
-    known = f"known: {', '.join(sorted(REGISTRY))} or package.module:Class"
-    target = REGISTRY.get(name, name)
-    module_name, sep, cls_name = target.partition(":")
-    if not sep or not module_name or not cls_name:
-        raise InputError(f"unknown policy {name!r}; {known}")
+    ``package.module:Class`` is trusted input (the module is imported, as the user's own code), and only a
+    subclass of ``lq_ros.policies.base.Policy`` is accepted: any other importable callable (``subprocess:Popen``)
+    is refused here, before anything calls it (``lq_ros.policies.policy_class``'s refusal as an InputError).
+    """
+    from lq_ros.policies import policy_class as resolve
+
     try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise InputError(f"policy {name!r}: cannot import module {module_name!r} ({exc}); {known}") from None
-    cls = getattr(module, cls_name, None)
-    if not isinstance(cls, type):
-        raise InputError(f"policy {name!r}: module {module_name!r} has no class {cls_name!r}; {known}")
-    return cls
+        return resolve(name)
+    except (ImportError, ValueError) as exc:
+        raise InputError(str(exc)) from None
 
 
 def policy_arguments(cls: type) -> tuple[dict[str, inspect.Parameter], dict[str, object], bool]:
@@ -111,7 +107,7 @@ def check_policy_args(name: str, args: dict) -> None:
             raise InputError(f"policy {name!r} takes no argument {key!r}; its arguments: {accepted}")
         if key in hints and not _matches(value, hints[key]):
             raise InputError(
-                f"policy {name!r}: {key}={value!r} is {_article(type(value).__name__)}, not "
+                f"policy {name!r}: {key}={redact_args({key: value})[key]!r} is {_article(type(value).__name__)}, not "
                 f"{_type_name(hints[key])}; its arguments: {accepted}"
             )
 
@@ -186,4 +182,4 @@ def _article(word: str) -> str:
 
 
 def _args_text(args: dict) -> str:
-    return ", ".join(f"{k}={v!r}" for k, v in args.items()) or "no arguments"
+    return ", ".join(f"{k}={v!r}" for k, v in redact_args(args).items()) or "no arguments"

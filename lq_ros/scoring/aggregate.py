@@ -11,7 +11,17 @@ Which episodes a metric is averaged over (one table, the single source of truth)
   episode often ends motionless and would make a policy that fails more look smoother; the same over
   failures (``<metric>_failure_mean``) and over all outcomes (``<metric>_all_mean``) beside them.
 - trajectory length / efficiency: successes (paper A.4); latency and protocol counts: all outcomes.
-Success uses the Wilson score interval; continuous metrics a seeded percentile bootstrap.
+Success uses the Wilson score interval; continuous metrics a seeded percentile bootstrap, which undercovers
+on few values: below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
+(``<metric>_values``, :func:`ci_text`).
+
+Attribution of latency effects (docs/scoring.md, "Attributing latency effects"):
+- :func:`paired_differences`: each latency > 0 cell against the zero-latency cell of the same variant and
+  protocol, over the (suite, task, init, seed) pairs that succeed in both, so a change is not a change of
+  the task mix that succeeds.
+- :func:`add_budget_attribution`: whether a timeout under ``budget_counts`` ``all`` was decided by the
+  budget (hold ticks spent it) or by the policy; :func:`aggregate` marks ``budget_decided`` cells.
+- :func:`kaplan_meier`: time-to-success curves with failures censored at their end.
 """
 
 from __future__ import annotations
@@ -24,7 +34,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from numpy.typing import ArrayLike
 
+from lq_ros.core.redact import redact_args
 from lq_ros.core.run_config import GROUP_KEYS, VARIANT_FIELDS, RunConfig
 from lq_ros.core.suite_constants import CONTROL_DT_S
 from lq_ros.scoring import metrics
@@ -54,12 +66,19 @@ CONTINUOUS_METRICS: dict[str, str] = {
     "energy_per_step_j": BY_OUTCOME,
     # Chunk-boundary quality (lq_ros/scoring/chunk_boundary.py): like jerk, over successes with failures and all beside.
     "chunk_switches": BY_OUTCOME,
+    "switch_executed_step_mean": BY_OUTCOME,
+    "switch_executed_step_max": BY_OUTCOME,
+    "chunk_disagreement_mean": BY_OUTCOME,
     "chunk_switch_jump_mean": BY_OUTCOME,
     "chunk_switch_jump_p90": BY_OUTCOME,
     "chunk_switch_jump_max": BY_OUTCOME,
     "chunk_switch_jerk_mean": BY_OUTCOME,
     "chunk_switch_jerk_ratio": BY_OUTCOME,
     "latency_sim_mean_s": WITH_OUTCOME,
+    "latency_sim_p50_s": WITH_OUTCOME,
+    "latency_sim_p90_s": WITH_OUTCOME,
+    "latency_sim_max_s": WITH_OUTCOME,
+    "action_ticks": WITH_OUTCOME,
     "latency_real_mean_s": WITH_OUTCOME,
     "latency_real_p90_s": WITH_OUTCOME,
     "num_inferences": WITH_OUTCOME,
@@ -81,6 +100,25 @@ PROVENANCE_COLUMNS = {
 POPULATIONS = {"": "success", "_failure": "failure", "_all": "outcome"}
 #: Per-episode columns stored as JSON text (nested values do not fit CSV/Parquet columns uniformly).
 _JSON_COLUMNS = ("versions", "null_reasons", "warnings", "policy_args")
+#: Fewest values a bootstrap interval is given for. Below it the percentile bootstrap of a mean undercovers
+#: (one value gives the interval [v, v]): tables and figures show the values and their count instead.
+MIN_N_INTERVAL = 5
+#: What a paired comparison pairs: the same task, init state and seed of one suite.
+PAIR_KEYS = ("suite", "task", "init", "seed")
+#: ``budget_counts`` of rows scored before the choice existed: every tick counted (the paper's budget).
+DEFAULT_BUDGET_COUNTS = "all"
+#: Metrics of the paired view (:func:`paired_differences`): cell minus zero-latency cell, per pair.
+PAIRED_METRICS = (
+    "completion_time_s",
+    "action_ticks",
+    "jerk_mean",
+    "jerk_p90",
+    "ee_osc",
+    "ee_osc_detrended",
+    "traj_length",
+    "energy_total_j",
+    "energy_per_step_j",
+)
 
 
 # -- per-episode rows --------------------------------------------------------------------------------------
@@ -127,7 +165,16 @@ def episodes_frame(rows: Iterable[dict], references: pd.DataFrame | None = None)
     frame["latency_dist"] = frame["latency_dist"].where(
         frame["latency_dist"].notna() | frame["latency_s"].isna(), "constant"
     )
-    return add_relative_efficiency(label_variants(frame), references)
+    # Rows scored before the budget choice existed counted every tick; before action_ticks existed, the ticks
+    # whose command came from a chunk were fresh_actions_executed (the same count).
+    budget = frame["budget_counts"] if "budget_counts" in frame else pd.Series(None, index=frame.index, dtype=object)
+    frame["budget_counts"] = budget.where(budget.notna(), DEFAULT_BUDGET_COUNTS)
+    if "action_ticks" not in frame:
+        frame["action_ticks"] = frame.get("fresh_actions_executed", pd.Series(math.nan, index=frame.index))
+    elif "fresh_actions_executed" in frame:
+        action = frame["action_ticks"]
+        frame["action_ticks"] = action.where(action.notna(), frame["fresh_actions_executed"])
+    return add_budget_attribution(add_relative_efficiency(label_variants(frame), references))
 
 
 def _variant_label(row: pd.Series, without: tuple[str, ...] = ()) -> str | None:
@@ -141,6 +188,7 @@ def _variant_label(row: pd.Series, without: tuple[str, ...] = ()) -> str | None:
     if isinstance(args, str) and args:
         args = json.loads(args)
     if isinstance(args, dict):
+        args = redact_args(args)  # no secrets in labels (lq_ros/core/redact.py)
         parts += [f"{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in sorted(args.items())]
     for key in VARIANT_FIELDS[1:]:
         if key in without:
@@ -168,6 +216,90 @@ def label_variants(episodes: pd.DataFrame) -> pd.DataFrame:
     out["policy_name"] = out["policy"]
     if len(out):
         out["policy"] = out.apply(_variant_label, axis=1)
+    return out
+
+
+def base_labels(episodes: pd.DataFrame, without: tuple[str, ...]) -> pd.Series:
+    """Each row's variant label with the fields in ``without`` left out (``latency_dist``: the label the
+    constant-latency cells of the same variant carry; ``budget_counts``: the same cell under either budget)."""
+    unlabelled = episodes.copy()
+    if "policy_name" in unlabelled:
+        unlabelled["policy"] = unlabelled["policy_name"]
+    if unlabelled.empty:
+        return pd.Series([], index=episodes.index, dtype=object)
+    return unlabelled.apply(lambda r: _variant_label(r, without), axis=1)
+
+
+def _pair_keys(episodes: pd.DataFrame) -> list[tuple[str, ...]]:
+    """(suite, task, init, seed) of each row as text (a missing column: one shared value)."""
+    columns = [episodes[k] if k in episodes else pd.Series("", index=episodes.index) for k in PAIR_KEYS]
+    return [tuple(_text(v) for v in values) for values in zip(*columns, strict=True)]
+
+
+def _text(value) -> str:
+    """A key value as text: integers stay integers when a missing value made the column float."""
+    if isinstance(value, float) and value.is_integer():
+        return str(int(value))
+    return str(value)
+
+
+def add_budget_attribution(episodes: pd.DataFrame) -> pd.DataFrame:
+    """Attribute every timeout under ``budget_counts`` ``all`` to the budget or to the policy.
+
+    Adds per episode:
+    - ``budget_twin_success``: for a row under budget ``all``, whether the same episode (variant, protocol,
+      latency, suite, task, init, seed) under budget ``action`` succeeded; None without such a row.
+    - ``budget_limited``: for a failure under budget ``all``, True when the budget and not the policy decided
+      it, False when the policy did, None when the rows cannot tell. The rule, first that applies:
+      1. latency 0: False (no inference holds the arm, so the budget was all action ticks);
+      2. the action-budget twin exists: its outcome (in lockstep it is this episode continued past the
+         budget: a success there means more ticks would have sufficed);
+      3. the same variant, protocol and pair succeeded at latency 0: True when this episode executed fewer
+         action ticks (``action_ticks``) than that success needed (holds spent the budget before the policy
+         had the actions it needs unimpeded), else False;
+      4. otherwise None.
+    - ``budget_basis``: which of the rules gave ``budget_limited`` (``latency 0``, ``action-budget run``,
+      ``zero-latency action ticks``).
+    """
+    out = episodes.copy()
+    n = len(out)
+    twin_success: list[bool | None] = [None] * n
+    limited: list[bool | None] = [None] * n
+    basis: list[str | None] = [None] * n
+    if n:
+        pairs = _pair_keys(out)
+        latency = pd.to_numeric(out["latency_s"], errors="coerce").round(9).to_numpy()
+        action = pd.to_numeric(out.get("action_ticks"), errors="coerce").to_numpy(dtype=np.float64)
+        status, budget = out["status"].to_numpy(), out["budget_counts"].to_numpy()
+        mode, dist = out["mode"].astype(str).to_numpy(), out["latency_dist"].astype(str).to_numpy()
+        twin_keys = list(zip(base_labels(out, ("budget_counts",)), mode, latency, dist, pairs, strict=True))
+        zero_keys = list(zip(base_labels(out, ("budget_counts", "latency_dist")), mode, pairs, strict=True))
+        twins = {
+            key: s == "success"
+            for key, b, s in zip(twin_keys, budget, status, strict=True)
+            if b == "action" and s in ("success", "failure")
+        }
+        needed: dict[tuple, float] = {}  # zero-latency successes: the fewest action ticks the pair needed
+        for key, lat, s, a in zip(zero_keys, latency, status, action, strict=True):
+            if lat == 0 and s == "success" and np.isfinite(a):
+                needed[key] = min(needed.get(key, math.inf), float(a))
+        for i in range(n):
+            if budget[i] != DEFAULT_BUDGET_COUNTS:
+                continue
+            twin_success[i] = twins.get(twin_keys[i])
+            if status[i] != "failure":
+                continue
+            if latency[i] == 0:
+                limited[i], basis[i] = False, "latency 0"
+            elif not latency[i] > 0:
+                continue  # unknown latency: nothing to compare with
+            elif twin_success[i] is not None:
+                limited[i], basis[i] = twin_success[i], "action-budget run"
+            elif zero_keys[i] in needed and np.isfinite(action[i]):
+                limited[i], basis[i] = bool(action[i] < needed[zero_keys[i]]), "zero-latency action ticks"
+    out["budget_twin_success"] = pd.Series(twin_success, index=out.index, dtype=object)
+    out["budget_limited"] = pd.Series(limited, index=out.index, dtype=object)
+    out["budget_basis"] = pd.Series(basis, index=out.index, dtype=object)
     return out
 
 
@@ -260,6 +392,8 @@ def aggregate(
         _add_restricted_mean(row, group[outcome_mask], confidence, n_boot, seed)
         degenerate = group.get("degenerate_protocol", pd.Series(dtype=object))
         row["n_degenerate"] = int(degenerate.fillna(False).astype(bool).sum())
+        _add_budget_counts(row, group)
+        row["latency_sim_realised_mean_s"] = realised_latency_s(group)
         # Provenance of every row: what produced these numbers.
         for column, name in PROVENANCE_COLUMNS.items():
             row[name] = _distinct(group[column]) if column in group else ""
@@ -271,29 +405,94 @@ def _add_mean(
     row: dict, group: pd.DataFrame, mask: pd.Series, metric: str, name: str, confidence: float, n_boot: int, seed: int
 ) -> None:
     values = pd.to_numeric(group.loc[mask, metric], errors="coerce") if metric in group else pd.Series([], dtype=float)
-    values = values[np.isfinite(values)].to_numpy(dtype=np.float64)
-    row[f"{name}_n"] = len(values)
+    row.update(mean_stats(values.to_numpy(dtype=np.float64), name, confidence, n_boot, seed))
+
+
+def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: int = 2000, seed: int = 0) -> dict:
+    """``<name>_n``, ``_mean``, ``_ci_lo``, ``_ci_hi`` and ``_values`` of the finite ``values``: the bootstrap
+    interval from MIN_N_INTERVAL values on; below that the interval is NaN and ``_values`` lists them (JSON)."""
+    values = values[np.isfinite(values)]
+    out = {f"{name}_n": len(values), f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan}
+    out[f"{name}_values"] = json.dumps([float(v) for v in values]) if 0 < len(values) < MIN_N_INTERVAL else ""
     if len(values):
-        low, high = metrics.bootstrap_ci(values, confidence, n_boot, seed)
-        row.update({f"{name}_mean": float(values.mean()), f"{name}_ci_lo": low, f"{name}_ci_hi": high})
-    else:
-        row.update({f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan})
+        out[f"{name}_mean"] = float(values.mean())
+    if len(values) >= MIN_N_INTERVAL:
+        out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = metrics.bootstrap_ci(values, confidence, n_boot, seed)
+    return out
+
+
+def _add_budget_counts(row: dict, group: pd.DataFrame) -> None:
+    """Budget attribution of a group (see :func:`add_budget_attribution`): ``n_budget_limited``,
+    ``n_policy_limited`` and ``n_budget_unattributed`` timeouts under budget ``all``; ``budget_decided`` when at
+    least half of those timeouts are budget-limited; the success of the group's action-budget twins
+    (``action_budget_success_rate`` over ``action_budget_n``)."""
+    budget = group.get("budget_counts", pd.Series(DEFAULT_BUDGET_COUNTS, index=group.index))
+    paper = budget.fillna(DEFAULT_BUDGET_COUNTS) == DEFAULT_BUDGET_COUNTS
+    failures = paper & (group["status"] == "failure")
+    limited = group.get("budget_limited", pd.Series(None, index=group.index, dtype=object))
+    n_limited = sum(1 for v in limited[failures] if v is True or v is np.True_)
+    n_policy = sum(1 for v in limited[failures] if v is False or v is np.False_)
+    n_failures = int(failures.sum())
+    row.update(
+        budget_counts=_distinct(budget),
+        n_budget_limited=n_limited,
+        n_policy_limited=n_policy,
+        n_budget_unattributed=n_failures - n_limited - n_policy,
+        budget_decided=bool(n_failures and 2 * n_limited >= n_failures),
+    )
+    twins = [bool(v) for v in group.get("budget_twin_success", pd.Series(dtype=object))[paper] if _is_flag(v)]
+    row["action_budget_n"] = len(twins)
+    row["action_budget_success_rate"] = sum(twins) / len(twins) if twins else math.nan
+
+
+def _is_flag(value) -> bool:
+    return isinstance(value, bool | np.bool_)
+
+
+def realised_latency_s(episodes: pd.DataFrame) -> float:
+    """Mean applied Δt_sim over the chunks of ``episodes``, s: each episode's ``latency_sim_mean_s`` weighted by
+    its applied chunks (``chunks_applied``; 1 when unknown); NaN without any."""
+    if "latency_sim_mean_s" not in episodes or not len(episodes):
+        return math.nan
+    mean = pd.to_numeric(episodes["latency_sim_mean_s"], errors="coerce")
+    weights = pd.to_numeric(episodes.get("chunks_applied", pd.Series(1.0, index=episodes.index)), errors="coerce")
+    weights = weights.where(weights.notna() & (weights > 0), 1.0)
+    ok = mean.notna()
+    return float((mean[ok] * weights[ok]).sum() / weights[ok].sum()) if ok.any() else math.nan
+
+
+def cell_latency_label(row: pd.Series | dict) -> str:
+    """How a cell's latency is named: ``0.2 s (N=4)`` for a constant, ``uniform:0.1:0.3 (realised mean 0.216
+    s)`` for a distribution (the realised mean: ``latency_sim_realised_mean_s``, over the cell's chunks)."""
+    dist, latency = row.get("latency_dist"), row.get("latency_s")
+    if isinstance(dist, str) and dist and dist != "constant":
+        realised = row.get("latency_sim_realised_mean_s")
+        text = f"{realised:.3g} s" if realised is not None and np.isfinite(realised) else "unknown"
+        return f"{dist} (realised mean {text})"
+    if latency is None or not np.isfinite(latency):
+        return "unknown latency"
+    return f"{latency:g} s (N={round(latency / CONTROL_DT_S)})"
 
 
 def _add_restricted_mean(row: dict, outcomes: pd.DataFrame, confidence: float, n_boot: int, seed: int) -> None:
-    """Kaplan-Meier restricted mean completion time up to the step budget, with a bootstrap CI."""
+    """Kaplan-Meier restricted mean completion time up to the tick limit (the step budget; with budget_counts
+    action, the hard stop at 4x it, where such an episode ends at the latest), with a bootstrap CI."""
     keys = ("completion_time_rmst_s", "completion_time_rmst_ci_lo", "completion_time_rmst_ci_hi")
     row.update(dict.fromkeys(keys, math.nan))
+    row["completion_time_rmst_n"] = len(outcomes)
     if outcomes.empty or "step_budget" not in outcomes:
         return
     times = pd.to_numeric(outcomes["completion_time_s"], errors="coerce").to_numpy(dtype=np.float64)
     events = (outcomes["status"] == "success").to_numpy()
-    budgets = pd.to_numeric(outcomes["step_budget"], errors="coerce").dropna().unique()
+    limit = outcomes["tick_limit"] if "tick_limit" in outcomes else outcomes["step_budget"]
+    budgets = pd.to_numeric(limit.fillna(outcomes["step_budget"]), errors="coerce").dropna().unique()
     if len(budgets) != 1 or not np.all(np.isfinite(times)):
         return  # mixed budgets never pool (max_steps is a variant field); unknown budget: undefined
     horizon = float(budgets[0]) * CONTROL_DT_S
     estimate = metrics.restricted_mean_time(times, events, horizon)
-    if np.all(times[~events] >= horizon - 1e-9):
+    if len(times) < MIN_N_INTERVAL:
+        low = high = math.nan  # too few episodes for a bootstrap interval (see MIN_N_INTERVAL)
+    elif np.all(times[~events] >= horizon - 1e-9):
         # Every failure is censored at the budget: the estimate is the mean of min(t, horizon) exactly,
         # so the (vectorised) bootstrap of that mean is the bootstrap of the estimate.
         low, high = metrics.bootstrap_ci(np.minimum(times, horizon), confidence, n_boot, seed)
@@ -336,6 +535,127 @@ def write_tables(episodes: pd.DataFrame, aggregates: pd.DataFrame, out_dir: Path
     return written
 
 
+# -- attribution: paired changes, time to success -----------------------------------------------------------
+
+
+def paired_differences(
+    episodes: pd.DataFrame,
+    *,
+    by: Sequence[str] = GROUP_KEYS,
+    metric_names: Sequence[str] = PAIRED_METRICS,
+    n_boot: int = 2000,
+    seed: int = 0,
+    confidence: float = 0.95,
+) -> pd.DataFrame:
+    """The change of each metric from latency 0, per cell (``by``) with latency_s > 0, over matched pairs.
+
+    A cell's zero-latency cell has the same ``by`` values besides the latency and the same variant label
+    without its latency kind (a ``uniform`` cell is compared with the constant 0 s cell of its variant and
+    protocol). The change is taken per PAIR_KEYS pair (suite, task, init, seed) that succeeds in both cells:
+    success-only means of two cells pool different task mixes whenever their success differs (3 successes at
+    0.2 s against 9 at 0.1 s), a paired change does not.
+
+    At latency 0 no tick holds, so a budget (``budget_counts``) without a 0 s cell of its own is compared with the
+    other budget's (``zero_budget_counts`` says which).
+
+    Columns: the cell's ``by`` values; ``zero_budget_counts``; ``n_success``; ``zero_n`` and ``zero_n_success``
+    (outcomes and successes of the zero-latency cell; 0 when there is none); ``n_pairs``; per metric
+    ``<metric>_diff_{n,mean,ci_lo,ci_hi,values}`` (cell minus zero per pair, a bootstrap interval over pairs from
+    MIN_N_INTERVAL pairs on) and ``<metric>_zero_mean`` / ``<metric>_cell_mean`` over the same pairs.
+    """
+    if "latency_s" not in by:
+        raise ValueError("paired_differences compares latencies: `by` must contain latency_s")
+    if episodes.empty:
+        return pd.DataFrame()
+    eps = episodes.reset_index(drop=True)
+    # Zero-latency cells are keyed by the variant without its budget and the budget apart: at 0 s no tick holds,
+    # so both budgets run the same episode and the other budget's 0 s cell stands in when a budget has none.
+    base = base_labels(eps, ("latency_dist", "budget_counts")).to_numpy()
+    budget = eps["budget_counts"].astype(str).to_numpy() if "budget_counts" in eps else np.full(len(eps), "all")
+    pairs = _pair_keys(eps)
+    match = [k for k in by if k not in ("policy", "latency_s", "latency_dist")]
+    match_values = [tuple(_text(v) for v in values) for values in zip(*(eps[k] for k in match), strict=True)]
+    if not match:
+        match_values = [()] * len(eps)
+    latency = pd.to_numeric(eps["latency_s"], errors="coerce").round(9).to_numpy()
+    status = eps["status"].to_numpy()
+    zero_counts: dict[tuple, list[int]] = {}
+    zero_success: dict[tuple, int] = {}
+    for i in np.flatnonzero(latency == 0):
+        cell = (base[i], match_values[i], budget[i])
+        if status[i] in ("success", "failure"):
+            counts = zero_counts.setdefault(cell, [0, 0])
+            counts[0] += 1
+            counts[1] += int(status[i] == "success")
+        if status[i] == "success":
+            zero_success.setdefault((*cell, pairs[i]), i)
+    columns = {m: pd.to_numeric(eps[m], errors="coerce").to_numpy(dtype=np.float64) for m in metric_names if m in eps}
+    rows = []
+    for key, group in eps.groupby(list(by), dropna=False, sort=True):
+        first = group.index[0]
+        if not latency[first] > 0:
+            continue
+        row = dict(zip(by, key if isinstance(key, tuple) else (key,), strict=True))
+        candidates = [(base[first], match_values[first], b) for b in (budget[first], *sorted(set(budget)))]
+        cell = next((c for c in candidates if c in zero_counts), candidates[0])
+        row["zero_budget_counts"] = cell[2] if cell in zero_counts else None
+        successes = [i for i in group.index if status[i] == "success"]
+        zero_n, zero_n_success = zero_counts.get(cell, (0, 0))
+        matched = [(i, zero_success[(*cell, pairs[i])]) for i in successes if (*cell, pairs[i]) in zero_success]
+        row.update(n_success=len(successes), zero_n=zero_n, zero_n_success=zero_n_success, n_pairs=len(matched))
+        for metric in metric_names:
+            values = columns.get(metric, np.full(len(eps), math.nan))
+            at_cell = np.array([values[i] for i, _ in matched], dtype=np.float64)
+            at_zero = np.array([values[j] for _, j in matched], dtype=np.float64)
+            ok = np.isfinite(at_cell) & np.isfinite(at_zero)
+            row.update(mean_stats(at_cell[ok] - at_zero[ok], f"{metric}_diff", confidence, n_boot, seed))
+            row[f"{metric}_zero_mean"] = float(at_zero[ok].mean()) if ok.any() else math.nan
+            row[f"{metric}_cell_mean"] = float(at_cell[ok].mean()) if ok.any() else math.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def kaplan_meier(times: ArrayLike, events: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    """Kaplan-Meier estimate of the fraction not yet succeeded, as a step function.
+
+    ``times[i]``: when episode i succeeded (``events[i]`` True) or ended without success (False: censored
+    there; a failure's time-to-success is only known to exceed its end). Returns ``(t, S)``: S(t) from
+    ``t[k]`` up to ``t[k+1]``, starting at (0, 1), one step per distinct success time (an episode censored at
+    a success time is still at risk there). ``1 - S`` is the fraction succeeded by t.
+
+    Raises:
+        ValueError: mismatched lengths, negative or non-finite times.
+    """
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    e = np.asarray(events, dtype=bool).reshape(-1)
+    if t.size != e.size:
+        raise ValueError(f"need one event flag per time, got {t.size} times and {e.size} flags")
+    if not np.all(np.isfinite(t)) or np.any(t < 0):
+        raise ValueError("times must be finite and >= 0")
+    steps, survival, s = [0.0], [1.0], 1.0
+    for ti in np.unique(t[e]):
+        s *= 1.0 - np.sum((t == ti) & e) / np.sum(t >= ti)
+        steps.append(float(ti))
+        survival.append(float(s))
+    return np.array(steps), np.array(survival)
+
+
+#: Axes of the time-to-success curves: the per-episode column an episode's end is read from.
+TIME_TO_SUCCESS_AXES = {"sim_s": "completion_time_s", "action_ticks": "action_ticks"}
+
+
+def time_to_success(episodes: pd.DataFrame, axis: str = "sim_s") -> tuple[np.ndarray, np.ndarray]:
+    """(times, success flags) of the episodes with an outcome and a known end on ``axis`` (TIME_TO_SUCCESS_AXES:
+    sim seconds, or action ticks, the ticks whose command came from a chunk); failures are censored at their end."""
+    column = TIME_TO_SUCCESS_AXES[axis]
+    if column not in episodes:
+        return np.array([]), np.array([], dtype=bool)
+    outcomes = episodes[episodes["status"].isin(["success", "failure"])]
+    times = pd.to_numeric(outcomes[column], errors="coerce").to_numpy(dtype=np.float64)
+    known = np.isfinite(times)
+    return times[known], (outcomes["status"] == "success").to_numpy()[known]
+
+
 # -- markdown ----------------------------------------------------------------------------------------------
 
 #: (column header, metric, decimals) of the markdown summary.
@@ -352,18 +672,61 @@ _MARKDOWN_METRICS = (
 )
 
 
-def _with_ci(mean: float, low: float, high: float, decimals: int, scale: float = 1.0) -> str:
+def _with_ci(mean: float, low: float, high: float, decimals: int, scale: float = 1.0, sign: str = "") -> str:
     if mean is None or not np.isfinite(mean):
         return "–"
-    return f"{mean * scale:.{decimals}f} [{low * scale:.{decimals}f}, {high * scale:.{decimals}f}]"
+    return f"{mean * scale:{sign}.{decimals}f} [{low * scale:{sign}.{decimals}f}, {high * scale:{sign}.{decimals}f}]"
 
 
-def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.0) -> str:
-    """``mean [lo, hi]`` of an aggregate row's ``metric`` (``success``: the rate), or – when it has none."""
+def _small_n_text(mean: float, values, n: int, decimals: int, scale: float, sign: str) -> str:
+    """``mean (n=k: v1, v2, ...)``: what a cell with fewer than MIN_N_INTERVAL values shows instead of an interval."""
+    listed = json.loads(values) if isinstance(values, str) and values else []
+    text = f"{mean * scale:{sign}.{decimals}f} (n={n}"
+    if n > 1 and listed:
+        text += ": " + ", ".join(f"{v * scale:{sign}.{decimals}f}" for v in listed)
+    return text + ")"
+
+
+def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.0, *, signed: bool = False) -> str:
+    """``mean [lo, hi]`` of an aggregate row's ``metric`` (``success``: the rate), or – when it has none.
+
+    A bootstrap metric with fewer than MIN_N_INTERVAL values gives ``mean (n=k: v1, ..., vk)`` instead (``mean
+    (n=1)`` for one): no interval is claimed. The success rate keeps its Wilson interval at any n (it is exact
+    enough there; the summary tables give n beside it). ``signed``: a leading + on positive numbers (changes).
+    """
     mean_key = {"success": "success_rate", "completion_time_rmst": "completion_time_rmst_s"}.get(metric)
     prefix = "success" if metric == "success" else metric
     mean = row.get(mean_key or f"{metric}_mean")
-    return _with_ci(mean, row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi"), decimals, scale)
+    sign = "+" if signed else ""
+    n = row.get(f"{prefix}_n")
+    if metric != "success" and n is not None and not pd.isna(n) and 0 < int(n) < MIN_N_INTERVAL:
+        if mean is None or not np.isfinite(mean):
+            return "–"
+        return _small_n_text(mean, row.get(f"{prefix}_values"), int(n), decimals, scale, sign)
+    return _with_ci(mean, row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi"), decimals, scale, sign)
+
+
+#: Marks a budget-decided cell in tables (figures: a hollow marker).
+BUDGET_MARK = "◇"
+
+
+def budget_note(agg: pd.Series | dict) -> str:
+    """What decided an aggregate row's timeouts: e.g. ``◇ budget-decided: 3/3 timeouts budget-limited; action
+    budget: 100 % of 3`` (empty without timeouts under the paper budget; ``action budget`` for such a cell)."""
+    if agg.get("budget_counts") == "action":
+        return "action budget"
+    counts = [agg.get(k) for k in ("n_budget_limited", "n_policy_limited", "n_budget_unattributed")]
+    if any(c is None or pd.isna(c) for c in counts) or not sum(counts):
+        return ""
+    text = f"{int(counts[0])}/{int(sum(counts))} timeouts budget-limited"
+    if counts[2]:
+        text += f" ({int(counts[2])} unattributed)"
+    if agg.get("budget_decided"):
+        text = f"{BUDGET_MARK} budget-decided: {text}"
+    n_twins = agg.get("action_budget_n")
+    if n_twins and not pd.isna(n_twins):
+        text += f"; action budget: {100 * agg['action_budget_success_rate']:.0f} % of {int(n_twins)}"
+    return text
 
 
 def sampling_label(agg: pd.Series | dict) -> str:
@@ -381,7 +744,7 @@ def markdown_table(aggregates: pd.DataFrame) -> str:
             "policy": agg["policy"],
             "mode": agg["mode"],
             "Δt_sim s": agg["latency_s"],
-            "latency": agg.get("latency_dist"),
+            "latency": cell_latency_label(agg),
             "suite": agg["suite"],
             "task": agg["task"],
             "n": int(agg["n"]),
@@ -390,14 +753,17 @@ def markdown_table(aggregates: pd.DataFrame) -> str:
         }
         row["sampling"] = sampling_label(agg)
         for header, metric, decimals in _MARKDOWN_METRICS:
-            mean = agg[f"{metric}_s"] if metric == "completion_time_rmst" else agg[f"{metric}_mean"]
-            row[header] = _with_ci(mean, agg[f"{metric}_ci_lo"], agg[f"{metric}_ci_hi"], decimals)
+            row[header] = ci_text(agg, metric, decimals)
+        row["budget"] = budget_note(agg)
         if agg.get("n_degenerate"):
             row["policy"] = f"{row['policy']} ⚠"
         rows.append(row)
     if not rows:
         return "(no episodes)"
     note = "\n\n(succ.): over successful episodes; (KM): Kaplan-Meier restricted mean up to the step budget"
+    note += f"; m (n=k: ...): fewer than {MIN_N_INTERVAL} values, listed instead of an interval"
     if any(agg.get("n_degenerate") for _, agg in aggregates.iterrows()):
         note += "; ⚠: degenerate protocol (async chunks with no fresh action)"
+    if any(agg.get("budget_decided") for _, agg in aggregates.iterrows()):
+        note += f"; {BUDGET_MARK}: budget-decided (at least half the timeouts budget-limited, docs/scoring.md)"
     return pd.DataFrame(rows).to_markdown(index=False) + note

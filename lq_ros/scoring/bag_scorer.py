@@ -14,10 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from rosbags.serde import SerdeError
 
 from lq_ros.core.executor_protocol import Source, validate_chunk
 from lq_ros.core.latency import label_of
-from lq_ros.core.run_config import VARIANT_FIELDS
+from lq_ros.core.run_config import ACTION_BUDGET_HARD_STOP, BUDGET_COUNTS, VARIANT_FIELDS
 from lq_ros.core.suite_constants import CONTROL_DT_S, PHYSICS_DT_S, STEP_BUDGETS, latency_ticks
 from lq_ros.recording import mcap_reader as mcap_stream
 from lq_ros.recording.episode_bag import read_run_metadata
@@ -122,11 +123,12 @@ def read_episode(
     a file that cannot be read at all raises BagError.
     """
     bag = Path(bag)
-    files = [bag] if bag.suffix == ".mcap" and bag.is_file() else _mcap_files(bag)
+    # A .mcap that is not a regular file (a FIFO) is given to the reader, which refuses it without opening it.
+    files = [bag] if bag.suffix == ".mcap" and bag.exists() and not bag.is_dir() else _mcap_files(bag)
     if not files:
         raise BagError(f"{bag}: no .mcap file (not a rosbag2 MCAP bag folder)")
     data = EpisodeData(ee_topic=ee_topic, joint_topic=joint_topic)
-    meta_file = (bag.parent if bag.is_file() else bag) / "metadata.yaml"
+    meta_file = (bag.parent if files == [bag] else bag) / "metadata.yaml"
     # No metadata.yaml: a plain MCAP from another tool (fine), or a recorder that died (then the MCAP is
     # incomplete too, which the reader reports as damage).
     if meta_file.exists():
@@ -207,39 +209,56 @@ class _PendingBulk:
         role = self.roles[parts[0].channel.topic][0]
         try:
             _collect(self.data, role, mcap_stream.concat(parts) if len(parts) > 1 else parts[0])
-        except (ValueError, struct.error):
-            for part in parts:  # find the undecodable batch, keep the others
+        except _DECODE_ERRORS:
+            for part in parts:  # find the undecodable messages, keep the others
                 _collect_or_report(self.data, self.reader, role, part)
 
 
+#: What decoding a payload that does not fit its type raises (the bulk decoder, rosbags' deserializer).
+_DECODE_ERRORS = (ValueError, struct.error, IndexError, SerdeError)
+
+
+class _Undecodable(Exception):
+    """Messages of a batch that could not be decoded (the batch's others were collected)."""
+
+    def __init__(self, count: int, first: Exception) -> None:
+        super().__init__(count, first)
+        self.count, self.first = count, first
+
+
 def _collect_or_report(data: EpisodeData, reader: StreamingMcapReader, role: str, batch: mcap_stream.Batch) -> None:
+    """Collect a batch; each undecodable message is damage (counted and named), the others are scored."""
     try:
         _collect(data, role, batch)
-    except (ValueError, struct.error) as exc:
-        reader.damage.append(f"undecodable {batch.channel.topic} message ({exc}); batch skipped")
+        return
+    except _Undecodable as exc:
+        count, first = exc.count, exc.first
+    except _DECODE_ERRORS as exc:  # a bulk decode is all or nothing: decode the messages one by one
+        count, first = (0, exc) if len(batch) > 1 else (1, exc)
+        for i in range(len(batch)) if len(batch) > 1 else ():
+            one = mcap_stream.Batch(batch.channel, batch.data, batch.payload_offsets[i : i + 1],
+                                    batch.payload_lengths[i : i + 1])  # fmt: skip
+            try:
+                _collect(data, role, one)
+            except _DECODE_ERRORS as inner:
+                first = inner if not count else first
+                count += 1
+    plural = "s" if count != 1 else ""
+    reader.damage.append(f"{count} undecodable {batch.channel.topic} message{plural} skipped ({first})")
 
 
 def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
     if role == "requests":
         data.requests += len(batch)
     elif role in ("events", "chunks"):  # a few per episode: the generic deserializer is fine
+        bad, first = 0, None
         for i in range(len(batch)):
-            msg = m.deserialize(batch.payload(i), batch.channel.msgtype)
-            if role == "events":
-                data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
-            else:
-                actions = m.chunk_actions(msg)
-                valid = not msg.error and validate_chunk(actions) is None
-                data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), valid))
-                try:
-                    n = latency_ticks(msg.injected_latency_s)
-                except ValueError:
-                    n = None  # another tool's latency between ticks: no replay of its protocol
-                if n is not None:
-                    record = boundary.Chunk(msg.request_id, msg.observation_tick, n, actions if valid else None)
-                    data.chunk_records.append(record)
-                if getattr(msg, "timing_json", ""):  # bags from before the field existed have none
-                    data.chunk_timings.append(json.loads(msg.timing_json))
+            try:  # one message at a time: an undecodable one is skipped, the others are kept
+                _collect_message(data, role, m.deserialize(batch.payload(i), batch.channel.msgtype))
+            except _DECODE_ERRORS as exc:
+                bad, first = bad + 1, first or exc
+        if bad:
+            raise _Undecodable(bad, first)
     else:
         for group in mcap_stream.decode(batch):
             if role == "commands":
@@ -258,6 +277,27 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
                     getattr(data, role).add(group["stamp_ns"], np.hstack([velocity, effort]))
                 else:
                     data.joints_without_effort += len(group["index"])
+
+
+def _collect_message(data: EpisodeData, role: str, msg) -> None:
+    """One episode event or action chunk; everything is decoded before anything is kept (all or nothing)."""
+    if role == "events":
+        data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
+        return
+    actions = m.chunk_actions(msg)
+    valid = not msg.error and validate_chunk(actions) is None
+    try:
+        n = latency_ticks(msg.injected_latency_s)
+    except ValueError:
+        n = None  # another tool's latency between ticks: no replay of its protocol
+    timing = json.loads(msg.timing_json) if getattr(msg, "timing_json", "") else None  # older bags have none
+    if timing is not None and not isinstance(timing, dict):
+        raise ValueError(f"timing_json of chunk {msg.request_id} is not a JSON object")
+    data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), valid))
+    if n is not None:
+        data.chunk_records.append(boundary.Chunk(msg.request_id, msg.observation_tick, n, actions if valid else None))
+    if timing is not None:
+        data.chunk_timings.append(timing)
 
 
 def _is_number(value) -> bool:
@@ -348,6 +388,14 @@ def score_episode(
     row["error_reason"] = reason if status in ("error", "unknown") else None
     # The budget a failure is censored at (Kaplan-Meier completion time in the aggregates).
     row["step_budget"] = cfg.get("max_steps") or STEP_BUDGETS.get(cfg.get("suite"))
+    # What the budget counted (bags from before the choice existed counted every tick), and the ticks of any
+    # kind after which the episode ended at the latest: where a failure is censored in sim time.
+    row["budget_counts"] = cfg.get("budget_counts", "all") if cfg else None
+    if row["step_budget"] is not None and row["budget_counts"] in BUDGET_COUNTS:
+        factor = 1 if row["budget_counts"] == "all" else ACTION_BUDGET_HARD_STOP
+        row["tick_limit"] = factor * row["step_budget"]
+    else:
+        _null(row, ["tick_limit"], "unknown step budget")
     if terminal and status in ("success", "failure"):
         steps = terminal[0][1]
         row["completion_steps"] = steps
@@ -422,10 +470,19 @@ def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None
     # Every applied chunk's own Δt_sim (constant or drawn): what the episode actually got.
     chunk_ticks = [c.latency_ticks for c in data.chunk_records]
     if chunk_ticks:
+        # The realised Δt_sim of this episode's draws (a distribution's episodes each sample it).
         row["latency_sim_mean_s"] = round(float(np.mean(chunk_ticks)) * CONTROL_DT_S, 9)
+        for q in (50, 90):
+            row[f"latency_sim_p{q}_s"] = round(float(np.percentile(chunk_ticks, q)) * CONTROL_DT_S, 9)
+        row["latency_sim_max_s"] = round(max(chunk_ticks) * CONTROL_DT_S, 9)
         row["latency_ticks_min"], row["latency_ticks_max"] = min(chunk_ticks), max(chunk_ticks)
     else:
-        _null(row, ["latency_sim_mean_s", "latency_ticks_min", "latency_ticks_max"], "no action chunks in the bag")
+        _null(
+            row,
+            ["latency_sim_mean_s", "latency_sim_p50_s", "latency_sim_p90_s", "latency_sim_max_s",
+             "latency_ticks_min", "latency_ticks_max"],
+            "no action chunks in the bag",
+        )  # fmt: skip
     real = np.array([c[1] for c in data.chunks if not c[2]], dtype=np.float64)
     # Inferences started (a last one may still be in flight when the episode ends).
     row["num_inferences"] = data.requests or len(data.chunks)
@@ -451,6 +508,7 @@ def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None
     if data.command_sources:
         src = np.asarray(data.command_sources)
         row["hold_ticks"] = int((src != Source.CHUNK).sum())
+        row["action_ticks"] = int((src == Source.CHUNK).sum())  # what budget_counts action counts
         row["underrun_ticks"] = int((src == Source.HOLD_UNDERRUN).sum())
         row["rejected_hold_ticks"] = int((src == Source.HOLD_REJECTED).sum())
         # What the protocol actually executed of each chunk: sync replan_steps, async H - N (or fewer).
@@ -465,7 +523,8 @@ def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None
         row["stale_actions_dropped"] = sum(stale) if async_mode else 0
         row["actions_per_chunk_mean"] = fresh / len(applied) if applied else None
     else:
-        _null(row, ["hold_ticks", "underrun_ticks", "rejected_hold_ticks", *chunk_keys], "no command topic")
+        keys = ["hold_ticks", "action_ticks", "underrun_ticks", "rejected_hold_ticks", *chunk_keys]
+        _null(row, keys, "no command topic")
     row["chunks_rejected"] = sum(1 for e in data.events if e[0] == m.EventKind.CHUNK_REJECTED)
     protocol_warnings = [e[3] for e in data.events if e[0] == m.EventKind.WARNING]
     degenerate = protocol_warnings[:1]
@@ -476,7 +535,9 @@ def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None
 
 
 def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> None:
-    """Chunk-boundary quality (lq_ros/scoring/chunk_boundary.py): switches, command jumps and jerk near switches."""
+    """Chunk-boundary quality (lq_ros/scoring/chunk_boundary.py): switches, the executed command step at every
+    handover (switches and overlap ends), the chunks' disagreement where they overlap, jumps against the old
+    plan and jerk near switches."""
     keys = list(boundary.KEYS)
     if not cfg or cfg.get("mode") not in ("sync", "async"):
         return _null(row, keys, "not a bag of this stack's protocols (no run configuration)")
@@ -484,13 +545,21 @@ def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> 
         return _null(row, keys, "no commands or action chunks in the bag")
     cmds = boundary.Commands(**{k: np.concatenate([g[k] for g in data.command_groups]) for k in data.command_groups[0]})
     try:
-        ticks, jumps, overlapping = boundary.switch_jumps(cfg["mode"], cfg.get("merge"), data.chunk_records, cmds)
+        found = boundary.analyse(cfg["mode"], cfg.get("merge"), data.chunk_records, cmds)
     except (boundary.ReplayMismatch, ValueError) as exc:
         return _null(row, keys, f"chunk replay failed: {exc}")
+    ticks, jumps = found.switch_ticks, found.jumps
     row["chunk_switches"] = len(ticks)
-    row["chunks_overlapping"] = overlapping
+    row["chunks_overlapping"] = found.overlapping
+    row["chunk_overlap_ends"] = len(found.overlap_end_ticks)
+    if len(found.disagreements):
+        row["chunk_disagreement_mean"] = float(found.disagreements.mean())
+    else:
+        _null(row, ["chunk_disagreement_mean"], "no tick where a new chunk met the old plan")
     if not len(ticks):
-        return _null(row, keys[1:-1], "no chunk switch")
+        return _null(row, list(boundary.PER_SWITCH_KEYS), "no chunk switch")
+    row["switch_executed_step_mean"] = float(found.executed_steps.mean())
+    row["switch_executed_step_max"] = float(found.executed_steps.max())
     row["chunk_switch_jump_mean"] = float(jumps.mean())
     row["chunk_switch_jump_p90"] = float(np.percentile(jumps, 90))
     row["chunk_switch_jump_max"] = float(jumps.max())

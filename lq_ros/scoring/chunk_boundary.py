@@ -3,20 +3,50 @@
 Users feel the chunk boundary as a jolt or a vibration when the queue refills (LeRobot #2938, openpi
 #393); these metrics measure it from a bag's recorded chunks, commands and end-effector poses.
 
+All action-space distances are Euclidean norms over the six arm dimensions of the 7-D OSC delta action
+(position and rotation deltas, action units). The gripper (the last dimension) is left out: it is a
+discrete open/close command (±1), so a toggle is a step of 2 whatever the strategy, and it would count
+grasp events rather than how chunks are joined.
+
 **Switch.** Tick t is a switch when its command came from a chunk (source CHUNK) whose request id differs
 from that of the last earlier chunk command (holds in between allowed; the first chunk command of an
 episode is not a switch). With blending strategies the command at t may mix chunks; it is attributed to
 the newest one, so the switch is the tick the new chunk lands.
 
-**Jump** (``chunk_switch_jump_*``, in action units): ‖c_t - p_t‖ over the six arm dimensions of the OSC
-delta action (the gripper is a discrete open/close command and is left out), where c_t is the command
-executed at the switch and p_t the command the old plan held for tick t just before the new chunk was
-merged: the head of the executor's buffer (async) or the old chunk's next unexecuted row (sync, whose
-stop-and-go drops it). When the old plan had nothing left for t (async ``replace`` at its default
-threshold, or after an underrun) p_t is the last action executed from the old plan: the jump is then
-the command step across the boundary. The plan is reconstructed by replaying the recorded chunks
-through the run's merge strategy (lq_ros/core/merge.py, the executor's own code); the replayed commands must
-equal the recorded ones (to 1e-9), otherwise the metrics are null with the first tick that differs.
+**Overlap end.** With a blending strategy (``weighted_average``, ``average``, ``conservative``,
+``temporal_ensemble``) the ticks where a new chunk met the old plan execute a mix of both; the first tick
+after them executes the new chunk alone. Tick t is an overlap end when the commands at t - 1 and t are
+chunk commands of the same request, the one at t - 1 merged several chunks and the one at t only one (the
+replay below knows how many chunks each executed step merged). ``replace``, ``latest_only``, ``rtc``,
+``rtc_hard`` and sync never merge, so they have none: their new chunk takes over whole at the switch.
+
+**Executed step at handovers** (``switch_executed_step_mean``, ``_max``; action units): ‖c_t - c_{t-1}‖
+of the executed commands (the /lq/command actions, whatever their source) at every *handover* tick: every
+switch and every overlap end (a tick that is both counts once). c_{t-1} is the command that ran at the tick
+before, a hold included (sync's stop-and-go hold, an async underrun hold). This is the same quantity for
+every strategy and protocol: a blend that moves 0.7 of the way at the switch moves the remaining 0.3 at the
+overlap end, and both steps are counted. Per episode: the mean and the max over its handover ticks.
+
+**Chunk disagreement** (``chunk_disagreement_mean``, action units): ‖a_t - o_t‖ between the new chunk's
+row a_t and the old plan's action o_t for the same tick t (the executor's buffer just before the new chunk
+is merged: for ``temporal_ensemble`` the running ensemble), before any merging, over every overlapped tick
+that the episode reached (one term per arriving chunk and tick). It says how far the policy's successive
+plans disagree where they overlap, whatever the merge does with it; null when no tick overlapped (sync,
+``replace`` at its default threshold, every strategy once H <= 2N).
+
+**Jump against the old plan** (``chunk_switch_jump_*``, action units; kept for older tables, not an executed
+step): ‖c_t - p_t‖ at the switches only, where c_t is the command executed at the switch and p_t the
+command the old plan held for tick t just before the new chunk was merged: the head of the executor's buffer
+(async) or the old chunk's next unexecuted row (sync, whose stop-and-go drops it, so p_t never ran). When
+the old plan had nothing left for t (async ``replace`` at its default threshold, or after an underrun) p_t is
+the last action executed from the old plan. It measures how far the switch departs from the plan it
+replaces, so by construction it is w_new ‖a_t - o_t‖ for a pairwise blend (0.7 for ``weighted_average``,
+0.3 for ``conservative``) and the rest of the step is taken after the overlap, where it does not look:
+compare strategies with the executed step instead.
+
+The plan is reconstructed by replaying the recorded chunks through the run's merge strategy
+(lq_ros/core/merge.py, the executor's own code); the replayed commands must equal the recorded ones (to
+1e-9), otherwise the metrics are null with the first tick that differs.
 
 **Jerk near switches** (``chunk_switch_jerk_ratio``): the jerk sample j_k = (p_k - 3p_{k-1} + 3p_{k-2} -
 p_{k-3}) / dt³ of the 20 Hz EE positions (p_k after k ticks) is centred at (k - 1.5) dt; the command of
@@ -50,14 +80,29 @@ MIN_ELSEWHERE = 5
 REPLAY_TOL = 1e-9
 #: Old bags called weighted_average ``blend`` (the same rule).
 _ALIASES = {"blend": Merge.WEIGHTED_AVERAGE}
+#: Every row field of this module (lq_ros/scoring/bag_scorer.py nulls them together when the bag cannot be scored).
 KEYS = (
     "chunk_switches",
+    "chunks_overlapping",
+    "chunk_overlap_ends",
+    "switch_executed_step_mean",
+    "switch_executed_step_max",
+    "chunk_disagreement_mean",
     "chunk_switch_jump_mean",
     "chunk_switch_jump_p90",
     "chunk_switch_jump_max",
     "chunk_switch_jerk_mean",
     "chunk_switch_jerk_ratio",
-    "chunks_overlapping",
+)
+#: The fields that need at least one switch (null with "no chunk switch" otherwise).
+PER_SWITCH_KEYS = (
+    "switch_executed_step_mean",
+    "switch_executed_step_max",
+    "chunk_switch_jump_mean",
+    "chunk_switch_jump_p90",
+    "chunk_switch_jump_max",
+    "chunk_switch_jerk_mean",
+    "chunk_switch_jerk_ratio",
 )
 
 
@@ -88,8 +133,31 @@ class ReplayMismatch(ValueError):
     """The recorded commands do not follow from the recorded chunks under the run's protocol."""
 
 
-def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ensemble_coeff: float = ENSEMBLE_COEFF):
-    """(switch ticks, jumps, arrivals that met an old plan) of an episode; raises ReplayMismatch."""
+@dataclass(frozen=True)
+class Boundaries:
+    """Where an episode's chunks hand over and by how much (the module docstring defines each quantity)."""
+
+    #: Ticks whose command came from another request than the last earlier chunk command.
+    switch_ticks: np.ndarray
+    #: ‖c_t - p_t‖ (arm) against the old plan at each switch tick (``chunk_switch_jump_*``).
+    jumps: np.ndarray
+    #: Chunks that met a non-empty old plan (async).
+    overlapping: int
+    #: First ticks executing a single chunk after ticks that executed a merge of several.
+    overlap_end_ticks: np.ndarray
+    #: Switch and overlap-end ticks, sorted, each once.
+    handover_ticks: np.ndarray
+    #: ‖c_t - c_{t-1}‖ (arm) of the executed commands at each handover tick.
+    executed_steps: np.ndarray
+    #: ‖a_t - o_t‖ (arm), new chunk row against the old plan, one per arriving chunk and overlapped tick reached.
+    disagreements: np.ndarray
+
+
+def analyse(
+    mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ensemble_coeff: float = ENSEMBLE_COEFF
+) -> Boundaries:
+    """The chunk boundaries of an episode (switches, overlap ends, executed steps, disagreement, jumps against
+    the old plan) by replaying its chunks through the run's merge strategy; raises ReplayMismatch."""
     order = np.argsort(cmds.tick, kind="stable")
     ticks, actions = cmds.tick[order], cmds.action[order]
     sources, rids, idxs = cmds.source[order], cmds.request_id[order], cmds.chunk_index[order]
@@ -104,6 +172,8 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
     sync_chunk: Chunk | None = None
     old_plan_at: dict[int, np.ndarray | None] = {}  # tick -> the old plan's action for it (None: exhausted)
     overlapping = 0
+    disagreements: list[float] = []
+    votes = [1] * len(ticks)  # chunks merged into each tick's executed command (1: one chunk, or a hold)
     last_row: tuple[int, int] | None = None  # (request id, row) of the last chunk command before tick t
     # (tick, replayed action, request id, row) of every chunk command, compared with the bag at once below
     # (a comparison per tick was two thirds of an episode's scoring time).
@@ -134,6 +204,12 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
             else:
                 old_plan_at[t] = buffer[0].action if buffer else None
                 overlapping += bool(buffer)
+                fresh = np.asarray(c.actions, dtype=np.float64)[min(c.latency_ticks, len(c.actions)) :]
+                # Old plan row k and fresh row k are for tick t + k; only ticks the episode reached count.
+                reached = min(len(buffer), len(fresh), len(ticks) - t)
+                disagreements.extend(
+                    float(np.linalg.norm(fresh[k][ARM_DIMS] - buffer[k].action[ARM_DIMS])) for k in range(reached)
+                )
                 buffer, _ = apply_chunk(strategy, buffer, c.actions, c.request_id, c.latency_ticks, ensemble_coeff)
         if source_list[t] != Source.CHUNK:
             if mode != "sync" and buffer:
@@ -149,10 +225,11 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
             if not buffer:
                 raise mismatch(f"tick {t}: a chunk command was recorded but the replayed buffer is empty")
             step = buffer.pop(0)
+            votes[t] = step.votes
             replayed.append((t, step.action, step.request_id, step.chunk_index))
     if _first_mismatch(replayed, actions, rids, idxs) is not None:
         raise mismatch("")
-    switch_ticks, jumps = [], []
+    switch_ticks, jumps, overlap_ends = [], [], []
     last_rid, last_action = None, None
     for t in range(len(ticks)):
         if source_list[t] != Source.CHUNK:
@@ -162,8 +239,27 @@ def switch_jumps(mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ens
             planned = last_action if planned is None else planned
             switch_ticks.append(t)
             jumps.append(float(np.linalg.norm(actions[t][ARM_DIMS] - planned[ARM_DIMS])))
+        elif (
+            t > 0
+            and source_list[t - 1] == Source.CHUNK
+            and rid_list[t - 1] == rid_list[t]
+            and votes[t] == 1
+            and votes[t - 1] > 1
+        ):
+            overlap_ends.append(t)
         last_rid, last_action = rid_list[t], actions[t]
-    return np.array(switch_ticks, dtype=np.int64), np.array(jumps), overlapping
+    handovers = np.array(sorted({*switch_ticks, *overlap_ends}), dtype=np.int64)
+    arm = actions[:, ARM_DIMS]
+    steps = np.linalg.norm(arm[handovers] - arm[handovers - 1], axis=1) if len(handovers) else np.zeros(0)
+    return Boundaries(
+        switch_ticks=np.array(switch_ticks, dtype=np.int64),
+        jumps=np.array(jumps),
+        overlapping=overlapping,
+        overlap_end_ticks=np.array(overlap_ends, dtype=np.int64),
+        handover_ticks=handovers,
+        executed_steps=steps,
+        disagreements=np.array(disagreements),
+    )
 
 
 def _first_mismatch(replayed, actions, rids, idxs) -> tuple[int, int, int] | None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX
 from lq_ros.core.suite_constants import (
     CONTROL_DT_S,
     DUMMY_ACTION,
@@ -66,7 +67,7 @@ class LiberoEnv:
         task_id: int,
         *,
         camera_names: tuple[str, ...] = (),
-        camera_size: int = 224,
+        camera_size: int = DEFAULT_CAMERA_SIZE_PX,
         record_physics: bool = False,
     ) -> None:
         import mujoco

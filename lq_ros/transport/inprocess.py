@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded, Source
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.policies import Policy, make_policy
@@ -137,8 +137,8 @@ def run_inprocess(
             for warning in core.take_warnings():
                 rec.event(m.EventKind.WARNING, tick, warning, {"request_id": req.request_id})
 
-        budget = cfg.budget
-        while tick < budget:
+        action_ticks, spent = 0, None  # ticks whose command came from a chunk; why the budget ended the episode
+        while spent is None:
             step = core.advance(tick)
             if isinstance(step, ObservationNeeded):
                 chunks[step.request.request_id] = infer(step.request)
@@ -153,13 +153,14 @@ def run_inprocess(
             rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, step))
             state = env.step(step.action)
             tick += 1
-            ended = state.success or tick >= budget
-            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate, clock=not ended):
+            action_ticks += step.source is Source.CHUNK
+            spent = None if state.success else cfg.budget_spent(tick, action_ticks)
+            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate, clock=not (state.success or spent)):
                 rec.put_at(topic, ts, data)
             if state.success:
                 rec.event(m.EventKind.SUCCESS, tick)
                 return EpisodeOutcome("success", tick, "", bag_path)
-        rec.event(m.EventKind.TIMEOUT, tick, f"step budget {budget} reached")
+        rec.event(m.EventKind.TIMEOUT, tick, spent)
         return EpisodeOutcome("failure", tick, "timeout", bag_path)
     except Exception as exc:  # noqa: BLE001 - any crash is an *error*, recorded with its traceback
         reason = f"{type(exc).__name__}: {exc}"

@@ -11,6 +11,7 @@ import ctypes
 import fcntl
 import os
 import signal
+import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +29,22 @@ def die_with_parent() -> None:
     """
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def stop_processes(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
+    """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL whatever is left."""
+    for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
+        alive = [p for p in procs.values() if p.poll() is None]
+        if not alive:
+            return
+        for p in alive:
+            p.send_signal(sig)
+        deadline = time.monotonic() + wait_s
+        for p in alive:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+    if any(p.poll() is None for p in procs.values()):
+        raise RuntimeError("child processes survived SIGKILL")
 
 
 def raise_keyboard_interrupt(*_) -> None:

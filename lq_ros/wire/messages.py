@@ -12,16 +12,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from functools import cache
-from pathlib import Path
 
 import numpy as np
 
 from lq_ros.core.executor_protocol import Command, Request
 from lq_ros.core.merge import ActionPrefix
+from lq_ros.core.shipped import shipped_path
 from lq_ros.core.suite_constants import PHYSICS_DT_S
 from lq_ros.core.types import EnergyIntegrals, Observation, TaskInfo, TickState
 
-MSG_DIR = Path(__file__).resolve().parents[2] / "msg_schemas" / "lq_msgs" / "msg"
+#: The lq_msgs definitions (msg_schemas/lq_msgs/msg, shipped with the package).
+MSG_DIR = shipped_path("msg_schemas/lq_msgs/msg")
 
 ARM_JOINT_NAMES = tuple(f"robot0_joint{i}" for i in range(1, 8))
 WORLD_FRAME = "world"

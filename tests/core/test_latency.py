@@ -9,10 +9,13 @@ from lq_ros.core.executor_protocol import ChunkDue, ExecutorConfig, ExecutorCore
 from lq_ros.core.latency import (
     LatencyError,
     applied_seconds,
+    label_of,
+    latency_stream,
     parse_latency,
     request_latency,
     ticks_of_draw,
 )
+from lq_ros.core.run_config import RunConfig
 
 
 def test_ticks_of_a_draw_round_up_to_the_next_tick_boundary():
@@ -108,7 +111,13 @@ def test_trace_replays_in_order_wraps_and_pins_its_content(tmp_path):
     path.write_text("# measured Δt_real of a policy server, s\n0.087\n0.12\n\n0.31  # a slow one\n")
     dist = parse_latency(f"trace:{path}")
     assert dist.trace == (0.087, 0.12, 0.31) and dist.label == "trace:server.txt"
-    assert [dist.ticks(seed, k) for seed in (1, 2) for k in (1, 2, 3, 4)] == [2, 3, 7, 2] * 2  # seed-free, wrapped
+    ticks = [2, 3, 7]  # the lines' N, in file order
+    for stream in [latency_stream(s, "libero_spatial", t, i) for s in (1, 2) for t in range(3) for i in range(3)]:
+        offset = dist.trace_offset(stream)
+        # Replayed in order from the episode's seeded offset, wrapped.
+        assert [dist.ticks(stream, k) for k in range(1, 8)] == [ticks[(offset + k - 1) % 3] for k in range(1, 8)]
+    offsets = {dist.trace_offset(latency_stream(7, "libero_spatial", t, i)) for t in range(5) for i in range(2)}
+    assert offsets == {0, 1, 2}  # the ten episodes of one cell do not all start on the same line
     assert dist.mean_ticks() == 4.0 and (dist.min_ticks(), dist.max_ticks()) == (2, 7)
     assert "@sha256:" in dist.text and parse_latency(dist.text) == dist
     path.write_text("0.2\n")
@@ -125,7 +134,7 @@ def test_one_inference_in_flight_chunks_never_arrive_out_of_order():
     dist = parse_latency("lognormal:0.2:0.9")
     for merge, threshold in (("replace", None), ("weighted_average", None), ("temporal_ensemble", None)):
         core = ExecutorCore(
-            ExecutorConfig(mode="async", latency=dist, seed=3, merge=merge, request_threshold=threshold)
+            ExecutorConfig(mode="async", latency=dist, latency_stream=(3,), merge=merge, request_threshold=threshold)
         )
         requests, applied, pending = [], [], {}
         for t in range(300):
@@ -142,7 +151,7 @@ def test_one_inference_in_flight_chunks_never_arrive_out_of_order():
                     break
         assert [rid for _, rid in applied] == sorted(rid for _, rid in applied)
         assert all(b.tick >= a.due_tick for a, b in zip(requests, requests[1:], strict=False))
-        assert all(r.latency_ticks == dist.ticks(3, r.request_id) for r in requests)
+        assert all(r.latency_ticks == dist.ticks((3,), r.request_id) for r in requests)
         assert len({r.latency_ticks for r in requests}) > 3  # the draws did vary
         with pytest.raises(RuntimeError, match="outstanding"):
             core.deliver(999, np.zeros((10, 7)))
@@ -150,7 +159,7 @@ def test_one_inference_in_flight_chunks_never_arrive_out_of_order():
 
 def test_sync_hold_lasts_each_draw():
     dist = parse_latency("uniform:0.0:0.3")
-    core = ExecutorCore(ExecutorConfig(mode="sync", latency=dist, seed=11, replan_steps=2))
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency=dist, latency_stream=(11,), replan_steps=2))
     holds, req = [], None
     for t in range(60):
         while True:
@@ -164,5 +173,47 @@ def test_sync_hold_lasts_each_draw():
                 break
     for rid in {r for _, _, r in holds}:
         held = sum(1 for _, s, r in holds if r == rid and s != 0)
-        n = dist.ticks(11, rid)
+        n = dist.ticks((11,), rid)
         assert held == n or rid == max(r for _, _, r in holds)  # the last one may be cut by the end
+
+
+def test_every_episode_of_a_cell_draws_its_own_latencies():
+    """A sweep cell (one seed, several tasks and init states) samples the distribution once per episode,
+    not one realisation shared by all: request k's draw depends on the suite, task and init state too."""
+    dist = parse_latency("uniform:0.05:0.35")
+    cell = [
+        RunConfig(suite="libero_spatial", task=t, init=i, latency_dist=dist.text) for t in range(5) for i in range(2)
+    ]
+    first = [request_latency(c.latency_dist, c.latency_stream(), 1)[0] for c in cell]
+    assert len(set(first)) > 1  # a shared draw would make all ten equal
+    streams = {c.latency_stream() for c in cell}
+    assert len(streams) == len(cell)
+    other_suite = RunConfig(suite="libero_object", task=0, init=0, latency_dist=dist.text).latency_stream()
+    assert other_suite not in streams
+    # The draws are a pure function of the episode: the executor core of each episode applies the same N.
+    for cfg in cell[:3]:
+        core = ExecutorCore(cfg.executor_config())
+        step = core.advance(0)
+        assert isinstance(step, ObservationNeeded)
+        assert step.request.latency_ticks == request_latency(cfg.latency_dist, cfg.latency_stream(), 1)[0]
+    # Pooled over a cell of 100 episodes the first draws follow the distribution (N = 1..7, mean 4 ticks).
+    many = [RunConfig(task=t, init=i, latency_dist=dist.text) for t in range(10) for i in range(10)]
+    n1 = np.array([request_latency(c.latency_dist, c.latency_stream(), 1)[0] for c in many])
+    assert set(n1) <= set(range(1, 8)) and abs(n1.mean() - dist.mean_ticks()) < 0.5
+
+
+def test_empirical_resamples_the_measured_delays(tmp_path):
+    """empirical:FILE draws each request's delay i.i.d. from the file's values (a fitted delay distribution)."""
+    path = tmp_path / "fitted.txt"
+    path.write_text("# request-to-effect delays, s\n0.1\n0.1\n0.15\n0.2\n")  # 2, 2, 3, 4 ticks
+    dist = parse_latency(f"empirical:{path}")
+    assert dist.kind == "empirical" and dist.label == "empirical:fitted.txt" and parse_latency(dist.text) == dist
+    assert dist.mean_ticks() == 2.75 and (dist.min_ticks(), dist.max_ticks()) == (2, 4)
+    streams = [latency_stream(7, "libero_spatial", t, i) for t in range(10) for i in range(20)]
+    ticks = np.array([dist.ticks(s, k) for s in streams for k in range(1, 11)])
+    assert set(ticks) == {2, 3, 4}
+    assert abs((ticks == 2).mean() - 0.5) < 0.05 and abs((ticks == 4).mean() - 0.25) < 0.05
+    assert abs(ticks.mean() - dist.mean_ticks()) < 0.05
+    # Not a replay: consecutive requests of one episode are not the file's order.
+    assert [dist.ticks(streams[0], k) for k in range(1, 21)] != [[2, 2, 3, 4][(k - 1) % 4] for k in range(1, 21)]
+    assert label_of(dist.text) == "empirical:fitted.txt"

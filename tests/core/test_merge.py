@@ -206,7 +206,7 @@ def test_rtc_prefix_delay_is_the_expected_latency_under_a_distribution():
     from lq_ros.core.latency import parse_latency
 
     dist = parse_latency("uniform:0.025:0.325")  # N in 1..7, expected 4
-    core = ExecutorCore(ExecutorConfig(mode="async", latency=dist, seed=5, merge="rtc"))
+    core = ExecutorCore(ExecutorConfig(mode="async", latency=dist, latency_stream=(5,), merge="rtc"))
     _, requests, applied = drive(core, 80)
     assert {r.prefix.delay for r in requests} == {4} and len({r.latency_ticks for r in requests}) > 2
     assert core.stats.stale_actions_dropped == sum(min(r.latency_ticks, 8) for _, r, _ in applied)

@@ -102,19 +102,15 @@ def test_inpaint_chunk_works_in_action_units():
     assert torch.equal(free, euler(velocity, noise, 10))
 
 
-def test_the_shipped_flow_policy_samples_under_rtc():
+@pytest.mark.sim
+def test_the_shipped_flow_policy_samples_under_rtc(spatial_env):
     """flow with a prefix: the executing rows follow the old plan; no prefix or an empty one is exactly the
     unguided chunk; the same prefix gives the same chunk (seeded noise)."""
     from lq_ros.policies import make_policy
-    from lq_ros.sim.libero_env import LiberoEnv
 
-    env = LiberoEnv("libero_spatial", 0)
-    try:
-        env.reset(0, seed=7)
-        obs = env.observe(with_images=False)
-        task = env.task
-    finally:
-        env.close()
+    spatial_env.reset(0, seed=7)
+    obs = spatial_env.observe(with_images=False)
+    task = spatial_env.task
     policy = make_policy("flow")
     assert policy.supports_prefix
     # The old plan: the same policy's chunk from other noise (RTC's case: a plan the policy itself could

@@ -419,6 +419,7 @@ def scene_256() -> tuple[Observation, dict, dict]:
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_real_frames_at_256_are_sent_as_each_reference_preprocesses_them(scene_256):
     """openpi: openpi_client.image_tools on the raw frame, exactly as examples/libero/main.py; OpenVLA / OFT:
     their rotation + JPEG + Lanczos (+ crop); the 8-D state equals the reference env's, bit for bit."""
@@ -452,6 +453,7 @@ def test_real_frames_at_256_are_sent_as_each_reference_preprocesses_them(scene_2
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_rendered_frame_equals_the_reference_envs_frame(scene_256):
     """robosuite samples its observations inside the substep loop; LiberoEnv renders that instant."""
     obs, _, ref = scene_256
@@ -460,6 +462,7 @@ def test_rendered_frame_equals_the_reference_envs_frame(scene_256):
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_openpi_episode_sends_libero_example_payload(tmp_path, env):
     with OpenPIStandin(prompt=env.task.instruction) as server:
         cfg = RunConfig(policy="openpi", policy_args={"port": server.port}, max_steps=12, replan_steps=5)
@@ -502,6 +505,7 @@ def test_openpi_episode_sends_libero_example_payload(tmp_path, env):
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_openvla_oft_chunks_run_then_error_answer_ends_episode(tmp_path, env):
     """OFT style: a chunk of 8 runs open-loop (replan 4); the second request gets OpenVLA's 'error'."""
     with OpenVLAStandin(style="oft", horizon=8, prompt=env.task.instruction, fault="error", at_request=2) as server:
@@ -523,6 +527,7 @@ def test_openvla_oft_chunks_run_then_error_answer_ends_episode(tmp_path, env):
 # ROS, an error frame and a server that is down).
 @pytest.mark.slow
 @pytest.mark.parametrize("fault, reason, ticks", [("down", "unreachable", 0), ("slow", "no response within", 4)])
+@pytest.mark.sim
 def test_openpi_server_failure_ends_episode_as_error(tmp_path, env, fault, reason, ticks):
     server, port = _serve("openpi", fault, at_request=2)
     cfg = RunConfig(
@@ -543,6 +548,8 @@ def test_openpi_server_failure_ends_episode_as_error(tmp_path, env, fault, reaso
 
 # -- through the four ROS processes ------------------------------------------------------------
 @pytest.mark.slow
+@pytest.mark.sim
+@pytest.mark.ros
 def test_openpi_through_ros_images_then_server_error(tmp_path):
     """Camera images cross ROS as sensor_msgs/Image and still reach the server exactly as openpi's example."""
     with OpenPIStandin(fault="error", at_request=3) as server:
@@ -566,6 +573,8 @@ def test_openpi_through_ros_images_then_server_error(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.sim
+@pytest.mark.ros
 def test_openvla_server_dies_mid_episode_through_ros(tmp_path):
     """One action per query (OpenVLA); after two answers the server is gone: connection refused -> error."""
     with OpenVLAStandin(fault="crash", at_request=3) as server:

@@ -10,6 +10,8 @@ from lq_ros.policies.scripted import ScriptedExpert
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.inprocess import run_conventional
 
+pytestmark = pytest.mark.sim
+
 SUITE = "libero_spatial"
 SEED = 7
 

@@ -134,11 +134,13 @@ def _solve(suite: str, task_id: int, init: int) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_object_expert_solves_a_task() -> None:
     _solve("libero_object", 0, 0)
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_goal_expert_solves_a_task() -> None:
     _solve("libero_goal", 6, 0)
 

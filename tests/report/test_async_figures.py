@@ -13,7 +13,8 @@ def _row(merge, latency, dist, status, jump, init):
         "policy": "flow", "mode": "async", "merge": merge, "latency_s": latency, "latency_dist": dist,
         "suite": "libero_spatial", "task": 0, "init": init, "seed": 7, "status": status,
         "success": status == "success", "completion_steps": 100, "completion_time_s": 5.0, "jerk_mean": 10.0,
-        "chunk_switch_jump_mean": jump, "chunk_switch_jump_p90": 2 * jump, "chunk_switch_jerk_ratio": 1.0 + jump,
+        "switch_executed_step_mean": jump, "switch_executed_step_max": 2 * jump, "chunk_disagreement_mean": 3 * jump,
+        "chunk_switch_jump_mean": 5.0, "chunk_switch_jerk_ratio": 1.0 + jump,
         "traj_length": 1.0, "versions": "{}", "transport": "inprocess",
     }  # fmt: skip
 
@@ -38,7 +39,13 @@ def test_one_line_per_merge_strategy_and_latency_kind():
     labels = sorted(line.get_label() for line in lines)
     assert labels[0] == "replace" and "rtc (uniform latency)" in labels
     rtc = next(line for line in lines if line.get_label() == "rtc")
-    assert np.allclose(rtc.get_ydata(), 0.3)  # over every episode with an outcome
+    assert np.allclose(rtc.get_ydata(), 0.3)  # the executed step, over every episode with an outcome
+    panel = {metric: ax for ax, (metric, _, _) in zip(axes, PANELS, strict=True)}
+    assert "chunk_switch_jump_mean" not in panel  # the jump against the old plan is not the executed quantity
+    assert panel["switch_executed_step_mean"] is axes[1]
+    for metric, factor in (("switch_executed_step_max", 2), ("chunk_disagreement_mean", 3)):
+        line = next(line for line in panel[metric].get_lines() if line.get_label() == "rtc")
+        assert np.allclose(line.get_ydata(), factor * 0.3)
     success = next(line for line in axes[0].get_lines() if line.get_label() == "rtc")
     assert np.allclose(success.get_ydata(), 100 * 2 / 3)
     plt.close(fig)

@@ -25,7 +25,7 @@ from lq_ros.scoring.metrics import energy_terms
 
 MAX_STEPS = 30
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
 @pytest.fixture(scope="module")

@@ -31,27 +31,22 @@ MAX_STEPS = 24
 
 
 @pytest.fixture(scope="module")
-def bags(tmp_path_factory) -> dict[str, Path]:
+def bags(tmp_path_factory, spatial_env) -> dict[str, Path]:
     """One scripted in-process episode per protocol, both with latency: sync 0.1 s (N=2), async 0.2 s (N=4)."""
     from lq_ros.core.run_config import RunConfig
-    from lq_ros.sim.libero_env import LiberoEnv
     from lq_ros.transport.inprocess import run_inprocess
 
     out = tmp_path_factory.mktemp("replay") / "bags"
-    env = LiberoEnv("libero_spatial", 0)
-    try:
-        paths = {}
-        for mode, latency in (("sync", 0.1), ("async", 0.2)):
-            cfg = RunConfig(mode=mode, latency_s=latency, max_steps=MAX_STEPS, policy="scripted")
-            outcome = run_inprocess(cfg, out, env=env)
-            assert outcome.status == "failure", outcome  # the budget of 24 ticks ends it: a timeout
-            paths[mode] = outcome.bag_path
-    finally:
-        env.close()
+    paths = {}
+    for mode, latency in (("sync", 0.1), ("async", 0.2)):
+        cfg = RunConfig(mode=mode, latency_s=latency, max_steps=MAX_STEPS, policy="scripted")
+        outcome = run_inprocess(cfg, out, env=spatial_env)
+        assert outcome.status == "failure", outcome  # the budget of 24 ticks ends it: a timeout
+        paths[mode] = outcome.bag_path
     return paths
 
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
 @pytest.mark.parametrize("mode", ["sync", "async"])

@@ -13,7 +13,7 @@ import pytest
 from lq_ros.report import sweep_report as rp
 from lq_ros.run import sweep as sw
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
 @pytest.fixture(scope="module")
@@ -59,9 +59,12 @@ def test_figures_have_the_papers_panels_and_series(report):
         assert ax.collections, "no CI band"
         assert [t.get_text() for t in ax.get_xticklabels()] == ["0\nN=0", "0.1\nN=2"]  # applied latency and N
     fig5 = figs["fig5_trajectory"].axes
-    assert len(fig5) == 3 and [len(_lines_with_data(ax)) for ax in fig5] == [2, 2, 2]  # scripted x {sync, async}
+    assert len(fig5) == 4 and [len(_lines_with_data(ax)) for ax in fig5] == [2, 2, 2, 2]  # scripted x {sync, async}
     assert "successful episodes; traj 20 Hz, energy substep" in figs["fig5_trajectory"].texts[0].get_text()
-    assert "jerk" in fig5[0].get_ylabel() and "EE-Osc" in fig5[2].get_ylabel()
+    assert "jerk" in fig5[0].get_ylabel() and "EE-Osc, paper A.3" in fig5[2].get_ylabel()
+    assert "EE-Osc detrended" in fig5[3].get_ylabel() and fig5[2].get_ylim() == fig5[3].get_ylim()  # one scale
+    # Two episodes per cell: no band, the values as dots and n beside each point.
+    assert "n=2" in [t.get_text() for t in fig5[0].texts]
     fig6 = figs["fig6_energy_decomposition"].axes
     # 2 series x 2 latencies bars per stacked part: 3 parts in (a), 2 in (b)
     assert [len(ax.patches) for ax in fig6] == [2 * 2 * 3, 2 * 2 * 2]
@@ -96,9 +99,14 @@ def test_pages_tables_provenance_and_links(report, sweep_dir):
         assert key in html and key in md
     assert "2.3.7" in html  # the MuJoCo version the episodes ran on
     assert "| episodes of the spec not finished | 0 |" in md
-    for table in ("episodes.csv", "episodes.parquet", "aggregates.csv", "aggregates.parquet", "aggregates_pooled.csv"):
+    for table in ("episodes.csv", "episodes.parquet", "aggregates.csv", "aggregates.parquet", "aggregates_pooled.csv",
+                  "paired_vs_zero_latency.csv"):  # fmt: skip
         assert report.files[table].stat().st_size > 100
     assert len(report.pooled) == 4 and set(report.pooled["n"]) == {2}
+    # Every 0.1 s cell against its 0 s cell over the two init states (both succeed at both latencies).
+    assert len(report.paired) == 2 and set(report.paired["n_pairs"]) == {2}
+    assert "## Latency effects (paired against 0 s)" in md and "over the 2 pairs that succeed in both" in md
+    assert "Async best case" in md and "no request slack" in html
 
 
 def test_report_of_a_plain_bag_folder(sweep_dir, tmp_path):

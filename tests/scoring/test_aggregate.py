@@ -2,13 +2,27 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from lq_ros.scoring.aggregate import aggregate, efficiency_references, episodes_frame, markdown_table, write_tables
+from lq_ros.scoring.aggregate import (
+    MIN_N_INTERVAL,
+    aggregate,
+    budget_note,
+    cell_latency_label,
+    ci_text,
+    efficiency_references,
+    episodes_frame,
+    kaplan_meier,
+    markdown_table,
+    paired_differences,
+    time_to_success,
+    write_tables,
+)
 
 
 def _episode(status: str, *, latency: float = 0.0, steps: int = 100, length: float = 1.0, jerk: float = 10.0, **kw):
@@ -53,25 +67,26 @@ def test_quality_over_successes_with_failure_and_all_outcome_columns_beside():
     agg = aggregate(episodes_frame(rows)).iloc[0]
     assert agg["completion_steps_mean"] == 150.0 and agg["completion_steps_n"] == 2
     assert agg["jerk_mean_mean"] == pytest.approx(15.0) and agg["jerk_mean_n"] == 2
-    assert agg["jerk_mean_ci_lo"] <= 15.0 <= agg["jerk_mean_ci_hi"]
+    # Two values: no bootstrap interval (MIN_N_INTERVAL), the values instead.
+    assert math.isnan(agg["jerk_mean_ci_lo"]) and json.loads(agg["jerk_mean_values"]) == [10.0, 20.0]
     assert agg["jerk_mean_failure_mean"] == pytest.approx(0.004) and agg["jerk_mean_failure_n"] == 1
     assert agg["jerk_mean_all_mean"] == pytest.approx((10 + 20 + 0.004) / 3) and agg["jerk_mean_all_n"] == 3
 
 
 def test_kaplan_meier_completion_time_counts_failures_censored_at_the_budget():
-    # A rarely successful but fast policy: 1 success at 40 steps, 3 timeouts at the 220-step budget.
+    # A rarely successful but fast policy: 1 success at 40 steps, 4 timeouts at the 220-step budget.
     fast = [_episode("success", steps=40, step_budget=220)]
-    fast += [_episode("failure", steps=220, step_budget=220, init=i) for i in range(1, 4)]
-    # A reliable, slower one: 4 successes at 100 steps.
-    steady = [_episode("success", steps=100, step_budget=220, init=i, policy="q") for i in range(4)]
+    fast += [_episode("failure", steps=220, step_budget=220, init=i) for i in range(1, 5)]
+    # A reliable, slower one: 5 successes at 100 steps.
+    steady = [_episode("success", steps=100, step_budget=220, init=i, policy="q") for i in range(5)]
     agg = aggregate(episodes_frame(fast + steady)).set_index("policy")
     # The success-only mean ranks the fast policy first; the restricted mean does not.
     assert agg.loc["p", "completion_time_s_mean"] == pytest.approx(2.0)
     assert agg.loc["q", "completion_time_s_mean"] == pytest.approx(5.0)
-    # Closed form, every failure censored at the horizon: mean of min(t, 11 s) = (2 + 3 * 11) / 4.
-    assert agg.loc["p", "completion_time_rmst_s"] == pytest.approx((2.0 + 3 * 11.0) / 4)
+    # Closed form, every failure censored at the horizon: mean of min(t, 11 s) = (2 + 4 * 11) / 5.
+    assert agg.loc["p", "completion_time_rmst_s"] == pytest.approx((2.0 + 4 * 11.0) / 5)
     assert agg.loc["q", "completion_time_rmst_s"] == pytest.approx(5.0)
-    assert agg.loc["p", "completion_time_rmst_ci_lo"] <= 8.75 <= agg.loc["p", "completion_time_rmst_ci_hi"]
+    assert agg.loc["p", "completion_time_rmst_ci_lo"] <= 9.2 <= agg.loc["p", "completion_time_rmst_ci_hi"]
 
 
 def test_sampling_rates_are_group_keys():
@@ -186,3 +201,171 @@ def test_chunk_boundary_metrics_are_over_successes_with_failures_beside():
     assert agg["chunk_switch_jump_mean_all_mean"] == pytest.approx(1.3 / 3)
     assert agg["chunk_switch_jerk_ratio_mean"] == pytest.approx(2.0) and agg["chunk_switch_jerk_ratio_all_n"] == 2
     assert agg["chunk_switches_mean"] == pytest.approx(11.0)
+
+
+# -- attribution: small n, paired changes, budgets, time to success, latency labels ----------------------------
+
+
+def test_below_five_values_the_table_prints_the_values_and_n_not_an_interval():
+    one = aggregate(episodes_frame([_episode("success", steps=216)])).iloc[0]  # 10.80 s
+    assert ci_text(one, "completion_time_s", 2) == "10.80 (n=1)"  # never "10.80 [10.80, 10.80]"
+    three = [_episode("success", steps=s, init=i, step_budget=220) for i, s in enumerate((100, 110, 126))]
+    agg3 = aggregate(episodes_frame(three)).iloc[0]
+    assert ci_text(agg3, "completion_time_s", 2) == "5.60 (n=3: 5.00, 5.50, 6.30)"
+    assert ci_text(agg3, "completion_time_rmst", 2) == "5.60 (n=3)"  # a Kaplan-Meier estimate: no values to list
+    table = markdown_table(aggregate(episodes_frame(three)))
+    assert "| 5.60 (n=3: 5.00, 5.50, 6.30) | 5.60 (n=3)" in table and "fewer than 5 values" in table
+    five = [_episode("success", steps=100 + 10 * i, init=i) for i in range(MIN_N_INTERVAL)]
+    agg5 = aggregate(episodes_frame(five)).iloc[0]
+    assert agg5["completion_time_s_values"] == ""
+    low, high = agg5["completion_time_s_ci_lo"], agg5["completion_time_s_ci_hi"]
+    assert ci_text(agg5, "completion_time_s", 2) == f"6.00 [{low:.2f}, {high:.2f}]" and low < 6.0 < high
+    # The success rate keeps its Wilson interval at any n.
+    assert ci_text(agg3, "success", 0, 100.0) == "100 [44, 100]"
+
+
+def _paired_rows():
+    """Zero latency: inits 0-3 succeed at 100, 110, 120, 130 steps. At 0.2 s: inits 0-2 succeed 20, 30, 40 steps
+    later, init 3 fails, init 4 (never run at 0 s) succeeds fast. A uniform cell pairs with the constant 0 s."""
+    rows = [_episode("success", steps=100 + 10 * i, init=i, jerk=10.0 + i) for i in range(4)]
+    rows += [_episode("success", latency=0.2, steps=120 + 20 * i, init=i, jerk=12.0 + i) for i in range(3)]
+    rows += [_episode("failure", latency=0.2, steps=220, init=3), _episode("success", latency=0.2, steps=60, init=4)]
+    rows += [_episode("success", latency=0.2, latency_dist="uniform:0.1:0.3", steps=105, init=0)]
+    return rows
+
+
+def test_paired_view_compares_the_pairs_that_succeed_in_both_cells():
+    paired = paired_differences(episodes_frame(_paired_rows()), n_boot=200).set_index("latency_dist")
+    row = paired.loc["constant"]
+    assert (row["n_success"], row["zero_n"], row["zero_n_success"], row["n_pairs"]) == (4, 4, 4, 3)
+    # Per pair +20, +30, +40 steps = +1.0, +1.5, +2.0 s: mean +1.5 s; three pairs, so no interval.
+    assert row["completion_time_s_diff_mean"] == pytest.approx(1.5)
+    assert json.loads(row["completion_time_s_diff_values"]) == pytest.approx([1.0, 1.5, 2.0])
+    assert math.isnan(row["completion_time_s_diff_ci_lo"])
+    assert row["jerk_mean_diff_mean"] == pytest.approx(2.0)
+    assert (row["completion_time_s_zero_mean"], row["completion_time_s_cell_mean"]) == pytest.approx((5.5, 7.0))
+    assert ci_text(row, "completion_time_s_diff", 2, signed=True) == "+1.50 (n=3: +1.00, +1.50, +2.00)"
+    # The unpaired success-only means would say the latency made the policy faster (init 4 is easy and only ran there).
+    agg = aggregate(episodes_frame(_paired_rows())).set_index("latency_s")
+    assert agg.loc[0.2, "completion_time_s_mean"].max() < agg.loc[0.0, "completion_time_s_mean"] + 1.5
+    # The uniform cell: the policy label carries its latency kind, yet it pairs with the constant 0 s cell.
+    uniform = paired.loc["uniform:0.1:0.3"]
+    assert uniform["policy"] == "p [latency=uniform]" and uniform["n_pairs"] == 1
+    assert uniform["completion_time_s_diff_mean"] == pytest.approx(0.25)
+
+
+def test_paired_view_with_five_pairs_has_an_interval_and_needs_a_zero_cell():
+    rows = [_episode("success", steps=100, init=i) for i in range(6)]
+    rows += [_episode("success", latency=0.1, steps=100 + 2 * i, init=i) for i in range(6)]  # +0.0 .. +0.5 s
+    rows += [_episode("success", latency=0.1, steps=100, init=0, mode="async")]  # no async 0 s cell
+    paired = paired_differences(episodes_frame(rows), n_boot=500).set_index("mode")
+    sync = paired.loc["sync"]
+    assert sync["n_pairs"] == 6 and sync["completion_time_s_diff_mean"] == pytest.approx(0.25)
+    assert sync["completion_time_s_diff_ci_lo"] < 0.25 < sync["completion_time_s_diff_ci_hi"]
+    assert paired.loc["async", "zero_n"] == 0 and paired.loc["async", "n_pairs"] == 0
+
+
+def test_a_budget_without_its_own_zero_latency_cell_pairs_with_the_other_budgets():
+    rows = [_episode("success", steps=100, init=i) for i in range(2)]  # 0 s under the paper budget only
+    rows += [_episode("success", latency=0.2, steps=150, init=i, budget_counts="action") for i in range(2)]
+    row = paired_differences(episodes_frame(rows), n_boot=100).iloc[0]
+    assert row["policy"] == "p [budget_counts=action]" and row["zero_budget_counts"] == "all"
+    assert row["n_pairs"] == 2 and row["completion_time_s_diff_mean"] == pytest.approx(2.5)
+
+
+def _budget_rows():
+    """Zero latency: inits 0-3 succeed with 100 action ticks. Sync 0.2 s: every timeout executed 70 action ticks
+    (holds spent the 140-tick budget): budget-limited. Async 0.2 s: timeouts after 130 action ticks, more than the
+    100 the pairs needed: policy failures. Async 0.4 s: timeouts after 130 action ticks, but the same episodes under
+    the action budget succeeded: budget-limited by the direct evidence, whatever the action ticks say."""
+    rows = []
+    for mode in ("sync", "async"):
+        rows += [_episode("success", mode=mode, steps=100, action_ticks=100, init=i) for i in range(4)]
+    rows += [_episode("failure", latency=0.2, steps=140, action_ticks=70, hold_ticks=70, init=i) for i in range(3)]
+    rows += [_episode("success", latency=0.2, steps=130, action_ticks=90, init=3)]
+    rows += [_episode("failure", mode="async", latency=0.2, steps=140, action_ticks=130, init=i) for i in range(4)]
+    for i in range(2):
+        rows.append(_episode("failure", mode="async", latency=0.4, steps=140, action_ticks=130, init=i))
+        rows.append(
+            _episode("success", mode="async", latency=0.4, steps=300, action_ticks=135, init=i, budget_counts="action")
+        )
+    return rows
+
+
+def test_budget_decided_cell_is_marked_and_a_policy_failure_cell_is_not():
+    frame = episodes_frame(_budget_rows())
+    agg = aggregate(frame).set_index(["policy", "mode", "latency_s"])
+    sync = agg.loc[("p", "sync", 0.2)]
+    assert (sync["n_budget_limited"], sync["n_policy_limited"], sync["n_budget_unattributed"]) == (3, 0, 0)
+    assert sync["budget_decided"] and budget_note(sync) == "◇ budget-decided: 3/3 timeouts budget-limited"
+    policy = agg.loc[("p", "async", 0.2)]
+    assert (policy["n_budget_limited"], policy["n_policy_limited"]) == (0, 4) and not policy["budget_decided"]
+    assert budget_note(policy) == "0/4 timeouts budget-limited"
+    direct = agg.loc[("p", "async", 0.4)]
+    assert direct["budget_decided"] and direct["n_budget_limited"] == 2
+    assert direct["action_budget_n"] == 2 and direct["action_budget_success_rate"] == 1.0
+    assert budget_note(direct).endswith("; action budget: 100 % of 2")
+    assert agg.loc[("p [budget_counts=action]", "async", 0.4), "budget_counts"] == "action"
+    assert budget_note(agg.loc[("p [budget_counts=action]", "async", 0.4)]) == "action budget"
+    bases = frame.dropna(subset=["budget_basis"]).groupby(["mode", "latency_s"])["budget_basis"].unique()
+    assert bases[("sync", 0.2)].tolist() == ["zero-latency action ticks"]
+    assert bases[("async", 0.4)].tolist() == ["action-budget run"]
+    table = markdown_table(aggregate(frame))
+    assert table.count("◇ budget-decided") == 2 and "◇: budget-decided" in table
+
+
+def test_budget_attribution_needs_a_basis_and_never_blames_zero_latency():
+    rows = [_episode("failure", steps=140, action_ticks=140)]  # 0 s timeout: all ticks were actions
+    rows += [_episode("failure", latency=0.2, steps=140, action_ticks=60, init=1)]  # no zero-latency success
+    frame = episodes_frame(rows)
+    assert frame["budget_limited"].tolist() == [False, None]
+    agg = aggregate(frame).set_index("latency_s")
+    assert agg.loc[0.2, "n_budget_unattributed"] == 1 and not agg.loc[0.2, "budget_decided"]
+
+
+def test_rows_from_before_the_budget_choice_count_every_tick():
+    old = {k: v for k, v in _episode("failure", latency=0.2, steps=140, init=1).items()}
+    old["fresh_actions_executed"] = 60  # the chunk ticks, before action_ticks existed
+    frame = episodes_frame([_episode("success", steps=100, fresh_actions_executed=100, init=1), old])
+    assert frame["budget_counts"].tolist() == ["all", "all"] and frame["action_ticks"].tolist() == [100, 60]
+    assert frame["budget_limited"].tolist() == [None, True]
+
+
+def test_kaplan_meier_steps_at_the_known_times():
+    # Successes at 1, 2, 2 and 4; one failure censored at 3 (and one censored at 2: still at risk there).
+    times, events = [1.0, 2.0, 2.0, 2.0, 3.0, 4.0], [True, True, True, False, False, True]
+    t, survival = kaplan_meier(times, events)
+    assert t.tolist() == [0.0, 1.0, 2.0, 4.0]
+    # S(1) = 5/6; S(2) = 5/6 * (1 - 2/5) = 1/2; S(4) = 1/2 * (1 - 1/1) = 0.
+    assert survival == pytest.approx([1.0, 5 / 6, 0.5, 0.0])
+    t, survival = kaplan_meier([5.0, 7.0], [False, False])  # no success: flat at 1
+    assert t.tolist() == [0.0] and survival.tolist() == [1.0]
+
+
+def test_time_to_success_on_sim_seconds_and_action_ticks():
+    rows = [
+        _episode("success", steps=100, action_ticks=80),
+        _episode("failure", steps=140, action_ticks=70, init=1),
+        _episode("error", init=2),
+    ]
+    frame = episodes_frame(rows)
+    times, events = time_to_success(frame, "sim_s")
+    assert times.tolist() == [5.0, 7.0] and events.tolist() == [True, False]
+    times, events = time_to_success(frame, "action_ticks")
+    assert times.tolist() == [80.0, 70.0] and events.tolist() == [True, False]
+
+
+def test_a_distribution_cell_is_labelled_by_its_realised_mean_over_chunks():
+    dist = "uniform:0.1:0.3"
+    rows = [
+        _episode("success", latency=0.225, latency_dist=dist, latency_sim_mean_s=0.2, chunks_applied=10),
+        _episode("success", latency=0.225, latency_dist=dist, latency_sim_mean_s=0.3, chunks_applied=30, init=1),
+        _episode("success", latency=0.2, latency_sim_mean_s=0.2, chunks_applied=20),
+    ]
+    constant, uniform = (row for _, row in aggregate(episodes_frame(rows)).sort_values("latency_dist").iterrows())
+    # Over chunks: (10 * 0.2 + 30 * 0.3) / 40 = 0.275 s (the mean of the episode means would be 0.25 s).
+    assert constant["latency_dist"] == "constant" and uniform["latency_dist"] == dist
+    assert uniform["latency_sim_realised_mean_s"] == pytest.approx(0.275)
+    assert cell_latency_label(uniform) == "uniform:0.1:0.3 (realised mean 0.275 s)"
+    assert cell_latency_label(constant) == "0.2 s (N=4)"
+    assert "uniform:0.1:0.3 (realised mean 0.275 s)" in markdown_table(aggregate(episodes_frame(rows)))

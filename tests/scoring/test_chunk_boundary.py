@@ -46,7 +46,8 @@ def ramp_chunk(req, horizon=8, offset=0.1):
 def test_replace_jump_is_the_command_step_when_the_old_plan_ran_out():
     cfg = ExecutorConfig(mode="async", latency_ticks=2)
     chunks, cmds = run_core(cfg, 40, ramp_chunk)
-    ticks, jumps, overlapping = boundary.switch_jumps("async", "replace", chunks, cmds)
+    found = boundary.analyse("async", "replace", chunks, cmds)
+    ticks, jumps, overlapping = found.switch_ticks, found.jumps, found.overlapping
     # Threshold N = 2: a chunk of 8 lands with 6 fresh rows as the old plan ends: switches every 6 ticks.
     assert ticks.tolist() == [8, 14, 20, 26, 32, 38] and overlapping == 0
     # Old plan exhausted: the jump is against the last executed action, one tick earlier on the ramp and
@@ -60,7 +61,8 @@ def test_replace_jump_is_the_command_step_when_the_old_plan_ran_out():
 def test_jump_against_the_overlapping_old_plan(merge):
     cfg = ExecutorConfig(mode="async", latency_ticks=1, merge=merge)
     chunks, cmds = run_core(cfg, 40, ramp_chunk)
-    ticks, jumps, overlapping = boundary.switch_jumps("async", merge, chunks, cmds)
+    found = boundary.analyse("async", merge, chunks, cmds)
+    ticks, jumps, overlapping = found.switch_ticks, found.jumps, found.overlapping
     assert overlapping == len(chunks) - 1 and len(ticks) == len(chunks) - 1
     # The old plan for the switch tick and the new chunk's row differ by the offset (0.1 on 6 dims); the
     # executed command moves a fraction of it: all of it (latest_only), 0.7 (weighted_average), or, for the
@@ -82,7 +84,8 @@ def test_jump_against_the_overlapping_old_plan(merge):
 def test_sync_jump_is_against_the_old_chunks_next_row():
     cfg = ExecutorConfig(mode="sync", latency_ticks=2, replan_steps=3)
     chunks, cmds = run_core(cfg, 30, ramp_chunk)
-    ticks, jumps, _ = boundary.switch_jumps("sync", "replace", chunks, cmds)
+    found = boundary.analyse("sync", "replace", chunks, cmds)
+    ticks, jumps = found.switch_ticks, found.jumps
     # Request at tick 0 lands at 2, rows 0..2 run at 2..4, next request at 5 lands at 7: switches every 5 ticks.
     assert ticks.tolist() == [7, 12, 17, 22, 27]
     # New row 0 is for its observation tick, 5 ticks after the old one's; the old chunk's next row (3) is for
@@ -91,16 +94,130 @@ def test_sync_jump_is_against_the_old_chunks_next_row():
     assert jumps == pytest.approx([np.sqrt(6) * abs(0.02 + (0.1 if r % 2 else -0.1)) for r in new_ids], rel=1e-9)
 
 
+def offset_step(rid: int) -> float:
+    """ramp_chunk's offset of request ``rid`` minus that of the request before it (0.1 per arm dimension)."""
+    return 0.1 if rid % 2 else -0.1
+
+
+@pytest.mark.parametrize("merge, w_new", [("weighted_average", 0.7), ("average", 0.5), ("conservative", 0.3)])
+def test_pairwise_blend_takes_the_rest_of_the_step_where_the_overlap_ends(merge, w_new):
+    """N = 1, H = 8, half-chunk threshold 4: a chunk lands every 4 ticks over 3 ticks of the old plan. On the ramp
+    the executed command moves 0.01 a tick plus w_new of the offset gap at the switch and the other 1 - w_new at
+    the first tick after the overlap; the jump against the old plan sees only the first part."""
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, merge=merge)
+    chunks, cmds = run_core(cfg, 40, ramp_chunk)
+    found = boundary.analyse("async", merge, chunks, cmds)
+    switches = found.switch_ticks.tolist()
+    assert switches == [5, 9, 13, 17, 21, 25, 29, 33, 37]
+    assert found.overlap_end_ticks.tolist() == [t + 3 for t in switches if t + 3 < 40]
+    assert found.handover_ticks.tolist() == sorted(switches + found.overlap_end_ticks.tolist())
+    step = {}
+    for t in switches:
+        delta = offset_step(int(cmds.request_id[t]))
+        step[t] = np.sqrt(6) * abs(0.01 + w_new * delta)
+        if t + 3 < 40:
+            step[t + 3] = np.sqrt(6) * abs(0.01 + (1 - w_new) * delta)
+    assert found.executed_steps == pytest.approx([step[t] for t in found.handover_ticks], rel=1e-9)
+    assert found.jumps == pytest.approx([w_new * 0.1 * np.sqrt(6)] * len(switches), rel=1e-9)
+    # Disagreement before merging: the full offset on every overlapped tick, 3 per arrival, all reached.
+    assert found.disagreements == pytest.approx([0.1 * np.sqrt(6)] * 3 * len(switches), rel=1e-9)
+    # Every overlapped tick executed a blend: the recorded command differs from the row it is attributed to.
+    rows = {c.request_id: c.actions for c in chunks}
+    executed = [t for t in range(40) if cmds.source[t] == 0]  # chunk commands (the first ticks hold)
+    blended = [t for t in executed if not np.allclose(cmds.action[t], rows[cmds.request_id[t]][cmds.chunk_index[t]])]
+    assert len(blended) == len(found.disagreements)
+
+
+@pytest.mark.parametrize("merge", ["latest_only", "rtc"])
+def test_new_chunk_taking_over_whole_has_no_overlap_end(merge):
+    """latest_only and rtc (the ramp ignores the prefix) execute the new row from the switch on: the whole step
+    is taken there, 0.01 plus the full offset gap, though the old plan still overlapped."""
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, merge=merge)
+    chunks, cmds = run_core(cfg, 40, ramp_chunk)
+    found = boundary.analyse("async", merge, chunks, cmds)
+    assert len(found.overlap_end_ticks) == 0 and found.handover_ticks.tolist() == found.switch_ticks.tolist()
+    expected = [np.sqrt(6) * abs(0.01 + offset_step(int(cmds.request_id[t]))) for t in found.switch_ticks]
+    assert found.executed_steps == pytest.approx(expected, rel=1e-9)
+    assert found.disagreements == pytest.approx([0.1 * np.sqrt(6)] * 27, rel=1e-9)
+
+
+def test_replace_without_overlap_steps_equal_the_jumps_and_nothing_disagrees():
+    cfg = ExecutorConfig(mode="async", latency_ticks=2)
+    chunks, cmds = run_core(cfg, 40, ramp_chunk)
+    found = boundary.analyse("async", "replace", chunks, cmds)
+    assert len(found.overlap_end_ticks) == 0 and len(found.disagreements) == 0
+    assert found.executed_steps == pytest.approx(found.jumps, rel=1e-12)
+
+
+def ensemble(chunks, tick: int, landed_before: int | None = None) -> np.ndarray | None:
+    """ACT's average of the rows for ``tick`` of every chunk covering it (oldest first, w_i = exp(-m i)), over
+    the chunks landed by ``tick`` (or before ``landed_before``); None when none covers it."""
+    last = tick if landed_before is None else landed_before - 1
+    covering = [c for c in chunks if c.due_tick <= last and tick < c.observation_tick + 8]
+    cover = [c.actions[tick - c.observation_tick] for c in covering]
+    if not cover:
+        return None
+    w = np.exp(-ENSEMBLE_COEFF * np.arange(len(cover)))
+    return w @ np.array(cover) / w.sum()
+
+
+def test_temporal_ensemble_steps_are_between_consecutive_ensembles():
+    """Default threshold H: a chunk lands every tick, every tick is a switch, no tick runs a single chunk."""
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, merge="temporal_ensemble")
+    chunks, cmds = run_core(cfg, 40, ramp_chunk)
+    found = boundary.analyse("async", "temporal_ensemble", chunks, cmds)
+    assert found.switch_ticks.tolist() == list(range(2, 40)) and len(found.overlap_end_ticks) == 0
+    arm = boundary.ARM_DIMS
+    expected = [np.linalg.norm((ensemble(chunks, t) - ensemble(chunks, t - 1))[arm]) for t in range(2, 40)]
+    assert found.executed_steps == pytest.approx(expected, rel=1e-9)
+    disagree = []
+    for c in sorted(chunks, key=lambda c: c.due_tick):
+        for tick in range(c.due_tick, min(c.observation_tick + 8, 40)):
+            old = ensemble(chunks, tick, landed_before=c.due_tick)
+            if old is not None:
+                disagree.append(np.linalg.norm((c.actions[tick - c.observation_tick] - old)[arm]))
+    assert found.disagreements == pytest.approx(disagree, rel=1e-9)
+
+
+def test_sync_step_is_from_the_hold_that_ran():
+    """Sync holds (arm command 0) while inferring: the executed step at a switch is the new row itself, not its
+    distance to the old chunk's discarded next row (the jump)."""
+    cfg = ExecutorConfig(mode="sync", latency_ticks=2, replan_steps=3)
+    chunks, cmds = run_core(cfg, 30, ramp_chunk)
+    found = boundary.analyse("sync", "replace", chunks, cmds)
+    ticks = found.switch_ticks.tolist()
+    assert ticks == [7, 12, 17, 22, 27] and found.handover_ticks.tolist() == ticks
+    assert all(cmds.source[t - 1] != 0 and not cmds.action[t - 1][:6].any() for t in ticks)  # a stop hold ran
+    obs_tick = {c.request_id: c.observation_tick for c in chunks}
+    rids = [int(cmds.request_id[t]) for t in ticks]
+    expected = [np.sqrt(6) * (obs_tick[r] / 100 + 0.1 * (r % 2)) for r in rids]
+    assert found.executed_steps == pytest.approx(expected, rel=1e-9)
+    assert not np.allclose(found.executed_steps, found.jumps)
+    assert len(found.disagreements) == 0 and len(found.overlap_end_ticks) == 0
+
+
+def test_async_step_after_an_underrun_is_from_the_hold():
+    """Threshold 0: the next request is made when the buffer is empty, so N = 2 ticks of underrun hold; the new
+    chunk's first fresh row is for its due tick t (value t / 100 plus its offset)."""
+    cfg = ExecutorConfig(mode="async", latency_ticks=2, request_threshold=0)
+    chunks, cmds = run_core(cfg, 30, ramp_chunk)
+    found = boundary.analyse("async", "replace", chunks, cmds)
+    assert found.switch_ticks.tolist() == [10, 18, 26]
+    assert all(cmds.source[t - 1] == 3 for t in found.switch_ticks)  # HOLD_UNDERRUN
+    expected = [np.sqrt(6) * (t / 100 + 0.1 * (cmds.request_id[t] % 2)) for t in found.switch_ticks]
+    assert found.executed_steps == pytest.approx(expected, rel=1e-9)
+
+
 def test_replay_mismatch_is_detected():
     cfg = ExecutorConfig(mode="async", latency_ticks=1, merge="weighted_average")
     chunks, cmds = run_core(cfg, 20, ramp_chunk)
     with pytest.raises(boundary.ReplayMismatch, match="tick"):
-        boundary.switch_jumps("async", "replace", chunks, cmds)  # the wrong merge rule
+        boundary.analyse("async", "replace", chunks, cmds)  # the wrong merge rule
     tampered = boundary.Commands(cmds.tick, cmds.action.copy(), cmds.source, cmds.request_id, cmds.chunk_index)
     tampered.action[12, 0] += 1e-6
     with pytest.raises(boundary.ReplayMismatch, match="tick 12"):
-        boundary.switch_jumps("async", "weighted_average", chunks, tampered)
-    boundary.switch_jumps("async", "blend", chunks, cmds)  # old bags' name of the same rule
+        boundary.analyse("async", "weighted_average", chunks, tampered)
+    boundary.analyse("async", "blend", chunks, cmds)  # old bags' name of the same rule
 
 
 def test_jerk_window_is_centred_on_the_switch_command():
@@ -127,3 +244,75 @@ def test_jerk_ratio_needs_samples_away_from_switches():
     assert why is None and np.isfinite(ratio) and near > 0
     with pytest.raises(ValueError, match="no chunk switch"):
         boundary.jerk_near_switches(pos, np.array([], dtype=int), 0.05)
+
+
+# -- real episodes: the scorer's fields against a direct recomputation from the bag's /lq/command messages ------
+
+
+@pytest.fixture(scope="module")
+def env(spatial_env):
+    return spatial_env
+
+
+def bag_commands_and_rows(bag):
+    """(ticks' commands as (action, source, request id, row), request id -> chunk rows) read with rosbags."""
+    from lq_ros.recording.bag_compare import bag_messages
+    from lq_ros.wire import messages as m
+
+    msgs = bag_messages(bag)
+    cmds = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in msgs[m.COMMAND.name]]
+    cmds.sort(key=lambda c: c.tick)
+    assert [c.tick for c in cmds] == list(range(len(cmds)))
+    chunks = [m.deserialize(raw, m.ACTION_CHUNK.msgtype) for _, raw in msgs[m.ACTION_CHUNK.name]]
+    rows = {c.request_id: m.chunk_actions(c) for c in chunks}
+    return [(np.asarray(c.action), int(c.source), int(c.request_id), int(c.chunk_index)) for c in cmds], rows
+
+
+@pytest.mark.parametrize(
+    "mode, merge, latency_s",
+    [("sync", "replace", 0.1), ("async", "weighted_average", 0.05)],
+)
+@pytest.mark.sim
+def test_real_episode_fields_equal_a_recomputation_from_the_commands(tmp_path, env, mode, merge, latency_s):
+    """The scripted expert (chunks of 8, closed loop: successive chunks disagree a little) for 60 ticks. Switches:
+    a chunk command of another request than the last one; overlap ends (weighted_average, N = 1: each tick is
+    overlapped by at most two chunks): the first command equal to its own chunk row after one that is a blend;
+    the disagreement of a blended tick is ‖a - c‖ / 0.3 since c = 0.3 o + 0.7 a."""
+    from lq_ros.core.run_config import RunConfig
+    from lq_ros.scoring.bag_scorer import score_bag
+    from lq_ros.transport.inprocess import run_inprocess
+
+    cfg = RunConfig(policy="scripted", mode=mode, merge=merge, latency_s=latency_s, max_steps=60)
+    outcome = run_inprocess(cfg, tmp_path, env=env)
+    row = score_bag(outcome.bag_path)
+    cmds, rows = bag_commands_and_rows(outcome.bag_path)
+    arm = boundary.ARM_DIMS
+
+    def pure(t: int) -> bool:
+        action, source, rid, idx = cmds[t]
+        return source == 0 and np.array_equal(action, rows[rid][idx])
+
+    switches, ends, last_rid = [], [], None
+    for t, (_, source, rid, _) in enumerate(cmds):
+        if source != 0:
+            continue
+        if last_rid is not None and rid != last_rid:
+            switches.append(t)
+        elif t > 0 and cmds[t - 1][1] == 0 and cmds[t - 1][2] == rid and pure(t) and not pure(t - 1):
+            ends.append(t)
+        last_rid = rid
+    steps = [np.linalg.norm(cmds[t][0][arm] - cmds[t - 1][0][arm]) for t in sorted(switches + ends)]
+    assert len(switches) >= 5 and row["chunk_switches"] == len(switches)
+    assert row["chunk_overlap_ends"] == len(ends)
+    assert row["switch_executed_step_mean"] == pytest.approx(np.mean(steps), rel=1e-9)
+    assert row["switch_executed_step_max"] == pytest.approx(np.max(steps), rel=1e-9)
+    blended = [t for t in range(len(cmds)) if cmds[t][1] == 0 and not pure(t)]
+    if mode == "sync":
+        assert not ends and not blended and row["chunk_disagreement_mean"] is None
+        assert all(cmds[t - 1][1] == 1 for t in switches)  # the step is from the hold that ran (HOLD_INFERENCE)
+    else:
+        assert len(ends) >= 5 and row["chunks_overlapping"] == len(switches)
+        gaps = [np.linalg.norm(rows[cmds[t][2]][cmds[t][3]][arm] - cmds[t][0][arm]) / 0.3 for t in blended]
+        # 3 overlapped ticks per arrival (the last arrival's may be cut by the episode's end), each a real blend.
+        assert 3 * len(ends) <= len(blended) <= 3 * len(switches) and min(gaps) > 0
+        assert row["chunk_disagreement_mean"] == pytest.approx(np.mean(gaps), rel=1e-6)

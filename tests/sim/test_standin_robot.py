@@ -8,7 +8,7 @@ from lq_ros.robot.delta_to_target import DeltaToTarget, width_to_gripper_action
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.sim.standin_robot import StandinRobot
 
-pytestmark = pytest.mark.slow  # two LIBERO scenes (~10 s)
+pytestmark = [pytest.mark.slow, pytest.mark.sim]  # two LIBERO scenes (~10 s)
 
 
 def test_absolute_targets_from_deltas_equal_libero_delta_control():

@@ -311,6 +311,7 @@ EPISODE = {"libero_spatial": {"task": 0, "init": 0}, "libero_object": {"task": 7
 
 
 @pytest.mark.parametrize(("suite", "name", "args", "base", "horizon"), SHIPPED)
+@pytest.mark.sim
 def test_real_episode_succeeds_inprocess(tmp_path, suite, name, args, base, horizon):
     from lq_ros.core.run_config import RunConfig
     from lq_ros.transport.inprocess import run_inprocess
@@ -322,12 +323,12 @@ def test_real_episode_succeeds_inprocess(tmp_path, suite, name, args, base, hori
 
 # --- end to end ----------------------------------------------------------------------------------------
 @pytest.mark.slow
-def test_collect_train_load_infer_end_to_end(tmp_path, task0):
+@pytest.mark.sim
+def test_collect_train_load_infer_end_to_end(tmp_path, task0, spatial_env):
     """Collect two real expert episodes of one init state, train both kinds a few steps, load, infer."""
     from typer.testing import CliRunner
 
     from lq_ros.cli import app
-    from lq_ros.sim.libero_env import LiberoEnv
 
     data = tmp_path / "data"
     runner = CliRunner()
@@ -353,12 +354,8 @@ def test_collect_train_load_infer_end_to_end(tmp_path, task0):
     res = runner.invoke(app, ["train", "--policy", "oft", "--data", str(data), "--out", str(out), "--steps", "20",
                               "--width", "32", "--depth", "1"])  # fmt: skip
     assert res.exit_code == 0, res.output
-    env = LiberoEnv("libero_spatial", 0)
-    try:
-        env.reset(0, 7)
-        obs = env.observe(with_images=False)
-    finally:
-        env.close()
+    spatial_env.reset(0, 7)
+    obs = spatial_env.observe(with_images=False)
     for name, weights, horizon in (
         ("oft", out / "oft_c8_libero_spatial.json", 8),
         ("flow", out / "flow_c10_libero_spatial.pt", 10),

@@ -10,18 +10,17 @@ from lq_ros.policies import make_policy
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.recording.episode_bag import EpisodeBagWriter, read_run_metadata
 from lq_ros.scoring.bag_scorer import score_bag
-from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.inprocess import run_conventional, run_inprocess
 from lq_ros.wire import messages as m
+
+pytestmark = pytest.mark.sim
 
 SCORE_KEYS = {"success", "completion_time_s", "jerk_mean", "ee_osc", "traj_length", "energy_total_j"}
 
 
 @pytest.fixture(scope="module")
-def env():
-    e = LiberoEnv("libero_spatial", 0)
-    yield e
-    e.close()
+def env(spatial_env):
+    return spatial_env
 
 
 def ee_positions(bag: Path) -> np.ndarray:

@@ -27,7 +27,7 @@ from lq_ros.run.sweep.local import LocalPool
 from lq_ros.run.sweep.orchestrator import BACKENDS, MAX_ATTEMPTS, Job, Scheduler, SweepSummary, prepare, run_sweep
 from lq_ros.run.sweep.ray_pool import RayConnectError, RayPool, ray_connect, ray_init_local
 from lq_ros.run.sweep.spec import SpecError, SweepSpec, check_policies, expand_spec, load_spec
-from lq_ros.run.sweep.store import ResultStore, atomic_write_text
+from lq_ros.run.sweep.store import ResultStore, StoreError, StoreLocked, atomic_write_text
 from lq_ros.run.sweep.worker import EpisodeWorker, default_workers, env_key
 
 __all__ = [
@@ -42,6 +42,8 @@ __all__ = [
     "ResultStore",
     "Scheduler",
     "SpecError",
+    "StoreError",
+    "StoreLocked",
     "SweepSpec",
     "SweepSummary",
     "atomic_write_text",

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import yaml
 
+from lq_ros.core.redact import redact_config, redact_value
 from lq_ros.core.run_config import RunConfig
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.sweep.local import LocalPool
@@ -83,8 +84,8 @@ def prepare(spec: SweepSpec, out_dir: Path, *, retry_errors: bool = False) -> tu
     """Create the store, write the spec and manifest; returns the jobs still to run and how many are done."""
     store = ResultStore(out_dir)
     store.create()
-    atomic_write_text(store.root / "sweep.yaml", yaml.safe_dump(spec.raw, sort_keys=False))
-    manifest = {"name": spec.name, "episodes": {c.key(): c.to_dict() for c in spec.configs}}
+    atomic_write_text(store.root / "sweep.yaml", yaml.safe_dump(redact_value(spec.raw), sort_keys=False))
+    manifest = {"name": spec.name, "episodes": {c.key(): redact_config(c.to_dict()) for c in spec.configs}}
     atomic_write_text(store.root / "manifest.json", json.dumps(manifest, sort_keys=True, indent=1))
     jobs, done = [], 0
     for cfg in spec.configs:
@@ -124,6 +125,22 @@ def run_sweep(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    # One sweep per folder at a time, for the sweep's whole life: a second one would schedule the same
+    # episodes and clear the first one's bags in flight as leftovers (StoreLocked names the folder).
+    with ResultStore(out_dir).lock():
+        return _run_locked(spec, out_dir, workers, transport, backend, address, retry_errors, on_progress)
+
+
+def _run_locked(
+    spec: SweepSpec,
+    out_dir: Path,
+    workers: int | None,
+    transport: str,
+    backend: str,
+    address: str | None,
+    retry_errors: bool,
+    on_progress: Callable[[SweepSummary, dict | None], None] | None,
+) -> SweepSummary:
     store, jobs, done = prepare(spec, out_dir, retry_errors=retry_errors)
     summary = SweepSummary(total=len(spec.configs), skipped=done, out_dir=store.root)
     if on_progress:
@@ -204,7 +221,7 @@ def _finish(store: ResultStore, job: Job, result: dict, transport: str, sweep_na
         "key": job.key,
         "sweep": sweep_name,
         "episode": job.cfg.episode_name(),
-        "config": job.cfg.to_dict(),
+        "config": redact_config(job.cfg.to_dict()),
         "transport": transport,
         "status": result["status"],
         "bag": attempt.get("bag"),

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.recording.episode_folder import episode_folders
 from lq_ros.run.sweep.worker import EpisodeWorker, default_workers
 
 
@@ -57,7 +58,7 @@ class _RayEpisodeActor:
         result["log_text"] = log.read_text(errors="replace") if log.exists() else ""
         bag_dir = self.root / "bags" / cfg.episode_name()
         result["tars"] = []  # the bag (and node logs) travel back to the driver's store
-        for src in (bag_dir, bag_dir.with_name(bag_dir.name + ".logs")):
+        for src in episode_folders(bag_dir):
             if src.exists():
                 result["tars"].append(_pack_dir(src))
                 shutil.rmtree(src)

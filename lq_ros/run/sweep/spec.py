@@ -5,22 +5,47 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import os
+import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
 from lq_ros.core.latency import LatencyError, parse_latency
-from lq_ros.core.run_config import PROTOCOL_FIELDS, RunConfig
+from lq_ros.core.redact import redact_value
+from lq_ros.core.run_config import BUDGET_COUNTS, PROTOCOL_FIELDS, RunConfig
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 from lq_ros.run.episode import TRANSPORTS
+from lq_ros.run.validation import num_tasks
 
 MODES = ("sync", "async")
+#: The most episodes one spec may expand to (counted before anything is expanded); split larger sweeps.
+MAX_EPISODES = 100_000
+#: The largest spec file read, bytes.
+MAX_SPEC_BYTES = 1 << 20
+#: Injected latencies (constants, a distribution's parameters and applied mean, trace values) are 0..this, s.
+MAX_LATENCY_S = 10.0
+#: Entries of ``latencies_s`` at most (each may read a trace file).
+MAX_LATENCIES = 256
+#: ``timeout_s``: wall seconds per episode at most (a day).
+MAX_TIMEOUT_S = 86_400.0
+#: ``camera_size``: 0 (the policy's) or 1..this px.
+MAX_CAMERA_SIZE_PX = 1024
+#: ``max_steps``: 0 (the suite's budget) or up to this many ticks.
+MAX_STEPS = 100_000
+#: Integer protocol parameters (replan_steps, request_threshold, ...) at most.
+MAX_PROTOCOL_VALUE = 10_000
+#: A sweep name is one path component: the default output folder is bags/sweeps/<name>.
+MAX_NAME_BYTES = 255
+#: ``package.module:Class`` (dotted identifiers).
+_POLICY_PATH = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*")
 #: Protocol parameters a ``modes`` entry may set (scalars or lists; lists multiply).
 PROTOCOL_KEYS = PROTOCOL_FIELDS
 SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
-    "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps",
+    "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budget_counts",
 }  # fmt: skip
 
 
@@ -58,11 +83,82 @@ def _ints(value, where: str, lo: int, hi: int) -> list[int]:
     return out
 
 
-def num_tasks(suite: str) -> int:
-    """Number of tasks LIBERO ships for ``suite`` (imports libero; used for ``tasks: all``)."""
-    from libero.libero import benchmark
+def _n(value) -> int:
+    return len(value) if isinstance(value, list) else 1
 
-    return benchmark.get_benchmark_dict()[suite]().n_tasks
+
+def _cells(suite, body) -> int:
+    if not isinstance(body, dict):
+        return 1
+    tasks = body.get("tasks")
+    n_tasks = num_tasks(suite) if tasks == "all" and isinstance(suite, str) and suite in STEP_BUDGETS else _n(tasks)
+    return max(n_tasks, 1) * max(_n(body.get("inits")), 1)
+
+
+def count_episodes(raw: dict) -> int:
+    """The episodes ``raw`` expands to, from its list lengths alone (nothing is expanded or read; a malformed
+    part counts once, and is refused by the validation that follows)."""
+    n = 1
+    for key, default in (("policies", None), ("latencies_s", None), ("seeds", None), ("budget_counts", None)):
+        n *= max(_n(raw.get(key, default)), 1)
+    modes = raw.get("modes", list(MODES))
+    if isinstance(modes, dict):
+        variants = 0
+        for params in modes.values():
+            k = 1
+            for value in params.values() if isinstance(params, dict) else ():
+                k *= max(_n(value), 1)
+            variants += k
+        n *= max(variants, 1)
+    else:
+        n *= max(_n(modes), 1)
+    if isinstance(raw.get("suites"), dict):
+        cells = sum(_cells(suite, body) for suite, body in raw["suites"].items())
+    else:
+        cells = _cells(raw.get("suite", "libero_spatial"), raw)
+    return n * max(cells, 1)
+
+
+def _count_text(n: int) -> str:
+    return f"{n:,}" if n < 10**15 else f"about 10^{len(str(n)) - 1}"
+
+
+def _name(name) -> str:
+    """A sweep name: one path component (no '/', NUL, '.' or '..'), at most MAX_NAME_BYTES bytes."""
+    if (
+        not isinstance(name, str)
+        or not name
+        or "/" in name
+        or "\0" in name
+        or name in (".", "..")
+        or len(name.encode(errors="replace")) > MAX_NAME_BYTES
+    ):
+        raise SpecError(
+            f"name: expected a folder name (one path component: no '/', not '.' or '..', at most "
+            f"{MAX_NAME_BYTES} bytes), got {name!r}"
+        )
+    return name
+
+
+def _number(value, where: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
+    """A finite number in [lo, hi] ((lo, hi] with ``lo_open``); booleans are no numbers."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or not (lo < value if lo_open else lo <= value) or not value <= hi:
+        interval = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+        raise SpecError(f"{where}: expected a finite number in {interval}, got {value!r}")
+    return value
+
+
+def _finite_args(value, where: str) -> None:
+    """Policy arguments: every number finite (NaN or infinity is never a meaningful argument)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise SpecError(f"{where}: expected a finite number, got {value!r}")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _finite_args(v, f"{where}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _finite_args(v, f"{where}[{i}]")
 
 
 def _suites(raw: dict) -> list[tuple[str, list[int], list[int]]]:
@@ -113,11 +209,16 @@ def _policies(raw: dict) -> list[tuple[str, dict]]:
         elif isinstance(entry, dict) and "name" in entry and set(entry) <= {"name", "args"}:
             name, args = entry["name"], entry.get("args") or {}
         else:
-            raise SpecError(f"{where}: expected a policy name or {{name: ..., args: {{...}}}}, got {entry!r}")
-        if not isinstance(name, str) or (name not in REGISTRY and ":" not in name):
-            raise SpecError(f"{where}: unknown policy {name!r}; known: {', '.join(sorted(REGISTRY))} or 'module:Class'")
+            raise SpecError(
+                f"{where}: expected a policy name or {{name: ..., args: {{...}}}}, got {redact_value(entry)!r}"
+            )
+        if not isinstance(name, str) or (name not in REGISTRY and not _POLICY_PATH.fullmatch(name)):
+            raise SpecError(
+                f"{where}: unknown policy {name!r}; known: {', '.join(sorted(REGISTRY))} or 'package.module:Class'"
+            )
         if not isinstance(args, dict):
             raise SpecError(f"{where}.args: expected a mapping, got {args!r}")
+        _finite_args(args, f"{where}.args")
         out.append((name, args))
     return out
 
@@ -131,12 +232,16 @@ def _latencies(raw: dict) -> list[dict]:
     if rounding not in ("exact", "nearest"):
         raise SpecError(f"latency_rounding: expected exact or nearest, got {rounding!r}")
     out, by_ticks, texts = [], {}, set()
-    for v in _as_list(raw["latencies_s"], "latencies_s"):
+    entries = _as_list(raw["latencies_s"], "latencies_s")
+    if len(entries) > MAX_LATENCIES:
+        raise SpecError(f"latencies_s: {len(entries)} entries; at most {MAX_LATENCIES}")
+    for v in entries:
         if isinstance(v, str) and ":" in v:
             try:
                 dist = parse_latency(v)
             except LatencyError as exc:
                 raise SpecError(f"latencies_s: {exc}") from None
+            _latency_bounds(dist)
             if dist.text in texts:
                 raise SpecError(f"latencies_s: {v!r} is listed twice")
             texts.add(dist.text)
@@ -147,8 +252,10 @@ def _latencies(raw: dict) -> list[dict]:
                 v = float(v)
             except ValueError:
                 raise SpecError(f"latencies_s: expected seconds or a distribution, got {v!r}") from None
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-            raise SpecError(f"latencies_s: expected non-negative seconds or a distribution, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0 <= v <= MAX_LATENCY_S:
+            raise SpecError(
+                f"latencies_s: expected non-negative seconds up to {MAX_LATENCY_S:g} or a distribution, got {v!r}"
+            )
         if rounding == "nearest":
             v = round_latency(float(v))
         try:
@@ -162,6 +269,32 @@ def _latencies(raw: dict) -> list[dict]:
         by_ticks[n] = v
         out.append({"latency_s": float(v)})
     return out
+
+
+def _latency_bounds(dist) -> None:
+    """A distribution's parameters, trace values and applied mean within [0, MAX_LATENCY_S]."""
+    values = [*dist.params, *dist.trace]
+    if any(v > MAX_LATENCY_S for v in values):
+        what = "a value of the trace" if dist.trace else "a parameter"
+        raise SpecError(
+            f"latencies_s: {dist.label}: {what} exceeds {MAX_LATENCY_S:g} s (latencies are 0..{MAX_LATENCY_S:g} s)"
+        )
+    if dist.mean_s() > MAX_LATENCY_S:
+        raise SpecError(
+            f"latencies_s: {dist.label}: applied mean {dist.mean_s():.4g} s exceeds {MAX_LATENCY_S:g} s "
+            f"(latencies are 0..{MAX_LATENCY_S:g} s)"
+        )
+
+
+def _protocol_value(key: str, value, where: str) -> None:
+    """A protocol parameter of the type of RunConfig's field; integers at most MAX_PROTOCOL_VALUE (the lower
+    bounds are RunConfig's own)."""
+    default = getattr(RunConfig(), key)
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int) or not -1 <= value <= MAX_PROTOCOL_VALUE:
+            raise SpecError(f"{where}: expected an integer in -1..{MAX_PROTOCOL_VALUE}, got {value!r}")
+    elif isinstance(default, str) and not isinstance(value, str):
+        raise SpecError(f"{where}: expected a name, got {value!r}")
 
 
 def _modes(raw: dict) -> list[dict]:
@@ -179,6 +312,9 @@ def _modes(raw: dict) -> list[dict]:
         if not isinstance(params, dict) or set(params) - set(PROTOCOL_KEYS):
             raise SpecError(f"modes.{mode}: expected a mapping with keys among {PROTOCOL_KEYS}, got {params!r}")
         keys = list(params)
+        for k in keys:
+            for value in _as_list(params[k], f"modes.{mode}.{k}"):
+                _protocol_value(k, value, f"modes.{mode}.{k}")
         for values in itertools.product(*(_as_list(params[k], f"modes.{mode}.{k}") for k in keys)):
             out.append({"mode": mode, **dict(zip(keys, values))})
     return out
@@ -190,13 +326,20 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
         raise SpecError(f"a sweep spec is a YAML mapping, got {type(raw).__name__}")
     unknown = set(raw) - SPEC_KEYS
     if unknown:
-        raise SpecError(f"unknown key(s) {sorted(unknown)}; known: {sorted(SPEC_KEYS)}")
+        raise SpecError(f"unknown key(s) {sorted(unknown, key=str)}; known: {sorted(SPEC_KEYS)}")
+    total = count_episodes(raw)  # before anything is expanded: a spec of a few KB can multiply to 10^9
+    if total > MAX_EPISODES:
+        raise SpecError(
+            f"the spec expands to {_count_text(total)} episodes; a sweep runs at most {MAX_EPISODES:,} "
+            "(split it into several sweeps)"
+        )
+    name = _name(raw.get("name", default_name))
     transport = raw.get("transport")
     if transport is not None and transport not in TRANSPORTS:
         raise SpecError(f"transport: expected one of {TRANSPORTS}, got {transport!r}")
     timeout_s = raw.get("timeout_s")
-    if timeout_s is not None and (not isinstance(timeout_s, int | float) or timeout_s <= 0):
-        raise SpecError(f"timeout_s: expected positive seconds, got {timeout_s!r}")
+    if timeout_s is not None:
+        _number(timeout_s, "timeout_s", 0, MAX_TIMEOUT_S, lo_open=True)
     seeds = _ints(raw.get("seeds", [7]), "seeds", 0, 2**31 - 1)
     common = {}
     for key, typ in (("camera_size", int), ("physics_rate", bool), ("max_steps", int)):
@@ -204,16 +347,23 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             if not isinstance(raw[key], typ) or (typ is int and isinstance(raw[key], bool)):
                 raise SpecError(f"{key}: expected {typ.__name__}, got {raw[key]!r}")
             common[key] = raw[key]
-    if common.get("max_steps", 0) < 0 or common.get("camera_size", 0) < 0:
-        raise SpecError("max_steps must be >= 0 (0: the suite's budget) and camera_size >= 0 (0: the policy's)")
+    if not 0 <= common.get("max_steps", 0) <= MAX_STEPS:
+        raise SpecError(f"max_steps: expected 0 (the suite's budget) or 1..{MAX_STEPS} ticks, got {raw['max_steps']}")
+    if not 0 <= common.get("camera_size", 0) <= MAX_CAMERA_SIZE_PX:
+        raise SpecError(
+            f"camera_size: expected 0 (the policy's) or 1..{MAX_CAMERA_SIZE_PX} px, got {raw['camera_size']}"
+        )
     policies, latencies, modes, suites = _policies(raw), _latencies(raw), _modes(raw), _suites(raw)
+    budgets = _budget_counts(raw)
     configs: dict[str, RunConfig] = {}
-    for (policy, args), proto, latency, (suite, tasks, inits) in itertools.product(policies, modes, latencies, suites):
+    for (policy, args), proto, latency, budget_counts, (suite, tasks, inits) in itertools.product(
+        policies, modes, latencies, budgets, suites
+    ):
         for task, init, seed in itertools.product(tasks, inits, seeds):
             try:
                 cfg = RunConfig(
                     suite=suite, task=task, init=init, seed=seed, policy=policy,
-                    policy_args=dict(args), **latency, **proto, **common,
+                    policy_args=dict(args), budget_counts=budget_counts, **latency, **proto, **common,
                 )  # fmt: skip
             except (TypeError, ValueError) as exc:
                 what = latency.get("latency_dist") or f"{latency['latency_s']} s"
@@ -221,21 +371,44 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             if cfg.key() in configs:
                 raise SpecError(f"the spec lists the same episode twice: {cfg.episode_name()}")
             configs[cfg.key()] = cfg
-    name = raw.get("name", default_name)
-    if not isinstance(name, str) or not name or "/" in name:
-        raise SpecError(f"name: expected a non-empty string without '/', got {name!r}")
     return SweepSpec(name, tuple(configs.values()), transport, timeout_s, raw)
+
+
+def _budget_counts(raw: dict) -> list[str]:
+    """``budget_counts``: one of BUDGET_COUNTS or a list of them (a list runs every cell under each budget)."""
+    value = raw.get("budget_counts", "all")
+    values = value if isinstance(value, list) else [value]
+    if not values or any(v not in BUDGET_COUNTS for v in values) or len(set(values)) != len(values):
+        raise SpecError(f"budget_counts: expected one of {', '.join(BUDGET_COUNTS)} or a list of them, got {value!r}")
+    return values
 
 
 def load_spec(path: Path) -> SweepSpec:
     """Read and expand a sweep spec file; SpecError names the file."""
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO or device is refused, never read
+        try:
+            info = os.fstat(fd)
+            if not stat.S_ISREG(info.st_mode):
+                raise SpecError(f"{path}: not a regular file (a spec is a YAML file)")
+            if info.st_size > MAX_SPEC_BYTES:
+                raise SpecError(f"{path}: {info.st_size} bytes; a spec has at most {MAX_SPEC_BYTES}")
+            data = os.read(fd, MAX_SPEC_BYTES + 1)
+        finally:
+            os.close(fd)
     except OSError as exc:
         raise SpecError(f"{path}: cannot read ({exc.strerror})") from exc
+    if len(data) > MAX_SPEC_BYTES:
+        raise SpecError(f"{path}: more than {MAX_SPEC_BYTES} bytes; a spec has at most {MAX_SPEC_BYTES}")
+    try:
+        raw = yaml.safe_load(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from exc
     except yaml.YAMLError as exc:
         raise SpecError(f"{path}: not valid YAML ({exc})") from exc
+    except RecursionError:
+        raise SpecError(f"{path}: not valid YAML (nested too deeply)") from None
     try:
         return expand_spec(raw, default_name=path.stem)
     except SpecError as exc:
@@ -261,3 +434,5 @@ def check_policies(configs: tuple[RunConfig, ...] | list[RunConfig]) -> None:
             raise SpecError(f"policies: {exc}") from None
         except ValueError as exc:
             raise SpecError(str(exc)) from exc
+        except Exception as exc:  # noqa: BLE001 - whatever a policy's check raises is a refusal, in one line
+            raise SpecError(f"policies: policy {cfg.policy!r}: {type(exc).__name__}: {exc}") from None

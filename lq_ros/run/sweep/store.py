@@ -7,6 +7,7 @@ exists; anything else (a half-written file, a bag without a record) is run again
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import shutil
@@ -14,9 +15,20 @@ import tempfile
 from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.recording.episode_folder import episode_folders
 
 FINAL_STATUSES = ("success", "failure", "error")
 RECORD_FORMAT = 1
+#: The lock file in a sweep folder: a running sweep holds an exclusive flock on it (its pid inside).
+LOCK_FILE = ".lock"
+
+
+class StoreError(RuntimeError):
+    """A sweep folder that cannot be used; the message (one line) names the folder."""
+
+
+class StoreLocked(StoreError):
+    """Another sweep is running on the folder."""
 
 
 def _fsync_dir(path: Path) -> None:
@@ -65,6 +77,32 @@ class ResultStore:
         self.attempts = self.root / "attempts"
         self.logs = self.root / "logs"
 
+    @contextlib.contextmanager
+    def lock(self):
+        """Hold the folder for one sweep: an exclusive, non-blocking flock on ``LOCK_FILE``, released when the
+        block ends or the process dies (the kernel drops it; no stale lock after a kill -9). StoreLocked while
+        another sweep holds it."""
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StoreError(f"{self.root}: cannot use this sweep folder ({exc.strerror})") from None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+                by = f" (pid {holder})" if holder.isdigit() else ""
+                raise StoreLocked(
+                    f"{self.root}: another lq sweep is running on this folder{by}; wait for it to finish or give "
+                    "another --out"
+                ) from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            yield self
+        finally:
+            os.close(fd)
+
     def create(self) -> None:
         for d in (self.results, self.bags, self.attempts, self.logs):
             d.mkdir(parents=True, exist_ok=True)
@@ -109,7 +147,7 @@ class ResultStore:
         """Move a crashed attempt's bag aside (its retry writes a fresh one) and persist its record."""
         n = attempt["attempt"]
         if bag is not None:
-            for src in (bag, bag.with_name(bag.name + ".logs")):
+            for src in episode_folders(bag):
                 if src.exists():
                     dest = self.attempts / f"{src.name}.a{n}"
                     shutil.rmtree(dest, ignore_errors=True)
@@ -122,7 +160,7 @@ class ResultStore:
     def clear_leftovers(self, cfg: RunConfig) -> None:
         """Remove what an interrupted, unrecorded run of ``cfg`` left (the bag writer needs a new folder)."""
         bag = self.bags / cfg.episode_name()
-        for path in (bag, bag.with_name(bag.name + ".logs")):
+        for path in episode_folders(bag):
             shutil.rmtree(path, ignore_errors=True)
 
     def forget(self, key: str) -> None:

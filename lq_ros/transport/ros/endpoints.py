@@ -54,7 +54,7 @@ class ChunkServer:
         self.policy, self.publish, self.logger, self.now_ns = policy, publish, logger, now_ns
         self.hold_from_observation = hold_from == "observation"
         self.latency = cfg.latency_model()
-        self.seed = cfg.seed
+        self.latency_stream = cfg.latency_stream()
         self.wants_prefix = Merge(cfg.merge) in PREFIX_STRATEGIES
         self.ready = False  # policy reset for the episode (on STARTED)
         self.reset_error = ""  # why reset failed: every request is then answered with this error
@@ -112,7 +112,7 @@ class ChunkServer:
 
     def infer(self, msg, images: dict[str, np.ndarray], prefix=None) -> None:
         obs = m.observation_from_msg(msg, images)
-        n_ticks, latency_s = request_latency(self.latency, self.seed, msg.request_id)
+        n_ticks, latency_s = request_latency(self.latency, self.latency_stream, msg.request_id)
         started = time.perf_counter()
         actions, error = None, self.reset_error
         try:

@@ -16,6 +16,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
 
 #: Every LIBERO-LQ topic: nothing may be lost (reliable, deep history) and a subscriber that
@@ -147,21 +148,62 @@ class EpisodeNode(LifecycleNode):
         return pub
 
     def episode_subscription(self, topic: m.Topic, callback: Callable[[object], None]):
-        def only_while_active(msg) -> None:
-            if self.active:
-                callback(msg)
+        """The decoded messages of ``topic`` while active. On a topic only certain stack nodes publish
+        (lq_ros.transport.ros.senders.EXPECTED_SENDERS), a message from any other participant goes to
+        :meth:`on_rogue_message` instead. A message that cannot be decoded, or whose callback raises, goes to
+        :meth:`on_callback_error`: never out of the spin loop, which would end the node."""
 
-        sub = raw_subscription(self, topic, only_while_active)
+        def on_raw(data: bytes, sender: str | None = None, check: bool = False) -> None:
+            if not self.active:
+                return
+            if check and not expected_sender(self, topic.name, sender):
+                self.guarded(f"a rogue message on {topic.name}", self.on_rogue_message, topic, sender, data)
+                return
+            try:
+                msg = m.deserialize(data, topic.msgtype)
+            except Exception as exc:  # noqa: BLE001 - whoever sent it, it is not this node's death
+                self.guarded("", self.on_callback_error, f"undecodable message on {topic.name}: {exc}")
+                return
+            self.guarded(f"a message on {topic.name}", callback, msg)
+
+        if topic.name in EXPECTED_SENDERS:
+            sub = SenderSubscription(
+                self, msg_class(topic.msgtype), topic.name, LOSSLESS_QOS, lambda d, s: on_raw(d, s, check=True)
+            )
+        else:
+            sub = self.create_subscription(msg_class(topic.msgtype), topic.name, on_raw, LOSSLESS_QOS, raw=True)
         self._episode_entities.append(sub)
         return sub
 
     def episode_timer(self, period_s: float, callback: Callable[[], None]):
-        timer = self.create_timer(period_s, callback)
+        timer = self.create_timer(period_s, lambda: self.guarded("a timer", callback))
         self._episode_entities.append(timer)
         return timer
 
+    def guarded(self, what: str, callback: Callable, *args) -> None:
+        """Run a callback; an exception goes to :meth:`on_callback_error` (``what`` names the callback)."""
+        try:
+            callback(*args)
+        except Exception as exc:  # noqa: BLE001 - a callback's exception must not end the node
+            if not what:
+                self.get_logger().error(f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+                return
+            message = f"{what} raised {type(exc).__name__}: {exc}"
+            self.get_logger().error(f"{message}\n{traceback.format_exc()}")
+            self.guarded("", self.on_callback_error, message)
+
+    def on_rogue_message(self, topic: m.Topic, sender: str | None, data: bytes) -> None:
+        """A message on ``topic`` from a participant that does not publish it: ignored (nodes may record it)."""
+        self.get_logger().warning(f"ignored a message on {topic.name} from {sender_text(sender)}")
+
+    def on_callback_error(self, reason: str) -> None:
+        """A message or timer callback failed (``reason``; already logged): nodes may record it."""
+
     def _destroy_episode_entities(self) -> None:
         for entity in self._episode_entities:
+            if isinstance(entity, SenderSubscription):
+                entity.destroy()
+                continue
             kind = type(entity).__name__.lower()
             destroy = {"publisher": self.destroy_publisher, "subscription": self.destroy_subscription}.get(
                 kind, self.destroy_timer

@@ -24,10 +24,12 @@ import time
 from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.recording.episode_folder import logs_dir
 from lq_ros.robot.observation_builder import Requirements, check_requirements
 from lq_ros.robot.robot_config import RobotConfig, load_robot_config
-from lq_ros.transport.processes import ShmTracker, die_with_parent
-from lq_ros.transport.ros.stack import _stop, child_environment, params_yaml, reserved_domain
+from lq_ros.transport.processes import ShmTracker, die_with_parent, stop_processes
+from lq_ros.transport.ros.stack import child_environment, params_yaml, reserved_domain
+from lq_ros.wire.node_names import NODE_NAMES
 
 #: Node programs of a real-time run (module under lq_ros_nodes), by role.
 SIM_PROGRAMS = {"sim": "realtime_sim_node", "policy": "realtime_policy_node", "executor": "realtime_executor_node",
@@ -65,18 +67,18 @@ def realtime_parameters(cfg: RunConfig, bag_path: Path, policy, camera_size_px: 
         "bag_path": str(bag_path), "cameras": list(cams), "camera_size_px": camera_size_px,
         "policy_params_json": json.dumps(policy.params()),
     }  # fmt: skip
-    params = {"/**": cfg.ros_parameters(), "lq_sim": {"cameras": list(cams), "camera_size_px": camera_size_px}}
+    params = {"/**": cfg.ros_parameters(), NODE_NAMES["sim"]: {"cameras": list(cams), "camera_size_px": camera_size_px}}
     if robot is not None:
         req = Requirements.of(policy)
-        params["lq_bridge"] = {"cameras": list(cams), "needs_object_poses": req.objects}
+        params[NODE_NAMES["bridge"]] = {"cameras": list(cams), "needs_object_poses": req.objects}
         recorder.update(
             robot_topics_json=json.dumps(robot_recorded_topics(robot)), robot_json=json.dumps(robot.to_dict()),
             ee_topic=robot.ee_pose.topic, joint_topic=robot.joint_states.topic,
             # A robot's topics come at its own rates: score them at those (rows name the rates).
             trajectory_rate="native", energy_rate="native",
         )  # fmt: skip
-        params["robot_standin"] = {"robot_config": str(robot.source), "camera_size_px": camera_size_px}
-    params["lq_metrics"] = recorder
+        params[NODE_NAMES["robot"]] = {"robot_config": str(robot.source), "camera_size_px": camera_size_px}
+    params[NODE_NAMES["metrics"]] = recorder
     return params
 
 
@@ -147,11 +149,11 @@ def launch_realtime(
                 time.sleep(0.25)
         finally:
             shm.sample(p.pid for p in procs.values() if p.returncode is None)
-            _stop(procs)
+            stop_processes(procs)
             removed = shm.cleanup()
             if removed:
                 (work / "launcher.log").write_text(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
-            dest = bag_path / "logs" if bag_path.exists() else bag_path.with_name(bag_path.name + ".logs")
+            dest = logs_dir(bag_path)
             dest.mkdir(parents=True, exist_ok=True)
             for log in work.glob("*.log"):
                 shutil.copy(log, dest / log.name)

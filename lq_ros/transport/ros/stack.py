@@ -25,7 +25,6 @@ import json
 import os
 import select
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -38,9 +37,11 @@ from pathlib import Path
 import yaml
 
 from lq_ros.core.run_config import RunConfig
-from lq_ros.transport.processes import ShmTracker, die_with_parent
+from lq_ros.recording.episode_folder import logs_dir
+from lq_ros.transport.processes import ShmTracker, die_with_parent, stop_processes
+from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES
 
-NODES = ("sim", "policy", "executor", "metrics")
+NODES = tuple(MANAGED_NODE_NAMES)
 #: The lifecycle manager's program (nodes/manager_node.py), started with the nodes.
 MANAGER = "manager"
 #: Module of each node program: nodes/<name>_node.py, installed as the package lq_ros_nodes (setup.py).
@@ -68,8 +69,13 @@ def reserved_domain(domain_id: int | None = None):
     """
     DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
     candidates = [domain_id] if domain_id is not None else list(DOMAIN_IDS)
+    unusable: list[str] = []  # lock files this user cannot open (another user's, a directory): those ids are skipped
     for did in candidates:
-        handle = open(DOMAIN_LOCK_DIR / f"{did}.lock", "w")  # noqa: SIM115 - held while the run lasts
+        try:
+            handle = open(DOMAIN_LOCK_DIR / f"{did}.lock", "w")  # noqa: SIM115 - held while the run lasts
+        except OSError as exc:
+            unusable.append(f"{did} ({exc.strerror or exc})")
+            continue
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -80,7 +86,8 @@ def reserved_domain(domain_id: int | None = None):
         finally:
             handle.close()  # no LOCK_UN: that would release the lock for the nodes that still hold it too
         return
-    raise RuntimeError(f"no free ROS domain id among {candidates} (another run holds each)")
+    skipped = f"; lock files not usable by this user: {', '.join(unusable)} in {DOMAIN_LOCK_DIR}" if unusable else ""
+    raise RuntimeError(f"no free ROS domain id among {candidates} (another run holds each){skipped}")
 
 
 def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
@@ -100,8 +107,8 @@ def node_parameters(
     cams = list(cameras) or [""]  # ROS string arrays cannot be empty in YAML
     return {
         "/**": cfg.ros_parameters(),
-        "lq_sim": {"cameras": list(cams), "camera_size_px": camera_size_px},
-        "lq_metrics": {
+        NODE_NAMES["sim"]: {"cameras": list(cams), "camera_size_px": camera_size_px},
+        NODE_NAMES["metrics"]: {
             "bag_path": str(bag_path),
             "cameras": list(cams),
             "camera_size_px": camera_size_px,
@@ -113,22 +120,6 @@ def node_parameters(
 def params_yaml(params: dict) -> str:
     """A ROS 2 params file: ``{node or /**: {ros__parameters: {...}}}``."""
     return yaml.safe_dump({n: {"ros__parameters": p} for n, p in params.items()}, sort_keys=False)
-
-
-def _stop(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
-    """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL whatever is left."""
-    for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):
-        alive = [p for p in procs.values() if p.poll() is None]
-        if not alive:
-            return
-        for p in alive:
-            p.send_signal(sig)
-        deadline = time.monotonic() + wait_s
-        for p in alive:
-            with suppress(subprocess.TimeoutExpired):
-                p.wait(timeout=max(0.0, deadline - time.monotonic()))
-    if any(p.poll() is None for p in procs.values()):
-        raise RuntimeError("child processes survived SIGKILL")
 
 
 class StackDead(RuntimeError):
@@ -302,7 +293,7 @@ class RosStack:
         try:
             self.start()
             keys = configure_keys(cfg, cameras, camera_size_px)
-            per_node = {n: {**params["/**"], **params.get(f"lq_{n}", {})} for n in NODES}
+            per_node = {n: {**params["/**"], **params.get(NODE_NAMES[n], {})} for n in NODES}
             # All after a refused transition or a restarted node (None): configure everything again (cleanup of
             # an unconfigured node is skipped, so a fresh stack just configures).
             reconfigure = [n for n in NODES if self._keys is None or keys[n] != self._keys[n]]
@@ -364,7 +355,7 @@ class RosStack:
 
     def _collect_logs(self, bag_path: Path, marks: dict[str, int]) -> None:
         """Keep this episode's part of every node log inside the bag folder (or beside it when no bag was written)."""
-        dest = bag_path / "logs" if bag_path.exists() else bag_path.with_name(bag_path.name + ".logs")
+        dest = logs_dir(bag_path)
         dest.mkdir(parents=True, exist_ok=True)
         for name, offset in marks.items():
             src = self.work / f"{name}.log"
@@ -396,7 +387,7 @@ class RosStack:
                         p.wait(timeout=10.0)
         finally:
             self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
-            _stop(self.procs)
+            stop_processes(self.procs)
             removed = self.shm.cleanup()
             if removed:
                 with open(self.work / "launcher.log", "a") as f:

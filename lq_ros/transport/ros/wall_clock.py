@@ -31,7 +31,6 @@ START_DELAY_S = 1.0
 COMMAND_DEADLINE_S = 0.025
 #: The real-time sim steps tick m this long after tick m started (the executor's command is due by then).
 SIM_STEP_OFFSET_S = 0.04
-CLOCKS = ("lockstep", "realtime")
 
 
 def now_ns() -> int:

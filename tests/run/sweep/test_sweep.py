@@ -50,6 +50,7 @@ def _rows(store: sw.ResultStore) -> dict[str, dict]:
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_two_local_workers_then_resume_reruns_only_unfinished(tmp_path):
     spec = sw.expand_spec(small_spec())
     summary = sw.run_sweep(spec, tmp_path, workers=2)
@@ -75,6 +76,7 @@ def test_two_local_workers_then_resume_reruns_only_unfinished(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_reused_env_gives_the_same_episode_as_a_fresh_one(tmp_path):
     target = RunConfig(policy="scripted", mode="async", latency_s=0.2, init=1, max_steps=25)
     other = RunConfig(policy="scripted", mode="sync", latency_s=0.1, init=0, max_steps=30)
@@ -111,6 +113,7 @@ class ExitOncePolicy(Policy):
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_crashed_episodes_are_retried_once_and_kept_with_their_logs(tmp_path):
     marker = tmp_path / "marker"
     raw = small_spec(
@@ -152,6 +155,7 @@ def _descendants(pid: int) -> set[int]:
 
 
 @pytest.mark.slow
+@pytest.mark.sim
 def test_kill_9_mid_sweep_then_restart_skips_finished(tmp_path):
     spec_file = tmp_path / "spec.yaml"
     spec_file.write_text(yaml.safe_dump(small_spec(max_steps=6)))
@@ -197,6 +201,8 @@ def _state(pid: int) -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.sim
+@pytest.mark.ros
 def test_ros_transport_sweep_runs_the_four_node_stack(tmp_path):
     """One worker, four episodes (sync and async): one long-lived stack runs them all, nothing is left after."""
     from lq_ros.transport.inprocess import run_inprocess

@@ -12,7 +12,7 @@ from lq_ros.core.run_config import openblas_core
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.run import sweep as sw
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 LOOPBACK = {"127.0.0.1", "::1", "::ffff:127.0.0.1"}
 
@@ -155,6 +155,7 @@ def two_node_cluster(tmp_path, monkeypatch):
         cluster.shutdown()
 
 
+@pytest.mark.ros
 def test_ray_backend_on_a_two_node_cluster_spreads_episodes_and_gathers_bags(tmp_path, two_node_cluster):
     cluster, node_ids, _ = two_node_cluster
     spec = sw.expand_spec({"transport": "ros", "tasks": [0], "inits": [0], "policies": ["sine"], "modes": ["async"],

@@ -14,7 +14,7 @@ from lq_ros.scoring.bag_scorer import score_bag
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.wire import messages as m
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 UNIFORM = "uniform:0.025:0.325"  # N in 1..7 ticks (mean applied 0.2 s)
 
 
@@ -28,7 +28,7 @@ def test_distribution_draws_are_recorded_per_chunk_and_reproducible(tmp_path):
     second = run_inprocess(cfg, tmp_path / "b")
     assert comparable(first.bag_path) == comparable(second.bag_path)  # bit-identical, same seed
     chunks = _chunks(first.bag_path)
-    drawn = [request_latency(cfg.latency_dist, cfg.seed, c.request_id) for c in chunks]
+    drawn = [request_latency(cfg.latency_dist, cfg.latency_stream(), c.request_id) for c in chunks]
     assert [c.injected_latency_s for c in chunks] == [s for _, s in drawn]  # every inference's own Δt_sim
     assert len({n for n, _ in drawn}) > 1
     # Each chunk is logged at the tick it took effect: observation tick + its own N.
@@ -40,6 +40,11 @@ def test_distribution_draws_are_recorded_per_chunk_and_reproducible(tmp_path):
     row = score_bag(first.bag_path)
     assert row["latency_dist"] == UNIFORM and row["latency_s"] == 0.2 and row["latency_ticks"] is None
     assert row["latency_ticks_min"] >= 1 and row["latency_ticks_max"] <= 7
+    # The episode's realised draws, as applied (N dt_c per chunk).
+    applied = np.array([s for _, s in drawn])
+    assert row["latency_sim_mean_s"] == pytest.approx(applied.mean()) and row["latency_sim_max_s"] == applied.max()
+    assert row["latency_sim_p50_s"] == pytest.approx(np.percentile(applied, 50))
+    assert row["latency_sim_p90_s"] == pytest.approx(np.percentile(applied, 90))
     assert row["chunk_switches"] > 0 and row["chunk_switch_jump_mean"] is not None
 
 
@@ -75,5 +80,6 @@ def test_trace_latency_replays_the_file_in_order(tmp_path):
     assert cfg.latency_dist.endswith("@sha256:" + cfg.latency_model().trace_sha)
     outcome = run_inprocess(cfg, tmp_path / "bags")
     ticks = [round(c.injected_latency_s / CONTROL_DT_S) for c in _chunks(outcome.bag_path)]
-    assert ticks == [[2, 3, 7][(c.request_id - 1) % 3] for c in _chunks(outcome.bag_path)]
+    offset = cfg.latency_model().trace_offset(cfg.latency_stream())  # the episode's seeded start line
+    assert ticks == [[2, 3, 7][(offset + c.request_id - 1) % 3] for c in _chunks(outcome.bag_path)]
     assert score_bag(outcome.bag_path)["latency_dist"] == "trace:server_dt.txt"

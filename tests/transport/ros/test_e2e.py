@@ -20,7 +20,7 @@ from lq_ros.transport.processes import fastdds_shm_owned
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_lifecycle import wait_until_recording
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 REPO = Path(__file__).resolve().parents[3]
 SCORE_KEYS = {"success", "completion_time_s", "jerk_mean", "ee_osc", "traj_length", "energy_total_j"}
 

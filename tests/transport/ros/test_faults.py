@@ -27,7 +27,7 @@ from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.transport.processes import ShmTracker
 from lq_ros.wire import messages as m
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 REPO = Path(__file__).resolve().parents[3]
 SHM = Path("/dev/shm")
 #: A real episode long enough to kill at several moments: 220 ticks (11 s of sim time).

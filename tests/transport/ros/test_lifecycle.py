@@ -25,7 +25,7 @@ from lq_ros.transport.processes import die_with_parent, fastdds_shm_owned
 from lq_ros.transport.ros.stack import NODE_MODULE, RosStack, child_environment, launch_nodes, reserved_domain
 from tests.transport.ros.test_faults import SHM, ClockProbe, alive, cmdline, orphaned_shm, wait_for
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
 class LifecycleClient:

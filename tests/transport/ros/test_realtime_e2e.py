@@ -25,7 +25,7 @@ from lq_ros.wire import messages as m
 from tests.transport.ros.test_e2e import _alive, node_descendants
 from tests.transport.ros.test_faults import orphaned_shm
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 SHM = Path("/dev/shm")
 ROBOTS = Path(__file__).resolve().parents[3] / "config/robots"
 

@@ -29,6 +29,7 @@ def test_the_robots_clock_is_recorded_only_when_it_runs_on_sim_time() -> None:
 
 
 @pytest.mark.slow  # one LIBERO scene (~3 s)
+@pytest.mark.sim
 def test_standin_sim_time_is_mujocos_time_in_whole_substeps() -> None:
     from lq_ros.core.suite_constants import SUBSTEPS_PER_TICK
     from lq_ros.sim.standin_robot import StandinRobot

@@ -22,7 +22,8 @@ OTHER = {
     "suite": "libero_object", "task": 1, "init": 1, "seed": 8, "mode": "sync", "latency_s": 0.1, "replan_steps": 3,
     "hold": "repeat", "request_threshold": 2, "merge": "weighted_average", "policy": "scripted",
     "policy_args": {"amplitude": 0.5}, "camera_size": 128, "physics_rate": True, "max_steps": 10,
-    "latency_dist": "uniform:0.1:0.3", "clock": "realtime", "robot": "standin",
+    "latency_dist": "uniform:0.1:0.3", "clock": "realtime", "robot": "standin", "budget_counts": "action",
+    "request_slack": 1,
 }  # fmt: skip
 #: Fields valid only with another one changed too.
 ALSO = {"robot": {"clock": "realtime"}}

@@ -1,0 +1,76 @@
+"""Where a user's first `lq run` spends its seconds: one episode from a cold process, in process and through ROS.
+
+Each phase is measured as a fresh process that stops after it, so the differences are what each phase adds
+(median of ``--repeats`` runs, alternated so a change of load hits all alike):
+
+    interpreter   python -c pass (with the ROS wheels' bootstrap, which re-executes Python once)
+    imports       + import lq_ros.cli
+    env           + LIBERO's imports and the task env (MuJoCo model compiled, MjSim built)
+    first reset   + the episode's reset to its init state and LIBERO's 10 wait steps
+    episode       `lq run --transport inprocess`: + the ticks, the bag and its scoring (the whole command)
+    ROS           `lq run --transport ros`: the same episode through the four node processes (the whole command)
+
+Default episode: the scripted expert, async, Δt_sim 0.2 s, LIBERO-Spatial task 0, init state 0 (164 ticks).
+Targets: in process <= 4 s; through ROS <= in process + 1.5 s (2 idle cores).
+
+    .venv/bin/python benchmarks/bench_first_episode.py [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RUN_ARGS = ["--suite", "libero_spatial", "--task", "0", "--init", "0", "--mode", "async", "--latency", "0.2",
+            "--policy", "scripted"]  # fmt: skip
+ENV = "from lq_ros.sim.libero_env import LiberoEnv; env = LiberoEnv('libero_spatial', 0)"
+PHASES = {
+    "interpreter": [sys.executable, "-c", "pass"],
+    "imports": [sys.executable, "-c", "import lq_ros.cli"],
+    "env": [sys.executable, "-c", ENV],
+    "first reset": [sys.executable, "-c", f"{ENV}; env.reset(0, 7)"],
+    "episode": [sys.executable, "-m", "lq_ros.cli", "run", *RUN_ARGS, "--transport", "inprocess"],
+    "ROS": [sys.executable, "-m", "lq_ros.cli", "run", *RUN_ARGS, "--transport", "ros"],
+}
+
+
+def wall_s(argv: list[str], out: Path) -> float:
+    start = time.perf_counter()
+    argv = [*argv, "--out", str(out), "--overwrite"] if "run" in argv else argv
+    proc = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE":
+                          os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")})  # fmt: skip
+    elapsed = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
+    return elapsed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    out = Path(tempfile.mkdtemp(prefix="lq_bench_first_"))
+    times: dict[str, list[float]] = {name: [] for name in PHASES}
+    for _ in range(args.repeats):
+        for name, argv in PHASES.items():
+            times[name].append(wall_s(argv, out / name.replace(" ", "_")))
+    median = {name: statistics.median(t) for name, t in times.items()}
+    previous = 0.0
+    for name in ("interpreter", "imports", "env", "first reset", "episode"):
+        print(f"{name:12s} {median[name]:6.2f} s cumulative  (+{median[name] - previous:5.2f} s)")
+        previous = median[name]
+    print(f"{'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
+    print(f"targets: in process {median['episode']:.2f} s <= 4 s; ROS {median['ROS']:.2f} s <= in process + 1.5 s = "
+          f"{median['episode'] + 1.5:.2f} s  (medians of {args.repeats})")  # fmt: skip
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,71 @@
+"""The drop decomposition (lq_ros/scoring/attribution.py) on rows with known outcomes."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from lq_ros.scoring.attribution import decompose
+
+
+def rows(policy: str, mode: str, latency: float, budget_counts: str, hold: str, successes: list[bool]) -> list[dict]:
+    return [
+        dict(policy=policy, policy_args={}, mode=mode, replan_steps=5, merge="replace", request_threshold=-1,
+             request_slack=0, max_steps=0, suite="libero_spatial", task=t, init=0, seed=7, latency_s=latency,
+             budget_counts=budget_counts, hold=hold, status="success" if ok else "failure", success=ok)
+        for t, ok in enumerate(successes)
+    ]  # fmt: skip
+
+
+def test_shares_add_up_to_the_drop_over_common_pairs():
+    # 10 pairs: 9 succeed at 0 s; at 0.2 s the paper's budget keeps 2, the action budget 6, hold repeat 7.
+    data = (
+        rows("oft", "sync", 0.0, "all", "stop", [True] * 9 + [False])
+        + rows("oft", "sync", 0.2, "all", "stop", [True] * 2 + [False] * 8)
+        + rows("oft", "sync", 0.2, "action", "stop", [True] * 6 + [False] * 4)
+        + rows("oft", "sync", 0.2, "action", "repeat", [True] * 7 + [False] * 3)
+    )
+    out = decompose(pd.DataFrame(data))
+    assert len(out) == 1
+    row = out.iloc[0]
+    assert row["n_pairs"] == 10 and row["latency_s"] == 0.2
+    assert (row["success_zero"], row["success_paper"], row["success_action"], row["success_action_repeat"]) == (
+        0.9,
+        0.2,
+        0.6,
+        0.7,
+    )
+    assert row["drop_total"] == pytest.approx(0.7)
+    assert (row["drop_budget"], row["drop_hold"], row["drop_rest"]) == pytest.approx((0.4, 0.1, 0.2))
+    assert row["drop_budget"] + row["drop_hold"] + row["drop_rest"] == pytest.approx(row["drop_total"])
+    lo, hi = row["success_paper_ci"]
+    assert 0 < lo < 0.2 < hi < 0.6  # Wilson 95% for 2/10: [0.057, 0.510]
+
+
+def test_pairs_missing_from_a_cell_and_errors_are_left_out():
+    data = (
+        rows("flow", "async", 0.0, "all", "stop", [True, True, True, False])
+        + rows("flow", "async", 0.1, "all", "stop", [True, False, False])  # task 3 did not run
+        + rows("flow", "async", 0.1, "action", "stop", [True, True, False, True])
+    )
+    data[5]["status"], data[5]["success"] = "error", None  # task 1 at 0.1 s paper: a broken run, not a failure
+    out = decompose(pd.DataFrame(data)).iloc[0]
+    assert out["n_pairs"] == 2  # tasks 0 and 2
+    assert (out["success_zero"], out["success_paper"], out["success_action"]) == (1.0, 0.5, 0.5)
+    assert out["drop_budget"] == 0 and out["drop_rest"] == 0.5 and "success_action_repeat" not in out
+
+
+def test_no_zero_latency_cell_no_row():
+    assert decompose(pd.DataFrame(rows("oft", "sync", 0.2, "all", "stop", [True]))).empty
+
+
+def test_rows_labelled_by_variant_are_decomposed_by_their_bare_policy():
+    from lq_ros.scoring.aggregate import label_variants
+
+    data = (
+        rows("oft", "sync", 0.0, "all", "stop", [True, True])
+        + rows("oft", "sync", 0.1, "all", "stop", [False, False])
+        + rows("oft", "sync", 0.1, "action", "stop", [True, False])
+    )
+    out = decompose(label_variants(pd.DataFrame(data))).iloc[0]
+    assert out["policy"] == "oft" and (out["success_paper"], out["success_action"]) == (0.0, 0.5)
