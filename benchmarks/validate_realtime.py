@@ -38,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pandas as pd  # noqa: E402
 
+from lq_ros.core.latency import LatencyDist  # noqa: E402
 from lq_ros.core.run_config import RunConfig  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.recording.episode_bag import read_run_metadata, scan_mcap  # noqa: E402
@@ -64,7 +65,7 @@ def configs(latencies: list[float], modes: list[str], inits: int, task: int, out
                 realtime = realtime_config(lat, mode, init, task)
                 yield lat, "realtime", realtime
                 yield lat, "lockstep", RunConfig(**common, latency_s=lat)
-                trace = replay_trace(out / realtime.episode_name(), out / "traces", lat)
+                trace = replay_trace(out / realtime.episode_name(), out / "traces", lat, RunConfig(**common))
                 fitted = fitted_delays(out, lat, mode, inits, task) if init >= inits // 2 else None
                 if fitted is not None:
                     yield (
@@ -117,17 +118,24 @@ def applied_delays_ticks(bag: Path) -> dict[int, int]:
     return {rid: applied[rid] - tick for rid, tick in requested.items() if rid in applied}
 
 
-def replay_trace(bag: Path, folder: Path, lat: float) -> Path | None:
-    """The real-time episode's applied delays as a latency trace (line k: request k + 1; L where unknown)."""
+def replay_trace(bag: Path, folder: Path, lat: float, cfg: RunConfig) -> Path | None:
+    """The real-time episode's applied delays as a latency trace for the episode of ``cfg``: request k replays
+    the delay of the real-time request k (L where unknown). A trace starts at a line drawn from the episode's
+    latency stream (lq_ros.core.latency), which depends only on the stream and the number of lines, so the
+    lines are written rotated by that offset."""
     if not (bag / "metadata.yaml").exists():
         return None
     path = folder / f"{bag.name}.txt"
     if not path.exists():
         delays = applied_delays_ticks(bag)
         nominal = round(lat / CONTROL_DT_S)
-        lines = [f"{delays.get(rid, nominal) * CONTROL_DT_S:.3f}" for rid in range(1, max(delays, default=0) + 1)]
+        values = [delays.get(rid, nominal) * CONTROL_DT_S for rid in range(1, max(delays, default=0) + 1)] or [lat]
+        offset = LatencyDist("trace", (), tuple(values)).trace_offset(cfg.latency_stream())
+        lines = [""] * len(values)
+        for k, value in enumerate(values):
+            lines[(offset + k) % len(values)] = f"{value:.3f}"
         folder.mkdir(parents=True, exist_ok=True)
-        path.write_text(f"# request-to-chunk delays (s) of {bag.name}\n" + "\n".join(lines or [f"{lat:.3f}"]) + "\n")
+        path.write_text(f"# request-to-chunk delays (s) of {bag.name}\n" + "\n".join(lines) + "\n")
     return path
 
 
