@@ -353,7 +353,7 @@ def standin_observation(size: int = 224, tick: int = 0) -> Observation:
     quat = np.array([0.99, 0.05, 0.1, 0.02])
     return Observation(
         tick=tick,
-        sim_time_s=0.5,
+        sim_time_s=(10 + tick) * 0.05,  # after LIBERO's 10 wait steps
         eef_pos=np.array([-0.2, 0.01, 1.17]),
         eef_quat_xyzw=quat / np.linalg.norm(quat),
         gripper_qpos=np.array([0.039, -0.039]),

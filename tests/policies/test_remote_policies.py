@@ -36,7 +36,7 @@ from lq_ros.scoring.bag_scorer import score_bag
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.wire import messages as m
-from tests.standin_servers import OpenPIStandin, OpenVLAStandin, free_port, standin_action
+from tests.standin_servers import OpenPIStandin, OpenVLAStandin, free_port, standin_action, standin_observation
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 TASK = TaskInfo("libero_spatial", 0, "t0", "pick up the black bowl", [], 220, 50)
@@ -46,18 +46,7 @@ VLA_REFERENCE = Path(__file__).parents[1] / "data" / "vla_reference" / "libero_f
 
 
 def synthetic_obs(size: int = 224, tick: int = 3) -> Observation:
-    rng = np.random.default_rng(tick)
-    quat = np.array([0.99, 0.05, 0.1, 0.02])
-    return Observation(
-        tick=tick,
-        sim_time_s=(10 + tick) * 0.05,
-        eef_pos=np.array([-0.2, 0.01, 1.17]),
-        eef_quat_xyzw=quat / np.linalg.norm(quat),
-        gripper_qpos=np.array([0.039, -0.039]),
-        joint_pos=np.zeros(7),
-        joint_vel=np.zeros(7),
-        images={cam: rng.integers(0, 256, (size, size, 3), dtype=np.uint8) for cam in CAMERAS},
-    )
+    return standin_observation(size, tick)
 
 
 def libero_example_image(upright: np.ndarray) -> np.ndarray:
