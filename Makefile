@@ -9,9 +9,19 @@ MSG_PKG := msg_schemas/lq_msgs
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export MUJOCO_GL ?= egl
 
-.PHONY: setup test test-fast demo lint clean
+LEROBOT_VENV := .venv-lerobot
+
+.PHONY: setup setup-lerobot test test-fast demo lint clean
 
 setup: $(STAMP)/package
+
+# LeRobot's own venv: LeRobot checkpoints are served from it (--policy lerobot; docs/lerobot.md).
+setup-lerobot: $(LEROBOT_VENV)/.stamps/wheels
+
+$(LEROBOT_VENV)/.stamps/wheels: requirements-lerobot.lock
+	@test -x $(LEROBOT_VENV)/bin/python || $(PYTHON) -m venv $(LEROBOT_VENV)
+	$(LEROBOT_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-lerobot.lock
+	@mkdir -p $(LEROBOT_VENV)/.stamps && touch $@
 
 $(STAMP)/wheels: requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,10 +43,10 @@ $(STAMP)/package: $(STAMP)/msgs setup.py package.xml
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	@touch $@
 
-test: setup
+test: setup setup-lerobot
 	$(PY) -m pytest -q
 
-test-fast: setup
+test-fast: setup setup-lerobot
 	$(PY) -m pytest -q -m "not slow"
 
 demo: setup
@@ -47,4 +57,4 @@ lint: setup
 	$(VENV)/bin/ruff format --check .
 
 clean:
-	rm -rf build $(VENV) bags/demo
+	rm -rf build $(VENV) $(LEROBOT_VENV) bags/demo

@@ -14,6 +14,7 @@ REGISTRY: dict[str, str] = {
     "faulty": "lq_ros.policies.faulty:FaultyPolicy",
     "openpi": "lq_ros.policies.openpi_remote:OpenPIPolicy",
     "openvla": "lq_ros.policies.openvla_rest:OpenVLARestPolicy",
+    "lerobot": "lq_ros.policies.lerobot_client:LeRobotPolicy",
     "oft": "lq_ros.policies.oft:OFTPolicy",
     "flow": "lq_ros.policies.flow:FlowPolicy",
 }

@@ -1,0 +1,263 @@
+"""A LeRobot checkpoint as a policy of the stack: ``--policy lerobot --policy-arg path=DIR``.
+
+LeRobot 0.4.4 cannot share this environment (it pins torch < 2.11; we pin 2.13), so the checkpoint is
+served from LeRobot's own venv (``make setup-lerobot`` makes ``.venv-lerobot``) by
+``lq_ros/policies/lerobot_server.py``, which this class starts on 127.0.0.1 at the first inference, talks
+to over the openpi websocket protocol (:class:`OpenPIPolicy`'s client: deadlines, byte cap, safe
+decoding) and stops on ``close`` (or when this process dies: the server watches its parent).
+
+The checkpoint directory is checked here, before anything starts, from its ``config.json`` alone (one-line
+refusals): it must be a LeRobot ``save_pretrained`` folder with its saved processor pipelines, take
+LIBERO's cameras under LeRobot's names (``observation.images.image`` = agentview,
+``observation.images.image2`` = wrist) and the 8-D state, act in 7-D, and use one observation per
+inference. The server builds the policy's input with LeRobot's own functions, as ``lerobot-eval`` does; the
+images are sent as robosuite renders them (bottom row first) at LeRobot's LIBERO render size.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lq_ros.core.suite_constants import ACTION_DIM
+from lq_ros.core.types import Observation, TaskInfo
+from lq_ros.policies.base import PolicyError
+from lq_ros.policies.openpi_remote import AGENTVIEW, WRIST, OpenPIPolicy, camera_image, positive_number
+
+#: LeRobot's image keys (``lerobot.envs.libero.LiberoEnv.camera_name_mapping``) -> our camera names.
+LEROBOT_CAMERAS = {"observation.images.image": AGENTVIEW, "observation.images.image2": WRIST}
+#: ``lerobot-eval --env.type=libero`` renders 256 x 256: ``lerobot.envs.libero.LiberoEnv``'s default in LeRobot
+#: 0.4.4 (its env config declares 360, but does not pass the size to the env; a test checks both against LeRobot's
+#: code). ``--camera-size`` overrides it.
+LEROBOT_LIBERO_RENDER_SIZE = 256
+#: The LIBERO state LeRobot's env processor builds: EE position, axis-angle, gripper finger qpos.
+LEROBOT_STATE_KEY = "observation.state"
+LEROBOT_STATE_DIM = 8
+#: Files a LeRobot >= 0.4 ``save_pretrained`` folder holds (policy, weights, saved processor pipelines).
+CHECKPOINT_FILES = ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json")
+#: Environment variable naming the Python of LeRobot's venv (default: ``.venv-lerobot`` beside the package).
+PYTHON_ENV = "LQ_LEROBOT_PYTHON"
+SERVER_SCRIPT = Path(__file__).with_name("lerobot_server.py")
+SETUP_HINT = "run `make setup-lerobot` in the checkout (or pass python=PATH to a Python with lerobot 0.4.4)"
+
+
+def default_python() -> Path:
+    """``$LQ_LEROBOT_PYTHON``, else ``.venv-lerobot/bin/python`` of the checkout this package runs from."""
+    if os.environ.get(PYTHON_ENV):
+        return Path(os.environ[PYTHON_ENV])
+    return Path(__file__).resolve().parents[2] / ".venv-lerobot" / "bin" / "python"
+
+
+def read_checkpoint(path: Path) -> dict:
+    """The checkpoint's ``config.json``, after every check this side can make; ValueError (one line) if not fit."""
+    if not path.is_dir():
+        hint = ""
+        if not path.exists() and str(path).count("/") == 1 and not str(path).startswith((".", "/")):
+            hint = (
+                " (a hub id needs the network at run time: download it first, e.g. `huggingface-cli download "
+                f"{path} --local-dir DIR`, and pass path=DIR)"
+            )
+        raise ValueError(f"lerobot path {str(path)!r} is not a checkpoint directory{hint}")
+    missing = [name for name in CHECKPOINT_FILES if not (path / name).is_file()]
+    if missing:
+        raise ValueError(
+            f"lerobot path {str(path)!r} is not a LeRobot >= 0.4 save_pretrained folder: missing {', '.join(missing)} "
+            "(a checkpoint without saved processors is migrated by lerobot's migrate_policy_normalization script)"
+        )
+    try:
+        config = json.loads((path / "config.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"lerobot path {str(path)!r}: config.json is not JSON ({exc})") from None
+    if not isinstance(config, dict) or not isinstance(config.get("type"), str):
+        raise ValueError(f"lerobot path {str(path)!r}: config.json has no policy 'type'")
+    inputs, outputs = config.get("input_features"), config.get("output_features")
+    if not isinstance(inputs, dict) or not isinstance(outputs, dict):
+        raise ValueError(f"lerobot path {str(path)!r}: config.json has no input_features/output_features")
+    images = [key for key in inputs if key.startswith("observation.images.")]
+    unknown = sorted(set(images) - set(LEROBOT_CAMERAS))
+    others = sorted(set(inputs) - set(images) - {LEROBOT_STATE_KEY})
+    if unknown or others or not images:
+        raise ValueError(
+            f"lerobot path {str(path)!r}: inputs {sorted(inputs)} are not LIBERO's as lerobot-eval gives them; "
+            f"valid: one or both of {sorted(LEROBOT_CAMERAS)} and optionally {LEROBOT_STATE_KEY!r}"
+        )
+    state_shape = (inputs.get(LEROBOT_STATE_KEY) or {}).get("shape", [LEROBOT_STATE_DIM])
+    action_shape = (outputs.get("action") or {}).get("shape")
+    if list(state_shape) != [LEROBOT_STATE_DIM] or action_shape is None or list(action_shape) != [ACTION_DIM]:
+        raise ValueError(
+            f"lerobot path {str(path)!r}: state shape {state_shape} and action shape {action_shape}; LIBERO's are "
+            f"[{LEROBOT_STATE_DIM}] and [{ACTION_DIM}]"
+        )
+    n_obs_steps = config.get("n_obs_steps", 1) or 1
+    if n_obs_steps != 1:
+        raise ValueError(
+            f"lerobot path {str(path)!r}: n_obs_steps is {n_obs_steps}; the stack sends one observation per request, "
+            "so policies that stack an observation history are not supported (valid: n_obs_steps 1)"
+        )
+    return config
+
+
+class LeRobotPolicy(OpenPIPolicy):
+    """A LeRobot checkpoint served from LeRobot's own venv; see the module docstring.
+
+    Parameters: ``path`` (checkpoint folder), ``python`` (LeRobot's venv Python), ``device`` (torch device
+    of the server), ``threads`` (torch intra-op threads in the server; 0: torch's default), ``timeout_s``
+    (one inference), ``startup_timeout_s`` (loading the policy), ``prompt`` (instead of the task's language).
+    """
+
+    name = "lerobot"
+    render_size = LEROBOT_LIBERO_RENDER_SIZE
+
+    def __init__(
+        self,
+        path: str,
+        python: str | None = None,
+        device: str = "cpu",
+        threads: int = 0,
+        timeout_s: float = 60.0,
+        startup_timeout_s: float = 300.0,
+        prompt: str | None = None,
+    ) -> None:
+        super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt)
+        self.path = Path(str(path)).expanduser()
+        self.config = read_checkpoint(self.path)
+        self.image_keys = [key for key in self.config["input_features"] if key in LEROBOT_CAMERAS]
+        self.camera_names = tuple(LEROBOT_CAMERAS[key] for key in self.image_keys)
+        self.python = Path(python) if python else default_python()
+        if not self.python.is_file():
+            raise ValueError(f"lerobot: no Python at {self.python} for LeRobot's environment; {SETUP_HINT}")
+        self.device = str(device)
+        try:
+            self.threads = int(threads)
+        except (TypeError, ValueError):
+            raise ValueError(f"threads must be a whole number >= 0, got {threads!r}") from None
+        if self.threads < 0:
+            raise ValueError(f"threads must be a whole number >= 0, got {threads!r}")
+        self.startup_timeout_s = positive_number("startup_timeout_s", startup_timeout_s)
+        self.config_sha256 = hashlib.sha256((self.path / "config.json").read_bytes()).hexdigest()
+        self._server: subprocess.Popen | None = None
+        self._server_log = None
+        self._episode_start = False
+        self._seed = 0
+
+    # -- Policy interface -------------------------------------------------------------------
+    def reset(self, task: TaskInfo, seed: int) -> None:
+        super().reset(task, seed)
+        self._episode_start = True
+        self._seed = int(seed)
+
+    def observation_payload(self, obs: Observation) -> dict:
+        """Cameras as robosuite renders them (our images are upright: undo the row flip), state unprocessed."""
+        request: dict = {
+            f"observation/images/{key.removeprefix('observation.images.')}": np.ascontiguousarray(
+                camera_image(obs, LEROBOT_CAMERAS[key])[::-1]
+            )
+            for key in self.image_keys
+        }
+        request.update(
+            {
+                "observation/eef_pos": np.asarray(obs.eef_pos, dtype=np.float64),
+                "observation/eef_quat": np.asarray(obs.eef_quat_xyzw, dtype=np.float64),
+                "observation/gripper_qpos": np.asarray(obs.gripper_qpos, dtype=np.float64),
+                "observation/joint_pos": np.asarray(obs.joint_pos, dtype=np.float64),
+                "observation/joint_vel": np.asarray(obs.joint_vel, dtype=np.float64),
+                "prompt": str(self._prompt),
+                "reset": bool(self._episode_start),
+                "seed": self._seed,
+            }
+        )
+        self._episode_start = False
+        return request
+
+    def params(self) -> dict:
+        return {
+            "path": str(self.path),
+            "policy_type": self.config["type"],
+            "config_sha256": self.config_sha256,
+            "n_action_steps": self.config.get("n_action_steps"),
+            "chunk_size": self.config.get("chunk_size", self.config.get("horizon")),
+            "device": self.device,
+            "threads": self.threads,
+            "timeout_s": self.timeout_s,
+            "prompt": self.prompt_override,
+        }
+
+    def close(self) -> None:
+        super().close()
+        server, self._server = self._server, None
+        if server is not None and server.poll() is None:
+            server.terminate()
+            try:
+                server.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                server.kill()
+                server.wait()
+        if self._server_log is not None:
+            self._server_log.close()
+            self._server_log = None
+
+    # -- the server process -------------------------------------------------------------------
+    def _connect(self) -> None:
+        if self._server is None or self._server.poll() is not None:
+            self._start_server()
+        super()._connect()
+
+    def _start_server(self) -> None:
+        """Start the server and wait for its ready line; PolicyError with its last error line if it does not come."""
+        self._server_log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - lives as long as the server
+        command = [str(self.python), str(SERVER_SCRIPT), "--path", str(self.path), "--device", self.device]
+        command += ["--threads", str(self.threads), "--port", "0", "--parent-pid", str(os.getpid())]
+        env = {**os.environ, "PYTHONNOUSERSITE": "1"}
+        env.pop("PYTHONPATH", None)  # our package's path must not shadow LeRobot's venv
+        try:
+            self._server = subprocess.Popen(
+                command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log, env=env, text=True
+            )
+        except OSError as exc:
+            raise PolicyError(f"lerobot: cannot start {self.python} ({exc}); {SETUP_HINT}") from None
+        ready: list[dict] = []
+        reader = threading.Thread(target=self._read_ready_line, args=(self._server.stdout, ready), daemon=True)
+        reader.start()
+        reader.join(self.startup_timeout_s)
+        answer = ready[0] if ready else {}
+        if not answer.get("ready"):
+            why = self._server_error() or (
+                f"not ready within {self.startup_timeout_s} s" if reader.is_alive() else "exited without a ready line"
+            )
+            self.close()
+            raise PolicyError(f"lerobot server for {self.path}: {why}")
+        self.server_metadata = answer
+        self._connect_uri = self.uri = f"ws://127.0.0.1:{int(answer['port'])}"
+
+    @staticmethod
+    def _read_ready_line(stream, ready: list[dict]) -> None:
+        """The first stdout line that is the server's JSON ready line (nothing else is expected there)."""
+        for line in stream:
+            try:
+                answer = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(answer, dict) and answer.get("ready"):
+                ready.append(answer)
+                return
+        ready.append({})
+
+    def _server_error(self) -> str:
+        """The server's last ``error:`` line (or last line) on stderr."""
+        if self._server_log is None:
+            return ""
+        if self._server is not None and self._server.poll() is None:
+            return ""
+        time.sleep(0.05)
+        self._server_log.seek(0)
+        lines = [line.strip() for line in self._server_log.read().splitlines() if line.strip()]
+        errors = [line for line in lines if line.startswith("error:")]
+        return (errors or lines or [""])[-1].removeprefix("error: ")[:600]

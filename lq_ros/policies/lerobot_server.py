@@ -1,0 +1,254 @@
+"""Serve a LeRobot checkpoint to the stack over the openpi websocket protocol (runs in LeRobot's own venv).
+
+LeRobot 0.4.4 pins torch < 2.11 and this project pins torch 2.13, so LeRobot lives in a separate
+environment (``make setup-lerobot`` makes ``.venv-lerobot``) and this file runs there, started and stopped
+by :class:`lq_ros.policies.lerobot_client.LeRobotPolicy` on 127.0.0.1 only. It imports nothing from
+``lq_ros`` (the package is not installed in that venv): stdlib, numpy, torch, lerobot, websockets and
+openpi-client's msgpack-numpy.
+
+What the policy sees is built by LeRobot's own code, step by step as ``lerobot-eval`` builds it
+(``lerobot/scripts/lerobot_eval.py: rollout``): the raw observation dict of ``lerobot.envs.libero.LiberoEnv``
+(``pixels``/``robot_state``, with the leading batch axis of its vector env), then ``preprocess_observation``,
+the task string, the LIBERO env processor (``make_env_pre_post_processors``: 180-degree image rotation,
+8-D state with LeRobot's float32 axis-angle), the checkpoint's saved pre-processor, the policy, its saved
+post-processor and the env post-processor, action by action.
+
+One chunk per request: the request clears the policy's action queue and calls ``select_action`` once, as
+``lerobot-eval`` does on the tick its queue runs dry, then takes the rest of the refilled queue, so the
+chunk is exactly the ``n_action_steps`` actions ``lerobot-eval`` would execute from that observation. A
+policy that keeps no action queue (ACT with temporal ensembling) answers with a chunk of one.
+
+Protocol (openpi ``websocket_policy_server``): a metadata frame, then one msgpack-numpy request, one reply.
+Request keys: ``observation/images/<lerobot image key>`` (uint8 H x W x 3 as robosuite renders it, bottom row
+first), ``observation/eef_pos``, ``observation/eef_quat`` (x y z w), ``observation/gripper_qpos``,
+``observation/joint_pos``, ``observation/joint_vel`` (float64), ``prompt``, ``reset`` (true on an
+episode's first request: the policy and processors are reset) and ``seed`` (with ``reset``). Reply:
+``actions`` (n, 7) float32 and ``policy_timing.infer_ms``. A failure is sent as a text frame (the traceback),
+then the socket closes.
+
+Usage: ``python lerobot_server.py --path DIR [--device cpu] [--threads N] [--port 0]``; prints one JSON line
+``{"ready": true, "port": ...}`` on stdout once the policy is loaded, or one ``error:`` line on stderr and
+exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import sys
+import threading
+import time
+import traceback
+from pathlib import Path
+
+#: LeRobot's names for LIBERO's cameras (``lerobot.envs.libero.LiberoEnv.camera_name_mapping``).
+CAMERA_KEYS = {"agentview_image": "image", "robot0_eye_in_hand_image": "image2"}
+#: Longest accepted request, bytes (two 512 px images and the state are ~1.6 MB).
+MAX_REQUEST_BYTES = 16 * 1024 * 1024
+
+
+class LeRobotServer:
+    """A loaded LeRobot policy with its processors, answering observation dicts with action chunks."""
+
+    def __init__(self, path: str, device: str = "cpu", suite: str = "libero_spatial") -> None:
+        import torch
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
+        from lerobot.envs.factory import make_env_pre_post_processors
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        self.torch = torch
+        config = PreTrainedConfig.from_pretrained(path)
+        config.device = device
+        n_obs_steps = int(getattr(config, "n_obs_steps", 1) or 1)
+        if n_obs_steps != 1:
+            raise ValueError(
+                f"n_obs_steps is {n_obs_steps}: the stack sends one observation per request, so a policy that stacks "
+                "an observation history is not supported (n_obs_steps must be 1)"
+            )
+        self.policy = get_policy_class(config.type).from_pretrained(path, config=config)
+        self.policy.eval()
+        device_override = {"device": device}
+        # As lerobot-eval: the saved pipelines, on the chosen device.
+        self.preprocessor, self.postprocessor = make_pre_post_processors(
+            policy_cfg=config,
+            pretrained_path=path,
+            preprocessor_overrides={"device_processor": device_override},
+            postprocessor_overrides={"device_processor": device_override},
+        )
+        self.env_preprocessor, self.env_postprocessor = make_env_pre_post_processors(
+            env_cfg=LiberoEnvConfig(task=suite), policy_cfg=config
+        )
+        self.config = config
+        self.image_keys = [key for key in config.input_features if key.startswith("observation.images.")]
+
+    # -- metadata ---------------------------------------------------------------------------
+    def metadata(self) -> dict:
+        import lerobot
+
+        return {
+            "server": "lq-lerobot",
+            "lerobot_version": lerobot.__version__,
+            "torch_version": self.torch.__version__,
+            "policy_type": self.config.type,
+            "n_action_steps": int(getattr(self.config, "n_action_steps", 1) or 1),
+            "chunk_size": int(getattr(self.config, "chunk_size", getattr(self.config, "horizon", 1)) or 1),
+            "image_keys": self.image_keys,
+            "action_queue": self._action_queue() is not None,
+        }
+
+    # -- one request --------------------------------------------------------------------------
+    def raw_observation(self, request: dict) -> dict:
+        """The dict ``lerobot.envs.libero.LiberoEnv`` returns (``obs_type=pixels_agent_pos``), batch of one."""
+        import numpy as np
+
+        def batched(name: str) -> np.ndarray:
+            return np.asarray(request[f"observation/{name}"])[None]
+
+        pixels = {}
+        for key in self.image_keys:
+            short = key.removeprefix("observation.images.")
+            pixels[short] = np.asarray(request[f"observation/images/{short}"])[None]
+        return {
+            "pixels": pixels,
+            "robot_state": {
+                "eef": {"pos": batched("eef_pos"), "quat": batched("eef_quat")},
+                "gripper": {"qpos": batched("gripper_qpos")},
+                "joints": {"pos": batched("joint_pos"), "vel": batched("joint_vel")},
+            },
+        }
+
+    def policy_batch(self, request: dict) -> dict:
+        """What the policy is handed: lerobot-eval's steps from the env's observation to ``select_action``."""
+        from lerobot.envs.utils import preprocess_observation
+
+        observation = preprocess_observation(self.raw_observation(request))
+        observation["task"] = [str(request.get("prompt", ""))]  # lerobot.envs.utils.add_envs_task
+        observation = self.env_preprocessor(observation)
+        return self.preprocessor(observation)
+
+    def chunk(self, batch: dict):
+        """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick."""
+        from lerobot.utils.constants import ACTION
+
+        queue = self._action_queue()
+        with self.torch.inference_mode():
+            if queue is not None:
+                queue.clear()
+            actions = [self.policy.select_action(batch)]
+            if queue is not None:
+                actions += list(queue)
+                queue.clear()
+            out = []
+            for action in actions:
+                action = self.postprocessor(action)
+                action = self.env_postprocessor({ACTION: action})[ACTION]
+                out.append(action.to("cpu").numpy()[0])
+        import numpy as np
+
+        return np.stack(out).astype(np.float32)
+
+    def reset(self, seed: int | None) -> None:
+        """A new episode: the policy's queues and the processors reset; torch, numpy and random seeded as
+        ``lerobot-eval`` seeds them (``set_seed``), so a sampling policy (diffusion) repeats its episode."""
+        from lerobot.utils.random_utils import set_seed
+
+        self.policy.reset()
+        if seed is not None:
+            set_seed(int(seed))
+        for pipeline in (self.preprocessor, self.postprocessor, self.env_preprocessor, self.env_postprocessor):
+            pipeline.reset()
+
+    def answer(self, request: dict) -> dict:
+        if request.get("reset"):
+            self.reset(request.get("seed"))
+        started = time.perf_counter()
+        actions = self.chunk(self.policy_batch(request))
+        return {"actions": actions, "policy_timing": {"infer_ms": (time.perf_counter() - started) * 1000.0}}
+
+    def _action_queue(self):
+        """The deque ``select_action`` pops from, or None for a policy that infers every call."""
+        from lerobot.utils.constants import ACTION
+
+        if getattr(self.config, "temporal_ensemble_coeff", None) is not None:
+            return None
+        queue = getattr(self.policy, "_action_queue", None)
+        if queue is not None:
+            return queue
+        queues = getattr(self.policy, "_queues", None)
+        if isinstance(queues, dict) and ACTION in queues:
+            return queues[ACTION]
+        return None
+
+
+def serve(server: LeRobotServer, host: str, port: int, ready_out) -> None:
+    """Answer one connection at a time until the process is stopped."""
+    from openpi_client import msgpack_numpy
+    from websockets.sync.server import serve as websocket_serve
+
+    packer = msgpack_numpy.Packer()
+    metadata = server.metadata()
+
+    def handler(connection) -> None:
+        connection.send(packer.pack(metadata))
+        for frame in connection:
+            try:
+                reply = server.answer(msgpack_numpy.unpackb(frame))
+            except Exception:  # noqa: BLE001 - the client reports the traceback's last line as the error
+                connection.send(traceback.format_exc())
+                connection.close()
+                return
+            connection.send(packer.pack(reply))
+
+    with websocket_serve(handler, host, port, max_size=MAX_REQUEST_BYTES, compression=None) as ws_server:
+        bound_port = ws_server.socket.getsockname()[1]
+        print(json.dumps({"ready": True, "port": bound_port, **metadata}), file=ready_out, flush=True)
+        ws_server.serve_forever()
+
+
+def exit_with_parent(parent_pid: int) -> None:
+    """Exit once the process that started us is gone (killed with -9, it could not stop us itself)."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--path", required=True, help="checkpoint directory written by save_pretrained")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=0, help="0: any free port (printed in the ready line)")
+    parser.add_argument("--suite", default="libero_spatial", help="LIBERO suite (selects LeRobot's env processor)")
+    parser.add_argument("--parent-pid", type=int, default=0, help="exit when this process is gone (0: never)")
+    args = parser.parse_args(argv)
+    # stdout carries the ready line alone: anything LeRobot prints ("Loading weights ...") goes to stderr.
+    ready_out, sys.stdout = sys.stdout, sys.stderr
+    if args.parent_pid:
+        exit_with_parent(args.parent_pid)
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"error: --host {args.host!r}: the policy server binds to loopback only (127.0.0.1)", file=sys.stderr)
+        return 2
+    try:
+        import torch
+
+        if args.threads > 0:
+            torch.set_num_threads(args.threads)
+        server = LeRobotServer(str(Path(args.path)), device=args.device, suite=args.suite)
+    except Exception as exc:  # noqa: BLE001 - one line for the client to show
+        print(f"error: cannot load a LeRobot policy from {args.path}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
+    with contextlib.suppress(KeyboardInterrupt):
+        serve(server, args.host, args.port, ready_out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,197 @@
+"""LeRobot checkpoints as policies (``--policy lerobot --policy-arg path=DIR``), with real LeRobot code.
+
+Small ACT and diffusion policies are made with LeRobot's own classes in LeRobot's venv (``make
+setup-lerobot``) and saved with ``save_pretrained``; nothing comes from a hub. Parity with ``lerobot-eval``:
+on the same simulator state the tensors our server hands the policy equal those LeRobot's LiberoEnv and
+processors produce, bit for bit; and at 0 s sync our episode commands exactly the actions ``lerobot-eval``'s
+own rollout executes. Then real episodes per policy, both protocols, both transports; and the refusals.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lq_ros.core.run_config import RunConfig
+from lq_ros.core.types import TaskInfo
+from lq_ros.policies import PolicyError, make_policy
+from lq_ros.policies.lerobot_client import LEROBOT_LIBERO_RENDER_SIZE, default_python
+from lq_ros.recording.bag_compare import bag_messages
+from lq_ros.run.episode import run_episode
+from lq_ros.wire import messages as m
+from tests.standin_servers import standin_observation
+
+SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
+SUITE, TASK = "libero_spatial", 0
+PARITY_STEPS = 24  # three ACT chunks of 8, six diffusion chunks of 4
+N_ACTION_STEPS = {"act": 8, "diffusion": 4}  # as made by lerobot_venv_script.py; lerobot-eval executes them all
+SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK: the command is a row of a policy chunk
+TASK_INFO = TaskInfo(SUITE, TASK, "t", "pick up the black bowl", [], 220, 50)
+
+pytestmark = [pytest.mark.sim]
+
+
+def lerobot_python() -> Path:
+    python = default_python()
+    if not python.is_file():
+        if os.environ.get("CI"):
+            pytest.fail(f"LeRobot's venv is missing ({python}): `make test` makes it with `make setup-lerobot`")
+        pytest.skip("LeRobot's venv is not installed (make setup-lerobot)")
+    return python
+
+
+def in_lerobot_venv(*args: object, timeout_s: float = 600.0) -> dict:
+    """Run the helper script in LeRobot's venv; its one JSON line."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    done = subprocess.run(
+        [str(lerobot_python()), str(SCRIPT), *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=env,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def checkpoints(tmp_path_factory) -> dict[str, Path]:
+    made = in_lerobot_venv("make", tmp_path_factory.mktemp("lerobot_ckpt"))
+    return {name: Path(folder) for name, folder in made.items()}
+
+
+def commands(bag: Path) -> list:
+    return [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in bag_messages(bag).get(m.COMMAND.name, [])]
+
+
+# -- what our client copies from LeRobot --------------------------------------------------------
+def test_render_size_and_cameras_are_lerobot_evals():
+    defaults = in_lerobot_venv("defaults")
+    assert defaults["observation_height"] == defaults["observation_width"] == LEROBOT_LIBERO_RENDER_SIZE
+    assert defaults["camera_name"] == "agentview_image,robot0_eye_in_hand_image"
+    assert defaults["gym_kwargs"] == ["obs_type", "render_mode"]  # the config's size never reaches the env
+
+
+# -- parity with lerobot-eval -----------------------------------------------------------------
+@pytest.mark.slow
+def test_policy_input_equals_lerobot_libero_env_bit_for_bit(checkpoints, tmp_path):
+    """Same simulator state (LeRobot's reset of init state 0 and ours), same tensors to the policy."""
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    reference = tmp_path / "lerobot.npz"
+    in_lerobot_venv("lerobot-obs", checkpoints["act"], SUITE, TASK, reference)
+    want = dict(np.load(reference))
+
+    policy = make_policy("lerobot", path=str(checkpoints["act"]))
+    env = LiberoEnv(SUITE, TASK, camera_names=policy.camera_names, camera_size=LEROBOT_LIBERO_RENDER_SIZE)
+    try:
+        env.reset(0, seed=0)
+        assert np.array_equal(np.asarray(env._sim.get_state().flatten()), want["sim_state"]), "resets differ"
+        policy.reset(env.task, seed=0)
+        assert str(want["task"]) == env.task.instruction
+        payload = policy.observation_payload(env.observe())
+    finally:
+        env.close()
+    request = tmp_path / "payload.npz"
+    np.savez(request, **payload)
+    ours = tmp_path / "ours.npz"
+    in_lerobot_venv("server-obs", checkpoints["act"], request, ours)
+    got = dict(np.load(ours))
+    assert sorted(got) == sorted(k for k in want if k not in ("sim_state", "task"))
+    for key, value in got.items():
+        assert value.dtype == want[key].dtype and np.array_equal(value, want[key]), key
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["act", "diffusion"])
+def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind, tmp_path):
+    reference = tmp_path / "eval.npz"
+    in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, 0, reference)
+    executed = np.load(reference)["actions"].astype(np.float64)
+    assert executed.shape == (PARITY_STEPS, 7)
+
+    cfg = RunConfig(
+        suite=SUITE, task=TASK, init=0, seed=0, mode="sync", latency_s=0.0, replan_steps=N_ACTION_STEPS[kind],
+        policy="lerobot",
+        policy_args={"path": str(checkpoints[kind]), "threads": 1}, max_steps=PARITY_STEPS,
+    )  # fmt: skip
+    outcome, row = run_episode(cfg, tmp_path / "ours", "inprocess")
+    assert outcome.status in ("failure", "success"), outcome.reason
+    sent = commands(outcome.bag_path)
+    assert all(c.source == SOURCE_CHUNK for c in sent), [c.source for c in sent]
+    ours = np.array([c.action for c in sent])
+    assert ours.shape == executed.shape
+    differ = np.flatnonzero(np.any(ours != executed, axis=1))
+    assert differ.size == 0, f"first differing tick {differ[0]}, max difference {np.abs(ours - executed).max()}"
+
+
+# -- real episodes ------------------------------------------------------------------------------
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.parametrize("kind", ["act", "diffusion"])
+@pytest.mark.parametrize("transport", ["inprocess", "ros"])
+def test_episode_runs_in_both_protocols(checkpoints, kind, transport, tmp_path):
+    for mode in ("sync", "async"):
+        cfg = RunConfig(
+            suite=SUITE, task=TASK, init=1, seed=3, mode=mode, latency_s=0.1, policy="lerobot",
+            policy_args={"path": str(checkpoints[kind])}, max_steps=30,
+        )  # fmt: skip
+        outcome, row = run_episode(cfg, tmp_path / mode, transport)
+        assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
+        chunks = [c for c in commands(outcome.bag_path) if c.source == SOURCE_CHUNK]
+        assert chunks, "no command came from a chunk"
+        assert row["latency_real_mean_s"] > 0
+
+
+# -- refusals -------------------------------------------------------------------------------------
+def test_missing_or_broken_checkpoint_is_one_line(tmp_path):
+    with pytest.raises(ValueError, match="is not a checkpoint directory") as missing:
+        make_policy("lerobot", path=str(tmp_path / "nope"))
+    assert "\n" not in str(missing.value)
+    with pytest.raises(ValueError, match="hub id needs the network"):
+        make_policy("lerobot", path="lerobot/act_libero")
+    (tmp_path / "config.json").write_text("{}")
+    with pytest.raises(ValueError, match="missing model.safetensors"):
+        make_policy("lerobot", path=str(tmp_path))
+
+
+def test_unsupported_inputs_and_history_are_refused(checkpoints, tmp_path):
+    config = json.loads((checkpoints["act"] / "config.json").read_text())
+    front = {"observation.images.front": {"type": "VISUAL", "shape": [3, 9, 9]}}
+    for name, change, message in [
+        ("front", {"input_features": {**config["input_features"], **front}}, "not LIBERO's"),
+        ("history", {"n_obs_steps": 2}, "n_obs_steps is 2"),
+        ("action6", {"output_features": {"action": {"type": "ACTION", "shape": [6]}}}, "action shape"),
+    ]:  # fmt: skip
+        folder = tmp_path / name
+        folder.mkdir()
+        for file in checkpoints["act"].iterdir():
+            (folder / file.name).symlink_to(file)
+        (folder / "config.json").unlink()
+        (folder / "config.json").write_text(json.dumps({**config, **change}))
+        with pytest.raises(ValueError, match=message):
+            make_policy("lerobot", path=str(folder))
+
+
+def test_missing_venv_and_unloadable_weights_are_errors(checkpoints, tmp_path):
+    with pytest.raises(ValueError, match="make setup-lerobot"):
+        make_policy("lerobot", path=str(checkpoints["act"]), python=str(tmp_path / "python"))
+    folder = tmp_path / "truncated"
+    folder.mkdir()
+    for file in checkpoints["act"].iterdir():
+        (folder / file.name).write_bytes(file.read_bytes())
+    (folder / "model.safetensors").write_bytes(b"\x00" * 16)
+    policy = make_policy("lerobot", path=str(folder), startup_timeout_s=120)
+    try:
+        policy.reset(TASK_INFO, 0)
+        with pytest.raises(PolicyError, match="cannot load a LeRobot policy") as error:
+            policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0))
+        assert "\n" not in str(error.value)
+    finally:
+        policy.close()
