@@ -22,7 +22,6 @@ import os
 import subprocess
 import tempfile
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -254,9 +253,11 @@ class LeRobotPolicy(OpenPIPolicy):
         """The server's last ``error:`` line (or last line) on stderr."""
         if self._server_log is None:
             return ""
-        if self._server is not None and self._server.poll() is None:
-            return ""
-        time.sleep(0.05)
+        if self._server is not None:
+            try:
+                self._server.wait(timeout=5.0)  # stdout closed: the process is exiting
+            except subprocess.TimeoutExpired:
+                return ""
         self._server_log.seek(0)
         lines = [line.strip() for line in self._server_log.read().splitlines() if line.strip()]
         errors = [line for line in lines if line.startswith("error:")]

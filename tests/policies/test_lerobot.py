@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +23,7 @@ import pytest
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.policies.lerobot_client import LEROBOT_LIBERO_RENDER_SIZE, default_python
+from lq_ros.policies.lerobot_client import LEROBOT_LIBERO_RENDER_SIZE, SERVER_SCRIPT, default_python
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
@@ -195,3 +198,52 @@ def test_missing_venv_and_unloadable_weights_are_errors(checkpoints, tmp_path):
         assert "\n" not in str(error.value)
     finally:
         policy.close()
+
+
+def test_server_binds_loopback_only_and_dies_with_its_parent(checkpoints, tmp_path):
+    refused = subprocess.run(
+        [str(lerobot_python()), str(SERVER_SCRIPT), "--path", str(checkpoints["act"]), "--host", "0.0.0.0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert refused.returncode == 2 and "loopback only" in refused.stderr
+    # A process that starts the server and is then killed with -9 (no close()): the server must not outlive it.
+    pid_file = tmp_path / "server.pid"
+    owner = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from lq_ros.policies import make_policy\n"
+            "p = make_policy('lerobot', path=sys.argv[1])\n"
+            "p._start_server()\n"
+            "open(sys.argv[2], 'w').write(str(p._server.pid))\n"
+            "time.sleep(600)\n",
+            str(checkpoints["act"]),
+            str(pid_file),
+        ]
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while not pid_file.exists() or not pid_file.read_text():
+            assert owner.poll() is None and time.monotonic() < deadline, "the server did not start"
+            time.sleep(0.2)
+        server_pid = int(pid_file.read_text())
+        os.kill(server_pid, 0)  # running
+    finally:
+        owner.kill()
+        owner.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        try:
+            os.kill(server_pid, 0)
+        except ProcessLookupError:
+            return
+        stat = Path(f"/proc/{server_pid}/stat")
+        if stat.exists() and stat.read_text().split()[2] == "Z":
+            return  # exited, waiting to be reaped by init
+        time.sleep(0.2)
+    os.kill(server_pid, signal.SIGKILL)
+    pytest.fail("the LeRobot server outlived the process that started it")
