@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import subprocess
 import tempfile
 import threading
@@ -45,6 +46,9 @@ CHECKPOINT_FILES = ("config.json", "model.safetensors", "policy_preprocessor.jso
 #: Environment variable naming the Python of LeRobot's venv (default: ``.venv-lerobot`` beside the package).
 PYTHON_ENV = "LQ_LEROBOT_PYTHON"
 SERVER_SCRIPT = Path(__file__).with_name("lerobot_server.py")
+#: A Hugging Face hub repository id (``org/name``), and how long fetching its config.json may take.
+HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
+HUB_TIMEOUT_S = 120.0
 SETUP_HINT = "run `make setup-lerobot` in the checkout (or pass python=PATH to a Python with lerobot 0.4.4)"
 
 
@@ -55,50 +59,84 @@ def default_python() -> Path:
     return Path(__file__).resolve().parents[2] / ".venv-lerobot" / "bin" / "python"
 
 
+def venv_environment() -> dict[str, str]:
+    """This process's environment for LeRobot's venv: our package's path must not shadow its packages."""
+    env = {**os.environ, "PYTHONNOUSERSITE": "1"}
+    env.pop("PYTHONPATH", None)
+    return env
+
+
+def is_hub_id(path: str) -> bool:
+    """``org/name`` that is not a local path: a Hugging Face hub checkpoint."""
+    return bool(HUB_ID.fullmatch(path)) and not Path(path).exists()
+
+
+def fetch_hub_config(python: Path, repo_id: str, timeout_s: float = HUB_TIMEOUT_S) -> Path:
+    """The hub checkpoint's ``config.json``, downloaded into the Hugging Face cache by LeRobot's venv; ValueError
+    (one line) when it cannot be had (no network, ``HF_HUB_OFFLINE=1`` and not cached, no such repository)."""
+    code = "import sys; from huggingface_hub import hf_hub_download; print(hf_hub_download(sys.argv[1], 'config.json'))"
+    try:
+        done = subprocess.run(
+            [str(python), "-c", code, repo_id], capture_output=True, text=True, timeout=timeout_s,
+            env=venv_environment(), check=False,
+        )  # fmt: skip
+    except subprocess.TimeoutExpired:
+        raise ValueError(
+            f"lerobot path {repo_id!r}: no answer from the Hugging Face hub within {timeout_s:.0f} s"
+        ) from None
+    if done.returncode != 0:
+        why = (done.stderr.strip().splitlines() or ["no message"])[-1][:300]
+        raise ValueError(
+            f"lerobot path {repo_id!r} is neither a checkpoint directory nor a hub checkpoint that could be fetched "
+            f"({why}); offline, download it elsewhere (`huggingface-cli download {repo_id} --local-dir DIR`) and pass "
+            "path=DIR"
+        )
+    return Path(done.stdout.strip().splitlines()[-1])
+
+
 def read_checkpoint(path: Path) -> dict:
-    """The checkpoint's ``config.json``, after every check this side can make; ValueError (one line) if not fit."""
+    """A local checkpoint's ``config.json``, after every check this side can make; ValueError (one line) if not fit."""
     if not path.is_dir():
-        hint = ""
-        if not path.exists() and str(path).count("/") == 1 and not str(path).startswith((".", "/")):
-            hint = (
-                " (a hub id needs the network at run time: download it first, e.g. `huggingface-cli download "
-                f"{path} --local-dir DIR`, and pass path=DIR)"
-            )
-        raise ValueError(f"lerobot path {str(path)!r} is not a checkpoint directory{hint}")
+        raise ValueError(f"lerobot path {str(path)!r} is not a checkpoint directory (nor a hub id: org/name)")
     missing = [name for name in CHECKPOINT_FILES if not (path / name).is_file()]
     if missing:
         raise ValueError(
             f"lerobot path {str(path)!r} is not a LeRobot >= 0.4 save_pretrained folder: missing {', '.join(missing)} "
             "(a checkpoint without saved processors is migrated by lerobot's migrate_policy_normalization script)"
         )
+    return check_config(path / "config.json", str(path))
+
+
+def check_config(config_file: Path, where: str) -> dict:
+    """``config_file`` parsed, if it describes a policy for LIBERO as lerobot-eval feeds it; else ValueError."""
     try:
-        config = json.loads((path / "config.json").read_text())
+        config = json.loads(config_file.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"lerobot path {str(path)!r}: config.json is not JSON ({exc})") from None
+        raise ValueError(f"lerobot path {where!r}: config.json is not JSON ({exc})") from None
     if not isinstance(config, dict) or not isinstance(config.get("type"), str):
-        raise ValueError(f"lerobot path {str(path)!r}: config.json has no policy 'type'")
+        raise ValueError(f"lerobot path {where!r}: config.json has no policy 'type'")
     inputs, outputs = config.get("input_features"), config.get("output_features")
     if not isinstance(inputs, dict) or not isinstance(outputs, dict):
-        raise ValueError(f"lerobot path {str(path)!r}: config.json has no input_features/output_features")
+        raise ValueError(f"lerobot path {where!r}: config.json has no input_features/output_features")
     images = [key for key in inputs if key.startswith("observation.images.")]
     unknown = sorted(set(images) - set(LEROBOT_CAMERAS))
     others = sorted(set(inputs) - set(images) - {LEROBOT_STATE_KEY})
     if unknown or others or not images:
         raise ValueError(
-            f"lerobot path {str(path)!r}: inputs {sorted(inputs)} are not LIBERO's as lerobot-eval gives them; "
+            f"lerobot path {where!r}: inputs {sorted(inputs)} are not LIBERO's as lerobot-eval gives them; "
             f"valid: one or both of {sorted(LEROBOT_CAMERAS)} and optionally {LEROBOT_STATE_KEY!r}"
         )
     state_shape = (inputs.get(LEROBOT_STATE_KEY) or {}).get("shape", [LEROBOT_STATE_DIM])
     action_shape = (outputs.get("action") or {}).get("shape")
     if list(state_shape) != [LEROBOT_STATE_DIM] or action_shape is None or list(action_shape) != [ACTION_DIM]:
         raise ValueError(
-            f"lerobot path {str(path)!r}: state shape {state_shape} and action shape {action_shape}; LIBERO's are "
+            f"lerobot path {where!r}: state shape {state_shape} and action shape {action_shape}; LIBERO's are "
             f"[{LEROBOT_STATE_DIM}] and [{ACTION_DIM}]"
         )
     n_obs_steps = config.get("n_obs_steps", 1) or 1
     if n_obs_steps != 1:
         raise ValueError(
-            f"lerobot path {str(path)!r}: n_obs_steps is {n_obs_steps}; the stack sends one observation per request, "
+            f"lerobot path {where!r}: n_obs_steps is {n_obs_steps}; the stack sends one observation per request, "
             "so policies that stack an observation history are not supported (valid: n_obs_steps 1)"
         )
     return config
@@ -126,13 +164,19 @@ class LeRobotPolicy(OpenPIPolicy):
         prompt: str | None = None,
     ) -> None:
         super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt)
-        self.path = Path(str(path)).expanduser()
-        self.config = read_checkpoint(self.path)
-        self.image_keys = [key for key in self.config["input_features"] if key in LEROBOT_CAMERAS]
-        self.camera_names = tuple(LEROBOT_CAMERAS[key] for key in self.image_keys)
         self.python = Path(python) if python else default_python()
         if not self.python.is_file():
             raise ValueError(f"lerobot: no Python at {self.python} for LeRobot's environment; {SETUP_HINT}")
+        if is_hub_id(str(path)):  # LeRobot's venv fetches it (config now, the rest when the server loads it)
+            self.path = Path(str(path))
+            config_file = fetch_hub_config(self.python, str(path))
+            self.config = check_config(config_file, str(path))
+        else:
+            self.path = Path(str(path)).expanduser()
+            config_file = self.path / "config.json"
+            self.config = read_checkpoint(self.path)
+        self.image_keys = [key for key in self.config["input_features"] if key in LEROBOT_CAMERAS]
+        self.camera_names = tuple(LEROBOT_CAMERAS[key] for key in self.image_keys)
         self.device = str(device)
         try:
             self.threads = int(threads)
@@ -141,7 +185,7 @@ class LeRobotPolicy(OpenPIPolicy):
         if self.threads < 0:
             raise ValueError(f"threads must be a whole number >= 0, got {threads!r}")
         self.startup_timeout_s = positive_number("startup_timeout_s", startup_timeout_s)
-        self.config_sha256 = hashlib.sha256((self.path / "config.json").read_bytes()).hexdigest()
+        self.config_sha256 = hashlib.sha256(config_file.read_bytes()).hexdigest()
         self._server: subprocess.Popen | None = None
         self._server_log = None
         self._episode_start = False
@@ -214,12 +258,11 @@ class LeRobotPolicy(OpenPIPolicy):
         self._server_log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - lives as long as the server
         command = [str(self.python), str(SERVER_SCRIPT), "--path", str(self.path), "--device", self.device]
         command += ["--threads", str(self.threads), "--port", "0", "--parent-pid", str(os.getpid())]
-        env = {**os.environ, "PYTHONNOUSERSITE": "1"}
-        env.pop("PYTHONPATH", None)  # our package's path must not shadow LeRobot's venv
         try:
             self._server = subprocess.Popen(
-                command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log, env=env, text=True
-            )
+                command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log,
+                env=venv_environment(), text=True,
+            )  # fmt: skip
         except OSError as exc:
             raise PolicyError(f"lerobot: cannot start {self.python} ({exc}); {SETUP_HINT}") from None
         ready: list[dict] = []

@@ -153,12 +153,15 @@ def test_episode_runs_in_both_protocols(checkpoints, kind, transport, tmp_path):
 
 
 # -- refusals -------------------------------------------------------------------------------------
-def test_missing_or_broken_checkpoint_is_one_line(tmp_path):
+def test_missing_or_broken_checkpoint_is_one_line(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="is not a checkpoint directory") as missing:
         make_policy("lerobot", path=str(tmp_path / "nope"))
     assert "\n" not in str(missing.value)
-    with pytest.raises(ValueError, match="hub id needs the network"):
-        make_policy("lerobot", path="lerobot/act_libero")
+    # A hub id is fetched by LeRobot's venv (huggingface_hub); offline, and nothing cached, it is one line.
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # no traffic off this machine, even if it had a network
+    with pytest.raises(ValueError, match="nor a hub checkpoint that could be fetched") as hub:
+        make_policy("lerobot", path="lq-tests/no_such_checkpoint")
+    assert "\n" not in str(hub.value) and "huggingface-cli download" in str(hub.value)
     (tmp_path / "config.json").write_text("{}")
     with pytest.raises(ValueError, match="missing model.safetensors"):
         make_policy("lerobot", path=str(tmp_path))
