@@ -18,8 +18,9 @@ episodes (``/lq_policy/set_parameters``), but a ``package.module:Class`` policy 
 only if the launching user chose it: it (with the same ``policy_args``) is what the process was started
 with (``--params-file`` / ``-p``), or what the params file it was started with says at configure (the
 launcher rewrites that file, in its private folder, before every episode). A registered policy name
-(``scripted``, ``oft``, ``flow``, ``openpi``, ``openvla``...) may be switched at runtime. Anything else is
-refused at configure, with the reason, before the module is imported.
+(``scripted``, ``oft``, ``flow``, ``openpi``, ``openvla``...) may be switched at runtime, unless its arguments
+run code (``lerobot``: a Python program and a checkpoint; ``Policy.args_run_code``), which is treated as a
+``package.module:Class``. Anything else is refused at configure, with the reason, before the module is imported.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from pathlib import Path
 import yaml
 
 from lq_ros.core.run_config import RunConfig
-from lq_ros.policies import REGISTRY, Policy, is_registered, make_policy
+from lq_ros.policies import REGISTRY, Policy, is_registered, make_policy, policy_class
 from lq_ros.transport.ros.endpoints import ChunkServer
 from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.wire import messages as m
@@ -76,13 +77,15 @@ def policy_in_params_file(path: Path, node_name: str = NODE_NAME) -> tuple[str, 
 
 
 def refuse_untrusted_policy(policy: str, args: dict, chosen_by_user: list[tuple[str, dict]]) -> None:
-    """ValueError unless ``policy`` is a registry name or exactly a (policy, args) the launching user chose."""
-    if is_registered(policy) or (policy, args) in chosen_by_user:
+    """ValueError unless ``policy`` is a registry name whose arguments run no code (not ``lerobot``: its ``python``
+    and checkpoint do) or exactly a (policy, args) the launching user chose."""
+    if (policy, args) in chosen_by_user or (is_registered(policy) and not policy_class(policy).args_run_code):
         return
     raise ValueError(
         f"policy {policy!r} with these policy_args was set at runtime, not by the user who launched this node: "
         "a package.module:Class policy runs code, so it is accepted only from the launch (params file or "
-        f"--ros-args -p policy:=...); at runtime choose a registered policy ({', '.join(sorted(REGISTRY))})"
+        "--ros-args -p policy:=...); at runtime choose a registered policy whose arguments run no code "
+        f"({', '.join(sorted(n for n in REGISTRY if not policy_class(n).args_run_code))})"
     )
 
 

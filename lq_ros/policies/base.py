@@ -33,6 +33,10 @@ class Policy(abc.ABC):
     #: True if ``infer`` reads privileged object poses (``Observation.objects``): on a robot they must come from
     #: a tracker's pose topics, else the run is refused at configure time (lq_ros/robot/observation_builder.py).
     needs_object_poses: bool = False
+    #: True if the policy's arguments name code it runs (a program, a checkpoint whose files name classes to
+    #: import): like ``package.module:Class``, such a policy is built only with the arguments the launching user
+    #: chose, never from a runtime parameter change (nodes/policy_node.py).
+    args_run_code: bool = False
 
     @abc.abstractmethod
     def reset(self, task: TaskInfo, seed: int) -> None:

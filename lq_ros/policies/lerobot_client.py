@@ -152,6 +152,8 @@ class LeRobotPolicy(OpenPIPolicy):
 
     name = "lerobot"
     render_size = LEROBOT_LIBERO_RENDER_SIZE
+    #: ``python`` is a program to run and the checkpoint's processor files name classes LeRobot imports.
+    args_run_code = True
 
     def __init__(
         self,

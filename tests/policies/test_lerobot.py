@@ -250,3 +250,15 @@ def test_server_binds_loopback_only_and_dies_with_its_parent(checkpoints, tmp_pa
         time.sleep(0.2)
     os.kill(server_pid, signal.SIGKILL)
     pytest.fail("the LeRobot server outlived the process that started it")
+
+
+def test_policy_node_accepts_lerobot_only_as_launched():
+    """Its ``python`` is a program to run: like package.module:Class, never from a runtime parameter change."""
+    from lq_ros_nodes.policy_node import refuse_untrusted_policy
+
+    launched = ("lerobot", {"path": "/ckpt/act"})
+    refuse_untrusted_policy(*launched, chosen_by_user=[launched])
+    refuse_untrusted_policy("scripted", {}, chosen_by_user=[launched])  # registered, runs nothing: switchable
+    with pytest.raises(ValueError, match="set at runtime, not by the user who launched this node") as refused:
+        refuse_untrusted_policy("lerobot", {"path": "/ckpt/act", "python": "/tmp/x"}, chosen_by_user=[launched])
+    assert "lerobot" not in str(refused.value).rsplit("(", 1)[1]  # not offered as a runtime choice
