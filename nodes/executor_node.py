@@ -3,9 +3,9 @@
 Per tick (see lq_ros.core.executor_protocol): apply the chunk due now (waiting for it if needed), maybe request
 an observation (once /clock says the sim is at that tick, and wait until the sim has captured it, so the
 observation is of this tick), then publish the one command for the tick. Ticks that need neither are
-commanded ahead, without waiting for the sim (``advance``). Malformed chunks are rejected with a CHUNK_REJECTED
-event and never published as commands (lq_ros.transport.ros.endpoints.ExecutorLink, shared with the real-time
-executor).
+commanded ahead, without waiting for the sim. The loop is lq_ros.core.executor_protocol.TickDriver (every
+transport's); this node's handlers say when to wait. Malformed chunks are rejected with a CHUNK_REJECTED event
+and never published as commands (lq_ros.transport.ros.endpoints.ExecutorLink, shared with the real-time executor).
 
 Only the policy node's chunks are heard (lq_ros.transport.ros.senders), and of those only the chunk of the
 outstanding request is held (one at most, the first to arrive): a chunk for any other request id is dropped
@@ -20,7 +20,7 @@ from __future__ import annotations
 import sys
 import time
 
-from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.core.executor_protocol import ExecutorCore, TickDriver
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
 from lq_ros.transport.ros.endpoints import ExecutorLink
@@ -45,9 +45,9 @@ class ExecutorNode(EpisodeNode):
         self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
         self.finished = False
         self.tick_limit = cfg.tick_limit  # no command is sent for a tick the episode cannot reach
-        self.next_tick = 0  # the tick whose command comes next
+        self.driver = TickDriver(self.core, self)  # driver.tick: the tick whose command comes next
         self.sim_tick = -1  # the last tick the sim announced on /clock (its state is of that tick)
-        self.pending_request = None  # a Request of next_tick, sent once the sim has reached that tick
+        self.pending_request = None  # a Request of driver.tick, sent once the sim has reached that tick
         self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
         self.outstanding: int | None = None  # the request id whose chunk is awaited (one inference in flight)
         self.chunk = None  # its ActionChunk, once arrived: the only chunk ever held
@@ -55,7 +55,7 @@ class ExecutorNode(EpisodeNode):
         self.waiting_since: float | None = None
 
         self.link = ExecutorLink(
-            self.core, self.episode_publisher, self.get_logger(), stamp=lambda: (self.tick_ns, self.next_tick)
+            self.core, self.episode_publisher, self.get_logger(), stamp=lambda: (self.tick_ns, self.driver.tick)
         )
         self.episode_subscription(m.CLOCK, self.on_clock)
         self.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
@@ -70,14 +70,15 @@ class ExecutorNode(EpisodeNode):
     # -- callbacks --------------------------------------------------------------------------
     @property
     def tick_ns(self) -> int:
-        """Sim time of ``next_tick``, ns: the stamp of its command, request and events (as in process)."""
-        return m.to_ns(sim_time_of_tick(self.next_tick))
+        """Sim time of ``driver.tick``, ns: the stamp of its command, request and events (as in process)."""
+        return m.to_ns(sim_time_of_tick(self.driver.tick))
 
     def on_clock(self, msg) -> None:
         if self.finished:
             return
         self.sim_tick = tick_of_sim_time(m.stamp_ns(msg) / 1e9)
-        self.advance()
+        self.send_pending_request()
+        self.driver.drive()
 
     def on_chunk(self, msg) -> None:
         """Hold the chunk of the outstanding request; any other (a stale, duplicate or foreign request id) is
@@ -93,49 +94,56 @@ class ExecutorNode(EpisodeNode):
             self.warn(f"dropped a second chunk for request {rid}: the first to arrive is applied", {"request_id": rid})
             return
         self.chunk = msg
-        self.advance()
+        self.driver.drive()
 
     def on_observation(self, msg) -> None:
         if msg.request_id == self.awaiting_observation:
             self.awaiting_observation = None
-            self.advance()
+            self.driver.drive()
 
     def on_event(self, event) -> None:
         if event.kind in m.EventKind.TERMINAL:
             self.finished = True
 
-    # -- the tick state machine -------------------------------------------------------------
-    def advance(self) -> None:
-        """Command as many ticks as the messages in hand allow (lq_ros.core.executor_protocol's loop).
+    # -- the tick: lq_ros.core.executor_protocol.TickDriver's handlers -------------------------------------
+    # A tick's command depends on a new observation only at a request tick and on a new chunk only at its due
+    # tick; every other command (buffered actions, holds) is known already. So the commands run ahead of the sim
+    # up to the next tick that needs either, and the sim steps through them without a round trip per tick. A
+    # request is sent once the sim has reached its tick (/clock), and the tick's command only once the sim has
+    # captured that observation, so the observation is of that tick, exactly as in process.
+    def ready(self) -> bool:
+        return (
+            not self.finished
+            and self.sim_tick >= 0
+            and self.awaiting_observation is None
+            and self.pending_request is None
+            and self.driver.tick < self.tick_limit  # the episode ends there at the latest (the sim's budget rule)
+        )
 
-        A tick's command depends on a new observation only at a request tick and on a new chunk only at its
-        due tick; every other command (buffered actions, holds) is known already. So the commands run ahead of
-        the sim up to the next tick that needs either, and the sim steps through them without a round trip per
-        tick. A request is sent once the sim has reached its tick (/clock), and the tick's command only once the
-        sim has captured that observation, so the observation is of that tick, exactly as in process.
-        """
-        while not self.finished and self.sim_tick >= 0 and self.awaiting_observation is None:
-            if self.next_tick >= self.tick_limit:
-                return  # the episode ends there at the latest (the sim's budget rule)
-            if self.pending_request is not None:
-                if self.sim_tick < self.next_tick:
-                    return  # on_clock calls advance again when the sim gets there
-                request, self.pending_request = self.pending_request, None
-                self.awaiting_observation = self.outstanding = request.request_id
-                self.chunk = None
-                self.link.request_observation(self.tick_ns, request)
-                continue
-            step = self.core.advance(self.next_tick)
-            if isinstance(step, ObservationNeeded):
-                self.pending_request = step.request
-            elif isinstance(step, ChunkDue):
-                if not self.deliver(step.request):
-                    return  # not arrived yet: on_chunk calls advance again
-            elif isinstance(step, Failed):
-                self.end_with_error(step.reason)
-            else:
-                self.link.command(self.tick_ns, step)
-                self.next_tick += 1
+    def request(self, request) -> bool:
+        self.pending_request = request
+        self.send_pending_request()
+        return False  # until the sim has captured the observation (on_observation drives on)
+
+    def send_pending_request(self) -> None:
+        """Send the pending request once the sim is at its tick (else on_clock calls again)."""
+        request = self.pending_request
+        if request is None or self.finished or self.sim_tick < self.driver.tick:
+            return
+        self.pending_request = None
+        self.awaiting_observation = self.outstanding = request.request_id
+        self.chunk = None
+        self.link.request_observation(self.tick_ns, request)
+
+    def chunk_due(self, due) -> bool:
+        return self.deliver(due)  # False until it has arrived: on_chunk drives on
+
+    def failed(self, reason: str) -> None:
+        self.end_with_error(reason)
+
+    def command(self, step) -> bool:
+        self.link.command(self.tick_ns, step)
+        return True
 
     def deliver(self, due) -> bool:
         """Apply the chunk due at this tick; False while it has not arrived."""

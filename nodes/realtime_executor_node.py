@@ -21,7 +21,7 @@ import time
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded
+from lq_ros.core.executor_protocol import ExecutorCore, TickDriver
 from lq_ros.transport.ros.endpoints import ExecutorLink
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, declare_run_config, publisher, raw_subscription, run
 from lq_ros.transport.ros.wall_clock import COMMAND_DEADLINE_S, OverrunCounter, TickClock
@@ -46,8 +46,8 @@ class RealtimeExecutorNode(Node):
 
         self.clock: TickClock | None = None
         self.finished = False
-        self.next_tick = 0
-        self.tick: int | None = None  # tick whose command is being decided
+        self.driver = TickDriver(self.core, self)  # driver.tick: the tick being decided, or the next one
+        self.deciding = False  # the wall clock has reached driver.tick and its command is not out yet
         self.tick_start_ns = 0
         self.waiting_due = False
         self.chunks: dict[int, object] = {}  # request id -> decoded ActionChunk
@@ -65,59 +65,59 @@ class RealtimeExecutorNode(Node):
     def on_chunk(self, msg) -> None:
         self.chunks[msg.request_id] = msg
         self.requested_at.pop(msg.request_id, None)
-        if self.tick is not None and self.waiting_due:
-            self.advance()
+        if self.deciding and self.waiting_due:
+            self.driver.drive()
 
     def poll(self) -> None:
         if self.finished or self.clock is None:
             return
         now = time.time_ns()
-        if self.tick is None and now >= self.clock.tick_ns(self.next_tick):
-            self.tick, self.tick_start_ns = self.next_tick, now
-            self.next_tick += 1
-            self.advance()
-        elif (
-            self.tick is not None
-            and self.waiting_due
-            and now >= self.clock.tick_ns(self.tick) + COMMAND_DEADLINE_S * 1e9
-        ):
-            self.core.late(self.tick)
+        tick = self.driver.tick
+        if not self.deciding and now >= self.clock.tick_ns(tick):
+            self.deciding, self.tick_start_ns = True, now
+            self.driver.drive()
+        elif self.deciding and self.waiting_due and now >= self.clock.tick_ns(tick) + COMMAND_DEADLINE_S * 1e9:
+            self.core.late(tick)
             self.late_chunks += 1
             self.waiting_due = False
-            self.advance()
+            self.driver.drive()
         stuck = [rid for rid, t in self.requested_at.items() if time.monotonic() - t > self.chunk_timeout_s]
         if stuck and not self.finished:
             self.end_with_error(f"no chunk from the policy within {self.chunk_timeout_s} s (wall clock)")
 
-    # -- the tick -----------------------------------------------------------------------------------------
-    def advance(self) -> None:
-        """Work out the current tick's command without waiting (see the module docstring)."""
-        while not self.finished and self.tick is not None:
-            step = self.core.advance(self.tick)
-            if isinstance(step, ObservationNeeded):
-                self.link.request_observation(self.clock.tick_ns(self.tick), step.request)
-                self.requested_at[step.request.request_id] = time.monotonic()
-            elif isinstance(step, ChunkDue):
-                msg = self.chunks.pop(step.request.request_id, None)
-                if msg is None:
-                    self.waiting_due = True  # until it arrives or the deadline passes (poll)
-                    return
-                self.waiting_due = False
-                error = self.link.apply_chunk(step.request.request_id, msg)
-                if error:
-                    self.end_with_error(error)
-            elif isinstance(step, Failed):
-                self.end_with_error(step.reason)
-            else:
-                self.link.command(self.clock.tick_ns(self.tick), step)
-                now = time.time_ns()
-                scheduled = self.clock.tick_ns(self.tick)
-                self.overruns.record(self.tick, self.tick_start_ns - scheduled, now - self.tick_start_ns)
-                self.tick = None
+    # -- the tick: lq_ros.core.executor_protocol.TickDriver's handlers; nothing waits but a due chunk ----------
+    def ready(self) -> bool:
+        return not self.finished and self.deciding
+
+    def request(self, request) -> bool:
+        self.link.request_observation(self.clock.tick_ns(request.tick), request)  # its observation is not awaited
+        self.requested_at[request.request_id] = time.monotonic()
+        return True
+
+    def chunk_due(self, due) -> bool:
+        msg = self.chunks.pop(due.request_id, None)
+        if msg is None:
+            self.waiting_due = True  # until it arrives or the deadline passes (poll)
+            return False
+        self.waiting_due = False
+        error = self.link.apply_chunk(due.request_id, msg)
+        if error:
+            self.end_with_error(error)
+        return True
+
+    def failed(self, reason: str) -> None:
+        self.end_with_error(reason)
+
+    def command(self, step) -> bool:
+        scheduled = self.clock.tick_ns(step.tick)
+        self.link.command(scheduled, step)
+        self.overruns.record(step.tick, self.tick_start_ns - scheduled, time.time_ns() - self.tick_start_ns)
+        self.deciding = False
+        return False  # one tick per period: poll starts the next when the wall clock reaches it
 
     def event_stamp(self) -> tuple[int, int]:
         """(scheduled wall time, tick) of the tick being decided (or the next one) for an event."""
-        tick = self.tick if self.tick is not None else self.next_tick
+        tick = self.driver.tick
         return (self.clock.tick_ns(tick) if self.clock else 0), tick
 
     def end_with_error(self, reason: str) -> None:

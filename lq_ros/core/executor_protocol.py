@@ -22,6 +22,11 @@ due tick is later whatever the draws); a long draw delays every later request (t
 underrun ticks); and the old plan can overlap a new chunk only when H > 2N (a chunk of H rows lands with
 H - N fresh ones, and the next one needs N more ticks), whatever the request threshold.
 
+Every transport runs the same loop around the core, :class:`TickDriver`: ask about the current tick, hand
+the answer to the transport's :class:`TickHandlers`, go on until a handler waits for something. Only what
+"now" and "waiting" mean differs (a function call in process, a message through ROS, a wall-clock deadline
+in real time).
+
 The async merge strategies are in lq_ros/core/merge.py; ``rtc``/``rtc_hard`` also hand the policy the executing
 prefix with the request (:attr:`Request.prefix`).
 """
@@ -31,6 +36,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
+from typing import Protocol
 
 import numpy as np
 
@@ -411,3 +417,56 @@ class ExecutorCore:
         held = np.zeros(ACTION_DIM)
         held[-1] = self._last_action[-1]
         return held
+
+
+class TickHandlers(Protocol):
+    """What a transport does with each answer of the core (:class:`TickDriver`). A handler returns True to go on
+    deciding, False to wait (for an observation, a chunk, the sim, the wall clock, or the end of the episode)."""
+
+    def ready(self) -> bool:
+        """Whether the driver's tick can be decided now."""
+
+    def request(self, request: Request) -> bool:
+        """Inference starts on the observation of ``request.tick``."""
+
+    def chunk_due(self, request: Request) -> bool:
+        """The chunk of ``request`` takes effect now: deliver it (:meth:`ExecutorCore.deliver`), or wait for it."""
+
+    def failed(self, reason: str) -> None:
+        """The episode ends as an error."""
+
+    def command(self, command: Command) -> bool:
+        """Send (or apply) the tick's command; after it the driver is at the next tick."""
+
+
+class TickDriver:
+    """The one loop of every transport around :meth:`ExecutorCore.advance`.
+
+    ``tick`` is the tick being decided (the next one once its command went out). :meth:`drive` asks the core
+    about it and hands each answer to the handlers until one of them waits, the tick is not ready, or the core
+    failed; a transport calls it again when what it waited for has come.
+    """
+
+    def __init__(self, core: ExecutorCore, handlers: TickHandlers, tick: int = 0) -> None:
+        self.core = core
+        self.handlers = handlers
+        self.tick = tick
+        self.failed = False
+
+    def drive(self) -> None:
+        handlers = self.handlers
+        while not self.failed and handlers.ready():
+            step = self.core.advance(self.tick)
+            if isinstance(step, ObservationNeeded):
+                go = handlers.request(step.request)
+            elif isinstance(step, ChunkDue):
+                go = handlers.chunk_due(step.request)
+            elif isinstance(step, Failed):
+                self.failed = True
+                handlers.failed(step.reason)
+                return
+            else:
+                go = handlers.command(step)
+                self.tick += 1
+            if not go:
+                return

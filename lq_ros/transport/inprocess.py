@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lq_ros.core.executor_protocol import ChunkDue, ExecutorCore, Failed, ObservationNeeded, Source
+from lq_ros.core.executor_protocol import ExecutorCore, Source, TickDriver
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.policies import Policy, make_policy
@@ -98,7 +98,7 @@ def run_inprocess(
     env_versions = versions()
     camera_size_px = env.camera_size if policy.camera_names else None
     writer.set_run_metadata(run_metadata(cfg, policy.params(), "inprocess", env_versions, camera_size_px))
-    tick = 0
+    driver: TickDriver | None = None
     try:
         state = env.reset(cfg.init, cfg.seed)
         policy.reset(env.task, cfg.seed)
@@ -133,37 +133,59 @@ def run_inprocess(
             chunk = m.chunk_actions(m.deserialize(chunk_bytes, m.ACTION_CHUNK.msgtype))
             reason = core.deliver(req.request_id, chunk)
             if reason is not None:
-                rec.event(m.EventKind.CHUNK_REJECTED, tick, reason, {"request_id": req.request_id})
+                rec.event(m.EventKind.CHUNK_REJECTED, driver.tick, reason, {"request_id": req.request_id})
             for warning in core.take_warnings():
-                rec.event(m.EventKind.WARNING, tick, warning, {"request_id": req.request_id})
+                rec.event(m.EventKind.WARNING, driver.tick, warning, {"request_id": req.request_id})
 
-        action_ticks, spent = 0, None  # ticks whose command came from a chunk; why the budget ended the episode
-        while spent is None:
-            step = core.advance(tick)
-            if isinstance(step, ObservationNeeded):
-                chunks[step.request.request_id] = infer(step.request)
-                continue
-            if isinstance(step, ChunkDue):
-                deliver(step.request)
-                continue
-            if isinstance(step, Failed):
-                rec.event(m.EventKind.ERROR, tick, step.reason)
-                return EpisodeOutcome("error", tick, step.reason, bag_path)
-            t_ns = m.to_ns(sim_time_of_tick(tick))
-            rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, step))
-            state = env.step(step.action)
-            tick += 1
-            action_ticks += step.source is Source.CHUNK
-            spent = None if state.success else cfg.budget_spent(tick, action_ticks)
-            for topic, ts, data in m.tick_state_msgs(state, cfg.physics_rate, clock=not (state.success or spent)):
-                rec.put_at(topic, ts, data)
-            if state.success:
-                rec.event(m.EventKind.SUCCESS, tick)
-                return EpisodeOutcome("success", tick, "", bag_path)
-        rec.event(m.EventKind.TIMEOUT, tick, spent)
-        return EpisodeOutcome("failure", tick, "timeout", bag_path)
+        class InProcessTicks:
+            """Nothing is waited for: inference and delivery happen when asked, the env steps each command."""
+
+            def __init__(self) -> None:
+                self.action_ticks = 0  # ticks whose command came from a chunk
+                self.state = state
+                self.spent: str | None = None  # why the budget ended the episode
+                self.error: str | None = None
+
+            def ready(self) -> bool:
+                return True
+
+            def request(self, req) -> bool:
+                chunks[req.request_id] = infer(req)
+                return True
+
+            def chunk_due(self, req) -> bool:
+                deliver(req)
+                return True
+
+            def failed(self, reason: str) -> None:
+                self.error = reason
+
+            def command(self, step) -> bool:
+                t_ns = m.to_ns(sim_time_of_tick(step.tick))
+                rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, step))
+                self.state = state = env.step(step.action)
+                self.action_ticks += step.source is Source.CHUNK
+                self.spent = None if state.success else cfg.budget_spent(step.tick + 1, self.action_ticks)
+                for topic, ts, data in m.tick_state_msgs(
+                    state, cfg.physics_rate, clock=not (state.success or self.spent)
+                ):
+                    rec.put_at(topic, ts, data)
+                return not (state.success or self.spent)
+
+        ticks = InProcessTicks()
+        driver = TickDriver(core, ticks)
+        driver.drive()
+        if ticks.error is not None:
+            rec.event(m.EventKind.ERROR, driver.tick, ticks.error)
+            return EpisodeOutcome("error", driver.tick, ticks.error, bag_path)
+        if ticks.state.success:
+            rec.event(m.EventKind.SUCCESS, driver.tick)
+            return EpisodeOutcome("success", driver.tick, "", bag_path)
+        rec.event(m.EventKind.TIMEOUT, driver.tick, ticks.spent)
+        return EpisodeOutcome("failure", driver.tick, "timeout", bag_path)
     except Exception as exc:  # noqa: BLE001 - any crash is an *error*, recorded with its traceback
         reason = f"{type(exc).__name__}: {exc}"
+        tick = driver.tick if driver is not None else 0
         rec.event(m.EventKind.ERROR, tick, reason, {"traceback": traceback.format_exc()})
         return EpisodeOutcome("error", tick, reason, bag_path)
     finally:

@@ -8,9 +8,9 @@ from lq_ros.core.executor_protocol import (
     Command,
     ExecutorConfig,
     ExecutorCore,
-    Failed,
     ObservationNeeded,
     Source,
+    TickDriver,
     validate_chunk,
 )
 
@@ -24,22 +24,69 @@ def chunk_for(tick: int, horizon: int = 8) -> np.ndarray:
 
 
 def drive(core: ExecutorCore, ticks: int, make_chunk=chunk_for):
-    """The transport loop of lq_ros.core.executor_protocol's docstring; returns the commands and requests."""
+    """``ticks`` ticks through the TickDriver with handlers that answer at once (the in-process transport's
+    shape); returns the commands and requests."""
     pending, commands, requests = {}, [], []
-    for t in range(ticks):
-        while True:
-            step = core.advance(t)
-            if isinstance(step, ObservationNeeded):
-                requests.append(step.request)
-                pending[step.request.request_id] = make_chunk(step.request.tick)
-            elif isinstance(step, ChunkDue):
-                core.deliver(step.request.request_id, pending.pop(step.request.request_id))
-            elif isinstance(step, Failed):
-                return commands, requests
-            else:
-                commands.append(step)
-                break
+
+    class AtOnce:
+        def ready(self) -> bool:
+            return driver.tick < ticks
+
+        def request(self, req) -> bool:
+            requests.append(req)
+            pending[req.request_id] = make_chunk(req.tick)
+            return True
+
+        def chunk_due(self, req) -> bool:
+            core.deliver(req.request_id, pending.pop(req.request_id))
+            return True
+
+        def failed(self, reason: str) -> None:
+            pass
+
+        def command(self, step) -> bool:
+            commands.append(step)
+            return True
+
+    driver = TickDriver(core, AtOnce())
+    driver.drive()
     return commands, requests
+
+
+def test_tick_driver_waits_where_a_handler_says_and_resumes_there():
+    """A handler's False stops the loop at that tick; drive() again resumes it; a command moves to the next tick."""
+    core = ExecutorCore(ExecutorConfig(mode="sync", latency_ticks=2, replan_steps=2))
+    seen, arrived = [], {}
+
+    class Waiting:
+        def ready(self) -> bool:
+            return driver.tick < 6
+
+        def request(self, req) -> bool:
+            seen.append(("request", driver.tick))
+            return True
+
+        def chunk_due(self, req) -> bool:
+            if req.request_id not in arrived:
+                seen.append(("wait", driver.tick))
+                return False
+            core.deliver(req.request_id, arrived.pop(req.request_id))
+            return True
+
+        def failed(self, reason: str) -> None:
+            seen.append(("failed", reason))
+
+        def command(self, step) -> bool:
+            seen.append(("command", step.tick))
+            return True
+
+    driver = TickDriver(core, Waiting())
+    driver.drive()
+    assert seen == [("request", 0), ("command", 0), ("command", 1), ("wait", 2)] and driver.tick == 2
+    arrived[1] = chunk_for(0)
+    driver.drive()
+    assert seen[4:] == [("command", 2), ("command", 3), ("request", 4), ("command", 4), ("command", 5)]
+    assert driver.tick == 6 and not driver.failed
 
 
 def test_advance_answers_in_the_order_of_a_tick():
