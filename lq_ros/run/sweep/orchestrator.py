@@ -121,6 +121,8 @@ def run_sweep(
     transport = transport or spec.transport or "ros"
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
+    if transport != "ros" and any(cfg.clock == "realtime" for cfg in spec.configs):
+        raise ValueError(f"the spec's clock is realtime, which runs through ROS only: transport ros, not {transport}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if workers is not None and workers < 1:

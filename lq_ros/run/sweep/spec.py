@@ -15,7 +15,7 @@ import yaml
 
 from lq_ros.core.latency import LatencyError, parse_latency
 from lq_ros.core.redact import redact_value
-from lq_ros.core.run_config import BUDGET_COUNTS, PROTOCOL_FIELDS, RunConfig
+from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, PROTOCOL_FIELDS, RunConfig
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.validation import num_tasks
@@ -46,6 +46,7 @@ PROTOCOL_KEYS = PROTOCOL_FIELDS
 SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
     "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budget_counts",
+    "clock", "robot",
 }  # fmt: skip
 
 
@@ -347,6 +348,7 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             if not isinstance(raw[key], typ) or (typ is int and isinstance(raw[key], bool)):
                 raise SpecError(f"{key}: expected {typ.__name__}, got {raw[key]!r}")
             common[key] = raw[key]
+    common.update(_clock_and_robot(raw, transport))
     if not 0 <= common.get("max_steps", 0) <= MAX_STEPS:
         raise SpecError(f"max_steps: expected 0 (the suite's budget) or 1..{MAX_STEPS} ticks, got {raw['max_steps']}")
     if not 0 <= common.get("camera_size", 0) <= MAX_CAMERA_SIZE_PX:
@@ -372,6 +374,32 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
                 raise SpecError(f"the spec lists the same episode twice: {cfg.episode_name()}")
             configs[cfg.key()] = cfg
     return SweepSpec(name, tuple(configs.values()), transport, timeout_s, raw)
+
+
+def _clock_and_robot(raw: dict, transport: str | None) -> dict:
+    """``clock`` (lockstep or realtime) and ``robot`` (a robot YAML or a shipped name; needs realtime)."""
+    out = {}
+    clock = raw.get("clock", "lockstep")
+    if clock not in CLOCKS:
+        raise SpecError(f"clock: expected one of {', '.join(CLOCKS)}, got {clock!r}")
+    if clock != "lockstep":
+        if transport == "inprocess":
+            raise SpecError("clock: realtime runs through ROS only (transport: ros)")
+        out["clock"] = clock
+    robot = raw.get("robot", "")
+    if robot:
+        if not isinstance(robot, str):
+            raise SpecError(f"robot: expected a robot YAML or a shipped robot name, got {robot!r}")
+        if clock != "realtime":
+            raise SpecError("robot: a robot runs on wall-clock time: it needs clock: realtime")
+        from lq_ros.robot.robot_config import load_robot_config
+
+        try:
+            load_robot_config(robot)
+        except (OSError, ValueError) as exc:
+            raise SpecError(f"robot: {exc}") from None
+        out["robot"] = robot
+    return out
 
 
 def _budget_counts(raw: dict) -> list[str]:

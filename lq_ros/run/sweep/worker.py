@@ -79,7 +79,9 @@ class EpisodeWorker:
                     env, policy = self._env_policy(cfg)
                     outcome, row = run_episode(cfg, self.bags_dir, "inprocess", env=env, policy=policy)
                 else:
-                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s, stack=self._ros())
+                    # A real-time episode (wall-clock sim or a robot) launches its own processes for now.
+                    stack = None if cfg.clock == "realtime" else self._ros()
+                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s, stack=stack)
                 status, reason = outcome.status, outcome.reason
                 if status == "error" and outcome.reason:
                     print(f"episode error: {outcome.reason}", flush=True)

@@ -148,3 +148,21 @@ def test_shipped_demo_spec_is_valid():
     assert {c.mode for c in spec.configs} == {"sync", "async"}
     assert {c.init for c in spec.configs} == {0, 1}
     sw.check_policies(spec.configs)
+
+
+def test_clock_and_robot_keys():
+    spec = sw.expand_spec(small_spec(transport="ros", clock="realtime", robot="standin", latencies_s=[0.1]))
+    assert {(c.clock, c.robot) for c in spec.configs} == {("realtime", "standin")}
+    assert all("_realtime_standin_" in c.episode_name() for c in spec.configs)
+    lockstep = sw.expand_spec(small_spec(clock="lockstep"))
+    assert {c.clock for c in lockstep.configs} == {"lockstep"}
+    assert lockstep.configs == sw.expand_spec(small_spec()).configs  # the default: nothing changes
+    for over, message in [
+        ({"clock": "wall"}, "clock: expected one of lockstep, realtime, got 'wall'"),
+        ({"transport": "inprocess", "clock": "realtime"}, "clock: realtime runs through ROS only"),
+        ({"transport": "ros", "robot": "standin"}, "robot: a robot runs on wall-clock time"),
+        ({"transport": "ros", "clock": "realtime", "robot": "no_such_robot"}, "robot: "),
+        ({"transport": "ros", "clock": "realtime", "robot": 3}, "robot: expected a robot YAML"),
+    ]:
+        with pytest.raises(sw.SpecError, match=message):
+            sw.expand_spec(small_spec(**over))

@@ -223,3 +223,22 @@ def test_ros_transport_sweep_runs_the_four_node_stack(tmp_path):
     # The task's env was created once: the stack outlived the first episode.
     assert sum("creating libero_spatial task 0" in log for log in sim_logs) == 1
     assert orphaned_shm(before_shm) == []
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+@pytest.mark.ros
+def test_realtime_and_robot_sweeps(tmp_path):
+    """A spec with clock: realtime runs wall-clock episodes, one with robot: standin runs them against the
+    stand-in robot through the bridge; a realtime spec is refused with the in-process transport."""
+    for over in ({"clock": "realtime"}, {"clock": "realtime", "robot": "standin"}):
+        spec = sw.expand_spec(small_spec(transport="ros", latencies_s=[0.1], modes=["async"], max_steps=20, **over))
+        out = tmp_path / "_".join(over.values())
+        summary = sw.run_sweep(spec, out, workers=1)
+        records = sw.ResultStore(out).records()
+        assert summary.counts == {"failure": 1}, [r["row"].get("error_reason") for r in records]
+        row = records[0]["row"]
+        assert row["clock"] == "realtime" and row["status"] == "failure"
+        assert (out / records[0]["bag"] / "logs").is_dir()
+    with pytest.raises(ValueError, match="runs through ROS only"):
+        sw.run_sweep(spec, tmp_path / "inprocess", workers=1, transport="inprocess")
