@@ -1,0 +1,140 @@
+"""Rebuild every shipped dataset and weight file from a fresh clone: ``python -m lq_ros.training.pipeline``.
+
+The stages are in ``config/training/shipped_weights.yaml``: each dataset is one ``lq collect`` and each weight
+file one ``lq train`` (every other option at the shipped recipe's default), with the seeds the shipped files
+record; tests/training/test_pipeline.py checks the file against the ``collect_config`` and ``train_config``
+each shipped JSON records. Collection resumes from finished tasks, so an interrupted rebuild goes on where it
+stopped when run again.
+
+    .venv/bin/python -m lq_ros.training.pipeline --out rebuild            # every stage, timed
+    .venv/bin/python -m lq_ros.training.pipeline --out rebuild --only oft_c8_libero_object
+    .venv/bin/python -m lq_ros.training.pipeline --out rebuild --plan     # the commands, and the recorded times
+
+``--plan`` prints each stage's command and the wall time the shipped files record for it (collection: the
+sum over tasks of each task's time, with ``workers`` tasks at a time; training: ``train_wall_s``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from lq_ros.policies.learned.chunk_policy import WEIGHTS_DIR
+from lq_ros.training.collect import CollectConfig
+from lq_ros.training.recipe import TrainConfig
+
+PIPELINE_FILE = Path(__file__).resolve().parents[2] / "config" / "training" / "shipped_weights.yaml"
+#: ``lq collect`` options a dataset entry may set, with their defaults (those of the command).
+COLLECT_OPTIONS = {"suite": "libero_spatial", "tasks": "0-9", "inits": "10-29", "noise": "0,0.1,0.2", "repeats": 1,
+                   "seed": 7, "workers": 2}  # fmt: skip
+
+
+def parse_ids(spec: str) -> tuple[int, ...]:
+    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers (as ``lq collect`` reads them)."""
+    out: list[int] = []
+    for part in str(spec).split(","):
+        lo, sep, hi = part.strip().partition("-")
+        out += range(int(lo), int(hi) + 1) if sep else [int(lo)]
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class Dataset:
+    name: str
+    options: dict  # lq collect options
+
+    def config(self) -> CollectConfig:
+        o = {**COLLECT_OPTIONS, **self.options}
+        return CollectConfig(
+            suite=o["suite"], tasks=parse_ids(o["tasks"]), inits=parse_ids(o["inits"]),
+            noise_levels=tuple(float(x) for x in str(o["noise"]).split(",")), repeats=int(o["repeats"]),
+            seed=int(o["seed"]), workers=int(o["workers"]),
+        )  # fmt: skip
+
+    def command(self, out: Path) -> list[str]:
+        argv = [sys.executable, "-m", "lq_ros.cli", "collect", "--out", str(out / "data" / self.name)]
+        for key, value in self.options.items():
+            argv += [f"--{key.replace('_', '-')}", str(value)]
+        return argv
+
+
+@dataclass(frozen=True)
+class Weights:
+    name: str
+    policy: str
+    chunk: int
+    data: tuple[str, ...]
+
+    def config(self) -> TrainConfig:
+        return TrainConfig(policy=self.policy, horizon=self.chunk)
+
+    def command(self, out: Path) -> list[str]:
+        argv = [sys.executable, "-m", "lq_ros.cli", "train", "--policy", self.policy, "--chunk", str(self.chunk)]
+        for name in self.data:
+            argv += ["--data", str(out / "data" / name)]
+        return argv + ["--out", str(out / "weights")]
+
+
+def load_pipeline(path: Path = PIPELINE_FILE) -> tuple[dict[str, Dataset], dict[str, Weights]]:
+    raw = yaml.safe_load(Path(path).read_text())
+    datasets = {name: Dataset(name, dict(options)) for name, options in raw["datasets"].items()}
+    weights = {
+        name: Weights(name, entry["policy"], int(entry["chunk"]), tuple(entry["data"]))
+        for name, entry in raw["weights"].items()
+    }
+    unknown = {d for w in weights.values() for d in w.data} - set(datasets)
+    if unknown:
+        raise ValueError(f"{path}: weights use datasets that are not defined: {sorted(unknown)}")
+    return datasets, weights
+
+
+def recorded_times(weights: dict[str, Weights]) -> tuple[dict[str, float], dict[str, float]]:
+    """Wall seconds the shipped JSONs record: per dataset (sum of its tasks' times) and per weight file."""
+    collect_s, train_s = {}, {}
+    for w in weights.values():
+        meta = json.loads((WEIGHTS_DIR / f"{w.name}.json").read_text())
+        train_s[w.name] = float(meta["metrics"]["train_wall_s"])
+        for name, source in zip(w.data, meta["dataset"]["sources"], strict=True):
+            collect_s[name] = sum(t["wall_s"] for t in source["collection"]["per_task"].values())
+    return collect_s, train_s
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder for data/<dataset> and weights/")
+    parser.add_argument("--only", nargs="*", default=None, help="weight files to build (and their datasets)")
+    parser.add_argument("--plan", action="store_true", help="print the commands and the recorded times only")
+    parser.add_argument("--pipeline", type=Path, default=PIPELINE_FILE)
+    args = parser.parse_args(argv)
+    datasets, weights = load_pipeline(args.pipeline)
+    chosen = {n: w for n, w in weights.items() if args.only is None or n in args.only}
+    if args.only and set(args.only) - set(weights):
+        print(f"error: unknown weights {sorted(set(args.only) - set(weights))}; known: {sorted(weights)}")
+        return 2
+    needed = [datasets[d] for d in dict.fromkeys(d for w in chosen.values() for d in w.data)]
+    collect_s, train_s = recorded_times(weights)
+    stages = [(f"collect {d.name}", d.command(args.out), collect_s.get(d.name)) for d in needed]
+    stages += [(f"train {w.name}", w.command(args.out), train_s.get(w.name)) for w in chosen.values()]
+    for what, command, recorded in stages:
+        shown = " ".join(["lq", *command[3:]])
+        print(f"{what}: {shown}  (recorded: {recorded:.0f} s)")
+        if args.plan:
+            continue
+        started = time.monotonic()
+        done = subprocess.run(command, check=False)
+        if done.returncode != 0:
+            print(f"error: {what} failed (exit {done.returncode})")
+            return 1
+        print(f"{what}: {time.monotonic() - started:.0f} s here")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
