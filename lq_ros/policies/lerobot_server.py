@@ -131,6 +131,7 @@ class LeRobotServer:
 
     def chunk(self, batch: dict):
         """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick."""
+        import numpy as np
         from lerobot.utils.constants import ACTION
 
         queue = self._action_queue()
@@ -146,8 +147,6 @@ class LeRobotServer:
                 action = self.postprocessor(action)
                 action = self.env_postprocessor({ACTION: action})[ACTION]
                 out.append(action.to("cpu").numpy()[0])
-        import numpy as np
-
         return np.stack(out).astype(np.float32)
 
     def reset(self, seed: int | None) -> None:

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from lq_ros.training.recipe import KIND_RECIPE, TrainConfig
+from lq_ros.training.recipe import KIND_RECIPE, TrainConfig, parse_ids
 
 #: TrainConfig's defaults (the shipped recipe): `lq train`'s option defaults, so the two cannot drift apart.
 _D = TrainConfig
@@ -20,17 +20,11 @@ _RECIPE_HELP = {
 
 
 def _ints(spec: str) -> tuple[int, ...]:
-    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers."""
-    out: list[int] = []
+    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers (recipe.parse_ids), as a command-line error."""
     try:
-        for part in spec.split(","):
-            lo, sep, hi = part.strip().partition("-")
-            out += range(int(lo), int(hi) + 1) if sep else [int(lo)]
-    except ValueError:
-        raise typer.BadParameter(f"expected integers like '0-9' or '0,2,5', got {spec!r}") from None
-    if not out:
-        raise typer.BadParameter(f"empty selection {spec!r}")
-    return tuple(out)
+        return parse_ids(spec)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from None
 
 
 def _driver(spec: str) -> dict:

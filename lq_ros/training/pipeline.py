@@ -28,21 +28,12 @@ import yaml
 
 from lq_ros.policies.learned.chunk_policy import WEIGHTS_DIR
 from lq_ros.training.collect import CollectConfig
-from lq_ros.training.recipe import TrainConfig
+from lq_ros.training.recipe import TrainConfig, parse_ids
 
 PIPELINE_FILE = Path(__file__).resolve().parents[2] / "config" / "training" / "shipped_weights.yaml"
 #: ``lq collect`` options a dataset entry may set, with their defaults (those of the command).
 COLLECT_OPTIONS = {"suite": "libero_spatial", "tasks": "0-9", "inits": "10-29", "noise": "0,0.1,0.2", "repeats": 1,
                    "seed": 7, "workers": 2}  # fmt: skip
-
-
-def parse_ids(spec: str) -> tuple[int, ...]:
-    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers (as ``lq collect`` reads them)."""
-    out: list[int] = []
-    for part in str(spec).split(","):
-        lo, sep, hi = part.strip().partition("-")
-        out += range(int(lo), int(hi) + 1) if sep else [int(lo)]
-    return tuple(out)
 
 
 @dataclass(frozen=True)

@@ -95,3 +95,18 @@ class TrainConfig:
     def to_dict(self) -> dict:
         """The resolved configuration, as stored in the weights' JSON (``train_config``)."""
         return asdict(self)
+
+
+def parse_ids(spec: str) -> tuple[int, ...]:
+    """``"0-9"``, ``"0,2,5"`` or ``"10-29,40"`` -> integers (``lq collect``'s task and init selections);
+    ValueError if it is not such a selection."""
+    out: list[int] = []
+    try:
+        for part in str(spec).split(","):
+            lo, sep, hi = part.strip().partition("-")
+            out += range(int(lo), int(hi) + 1) if sep else [int(lo)]
+    except ValueError:
+        raise ValueError(f"expected integers like '0-9' or '0,2,5', got {spec!r}") from None
+    if not out:
+        raise ValueError(f"empty selection {spec!r}")
+    return tuple(out)
