@@ -58,10 +58,6 @@ setup(
             "manager_node = lq_ros_nodes.manager_node:main",
             "bridge_node = lq_ros_nodes.bridge_node:main",
             "robot_standin = lq_ros_nodes.robot_standin:main",
-            "realtime_sim_node = lq_ros_nodes.realtime_sim_node:main",
-            "realtime_policy_node = lq_ros_nodes.realtime_policy_node:main",
-            "realtime_executor_node = lq_ros_nodes.realtime_executor_node:main",
-            "realtime_recorder_node = lq_ros_nodes.realtime_recorder_node:main",
         ],
     },
 )

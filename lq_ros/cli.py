@@ -226,11 +226,11 @@ def run(
         policy_class(cfg.policy).check_merge(cfg.merge)  # rtc needs a policy that takes the executing prefix
         if cfg.robot:  # a policy that needs what the robot does not publish: refused before anything starts
             from lq_ros.policies import make_policy
-            from lq_ros.transport.ros.realtime_stack import check_robot
+            from lq_ros.robot.observation_builder import Requirements, check_robot
 
             probe = make_policy(cfg.policy, **cfg.policy_args)
             try:
-                check_robot(cfg, probe)
+                check_robot(cfg.robot, Requirements.of(probe), cfg.policy)
             finally:
                 probe.close()
     except ValueError as exc:  # validate.InputError included

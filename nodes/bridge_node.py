@@ -16,6 +16,11 @@ The robot's clock is the YAML's ``clock``: ``wall`` (its stamps are wall-clock t
 in simulated time and publishes it on /clock, which this node then waits for and stamps its targets
 with). The terminal event's ``robot_time_factor`` is robot-clock seconds per wall second over the episode:
 about 1 unless the robot (or a simulator) fell behind real time.
+
+Managed node (lq_ros.transport.ros.rclpy_helpers.EpisodeNode), in place of the sim node when the run names a
+``robot`` (always on the wall clock): configure loads the robot's YAML and the task; activate subscribes to
+the robot afresh (no sample of an earlier episode is used) and starts the episode once the robot and every
+peer are there; deactivate stops commanding the robot.
 """
 
 from __future__ import annotations
@@ -25,20 +30,19 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Bool, Float64MultiArray
 
 from lq_ros.core.executor_protocol import Source
-from lq_ros.core.run_config import versions
+from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.robot.delta_to_target import DeltaToTarget
 from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, missing_task_objects
 from lq_ros.robot.robot_config import load_robot_config
 from lq_ros.sim.libero_env import load_task
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import declare_run_config, publisher, raw_subscription, run
+from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
@@ -59,53 +63,69 @@ def _ns(header) -> int:
     return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
 
 
-class BridgeNode(Node):
+class BridgeNode(EpisodeNode):
+    CONFIGURE_FIELDS = ("robot", "suite", "task")
+
     def __init__(self) -> None:
         super().__init__(NODE_NAMES["bridge"])
-        cfg = declare_run_config(self)
         # What the policy needs (the launcher asks the policy and refuses a robot that lacks it).
         self.declare_parameter("cameras", [""])
         self.declare_parameter("needs_object_poses", False)
         # Subscribers each robot topic needs before the episode starts (this node and the recorder).
         self.declare_parameter("min_robot_subscribers", 2)
-        self.cfg = cfg
-        self.robot = load_robot_config(cfg.robot)
-        cams = tuple(c for c in self.get_parameter("cameras").value if c)
-        self.req = Requirements(cameras=cams, objects=bool(self.get_parameter("needs_object_poses").value))
-        self.min_robot_subs = self.get_parameter("min_robot_subscribers").value
+        # Subscribers of the episode events before the episode starts (this node, the policy, executor and
+        # recorder: STARTED must reach all of them at once).
+        self.declare_parameter("min_event_subscribers", 4)
         # Wall seconds to wait for the robot's topics and the peers before the episode ends as an error.
         self.declare_parameter("start_timeout_s", 60.0)
-        self.start_deadline = time.monotonic() + self.get_parameter("start_timeout_s").value
-        self.builder = ObservationBuilder(self.robot, self.req)
+        self.finished = True
+        self.versions = versions()
+
+    # -- lifecycle ---------------------------------------------------------------------------------------
+    def configure(self, cfg: RunConfig) -> None:
+        if cfg.clock != "realtime" or not cfg.robot:
+            raise ValueError("the bridge runs robot episodes (clock realtime and a robot)")
+        self.robot = load_robot_config(cfg.robot)
         self.task, _, _ = load_task(cfg.suite, cfg.task)
         gc = self.robot.gripper_command
         self.converter = DeltaToTarget(*((gc.open_width_m, gc.closed_width_m) if gc else ()))
+        self.get_logger().info(f"robot {self.robot.name!r} ({self.robot.source}) for {cfg.suite} task {cfg.task}")
+
+    def activate(self, cfg: RunConfig) -> None:
+        cams = tuple(c for c in self.get_parameter("cameras").value if c)
+        self.req = Requirements(cameras=cams, objects=bool(self.get_parameter("needs_object_poses").value))
+        self.min_robot_subs = self.get_parameter("min_robot_subscribers").value
+        self.min_event_subs = self.get_parameter("min_event_subscribers").value
+        self.start_deadline = time.monotonic() + self.get_parameter("start_timeout_s").value
+        self.builder = ObservationBuilder(self.robot, self.req)
 
         r = self.robot
-        self.create_subscription(JointState, r.joint_states.topic, self.on_joints, SENSOR_QOS)
-        self.create_subscription(PoseStamped, r.ee_pose.topic, self.on_ee, SENSOR_QOS)
+        self.robot_subscription(JointState, r.joint_states.topic, self.on_joints, SENSOR_QOS)
+        self.robot_subscription(PoseStamped, r.ee_pose.topic, self.on_ee, SENSOR_QOS)
         if r.gripper_state:
-            self.create_subscription(JointState, r.gripper_state.topic, self.on_fingers, SENSOR_QOS)
+            self.robot_subscription(JointState, r.gripper_state.topic, self.on_fingers, SENSOR_QOS)
         for cam in self.req.cameras:
-            self.create_subscription(Image, r.cameras[cam].topic, lambda msg, c=cam: self.on_image(c, msg), SENSOR_QOS)
+            self.robot_subscription(Image, r.cameras[cam].topic, lambda msg, c=cam: self.on_image(c, msg), SENSOR_QOS)
         self.robot_now_ns = -1  # last /clock of a robot on sim time
         if r.clock_stream:
-            self.create_subscription(Clock, r.clock_stream.topic, self.on_clock, SENSOR_QOS)
+            self.robot_subscription(Clock, r.clock_stream.topic, self.on_clock, SENSOR_QOS)
         if r.success:
             # Reliable: an operator's single `true` must not be lost (ros2 topic pub is reliable by default).
-            self.create_subscription(Bool, r.success.topic, self.on_success, COMMAND_QOS)
+            self.robot_subscription(Bool, r.success.topic, self.on_success, COMMAND_QOS)
         self.object_subs: dict[str, object] = {}
         if self.req.objects and r.objects and r.objects.names:
             for name in r.objects.names:
                 self._subscribe_object(name)
+        gc = r.gripper_command
         self.target_pub = self.create_publisher(PoseStamped, r.ee_target.topic, COMMAND_QOS)
         self.gripper_pub = self.create_publisher(Float64MultiArray, gc.topic, COMMAND_QOS) if gc else None
+        self._episode_entities += [p for p in (self.target_pub, self.gripper_pub) if p is not None]
 
-        self.pubs = {t.name: publisher(self, t) for t in (m.OBSERVATION, m.EPISODE_EVENTS)}
-        self.pubs.update({m.camera_topic(c).name: publisher(self, m.camera_topic(c)) for c in cams})
-        self.request_sub = raw_subscription(self, m.OBSERVATION_REQUEST, self.on_request)
-        self.command_sub = raw_subscription(self, m.COMMAND, self.on_command)
-        raw_subscription(self, m.EPISODE_EVENTS, self.on_event)
+        self.pubs = {t.name: self.episode_publisher(t) for t in (m.OBSERVATION, m.EPISODE_EVENTS)}
+        self.pubs.update({m.camera_topic(c).name: self.episode_publisher(m.camera_topic(c)) for c in cams})
+        self.request_sub = self.episode_subscription(m.OBSERVATION_REQUEST, self.on_request)
+        self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
+        self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
 
         self.clock: TickClock | None = None
         self.finished = False
@@ -113,10 +133,16 @@ class BridgeNode(Node):
         self.timeout_tick = 0  # the tick count a TIMEOUT reports
         self.commands = 0
         self.action_ticks = 0  # commanded ticks whose command came from a chunk (budget_counts action)
-        self.versions = versions()
-        self.start_timer = self.create_timer(0.05, self.start_when_ready)
-        self.create_timer(0.01, self.check_timeout)
+        self.start_timer = self.episode_timer(0.05, self.start_when_ready)
+        self.episode_timer(0.01, self.check_timeout)
         self._waiting_logged = 0.0
+
+    def deactivate(self) -> None:
+        self.finished = True
+
+    def robot_subscription(self, msg_type, topic: str, callback, qos) -> None:
+        """A subscription to one of the robot's own topics, for this episode."""
+        self._episode_entities.append(self.create_subscription(msg_type, topic, callback, qos))
 
     # -- robot inputs ----------------------------------------------------------------------------------
     def on_joints(self, msg: JointState) -> None:
@@ -137,6 +163,7 @@ class BridgeNode(Node):
         self.object_subs[name] = self.create_subscription(
             PoseStamped, topic, lambda msg, n=name: self.builder.on_object_pose(n, msg, _ns(msg.header)), SENSOR_QOS
         )
+        self._episode_entities.append(self.object_subs[name])
 
     def on_clock(self, msg: Clock) -> None:
         self.robot_now_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
@@ -173,7 +200,7 @@ class BridgeNode(Node):
         waiting += [f"recorder on {t}" for t in robot_topics if self.count_subscribers(t) < self.min_robot_subs]
         peers_ok = self.command_sub.get_publisher_count() > 0 and self.request_sub.get_publisher_count() > 0
         # This node, the policy, the executor and the recorder: STARTED must reach all of them at once.
-        subs_ok = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count() >= 4
+        subs_ok = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count() >= self.min_event_subs
         subs_ok = subs_ok and self.pubs[m.OBSERVATION.name].get_subscription_count() >= 2  # policy, recorder
         if waiting or not peers_ok or not subs_ok:
             what = ", ".join(waiting) or "the executor, policy and recorder"
@@ -269,7 +296,7 @@ class BridgeNode(Node):
 
 
 def main() -> None:
-    sys.exit(run(BridgeNode, stay_alive=True))
+    sys.exit(run_managed(BridgeNode))
 
 
 if __name__ == "__main__":

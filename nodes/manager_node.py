@@ -1,18 +1,21 @@
-"""Lifecycle manager: moves the four managed nodes through their lifecycle, one episode at a time.
+"""Lifecycle manager: moves the stack's managed nodes through their lifecycle, one episode at a time.
 
 The role of nav2's lifecycle_manager or ros2_control's controller manager: it calls each node's standard
 services, ``~/set_parameters`` (rcl_interfaces), ``~/change_state`` and ``~/get_state`` (lifecycle_msgs),
-nothing else. The launcher (lq_ros/transport/ros/stack.py, which keeps rclpy out of its own process so a killed
-launcher leaves no Fast DDS file behind) sends it one JSON object per line on stdin and reads one per line
-on stdout:
+nothing else. Which nodes it manages is its ``node_names`` parameter (as nav2's), in activation order: the
+recorder (``lq_metrics``) first, the node that starts the episode (the sim, or the bridge to a robot) last.
+The launcher (lq_ros/transport/ros/stack.py, which keeps rclpy out of its own process so a killed launcher
+leaves no Fast DDS file behind) sends it one JSON object per line on stdin and reads one per line on stdout
+(nodes by their ROS names):
 
 - ``{"op": "episode", "params": {node: {name: value}}, "reconfigure": [node, ...]}``: every node to inactive
   with the episode's parameters (configured if it was not, cleaned up and configured again if named),
-  then activated, recorder first, simulator last. Answers ``{"event": "active"}`` or ``{"event": "failed",
+  then activated in ``node_names`` order. Answers ``{"event": "active"}`` or ``{"event": "failed",
   "node", "transition", "reason"}``; later ``{"event": "done"}``, once the recorder has deactivated itself
   (its bag is closed and scored) and the other nodes were deactivated.
-- ``{"op": "stop", "skip": [node, ...]}``: deactivate every active node (simulator first, recorder last,
-  which then records a STOPPED event); ``skip`` names dead nodes. Answers ``{"event": "stopped"}``.
+- ``{"op": "stop", "skip": [node, ...]}``: deactivate every active node in the reverse order (the node that
+  steps first, the recorder last, which then records a STOPPED event); ``skip`` names dead nodes. Answers
+  ``{"event": "stopped"}``.
 - ``{"op": "shutdown", "skip": [...]}``: the shutdown transition for every node (they exit), then this
   process exits. Answers ``{"event": "shutdown"}``.
 """
@@ -33,12 +36,10 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES
+from lq_ros.wire.node_names import NODE_NAMES, stack_node_names
 
-#: Activation order: the recorder before anything is published, the simulator (which starts the episode) last.
-ACTIVATE_ORDER = ("metrics", "policy", "executor", "sim")
-#: Deactivation order of a stop: stepping ends first, the recorder closes its bag last.
-STOP_ORDER = ("sim", "executor", "policy", "metrics")
+#: The recorder: the episode is over once it has left the active state (its bag is closed and scored).
+RECORDER = NODE_NAMES["metrics"]
 #: Wall seconds: a node's services to appear (a cold process imports MuJoCo, torch...), a configure (creates
 #: the task's simulator or loads a policy), any other transition or call.
 SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
@@ -55,11 +56,14 @@ class TransitionFailed(Exception):
 class LifecycleManager(Node):
     def __init__(self) -> None:
         super().__init__(NODE_NAMES["manager"])
-        self.change = {n: self.create_client(ChangeState, f"/{r}/change_state") for n, r in MANAGED_NODE_NAMES.items()}
-        self.get = {n: self.create_client(GetState, f"/{r}/get_state") for n, r in MANAGED_NODE_NAMES.items()}
-        self.set_params = {
-            n: self.create_client(SetParameters, f"/{r}/set_parameters") for n, r in MANAGED_NODE_NAMES.items()
-        }
+        # The managed nodes, in activation order (deactivation: the reverse).
+        self.declare_parameter("node_names", list(stack_node_names(robot=False)))
+        self.node_names = tuple(self.get_parameter("node_names").value)
+        if RECORDER not in self.node_names:
+            raise ValueError(f"node_names must include the recorder {RECORDER!r}, got {list(self.node_names)}")
+        self.change = {n: self.create_client(ChangeState, f"/{n}/change_state") for n in self.node_names}
+        self.get = {n: self.create_client(GetState, f"/{n}/get_state") for n in self.node_names}
+        self.set_params = {n: self.create_client(SetParameters, f"/{n}/set_parameters") for n in self.node_names}
 
     # -- service calls --------------------------------------------------------------------------------
     def _wait(self, node: str, what: str, futures_timeout_s: float, *futures) -> list:
@@ -116,7 +120,7 @@ class LifecycleManager(Node):
     # -- operations ----------------------------------------------------------------------------------
     def episode(self, params: dict[str, dict], reconfigure: list[str]) -> None:
         to_configure = []
-        for node in ACTIVATE_ORDER:
+        for node in self.node_names:
             state = self.state(node)
             if state == "active":
                 self.transition([node], "deactivate")
@@ -131,11 +135,11 @@ class LifecycleManager(Node):
                 to_configure.append(node)
         if to_configure:
             self.transition(to_configure, "configure", CONFIGURE_S)  # concurrently: env creation, policy loading
-        for node in ACTIVATE_ORDER:
+        for node in self.node_names:
             self.transition([node], "activate")
 
     def stop(self, skip: set[str]) -> None:
-        for node in STOP_ORDER:
+        for node in reversed(self.node_names):
             if node in skip:
                 continue
             try:
@@ -145,7 +149,7 @@ class LifecycleManager(Node):
                 self.get_logger().error(str(exc))
 
     def shutdown(self, skip: set[str]) -> None:
-        for node in STOP_ORDER:
+        for node in reversed(self.node_names):
             if node in skip:
                 continue
             try:
@@ -175,7 +179,7 @@ def serve(manager: LifecycleManager, replies) -> None:
     buffer = b""
     running = False  # an episode is active: watch the recorder
     poll = None  # (get_state future of the recorder, when it was sent)
-    recorder = manager.get["metrics"]
+    recorder = manager.get[RECORDER]
 
     def reply(obj: dict) -> None:
         replies.write(json.dumps(obj) + "\n")

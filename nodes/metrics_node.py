@@ -1,10 +1,10 @@
 """Metrics node: records the episode topics to a rosbag2 MCAP bag, then scores it offline.
 
-Messages are written exactly as received (serialized CDR) with their sim-time log stamps. The bag is
-crash-safe (lq_ros.recording.episode_bag): killed with SIGKILL, it keeps all but the last 0.5 s of sim time, and its
-metadata.yaml (with the run metadata) exists from the start. Once a
-terminal event (success, timeout, error) has arrived and the topics have been quiet for a moment,
-the bag is closed, scored with lq_ros.scoring.bag_scorer and the score written next to it (score.json).
+Messages are written exactly as received (serialized CDR) with their header stamps as log times (sim time in
+lockstep). The bag is crash-safe (lq_ros.recording.episode_bag): killed with SIGKILL, it keeps all but the last
+0.5 s of sim time, and its metadata.yaml (with the run metadata) exists from the start. Once a terminal event
+(success, timeout, error) has arrived and the topics have been quiet for a moment, the bag is closed, scored
+with lq_ros.scoring.bag_scorer and the score written next to it (score.json).
 Stopped early (deactivated, Ctrl-C), it records a STOPPED event so the episode scores as an error, not
 a failure.
 
@@ -12,6 +12,22 @@ Episode events are recorded only from the sim and executor nodes, chunks only fr
 (lq_ros.transport.ros.senders): a message another participant of the domain publishes there (a forged SUCCESS)
 is recorded as a WARNING event instead, never as the outcome. A message that cannot be recorded (e.g. a chunk
 whose latency is no whole number of ticks) is dropped with a WARNING event; no callback ends the node.
+
+Real-time runs (``clock: realtime``, read at every activation; a wall-clock sim or a robot through the bridge)
+record besides:
+
+- a robot's own topics (``robot_topics_json``: [{name, type}], e.g. its 500 Hz joint states, 100 Hz EE pose,
+  the bridge's targets, the /clock of a robot on sim time) under their own names, subscribed reliable + volatile
+  as a robot driver publishes them, logged at their stamps (the robot's clock); messages without a header or
+  time are logged at their receive (wall) time;
+- the nodes' counts on /lq/realtime_stats (overrun ticks, missed commands), also copied into the run metadata
+  (``realtime``), with ``clock: realtime`` and the robot's interface, so the bag says it is not bit-reproducible;
+- commands as they arrive (a robot applies each when it arrives; the wall-clock sim steps on time whatever came).
+
+The score then uses ``ee_topic``/``joint_topic`` and the ``trajectory_rate``/``energy_rate`` given (a robot's
+topics have their own rates: ``native``), i.e. ``lq score BAG --ee-topic ... --rate native``. A robot keeps
+publishing after the episode, so the bag is closed once the episode topics have been quiet for
+``quiet_period_s`` after the terminal event and the executor's counts have arrived (or 2 s passed).
 
 Managed node: activate opens the episode's bag (``bag_path``); once the bag is closed and scored the
 node deactivates itself, which tells the lifecycle manager the episode is over.
@@ -26,6 +42,8 @@ import time
 import traceback
 from pathlib import Path
 
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
 from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
@@ -38,8 +56,18 @@ from lq_ros.wire.node_names import NODE_NAMES
 
 #: WARNING events the recorder writes per episode at most (rogue or unusable messages); then one count.
 MAX_WARNING_EVENTS = 100
-#: Topics whose messages the recorder reads (episode events: outcome; commands: the last tick).
-_DECODED = (m.EPISODE_EVENTS.name, m.COMMAND.name)
+#: Topics whose messages the recorder reads (episode events: outcome; commands: the last tick; real-time counts).
+_DECODED = (m.EPISODE_EVENTS.name, m.COMMAND.name, m.REALTIME_STATS.name)
+#: A robot's own topics: what a robot driver typically offers (reliable, volatile), deep enough for 500 Hz.
+ROBOT_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)  # fmt: skip
+#: Types whose first field is a std_msgs/Header or a Time (log time = its stamp); others: receive time.
+_STAMPED_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped", m.IMAGE_MSGTYPE,
+                  "rosgraph_msgs/msg/Clock"}  # fmt: skip
+#: Wall seconds after the terminal event a real-time recorder waits at most for the executor's counts.
+STATS_WAIT_S = 2.0
 
 
 class MetricsNode(EpisodeNode):
@@ -51,6 +79,13 @@ class MetricsNode(EpisodeNode):
         # Wall seconds without messages, after the terminal event, before the bag is closed.
         self.declare_parameter("quiet_period_s", 0.3)
         self.declare_parameter("policy_params_json", "{}")
+        # Real time against a robot (the launcher sets them from the robot's YAML): what to record and score.
+        self.declare_parameter("robot_topics_json", "[]")
+        self.declare_parameter("robot_json", "null")
+        self.declare_parameter("ee_topic", m.EE_POSE.name)
+        self.declare_parameter("joint_topic", m.JOINT_STATES.name)
+        self.declare_parameter("trajectory_rate", "auto")
+        self.declare_parameter("energy_rate", "auto")
         self.versions = versions()
         self.finished = True
 
@@ -62,7 +97,17 @@ class MetricsNode(EpisodeNode):
         self.policy_params = json.loads(self.get_parameter("policy_params_json").value)
         self.quiet_period_s = self.get_parameter("quiet_period_s").value
         self.cameras = cameras = tuple(c for c in self.get_parameter("cameras").value if c)
+        self.realtime = cfg.clock == "realtime"
         self.topics = episode_topics(cfg, cameras)
+        robot_topics: list[m.Topic] = []
+        if self.realtime:  # no /clock: the counts instead, and the robot's own topics
+            self.topics = [t for t in self.topics if t.name != m.CLOCK.name] + [m.REALTIME_STATS]
+            robot_topics = [
+                m.Topic(t["name"], t["type"]) for t in json.loads(self.get_parameter("robot_topics_json").value)
+            ]
+        self.robot_info = json.loads(self.get_parameter("robot_json").value)
+        self.stats: dict[str, dict] = {}  # real time: node -> its counts
+        self.terminal_at: float | None = None
         self.started_detail: dict = {}
         self.last_message = time.monotonic()
         self.terminal_seen = False
@@ -72,7 +117,7 @@ class MetricsNode(EpisodeNode):
         self.held_commands: list[tuple[int, int, bytes]] = []  # (tick, log ns, bytes) not yet known applied
         self.warnings_written = 0
         self.warnings_suppressed = 0
-        self.writer = EpisodeBagWriter(self.bag_path, self.topics)
+        self.writer = EpisodeBagWriter(self.bag_path, self.topics + robot_topics)
         self.finished = False
         self.writer.set_run_metadata(self._run_metadata(self.versions))
         for topic in self.topics:
@@ -82,12 +127,16 @@ class MetricsNode(EpisodeNode):
             else:
                 sub = self.create_subscription(msg_class(topic.msgtype), topic.name, record, LOSSLESS_QOS, raw=True)
             self._episode_entities.append(sub)
+        for topic in robot_topics:
+            sub = self.create_subscription(msg_class(topic.msgtype), topic.name, self._robot_recorder(topic), ROBOT_QOS,
+                                           raw=True)  # fmt: skip
+            self._episode_entities.append(sub)
         self.episode_timer(0.1, self.finish_when_quiet)
 
     def deactivate(self) -> None:
         if not self.finished:
             # Stopped before the episode ended: say so in the bag, so it scores as an error.
-            t_ns = m.to_ns(sim_time_of_tick(self.last_tick))
+            t_ns = time.time_ns() if self.realtime else m.to_ns(sim_time_of_tick(self.last_tick))
             data = m.event_msg(t_ns, m.EventKind.STOPPED, self.last_tick, "recording stopped before the episode ended")
             self.writer.write(m.EPISODE_EVENTS, t_ns, data)
             self.finish()
@@ -102,7 +151,7 @@ class MetricsNode(EpisodeNode):
                 self.on_rogue_message(topic, sender, data)
                 return
             try:
-                log_ns = log_time_ns(topic, data)
+                log_ns = self._log_time_ns(topic, data)
                 message = m.deserialize(data, topic.msgtype) if topic.name in _DECODED else None
             except Exception as exc:  # noqa: BLE001 - e.g. a chunk whose latency is no whole number of ticks
                 self.get_logger().error(f"unusable message on {topic.name}: {exc}\n{traceback.format_exc()}")
@@ -115,16 +164,41 @@ class MetricsNode(EpisodeNode):
                 return
             try:
                 self.last_message = time.monotonic()
-                if topic.name == m.COMMAND.name:
+                if topic.name == m.COMMAND.name and not self.realtime:
                     self.hold_command(message.tick, log_ns, data)
                     return
                 self.writer.write(topic, log_ns, data)
                 if topic.name == m.EPISODE_EVENTS.name:
                     self.on_event(message)
-                elif topic.name == m.JOINT_STATES.name:
+                elif topic.name == m.COMMAND.name:  # (real time: recorded as it arrives)
+                    self.last_tick = max(self.last_tick, message.tick)
+                elif topic.name == m.REALTIME_STATS.name:
+                    stats = json.loads(message.data)
+                    self.stats[stats.get("node", "?")] = stats
+                elif topic.name == m.JOINT_STATES.name and not self.realtime:
                     self.sim_reached(tick_of_sim_time(log_ns / 1e9))
             except Exception as exc:  # noqa: BLE001 - never out of the spin loop: the recorder must live
                 self.get_logger().error(f"recording {topic.name} failed: {exc}\n{traceback.format_exc()}")
+                self.record_warning(f"recorder: a message on {topic.name} failed: {type(exc).__name__}: {exc}")
+
+        return record
+
+    def _log_time_ns(self, topic: m.Topic, data: bytes) -> int:
+        """Its stamp (lq_ros.recording.episode_bag.log_time_ns); a real-time message without one: receive time."""
+        if self.realtime and not (topic.msgtype in _STAMPED_TYPES or topic.msgtype.startswith("lq_msgs/")):
+            return time.time_ns()
+        return log_time_ns(topic, data)
+
+    def _robot_recorder(self, topic: m.Topic):
+        """A robot's own topic: recorded at its stamps (or receive time); it never keeps the bag open."""
+
+        def record(data: bytes) -> None:
+            if self.finished:
+                return
+            try:
+                self.writer.write(topic, self._log_time_ns(topic, data), data)
+            except Exception as exc:  # noqa: BLE001 - never out of the spin loop
+                self.get_logger().error(f"recording {topic.name} failed: {exc}")
                 self.record_warning(f"recorder: a message on {topic.name} failed: {type(exc).__name__}: {exc}")
 
         return record
@@ -201,6 +275,9 @@ class MetricsNode(EpisodeNode):
         if event.kind == m.EventKind.STARTED:
             self.started_detail = json.loads(event.detail_json)
             self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
+        elif event.kind in m.EventKind.TERMINAL and self.realtime:
+            self.terminal_seen = True
+            self.terminal_at = self.terminal_at or time.monotonic()
         elif event.kind in m.EventKind.TERMINAL:
             self.terminal_seen = True
             # SUCCESS and TIMEOUT at tick T come after the sim stepped T - 1: commands of T on were never applied.
@@ -211,7 +288,10 @@ class MetricsNode(EpisodeNode):
             self.held_commands = []
 
     def finish_when_quiet(self) -> None:
-        if self.terminal_seen and not self.finished and time.monotonic() - self.last_message > self.quiet_period_s:
+        quiet = self.terminal_seen and not self.finished and time.monotonic() - self.last_message > self.quiet_period_s
+        if quiet and self.realtime:  # (the executor's counts go out with its last messages)
+            quiet = "executor" in self.stats or time.monotonic() - self.terminal_at > STATS_WAIT_S
+        if quiet:
             try:
                 self.finish()
             finally:
@@ -226,7 +306,10 @@ class MetricsNode(EpisodeNode):
 
     def _run_metadata(self, env_versions: dict) -> dict:
         camera_size_px = self.get_parameter("camera_size_px").value if self.cameras else None
-        return run_metadata(self.cfg, self.policy_params, "ros", env_versions, camera_size_px)
+        meta = run_metadata(self.cfg, self.policy_params, "ros", env_versions, camera_size_px)
+        if self.realtime:
+            meta.update(clock="realtime", robot=self.robot_info, realtime=self.stats)
+        return meta
 
     def finish(self) -> None:
         if self.warnings_suppressed:
@@ -237,8 +320,14 @@ class MetricsNode(EpisodeNode):
         self.finished = True
         self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
         self.writer.close()
+        scoring = {
+            "ee_topic": self.get_parameter("ee_topic").value,
+            "joint_topic": self.get_parameter("joint_topic").value,
+            "rate": self.get_parameter("trajectory_rate").value,
+            "energy_rate": self.get_parameter("energy_rate").value,
+        }
         try:
-            row = score_bag(self.bag_path)
+            row = score_bag(self.bag_path, **scoring)
         except Exception as exc:  # noqa: BLE001 - the bag is closed and kept; the launcher scores it again
             self.get_logger().error(f"scoring {self.bag_path} failed: {exc}\n{traceback.format_exc()}")
             return

@@ -1,13 +1,17 @@
 """Policy node: answers observations with action chunks after the injected latency.
 
-A chunk computed from the observation at sim time t is published once /clock reaches
-t + N * dt_c, stamped with t, the request id, the injected latency dt_sim = N dt_c and the measured
-wall-clock inference latency dt_real. N is the request's own draw, computed by the same function the
-executor core uses (lq_ros.core.latency.request_latency of the run's distribution, seed and request id).
+Every chunk is stamped with its observation's time t, the request id, the injected latency dt_sim = N dt_c and
+the measured wall-clock inference latency dt_real. N is the request's own draw, computed by the same function
+the executor core uses (lq_ros.core.latency.request_latency of the run's distribution, seed and request id).
+When it is published depends on the run's ``clock`` (read at every activation):
+
+- ``lockstep``: once /clock reaches t + N * dt_c, so the measured inference time never matters;
+- ``realtime``: N * dt_c of wall time after its inference finished, so the executor sees it dt_real + dt_sim
+  after it asked; no /clock is used.
+
 With merge rtc/rtc_hard the policy also gets the executing prefix (/lq/action_prefix) of the request.
 A policy that raises publishes a chunk carrying the error, which ends the episode as an error. The
-protocol is lq_ros.transport.ros.endpoints.ChunkServer, shared with the real-time policy node (which holds chunks in
-wall time instead).
+protocol is lq_ros.transport.ros.endpoints.ChunkServer; only the clock the chunks are held on differs.
 
 Managed node: configure builds the policy (``policy``, ``policy_args``); activate checks it can run the
 episode's protocol (merge) and resets the episode state; the policy itself is reset for the task and
@@ -28,6 +32,7 @@ from __future__ import annotations
 import fnmatch
 import json
 import sys
+import time
 from pathlib import Path
 
 import yaml
@@ -111,12 +116,17 @@ class PolicyNode(EpisodeNode):
     def activate(self, cfg: RunConfig) -> None:
         self.policy.check_merge(cfg.merge)  # refused before the episode starts
         self.now_ns = 0  # sim time of the last /clock
+        realtime = cfg.clock == "realtime"
         self.server = ChunkServer(
             self.policy, cfg, self.episode_publisher(m.ACTION_CHUNK).publish, self.get_logger(),
-            now_ns=lambda: self.now_ns, hold_from="observation",
+            now_ns=time.time_ns if realtime else lambda: self.now_ns,
+            hold_from="inference_end" if realtime else "observation",
         )  # fmt: skip
         self.server.subscribe(self.episode_subscription)
-        self.episode_subscription(m.CLOCK, self.on_clock)
+        if realtime:
+            self.episode_timer(0.002, self.server.flush)  # due chunks go out within ~2 ms of their wall time
+        else:
+            self.episode_subscription(m.CLOCK, self.on_clock)
 
     def cleanup(self) -> None:
         if self.policy is not None:

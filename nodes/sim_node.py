@@ -1,26 +1,47 @@
-"""Sim node: owns the LIBERO env and applies exactly one command per control tick (lockstep).
+"""Sim node: owns the LIBERO env and applies exactly one command per control tick, on either clock.
 
-Publishes /clock, /joint_states (effort = arm torque), /ee_pose, /lq/energy_integrals every tick
-(and per physics substep on /joint_states_physics, /ee_pose_physics when enabled), the observation
-and camera images only when asked (/lq/observation_request), and episode events. Tick m is stepped only once the command
-for tick m has arrived, so sim time never depends on wall-clock timing.
+Publishes /joint_states (effort = arm torque), /ee_pose, /lq/energy_integrals every tick, the observation and
+camera images only when asked (/lq/observation_request), and episode events. The clock mode is the run's
+``clock`` parameter, read at every activation (lq_ros/transport/ros/wall_clock.py):
 
-Managed node (lq_ros.transport.ros.rclpy_helpers.EpisodeNode): configure creates the task's env (hard reset); activate
-resets it to the episode's init state and seed (soft: same MjSim, bit-identical to a rebuild) and
+- ``lockstep``: tick m is stepped only once the command for tick m has arrived, so sim time never depends on
+  wall-clock timing; /clock is published every tick (and per physics substep /joint_states_physics,
+  /ee_pose_physics when enabled); an observation request must be of the current tick.
+- ``realtime``: tick m is stepped at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` of wall time whatever has
+  arrived: the command for tick m if the executor delivered it in time, else the stop hold (zero arm delta,
+  the last applied gripper command), and that tick is counted as a missed command. State is stamped with the
+  ticks' scheduled wall times; there is no /clock. Observation requests are answered at once with the current
+  state, whatever tick it is (the observation carries its own tick). A tick whose step started late or ran
+  past the period is an overrun; both counts go out on /lq/realtime_stats when the episode ends.
+
+Managed node (lq_ros.transport.ros.rclpy_helpers.EpisodeNode): configure creates the task's env (hard reset);
+activate resets it to the episode's init state and seed (soft: same MjSim, bit-identical to a rebuild) and
 starts the episode once every peer is connected; deactivate stops stepping.
 """
 
 from __future__ import annotations
 
 import sys
+import time
 import traceback
 
-from lq_ros.core.executor_protocol import Source
+import numpy as np
+from std_msgs.msg import String
+
+from lq_ros.core.executor_protocol import Source, stop_hold
 from lq_ros.core.run_config import RunConfig, versions
-from lq_ros.core.suite_constants import sim_time_of_tick
+from lq_ros.core.suite_constants import DUMMY_ACTION, sim_time_of_tick
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
+from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, reliable_subscribers, run_managed, take_pending
+from lq_ros.transport.ros.wall_clock import (
+    SIM_STEP_OFFSET_S,
+    START_DELAY_S,
+    OverrunCounter,
+    TickClock,
+    stats_json,
+    tick_state_msgs,
+)
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
 
@@ -33,9 +54,14 @@ class SimNode(EpisodeNode):
         # What the policy needs rendered (the launcher asks the policy).
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
-        # Subscribers each topic needs before the episode starts (so no node misses tick 0).
+        # Subscribers each topic needs before the episode starts (so no node misses tick 0): any, and on /clock
+        # (lockstep) and the episode events (real time: every node must hear STARTED and its tick0) the peers
+        # the launcher started (policy, executor, recorder; + this node for the events).
         self.declare_parameter("min_subscribers", 1)
         self.declare_parameter("min_clock_subscribers", 3)
+        self.declare_parameter("min_event_subscribers", 4)
+        # Real time: extra wall seconds per step, standing in for a slower machine (tests of the overrun counting).
+        self.declare_parameter("step_delay_s", 0.0)
         self.env: LiberoEnv | None = None
         self.finished = False
         self.started = False
@@ -54,22 +80,35 @@ class SimNode(EpisodeNode):
 
     def activate(self, cfg: RunConfig) -> None:
         self.init_index, self.seed, self.run_cfg = cfg.init, cfg.seed, cfg
+        self.realtime = cfg.clock == "realtime"
         self.action_ticks = 0  # ticks whose command came from a chunk (budget_counts action)
         self.queued: dict = {}  # tick -> ActionCommand received ahead of its tick
         self.min_subscribers = self.get_parameter("min_subscribers").value
         self.min_clock_subscribers = self.get_parameter("min_clock_subscribers").value
+        self.min_event_subscribers = self.get_parameter("min_event_subscribers").value
         self.finished = False
         self.started = False
         self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
+        state_topics = (m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
+        if not self.realtime:
+            state_topics = (m.CLOCK, *state_topics) + (
+                (m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ()
+            )
         self.pubs = {
             t.name: self.episode_publisher(t)
-            for t in (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
-            + ((m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ())
-            + tuple(m.camera_topic(c) for c in self.env.camera_names)
+            for t in state_topics + tuple(m.camera_topic(c) for c in self.env.camera_names)
         }
         self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
         self.request_sub = self.episode_subscription(m.OBSERVATION_REQUEST, self.on_request)
         self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
+        if self.realtime:
+            self.clock: TickClock | None = None
+            self.last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
+            self.missed: list[int] = []  # ticks stepped with the hold because their command was late
+            self.overruns = OverrunCounter()
+            self.step_delay_s = self.get_parameter("step_delay_s").value
+            self.stats_pub = self.episode_publisher(m.REALTIME_STATS)
+            self.episode_timer(0.002, self.step_on_time)
         self.start_timer = self.episode_timer(0.05, self.start_when_ready)
 
     def deactivate(self) -> None:
@@ -82,35 +121,49 @@ class SimNode(EpisodeNode):
 
     # -- episode start ----------------------------------------------------------------------
     def start_when_ready(self) -> None:
-        """Publish STARTED and tick 0 once every peer is connected."""
-        clock_ok = self.pubs[m.CLOCK.name].get_subscription_count() >= self.min_clock_subscribers
+        """Publish STARTED and tick 0 once every peer is connected (real time: tick 0 START_DELAY_S later)."""
         subs_ok = all(pub.get_subscription_count() >= self.min_subscribers for pub in self.pubs.values())
         peers_ok = self.command_sub.get_publisher_count() > 0 and self.request_sub.get_publisher_count() > 0
-        if not (clock_ok and subs_ok and peers_ok):
+        if self.realtime:
+            events = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count()
+            peers_ok = peers_ok and events >= self.min_event_subscribers
+        else:  # (a node's use_sim_time time source subscribes best effort: not a peer of the episode)
+            peers_ok = peers_ok and reliable_subscribers(self, m.CLOCK) >= self.min_clock_subscribers
+        if not (subs_ok and peers_ok):
             return
         self.start_timer.cancel()
         self.started = True
         detail = m.started_detail(self.env.task, self.init_index, self.seed, self.versions)
+        if self.realtime:
+            self.clock = TickClock(time.time_ns() + round(START_DELAY_S * 1e9))
+            detail.update(tick0_wall_ns=self.clock.tick0_ns, clock="realtime")
         self.event(m.EventKind.STARTED, 0, "", detail)
         self.publish_state()
 
     # -- callbacks --------------------------------------------------------------------------
     def on_request(self, req) -> None:
-        if self.finished or not self._expect_tick(req.tick, "observation request"):
+        if self.finished or not (self.realtime and self.started or self._expect_tick(req.tick, "observation request")):
             return
         try:
             obs = self.env.observe(with_images=True)
         except Exception as exc:  # noqa: BLE001 - any env failure ends the episode as an error
             return self.fail(f"observation failed: {exc}", traceback.format_exc())
+        if self.realtime:
+            obs.sim_time_s = self.clock.tick_ns(obs.tick) / 1e9  # the tick's scheduled wall time
         publish_observation(self.pubs, obs, req.request_id)
 
     def on_command(self, cmd) -> None:
-        """Queue the command of a tick at or after the current one; step through every queued tick in order.
+        """Queue the command of a tick at or after the current one.
 
-        The executor may send the commands of several ticks ahead (those that need neither a new observation
-        nor a new chunk), so the sim steps through them without waiting for a round trip per tick.
+        Lockstep: step through every queued tick in order (the executor may send the commands of several ticks
+        ahead, those that need neither a new observation nor a new chunk, so the sim steps through them
+        without a round trip per tick). Real time: the wall clock steps them (:meth:`step_on_time`).
         """
         if self.finished:
+            return
+        if self.realtime:
+            if self.started and cmd.tick >= self.state.tick:
+                self.queued[cmd.tick] = cmd
             return
         late = cmd.tick < self.state.tick or cmd.tick in self.queued
         if not self.started or late or cmd.tick >= self.run_cfg.tick_limit:  # (the limit bounds the queue)
@@ -118,16 +171,54 @@ class SimNode(EpisodeNode):
             return
         self.queued[cmd.tick] = cmd
         while not self.finished and self.state.tick in self.queued:
-            self.step(self.queued.pop(self.state.tick))
+            cmd = self.queued.pop(self.state.tick)
+            self.step(cmd.tick, cmd.action, cmd.source)
 
-    def step(self, cmd) -> None:
+    def step_on_time(self) -> None:
+        """Real time: step the current tick once its wall time (+ SIM_STEP_OFFSET_S) has come, with its command
+        or, if that has not arrived, the stop hold (a missed command)."""
+        if self.finished or self.clock is None:
+            return
+        tick = self.state.tick
+        scheduled = self.clock.tick_ns(tick) + round(SIM_STEP_OFFSET_S * 1e9)
+        start = time.time_ns()
+        if start < scheduled:
+            return
+        self.drain_commands()
+        cmd = self.queued.pop(tick, None)
+        if cmd is None:
+            self.missed.append(tick)
+            action, source = stop_hold(self.last_action), Source.HOLD_INFERENCE  # (no chunk's: not an action tick)
+        else:
+            action, source = np.asarray(cmd.action, dtype=np.float64), cmd.source
+        self.last_action = action
+        self.step(tick, action, source, started_ns=(start, scheduled))
+
+    def drain_commands(self) -> None:
+        """Take every command that has arrived before stepping (real time).
+
+        rclpy's executor runs ready timers before subscriptions and takes one message per subscription per
+        wait. A sim that has fallen behind has its step timer always ready, so it would step each tick just
+        before the tick's command is taken, and miss every command (seen: 220 of 220).
+        """
+        for data in take_pending(self.command_sub):
+            self.on_command(m.deserialize(data, m.COMMAND.msgtype))
+
+    def step(self, tick: int, action, source: int, started_ns: tuple[int, int] | None = None) -> None:
+        """Step ``tick``; end the episode on success or a spent budget. Real time: ``started_ns`` is (when the step
+        started, when it was scheduled), wall ns, for the overrun count."""
         try:
-            self.state = self.env.step(cmd.action)
+            self.state = self.env.step(action)
+            if started_ns is not None and self.step_delay_s:
+                time.sleep(self.step_delay_s)
         except Exception as exc:  # noqa: BLE001
-            return self.fail(f"env.step failed at tick {cmd.tick}: {exc}", traceback.format_exc())
-        self.action_ticks += cmd.source == Source.CHUNK
+            return self.fail(f"env.step failed at tick {tick}: {exc}", traceback.format_exc())
+        self.action_ticks += source == Source.CHUNK
         spent = None if self.state.success else self.run_cfg.budget_spent(self.state.tick, self.action_ticks)
         self.publish_state(clock=not (self.state.success or spent))
+        if started_ns is not None:
+            start, scheduled = started_ns
+            self.overruns.record(tick, start - scheduled, time.time_ns() - start)
         if self.state.success:
             self.end(m.EventKind.SUCCESS, "")
         elif spent:
@@ -138,6 +229,7 @@ class SimNode(EpisodeNode):
         if event.kind in m.EventKind.TERMINAL and not self.finished:
             self.get_logger().info(f"episode ended by a peer: {m.EventKind.NAMES[event.kind]} {event.reason}")
             self.finished = True
+            self.publish_stats()
 
     # -- helpers ----------------------------------------------------------------------------
     def _expect_tick(self, tick: int, what: str) -> bool:
@@ -147,20 +239,34 @@ class SimNode(EpisodeNode):
         return False
 
     def publish_state(self, clock: bool = True) -> None:
-        for topic, _t, data in m.tick_state_msgs(self.state, self.physics_rate, clock):
+        if self.realtime:
+            msgs = tick_state_msgs(self.state, self.clock)
+        else:
+            msgs = m.tick_state_msgs(self.state, self.physics_rate, clock)
+        for topic, _t, data in msgs:
             self.pubs[topic.name].publish(data)
 
     def event(self, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:
-        t_ns = m.to_ns(sim_time_of_tick(tick))
+        t_ns = self.clock.tick_ns(tick) if self.realtime else m.to_ns(sim_time_of_tick(tick))
         self.pubs[m.EPISODE_EVENTS.name].publish(m.event_msg(t_ns, kind, tick, reason, detail))
 
     def end(self, kind: int, reason: str, detail: dict | None = None) -> None:
         self.event(kind, self.state.tick, reason, detail)
         self.finished = True
+        self.publish_stats()
 
     def fail(self, reason: str, trace: str) -> None:
         self.get_logger().error(reason)
         self.end(m.EventKind.ERROR, reason, {"traceback": trace, "node": "sim"})
+
+    def publish_stats(self) -> None:
+        """Real time: what this episode's stepping counted (the recorder keeps it in the bag's metadata)."""
+        if not self.realtime:
+            return
+        stats = dict(self.overruns.summary(), node="sim", missed_commands=len(self.missed),
+                     missed_command_ticks=self.missed[:200])  # fmt: skip
+        self.stats_pub.publish(String(data=stats_json(stats)))
+        self.get_logger().info(f"real-time sim: {stats}")
 
 
 def main() -> None:

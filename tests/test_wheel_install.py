@@ -90,7 +90,7 @@ def test_installed_wheel_scores_and_runs_outside_the_checkout(tmp_path):
     assert Path(robots_dir) == site / "lq_ros" / "_shipped" / "config" / "robots"
     assert not [p for p in path if p and Path(p).resolve().is_relative_to(REPO)], path
     assert "lq_msgs/msg/ActionChunk" in types
-    for script in ("lq", "manager_node", "bridge_node", "robot_standin", "realtime_sim_node", "sim_node"):
+    for script in ("lq", "manager_node", "bridge_node", "robot_standin", "sim_node", "executor_node"):
         assert (venv / "bin" / script).is_file(), script
 
     # (a) an in-process episode into a bag, scored by the installed `lq score`

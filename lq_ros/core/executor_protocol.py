@@ -414,9 +414,15 @@ class ExecutorCore:
     def _hold_action(self) -> np.ndarray:
         if self.config.hold is Hold.REPEAT:
             return self._last_action.copy()
-        held = np.zeros(ACTION_DIM)
-        held[-1] = self._last_action[-1]
-        return held
+        return stop_hold(self._last_action)
+
+
+def stop_hold(last_action: np.ndarray) -> np.ndarray:
+    """The paper's hold: zero arm delta, the last gripper command (the executor's ``hold: stop``; also what the
+    real-time sim applies at a tick whose command did not arrive in time)."""
+    held = np.zeros(ACTION_DIM)
+    held[-1] = last_action[-1]
+    return held
 
 
 class TickHandlers(Protocol):

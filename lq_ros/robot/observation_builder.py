@@ -17,7 +17,7 @@ import numpy as np
 
 from lq_ros.core.types import Observation
 from lq_ros.robot.delta_to_target import matrix_to_quat, quat_to_matrix
-from lq_ros.robot.robot_config import RobotConfig
+from lq_ros.robot.robot_config import RobotConfig, load_robot_config
 
 
 class MissingInput(ValueError):
@@ -70,6 +70,14 @@ def check_requirements(req: Requirements, robot: RobotConfig, policy_name: str =
             f"policy {policy_name!r} needs the finger positions; robot {robot.name!r} ({robot.source}) has no "
             "'gripper_state' (a sensor_msgs/JointState of the two finger joints)"
         )
+
+
+def check_robot(robot_spec: str, req: Requirements, policy_name: str = "the policy") -> RobotConfig:
+    """The robot interface ``robot_spec`` names (a shipped name or a YAML), refused (ValueError, one line) if it
+    cannot feed a policy with ``req``: checked before anything starts."""
+    robot = load_robot_config(robot_spec)
+    check_requirements(req, robot, policy_name)
+    return robot
 
 
 def missing_task_objects(goal: list[list[str]], available: set[str]) -> list[str]:

@@ -111,6 +111,13 @@ class RobotConfig:
         out.update({f"camera/{c}": s.topic for c, s in self.cameras.items()})
         return out
 
+    def recorded_topics(self) -> list[dict]:
+        """What a bag keeps of the robot's own topics, [{name, type}]: joint and finger states, EE pose, the
+        bridge's commands, success, and /clock when the robot runs on sim time (next to the stamps it explains)."""
+        streams = [self.joint_states, self.ee_pose, self.ee_target, self.gripper_state, self.clock_stream,
+                   self.gripper_command, self.success]  # fmt: skip
+        return [{"name": s.topic, "type": s.type} for s in streams if s]
+
     def to_dict(self) -> dict:
         return {"name": self.name, "source": self.source, "frame_id": self.frame_id, "clock": self.clock,
                 "topics": self.topic_map()}  # fmt: skip

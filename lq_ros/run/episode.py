@@ -51,13 +51,7 @@ def run_episode(
     elif transport == "ros":
         from lq_ros.transport.ros.stack import launch_nodes
 
-        if (
-            cfg.clock == "realtime"
-        ):  # wall-clock sim or a robot: programs of their own (lq_ros/transport/ros/realtime_stack.py)
-            from lq_ros.transport.ros.realtime_stack import launch_realtime
-
-            bag_path, launch_error = launch_realtime(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)
-        elif stack is not None:
+        if stack is not None:
             bag_path, launch_error = stack.run_episode(cfg, out_dir, timeout_s)
         else:
             bag_path, launch_error = launch_nodes(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)

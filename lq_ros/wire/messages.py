@@ -48,6 +48,9 @@ EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
 ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
 #: Executor -> policy, merge rtc/rtc_hard only (not recorded: the commands that follow contain it).
 ACTION_PREFIX = Topic("/lq/action_prefix", "lq_msgs/msg/ActionPrefix")
+#: Real-time runs (``clock: realtime``): what a node counted over the episode (overrun ticks, missed commands,
+#: late chunks), one JSON object per node, published when the episode ends and recorded in the bag.
+REALTIME_STATS = Topic("/lq/realtime_stats", "std_msgs/msg/String")
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 
 

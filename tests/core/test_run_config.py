@@ -37,7 +37,7 @@ def test_keys_of_configurations_without_a_distribution_are_unchanged():
 
 def test_shipped_params_file_is_derived_from_run_config():
     shipped = yaml.safe_load((REPO_ROOT / "config" / "demo.yaml").read_text())
-    assert shipped["/**"]["ros__parameters"] == RunConfig().ros_parameters()
+    assert shipped["/**"]["ros__parameters"] == {**RunConfig().ros_parameters(), "use_sim_time": True}
     generated = node_parameters(RunConfig(), Path("bags/demo/<episode>"), (), DEFAULT_CAMERA_SIZE_PX, {})
     assert {k: v["ros__parameters"] for k, v in shipped.items()} == generated
 

@@ -56,7 +56,8 @@ class EpisodeWorker:
     setup stay, the policy while it and its arguments stay (env creation dominates a short episode;
     tests/run/sweep/test_sweep.py checks a reused env gives the same bag as a fresh one). ROS transport: one
     long-lived node stack (lq_ros.transport.ros.stack.RosStack, its own ROS_DOMAIN_ID) runs every episode of the
-    worker; the nodes are reconfigured between episodes, and a node that died is restarted.
+    worker, lockstep or real time (the same nodes; against a robot the bridge replaces the sim); the nodes are
+    reconfigured between episodes, and a node that died is restarted.
     """
 
     def __init__(self, transport: str, bags_dir: Path, timeout_s: float | None = None) -> None:
@@ -79,9 +80,7 @@ class EpisodeWorker:
                     env, policy = self._env_policy(cfg)
                     outcome, row = run_episode(cfg, self.bags_dir, "inprocess", env=env, policy=policy)
                 else:
-                    # A real-time episode (wall-clock sim or a robot) launches its own processes for now.
-                    stack = None if cfg.clock == "realtime" else self._ros()
-                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s, stack=stack)
+                    outcome, row = run_episode(cfg, self.bags_dir, "ros", timeout_s=self.timeout_s, stack=self._ros())
                 status, reason = outcome.status, outcome.reason
                 if status == "error" and outcome.reason:
                     print(f"episode error: {outcome.reason}", flush=True)

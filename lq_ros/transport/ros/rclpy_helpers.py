@@ -10,6 +10,7 @@ from collections.abc import Callable
 
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
@@ -46,6 +47,30 @@ def raw_subscription(node: Node, topic: m.Topic, callback: Callable[[object], No
         callback(m.deserialize(data, topic.msgtype))
 
     return node.create_subscription(msg_class(topic.msgtype), topic.name, on_raw, LOSSLESS_QOS, raw=True)
+
+
+def steady_timer(node: Node, period_s: float, callback: Callable[[], None]):
+    """A timer on the steady (wall) clock whatever the node's ``use_sim_time``: polling, start barriers and
+    timeouts are wall-clock waits, and a lockstep node's sim time stands still until the episode starts."""
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
+def reliable_subscribers(node: Node, topic: m.Topic) -> int:
+    """Reliable subscriptions of ``topic`` on the graph: the stack's own (LOSSLESS_QOS). A node's use_sim_time time
+    source subscribes /clock best effort, and is no peer a start barrier waits for."""
+    infos = node.get_subscriptions_info_by_topic(topic.name)
+    return sum(1 for info in infos if info.qos_profile.reliability == ReliabilityPolicy.RELIABLE)
+
+
+def take_pending(subscription) -> list[bytes]:
+    """Every serialized message waiting on a raw subscription, taken now (before the executor would)."""
+    out = []
+    while True:
+        with subscription.handle:
+            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+        if taken is None:
+            return out
+        out.append(taken[0])
 
 
 def declare_run_config(node: Node) -> RunConfig:
@@ -176,7 +201,7 @@ class EpisodeNode(LifecycleNode):
         return sub
 
     def episode_timer(self, period_s: float, callback: Callable[[], None]):
-        timer = self.create_timer(period_s, lambda: self.guarded("a timer", callback))
+        timer = steady_timer(self, period_s, lambda: self.guarded("a timer", callback))
         self._episode_entities.append(timer)
         return timer
 

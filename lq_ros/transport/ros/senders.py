@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from functools import cache
 
+from rclpy.clock import Clock, ClockType
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -31,9 +32,10 @@ from rclpy.waitable import NumberOfEntities, Waitable
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
 
-#: Topic -> the nodes of the lockstep stack (nodes/*_node.py, EpisodeNode) that publish on it.
+#: Topic -> the stack's nodes (nodes/*_node.py, EpisodeNode) that publish on it (a stack runs the sim or, against a
+#: robot, the bridge).
 EXPECTED_SENDERS: dict[str, tuple[str, ...]] = {
-    m.EPISODE_EVENTS.name: (NODE_NAMES["sim"], NODE_NAMES["executor"]),
+    m.EPISODE_EVENTS.name: (NODE_NAMES["sim"], NODE_NAMES["bridge"], NODE_NAMES["executor"]),
     m.ACTION_CHUNK.name: (NODE_NAMES["policy"],),
 }
 #: Wall seconds a message from a publisher the graph does not name yet waits before it counts as unknown.
@@ -176,7 +178,10 @@ class SenderSubscription(Waitable):
         if name is None:
             self._pending.append((time.monotonic(), gid, data))
             if self._timer is None:
-                self._timer = self.node.create_timer(_RESOLVE_PERIOD_S, self._drain)
+                # (steady: a lockstep node's use_sim_time clock does not move while it waits here)
+                self._timer = self.node.create_timer(
+                    _RESOLVE_PERIOD_S, self._drain, clock=Clock(clock_type=ClockType.STEADY_TIME)
+                )
             return
         self.callback(data, name or None)
 

@@ -7,6 +7,13 @@ moves the nodes through the standard lifecycle (configure, activate, deactivate,
 docs/lifecycle.md). ``lq run`` uses a stack for one episode; a sweep worker keeps one for all its episodes.
 This process never initialises rclpy: a launcher killed with SIGKILL leaves no Fast DDS file behind.
 
+The same nodes run both clocks (the run's ``clock``: lockstep on /clock, with ``use_sim_time``, or real time on
+the wall clock), so one stack runs episodes of either. Against a robot (``robot``) the bridge (a managed node
+too) takes the sim's place, and the stack swaps the two when the episodes ask for it; with the LIBERO stand-in
+(``robot: standin``) the ``robot_standin`` program is started for each episode, as a robot of its own that an
+operator would reset, unless the user runs it. A policy that needs what the robot does not publish is refused
+(one line, lq_ros.robot.observation_builder.check_robot) before anything starts.
+
 Each child gets PR_SET_PDEATHSIG (it dies with us), its own log file, the stack's ROS_DOMAIN_ID and,
 unless the user set it, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST. A node that dies mid-episode ends that
 episode as an error naming it; the stack restarts it and configures it again for the next episode. A
@@ -38,14 +45,20 @@ import yaml
 
 from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import logs_dir
+from lq_ros.robot.observation_builder import Requirements, check_robot
+from lq_ros.robot.robot_config import RobotConfig
 from lq_ros.transport.processes import ShmTracker, die_with_parent, stop_processes
-from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES
+from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
 
+#: The managed nodes of a simulated run (against a robot the bridge replaces the sim: stack_roles).
 NODES = tuple(MANAGED_NODE_NAMES)
 #: The lifecycle manager's program (nodes/manager_node.py), started with the nodes.
 MANAGER = "manager"
+#: The LIBERO robot stand-in's program (nodes/robot_standin.py): a robot, started per episode when asked for.
+STANDIN = "robot"
 #: Module of each node program: nodes/<name>_node.py, installed as the package lq_ros_nodes (setup.py).
 NODE_MODULE = "lq_ros_nodes.{}_node"
+STANDIN_MODULE = "lq_ros_nodes.robot_standin"
 #: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
 DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
 DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
@@ -99,22 +112,46 @@ def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
     return env
 
 
+def episode_timeout_s(cfg: RunConfig) -> float:
+    """Wall seconds an episode may take before it is a run error: 120 s + 1 s per tick of budget (either clock: a
+    lockstep tick takes tens of ms, a real-time one 50 ms, a slow remote policy much longer)."""
+    return 120.0 + cfg.budget * 1.0
+
+
 def node_parameters(
-    cfg: RunConfig, bag_path: Path, cameras: tuple[str, ...], camera_size_px: int, policy_params: dict
+    cfg: RunConfig,
+    bag_path: Path,
+    cameras: tuple[str, ...],
+    camera_size_px: int,
+    policy_params: dict,
+    robot: RobotConfig | None = None,
+    requirements: Requirements | None = None,
 ) -> dict:
-    """The params file: the run's parameters once for every node (``/**``), then what only one node needs
-    (derived from the policy: its cameras and render size, its parameters for the bag)."""
-    cams = list(cameras) or [""]  # ROS string arrays cannot be empty in YAML
-    return {
-        "/**": cfg.ros_parameters(),
-        NODE_NAMES["sim"]: {"cameras": list(cams), "camera_size_px": camera_size_px},
-        NODE_NAMES["metrics"]: {
-            "bag_path": str(bag_path),
-            "cameras": list(cams),
-            "camera_size_px": camera_size_px,
-            "policy_params_json": json.dumps(policy_params),
-        },
+    """The params file: the run's parameters once for every node (``/**``, with ``use_sim_time`` on in lockstep),
+    then what only one node needs (derived from the policy: its cameras and render size, its parameters for the
+    bag; against a robot, what the bridge must wait for and what the recorder records and scores)."""
+    cams = list(cameras) or [""]  # ROS string arrays cannot be empty in YAML (copied per node: no YAML aliases)
+    recorder = {
+        "bag_path": str(bag_path),
+        "cameras": list(cams),
+        "camera_size_px": camera_size_px,
+        "policy_params_json": json.dumps(policy_params),
     }
+    params = {"/**": {**cfg.ros_parameters(), "use_sim_time": cfg.clock == "lockstep"}}
+    if robot is None:
+        params[NODE_NAMES["sim"]] = {"cameras": list(cams), "camera_size_px": camera_size_px}
+    else:
+        needs_objects = bool(requirements and requirements.objects)
+        params[NODE_NAMES["bridge"]] = {"cameras": list(cams), "needs_object_poses": needs_objects}
+        recorder.update(
+            robot_topics_json=json.dumps(robot.recorded_topics()), robot_json=json.dumps(robot.to_dict()),
+            ee_topic=robot.ee_pose.topic, joint_topic=robot.joint_states.topic,
+            # A robot's topics come at its own rates: score them at those (rows name the rates).
+            trajectory_rate="native", energy_rate="native",
+        )  # fmt: skip
+        params[NODE_NAMES["robot"]] = {"robot_config": str(robot.source), "camera_size_px": camera_size_px}
+    params[NODE_NAMES["metrics"]] = recorder
+    return params
 
 
 def params_yaml(params: dict) -> str:
@@ -142,6 +179,7 @@ def configure_keys(cfg: RunConfig, cameras: Sequence[str], camera_size_px: int) 
     """
     return {
         "sim": (cfg.suite, cfg.task, cfg.physics_rate, tuple(c for c in cameras if c), camera_size_px),
+        "bridge": (cfg.robot, cfg.suite, cfg.task),
         "policy": policy_key(cfg),
         "executor": (),
         "metrics": (),
@@ -149,7 +187,7 @@ def configure_keys(cfg: RunConfig, cameras: Sequence[str], camera_size_px: int) 
 
 
 class RosStack:
-    """The four managed nodes and their lifecycle manager, kept up for any number of episodes.
+    """The managed nodes of a run (stack_roles) and their lifecycle manager, kept up for any number of episodes.
 
     Use as a context manager (or call :meth:`close`): the domain id is reserved and the processes run
     until then. :meth:`run_episode` never raises for a broken episode; it returns the reason instead.
@@ -170,7 +208,8 @@ class RosStack:
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
         self._replies = b""
         self._keys: dict[str, tuple] | None = None  # configure_keys of the configured nodes
-        self._probe: tuple | None = None  # (policy key, cameras, params, render size) of the last policy
+        self._probe: tuple | None = None  # (policy key, cameras, params, render size, requirements) of the last policy
+        self.roles: tuple[str, ...] = stack_roles(robot=False)  # the managed nodes, in activation order
         self.episodes = 0
         self.restarts: dict[str, int] = {}
         self.closed = False
@@ -185,10 +224,13 @@ class RosStack:
     def _spawn(self, name: str) -> None:
         log = open(self.work / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
         manager = name == MANAGER
+        if manager:  # (the nodes it manages, as nav2's node_names)
+            args = ["--ros-args", "-p", f"node_names:=[{','.join(NODE_NAMES[r] for r in self.roles)}]"]
+        else:
+            args = ["--ros-args", "--params-file", str(self.params_file)]
+        module = STANDIN_MODULE if name == STANDIN else NODE_MODULE.format(name)
         self.procs[name] = subprocess.Popen(
-            [sys.executable, "-m", NODE_MODULE.format(name), "--ros-args", "--params-file", str(self.params_file)]
-            if not manager
-            else [sys.executable, "-m", NODE_MODULE.format(name)],
+            [sys.executable, "-m", module, *args],
             env=self.env,
             stdout=subprocess.PIPE if manager else log,
             stderr=log if manager else subprocess.STDOUT,
@@ -212,7 +254,7 @@ class RosStack:
         Every episode calls it; calling it before the first one starts the processes early. A node found dead
         here is replaced (and counted in ``restarts``): its PID is not the one noted before.
         """
-        for name in (*NODES, MANAGER):
+        for name in (*self.roles, MANAGER):
             p = self.procs.get(name)
             if p is not None and p.poll() is None:
                 continue
@@ -227,6 +269,36 @@ class RosStack:
 
     def _dead(self) -> list[str]:
         return [n for n, p in self.procs.items() if p.poll() is not None]
+
+    def _use_roles(self, roles: tuple[str, ...]) -> None:
+        """Run ``roles`` from now on: a robot episode after simulated ones swaps the sim for the bridge (and back).
+
+        The manager and the node that leaves are stopped (the manager is restarted with the new node_names); the
+        nodes both sets share keep running and are configured again (their peers changed)."""
+        if roles == self.roles:
+            return
+        leaving = [n for n in (*self.roles, MANAGER) if n not in roles or n == MANAGER]
+        manager = self.procs.get(MANAGER)
+        if manager is not None and manager.poll() is None:
+            self._send({"op": "stop", "skip": [NODE_NAMES[n] for n in self._dead() if n != MANAGER]})
+            self._await(("stopped",), time.monotonic() + 60.0, tolerate=tuple(self._dead()))
+        self._stop({n: self.procs.pop(n) for n in leaving if n in self.procs})
+        self.roles = roles
+        self._keys = None
+
+    def _stop(self, procs: dict[str, subprocess.Popen]) -> None:
+        """Stop these processes (SIGTERM, then SIGKILL) and remove the /dev/shm files they leave."""
+        self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
+        stop_processes(procs)
+        for p in procs.values():
+            for pipe in (p.stdin, p.stdout):
+                if pipe is not None:
+                    with suppress(OSError):
+                        pipe.close()
+        removed = self.shm.cleanup()
+        if removed:
+            with open(self.work / "launcher.log", "a") as f:
+                f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
 
     def _send(self, op: dict) -> None:
         manager = self.procs[MANAGER]
@@ -267,11 +339,22 @@ class RosStack:
                     self._replies += chunk
 
     # -- episodes ------------------------------------------------------------------------------------
-    def run_episode(self, cfg: RunConfig, out_dir: Path, timeout_s: float | None = None) -> tuple[Path, str]:
+    def run_episode(
+        self,
+        cfg: RunConfig,
+        out_dir: Path,
+        timeout_s: float | None = None,
+        *,
+        start_standin: bool | None = None,
+        node_parameters_extra: dict[str, dict] | None = None,
+    ) -> tuple[Path, str]:
         """Run one episode into ``out_dir / cfg.episode_name()``; returns its bag folder and the error ("" if none).
 
         The run (not the task) failed when a node dies, refuses a transition, or the episode does not end
-        within ``timeout_s`` wall seconds (default: 120 s + 1 s per tick of budget, from the request).
+        within ``timeout_s`` wall seconds (default: :func:`episode_timeout_s`, from the request). A robot that
+        cannot feed the policy is refused before anything starts (ValueError). ``start_standin``: start the
+        LIBERO stand-in for a ``robot: standin`` episode (default: yes); ``node_parameters_extra``: more
+        parameters by node name (e.g. ``{"lq_sim": {"step_delay_s": 0.06}}``).
         """
         from lq_ros.policies import make_policy
 
@@ -282,21 +365,31 @@ class RosStack:
             # This process's own instance only tells cameras and parameters (the policy node builds its own);
             # kept while the policy stays the same (a learned policy loads its weights to answer).
             probe = make_policy(cfg.policy, **cfg.policy_args)
-            self._probe = (policy_key(cfg), probe.camera_names, probe.params(), probe.render_size)
+            self._probe = (
+                policy_key(cfg), probe.camera_names, probe.params(), probe.render_size, Requirements.of(probe)
+            )  # fmt: skip
             probe.close()
-        _, cameras, policy_params, render_size = self._probe
+        _, cameras, policy_params, render_size, requirements = self._probe
+        robot = check_robot(cfg.robot, requirements, cfg.policy) if cfg.robot else None
         camera_size_px = cfg.camera_size_for(render_size)
-        timeout_s = timeout_s or 120.0 + cfg.budget * 1.0
-        params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params)
+        timeout_s = timeout_s or episode_timeout_s(cfg)
+        params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params, robot, requirements)
+        for node, extra in (node_parameters_extra or {}).items():
+            params[node] = {**params.get(node, {}), **extra}
         self._write_params(params)  # what a (re)started node starts with
+        if start_standin is None:
+            start_standin = robot is not None and robot.name == "libero_standin"
         log_marks = self._log_sizes()
         try:
+            self._use_roles(stack_roles(robot=robot is not None))
             self.start()
+            if start_standin:
+                self._spawn(STANDIN)  # a robot of its own, reset (restarted) for every episode
             keys = configure_keys(cfg, cameras, camera_size_px)
-            per_node = {n: {**params["/**"], **params.get(NODE_NAMES[n], {})} for n in NODES}
+            per_node = {NODE_NAMES[n]: {**params["/**"], **params.get(NODE_NAMES[n], {})} for n in self.roles}
             # All after a refused transition or a restarted node (None): configure everything again (cleanup of
             # an unconfigured node is skipped, so a fresh stack just configures).
-            reconfigure = [n for n in NODES if self._keys is None or keys[n] != self._keys[n]]
+            reconfigure = [NODE_NAMES[n] for n in self.roles if self._keys is None or keys[n] != self._keys[n]]
             self._send({"op": "episode", "params": per_node, "reconfigure": reconfigure})
             deadline = time.monotonic() + timeout_s
             reply, reason = self._await(("active",), deadline)
@@ -313,15 +406,19 @@ class RosStack:
         except BaseException:  # Ctrl-C, SIGTERM of a sweep worker: the nodes stop, the recorder closes its bag
             self.close(logs_to=(bag_path, log_marks))
             raise
+        finally:
+            if STANDIN in self.procs and not self.closed:
+                self._stop({STANDIN: self.procs.pop(STANDIN)})
         self.episodes += 1
         if not self.closed:  # (closed: collected already)
             self._collect_logs(bag_path, log_marks)
         return bag_path, reason
 
     def _failure_reason(self, reply: dict) -> str:
-        node, transition, why = reply["node"], reply["transition"], reply["reason"]
-        detail = self._last_log_line(node, f"{transition} failed:") if node in NODES else ""
-        return f"{node} node: {transition} failed: {detail or why}"
+        role = {NODE_NAMES[r]: r for r in self.roles}.get(reply["node"], reply["node"])
+        transition, why = reply["transition"], reply["reason"]
+        detail = self._last_log_line(role, f"{transition} failed:") if role in self.roles else ""
+        return f"{role} node: {transition} failed: {detail or why}"
 
     def _last_log_line(self, name: str, marker: str) -> str:
         """The last line of a node's log containing ``marker``, from the marker on (a refused transition's reason)."""
@@ -341,7 +438,7 @@ class RosStack:
         """
         dead = tuple(self._dead())
         if MANAGER not in dead:
-            self._send({"op": "stop", "skip": list(dead)})
+            self._send({"op": "stop", "skip": [NODE_NAMES[n] for n in dead if n in self.roles]})
             self._await(("stopped",), time.monotonic() + 60.0, tolerate=dead)
         if MANAGER in self._dead():
             self.close(logs_to)
@@ -351,7 +448,7 @@ class RosStack:
 
     def _log_sizes(self) -> dict[str, int]:
         return {n: (self.work / f"{n}.log").stat().st_size if (self.work / f"{n}.log").exists() else 0
-                for n in (*NODES, MANAGER)}  # fmt: skip
+                for n in (*NODES, "bridge", MANAGER, STANDIN)}  # fmt: skip
 
     def _collect_logs(self, bag_path: Path, marks: dict[str, int]) -> None:
         """Keep this episode's part of every node log inside the bag folder (or beside it when no bag was written)."""
@@ -380,7 +477,7 @@ class RosStack:
             manager = self.procs.get(MANAGER)
             if manager is not None and manager.poll() is None:
                 dead = tuple(self._dead())
-                self._send({"op": "shutdown", "skip": list(dead)})
+                self._send({"op": "shutdown", "skip": [NODE_NAMES[n] for n in dead if n in self.roles]})
                 self._await(("shutdown",), time.monotonic() + 30.0, tolerate=dead)
                 for p in self.procs.values():
                     with suppress(subprocess.TimeoutExpired):
@@ -414,10 +511,12 @@ def launch_nodes(
     *,
     domain_id: int | None = None,
     timeout_s: float | None = None,
+    **episode_options,
 ) -> tuple[Path, str]:
     """Run one episode on a stack of its own (``lq run``); returns its bag folder and the launch error ("" if none).
 
-    Scoring and the outcome are ``lq_ros.run.episode.run_episode``'s.
+    ``episode_options`` go to :meth:`RosStack.run_episode`. Scoring and the outcome are
+    ``lq_ros.run.episode.run_episode``'s.
     """
     with RosStack(domain_id) as stack:
-        return stack.run_episode(cfg, out_dir, timeout_s)
+        return stack.run_episode(cfg, out_dir, timeout_s, **episode_options)

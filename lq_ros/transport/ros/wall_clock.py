@@ -3,7 +3,8 @@
 In ``--clock realtime`` runs (and against a robot) nothing waits for anything. Control tick m starts at
 wall time ``tick0_ns + m * 50 ms`` on this machine's clock; ``tick0_wall_ns`` travels in the STARTED
 event's detail (the real-time sim and the bridge set it :data:`START_DELAY_S` after they publish STARTED, so
-every node has it before tick 0). The executor decides tick m's
+every node has it before tick 0). Every managed node runs either clock (the run's ``clock`` parameter, read at
+activation; nodes/*_node.py). The executor decides tick m's
 command when the tick starts, giving a due chunk until :data:`COMMAND_DEADLINE_S` into the tick to
 arrive (else the tick holds and the chunk applies at a later tick). The real-time sim steps tick m at
 :data:`SIM_STEP_OFFSET_S` into the tick with the command of tick m if it has arrived, else the stop hold
@@ -17,6 +18,7 @@ and rows say ``clock: realtime``.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 
@@ -84,6 +86,11 @@ class OverrunCounter:
             "max_late_ms": round(self.max_late_ns / 1e6, 3),
             "max_work_ms": round(self.max_work_ns / 1e6, 3),
         }
+
+
+def stats_json(stats: dict) -> str:
+    """A node's real-time counts as they go out on /lq/realtime_stats (m.REALTIME_STATS) and into the bag."""
+    return json.dumps(stats, sort_keys=True)
 
 
 def tick_state_msgs(state: TickState, clock: TickClock) -> list[tuple[m.Topic, int, bytes]]:

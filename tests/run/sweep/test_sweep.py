@@ -230,15 +230,22 @@ def test_ros_transport_sweep_runs_the_four_node_stack(tmp_path):
 @pytest.mark.ros
 def test_realtime_and_robot_sweeps(tmp_path):
     """A spec with clock: realtime runs wall-clock episodes, one with robot: standin runs them against the
-    stand-in robot through the bridge; a realtime spec is refused with the in-process transport."""
-    for over in ({"clock": "realtime"}, {"clock": "realtime", "robot": "standin"}):
-        spec = sw.expand_spec(small_spec(transport="ros", latencies_s=[0.1], modes=["async"], max_steps=20, **over))
+    stand-in robot through the bridge, each on one long-lived stack per worker (its sim or bridge configured
+    once for both episodes); a realtime spec is refused with the in-process transport."""
+    for over, node, configured in (
+        ({"clock": "realtime"}, "sim", "creating libero_spatial task 0"),
+        ({"clock": "realtime", "robot": "standin"}, "bridge", "for libero_spatial task 0"),
+    ):
+        spec = sw.expand_spec(
+            small_spec(transport="ros", latencies_s=[0.1], modes=["async"], inits=[0, 1], max_steps=20, **over)
+        )
         out = tmp_path / "_".join(over.values())
         summary = sw.run_sweep(spec, out, workers=1)
         records = sw.ResultStore(out).records()
-        assert summary.counts == {"failure": 1}, [r["row"].get("error_reason") for r in records]
-        row = records[0]["row"]
-        assert row["clock"] == "realtime" and row["status"] == "failure"
-        assert (out / records[0]["bag"] / "logs").is_dir()
+        assert summary.counts == {"failure": 2}, [r["row"].get("error_reason") for r in records]
+        for record in records:
+            assert record["row"]["clock"] == "realtime" and record["row"]["status"] == "failure"
+        logs = [(out / r["bag"] / "logs" / f"{node}.log").read_text() for r in records]
+        assert sum(configured in log for log in logs) == 1, "the stack outlived the first episode"
     with pytest.raises(ValueError, match="runs through ROS only"):
         sw.run_sweep(spec, tmp_path / "inprocess", workers=1, transport="inprocess")

@@ -20,7 +20,7 @@ from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.scoring.bag_scorer import score_bag
-from lq_ros.transport.ros.realtime_stack import launch_realtime
+from lq_ros.transport.ros.stack import launch_nodes
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_e2e import _alive, node_descendants
 from tests.transport.ros.test_faults import orphaned_shm
@@ -127,7 +127,7 @@ def test_realtime_sim_episode(tmp_path):
 def test_overruns_are_counted(tmp_path):
     """A step that takes longer than the 50 ms period: every tick overruns."""
     cfg = RunConfig(policy="sine", clock="realtime", max_steps=12)
-    bag, error = launch_realtime(cfg, tmp_path, node_parameters={"lq_sim": {"step_delay_s": 0.07}})
+    bag, error = launch_nodes(cfg, tmp_path, node_parameters_extra={"lq_sim": {"step_delay_s": 0.07}})
     assert error == ""
     sim = read_run_metadata(bag)["realtime"]["sim"]
     assert sim["ticks"] == 12 and sim["overrun_ticks"] >= 10 and sim["max_work_ms"] >= 70
@@ -161,7 +161,7 @@ def test_silent_robot_is_a_run_error_naming_its_topics(tmp_path):
     silent.write_text(yaml_text.replace("name: libero_standin", "name: silent"))  # not started by the launcher
     before_shm = set(os.listdir(SHM))
     cfg = RunConfig(clock="realtime", robot=str(silent), max_steps=10)
-    bag, error = launch_realtime(cfg, tmp_path / "out", node_parameters={"lq_bridge": {"start_timeout_s": 5.0}})
+    bag, error = launch_nodes(cfg, tmp_path / "out", node_parameters_extra={"lq_bridge": {"start_timeout_s": 5.0}})
     assert error == ""
     row = json.loads((bag / "score.json").read_text())
     assert row["status"] == "error" and "not ready after 5 s" in row["error_reason"]
@@ -183,7 +183,7 @@ def test_robot_killed_mid_episode_ends_the_run_cleanly(tmp_path):
     killed = False
     while proc.poll() is None and time.monotonic() < deadline:
         seen.update(node_descendants(proc.pid))
-        logs = [p for p in Path(tempfile.gettempdir()).glob("lq_rt_*/bridge.log") if p.stat().st_ctime >= t_start]
+        logs = [p for p in Path(tempfile.gettempdir()).glob("lq_run_*/bridge.log") if p.stat().st_ctime >= t_start]
         started = any("episode started" in p.read_text(errors="replace") for p in logs if p.exists())
         if started and not killed:
             time.sleep(1.0)
@@ -208,7 +208,7 @@ def test_camera_images_from_the_robot_reach_the_policy(tmp_path):
     robot = tmp_path / "standin_camera.yaml"
     robot.write_text("\n".join(cams if line.startswith("cameras:") else line for line in text.splitlines()))
     cfg = RunConfig(policy="tests.rt_policies:CameraSine", clock="realtime", robot=str(robot), max_steps=20)
-    bag, error = launch_realtime(cfg, tmp_path / "out")
+    bag, error = launch_nodes(cfg, tmp_path / "out")
     assert error == ""
     row = json.loads((bag / "score.json").read_text())
     assert row["status"] == "failure", row.get("error_reason")  # the sine never solves the task; no error
@@ -219,7 +219,7 @@ def test_camera_images_from_the_robot_reach_the_policy(tmp_path):
 def test_camera_policy_in_the_realtime_sim(tmp_path):
     """The real-time sim stamps an observation and its images alike (wall-clock ns do not survive seconds)."""
     cfg = RunConfig(policy="tests.rt_policies:CameraSine", clock="realtime", max_steps=20)
-    bag, error = launch_realtime(cfg, tmp_path)
+    bag, error = launch_nodes(cfg, tmp_path)
     assert error == ""
     row = json.loads((bag / "score.json").read_text())
     assert row["status"] == "failure", row.get("error_reason")  # the sine never solves the task; no error
@@ -235,7 +235,7 @@ def test_same_stack_under_franka_ros2_topic_names(tmp_path):
     robot = tmp_path / "franka_names.yaml"
     robot.write_text(yaml.safe_dump(raw))
     cfg = RunConfig(policy="sine", clock="realtime", robot=str(robot), max_steps=20)
-    bag, error = launch_realtime(cfg, tmp_path / "out")
+    bag, error = launch_nodes(cfg, tmp_path / "out")
     assert error == ""
     row = json.loads((bag / "score.json").read_text())
     assert row["status"] == "failure" and row["jerk_mean"] is not None, row.get("null_reasons")
@@ -244,3 +244,35 @@ def test_same_stack_under_franka_ros2_topic_names(tmp_path):
     for topic in ("/franka_robot_state_broadcaster/current_pose", "/cartesian_impedance_example_controller/"
                   "equilibrium_pose", "/fr3_gripper/joint_states"):  # fmt: skip
         assert topic in meta
+
+
+def test_one_stack_runs_both_clocks_and_the_robot(tmp_path):
+    """The same node processes run a lockstep episode (bit-identical to in process), a wall-clock one, one against
+    the stand-in robot (the bridge swapped in for the sim) and a lockstep one again."""
+    from lq_ros.recording.bag_compare import comparable
+    from lq_ros.transport.inprocess import run_inprocess
+    from lq_ros.transport.ros.stack import RosStack
+
+    lockstep = RunConfig(policy="sine", mode="async", latency_s=0.1, max_steps=12)
+    episodes = [
+        lockstep,
+        RunConfig(policy="sine", clock="realtime", max_steps=20),
+        RunConfig(policy="sine", clock="realtime", robot="standin", max_steps=20),
+        RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=12, init=1),
+    ]
+    before_shm = set(os.listdir(SHM))
+    with RosStack() as stack:
+        pids = []
+        for i, cfg in enumerate(episodes):
+            bag, error = stack.run_episode(cfg, tmp_path / str(i))
+            assert error == "", (i, error)
+            row = json.loads((bag / "score.json").read_text())
+            assert row["status"] == "failure" and row["clock"] == cfg.clock, (i, row.get("error_reason"))
+            pids.append({role: p.pid for role, p in stack.procs.items() if role in ("policy", "executor", "metrics")})
+            if cfg.clock == "lockstep":
+                assert comparable(bag) == comparable(run_inprocess(cfg, tmp_path / f"local{i}").bag_path)
+            else:
+                assert read_run_metadata(bag)["clock"] == "realtime"
+        assert stack.roles[-1] == "sim" and stack.restarts == {}
+    assert all(p == pids[0] for p in pids), "policy, executor and recorder served every episode"
+    assert orphaned_shm(before_shm) == []

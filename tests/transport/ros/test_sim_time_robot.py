@@ -6,7 +6,6 @@ import pytest
 import yaml
 
 from lq_ros.robot.robot_config import CLOCK, ROBOTS_DIR, parse_robot_config
-from lq_ros.transport.ros.realtime_stack import robot_recorded_topics
 
 
 def _standin(clock: str):
@@ -23,9 +22,9 @@ def test_a_sim_time_robot_has_a_clock_topic_and_a_wall_clock_one_none() -> None:
 
 
 def test_the_robots_clock_is_recorded_only_when_it_runs_on_sim_time() -> None:
-    sim = {t["name"]: t["type"] for t in robot_recorded_topics(_standin("sim"))}
+    sim = {t["name"]: t["type"] for t in _standin("sim").recorded_topics()}
     assert sim["/clock"] == CLOCK
-    assert "/clock" not in {t["name"] for t in robot_recorded_topics(_standin("wall"))}
+    assert "/clock" not in {t["name"] for t in _standin("wall").recorded_topics()}
 
 
 @pytest.mark.slow  # one LIBERO scene (~3 s)

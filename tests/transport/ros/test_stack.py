@@ -5,14 +5,19 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import json
 from pathlib import Path
 
 import pytest
 import yaml
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.policies import make_policy
+from lq_ros.robot.observation_builder import Requirements
+from lq_ros.robot.robot_config import load_robot_config
 from lq_ros.run.sweep.worker import env_key
-from lq_ros.transport.ros.stack import NODES, RosStack, configure_keys, policy_key
+from lq_ros.transport.ros.stack import NODES, RosStack, configure_keys, node_parameters, params_yaml, policy_key
+from lq_ros.wire.node_names import stack_node_names, stack_roles
 
 REPO = Path(__file__).resolve().parents[3]
 BASE = RunConfig(policy="sine", mode="async", latency_s=0.2)
@@ -50,7 +55,7 @@ def test_every_field_is_covered():
         assert getattr(varied(field), field) != getattr(BASE, field), field
 
 
-@pytest.mark.parametrize("node", NODES)
+@pytest.mark.parametrize("node", (*NODES, "bridge"))
 def test_configure_keys_change_exactly_with_the_nodes_configure_fields(node):
     cameras, size = ("agentview",), 128
     changes_key = {
@@ -60,9 +65,11 @@ def test_configure_keys_change_exactly_with_the_nodes_configure_fields(node):
     # The policy's camera setup: loaded by the sim only (the recorder reads it at activation).
     changed_setup = {
         n
-        for n in NODES
+        for n in (*NODES, "bridge")
         if configure_keys(BASE, ("agentview", "wrist"), size)[n] != configure_keys(BASE, cameras, size)[n]
-    } | {n for n in NODES if configure_keys(BASE, cameras, 224)[n] != configure_keys(BASE, cameras, size)[n]}
+    } | {
+        n for n in (*NODES, "bridge") if configure_keys(BASE, cameras, 224)[n] != configure_keys(BASE, cameras, size)[n]
+    }
     assert (node in changed_setup) == bool(node_configure_fields(node) & DERIVED)
 
 
@@ -106,3 +113,41 @@ def test_a_stack_has_its_params_file_before_the_first_episode():
     with RosStack() as stack:
         written = yaml.safe_load(stack.params_file.read_text())
     assert written == {"/**": {"ros__parameters": RunConfig().ros_parameters()}}
+
+
+def test_one_stack_runs_the_sim_or_the_bridge_recorder_first():
+    assert stack_roles(robot=False) == ("metrics", "policy", "executor", "sim")
+    assert stack_roles(robot=True) == ("metrics", "policy", "executor", "bridge")
+    assert stack_node_names(robot=True) == ("lq_metrics", "lq_policy", "lq_executor", "lq_bridge")
+    # The lifecycle manager's default node_names is the simulated stack (nodes/manager_node.py).
+    manager = (REPO / "nodes" / "manager_node.py").read_text()
+    assert 'declare_parameter("node_names", list(stack_node_names(robot=False)))' in manager
+
+
+def test_use_sim_time_follows_the_clock():
+    lockstep = node_parameters(RunConfig(), Path("/tmp/bag"), (), 224, {})
+    realtime = node_parameters(RunConfig(clock="realtime"), Path("/tmp/bag"), (), 224, {})
+    assert lockstep["/**"]["use_sim_time"] is True and realtime["/**"]["use_sim_time"] is False
+
+
+def test_parameters_of_a_robot_run() -> None:
+    cfg = RunConfig(clock="realtime", robot="standin")
+    robot = load_robot_config("standin")
+    params = node_parameters(cfg, Path("/tmp/bag"), (), 224, {}, robot, Requirements.of(make_policy("scripted")))
+    recorder = params["lq_metrics"]
+    assert recorder["ee_topic"] == "/robot/ee_pose" and recorder["trajectory_rate"] == "native"
+    assert json.loads(recorder["robot_json"])["name"] == "libero_standin"
+    topics = {t["name"]: t["type"] for t in json.loads(recorder["robot_topics_json"])}
+    assert topics["/robot/joint_states"] == "sensor_msgs/msg/JointState"
+    assert topics["/robot/gripper/commands"] == "std_msgs/msg/Float64MultiArray"
+    assert params["lq_bridge"]["needs_object_poses"] is True and "lq_sim" not in params
+    assert params["/**"]["clock"] == "realtime" and params["/**"]["robot"] == "standin"
+    text = params_yaml(params)
+    assert "&" not in text and "*id" not in text  # the ROS params parser refuses YAML aliases
+    assert yaml.safe_load(text)["robot_standin"]["ros__parameters"]["robot_config"].endswith("standin.yaml")
+
+
+def test_parameters_of_a_realtime_sim_run() -> None:
+    params = node_parameters(RunConfig(clock="realtime"), Path("/tmp/bag"), (), 224, {})
+    assert "lq_bridge" not in params and "robot_standin" not in params and "lq_sim" in params
+    assert "ee_topic" not in params["lq_metrics"]  # the sim's own 20 Hz topics: the scorer's defaults
