@@ -99,7 +99,23 @@ class ExecutorNode(EpisodeNode):
             self.end_with_error(f"executor: {reason}")
 
 
-class LockstepTicks:
+class _Ticks:
+    """What both clocks' handlers share: applying an arrived chunk, and ending on a failure."""
+
+    node: ExecutorNode
+
+    def apply(self, request_id: int, msg) -> bool:
+        """Apply the chunk of ``request_id`` (a malformed one is rejected; a policy error ends the episode)."""
+        error = self.node.link.apply_chunk(request_id, msg)
+        if error:
+            self.node.end_with_error(error)
+        return True
+
+    def failed(self, reason: str) -> None:
+        self.node.end_with_error(reason)
+
+
+class LockstepTicks(_Ticks):
     """TickDriver's handlers on sim time: /clock says where the sim is; a due chunk and a requested observation
     are waited for (lq_ros.core.executor_protocol.TickHandlers).
 
@@ -206,13 +222,7 @@ class LockstepTicks:
             return False
         self.chunk = self.outstanding = None
         self.waiting_since = None
-        error = self.node.link.apply_chunk(due.request_id, msg)
-        if error:
-            self.node.end_with_error(error)
-        return True
-
-    def failed(self, reason: str) -> None:
-        self.node.end_with_error(reason)
+        return self.apply(due.request_id, msg)
 
     def command(self, step) -> bool:
         self.node.link.command(self.tick_ns, step)
@@ -224,7 +234,7 @@ class LockstepTicks:
             self.node.end_with_error(f"no chunk from the policy within {timeout_s} s (wall clock)")
 
 
-class WallClockTicks:
+class WallClockTicks(_Ticks):
     """TickDriver's handlers on the wall clock: nothing waits but a due chunk, and that only until
     COMMAND_DEADLINE_S into its tick (lq_ros/transport/ros/wall_clock.py)."""
 
@@ -305,13 +315,7 @@ class WallClockTicks:
             self.waiting_due = True  # until it arrives or the deadline passes (poll)
             return False
         self.waiting_due = False
-        error = self.node.link.apply_chunk(due.request_id, msg)
-        if error:
-            self.node.end_with_error(error)
-        return True
-
-    def failed(self, reason: str) -> None:
-        self.node.end_with_error(reason)
+        return self.apply(due.request_id, msg)
 
     def command(self, step) -> bool:
         scheduled = self.clock.tick_ns(step.tick)
