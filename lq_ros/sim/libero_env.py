@@ -6,8 +6,10 @@ trajectory depends only on the commands it is given.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import os
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +30,42 @@ from lq_ros.core.types import EnergyIntegrals, Observation, PhysicsSamples, Task
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 ARM_JOINTS = 7
+#: Compiled MuJoCo models this process keeps, by their XML (a few MB each; a sweep worker visits a few tasks).
+COMPILED_MODELS_KEPT = 8
+_compiled_models: OrderedDict[str, object] = OrderedDict()
+
+
+@contextlib.contextmanager
+def compiled_once():
+    """Within this block robosuite builds each MjSim from a copy of a model compiled once per distinct XML.
+
+    robosuite compiles the task's XML when the env is made and again at every hard reset (an env's first reset),
+    and the XML is the same string both times (it is generated from the task's BDDL): about 2 s of a first
+    episode went to compiling it a second time. The model compiled first is kept untouched, and every MjSim gets
+    a copy of it (MuJoCo's mj_copyModel: the compiled model itself, so episodes are bit-identical to compiling
+    again; tests/sim/test_libero_env.py compares them).
+    """
+    import mujoco
+    import robosuite.environments.base as robosuite_base
+
+    original = robosuite_base.MjSim
+
+    class MjSimFromCompiledModel(original):
+        @classmethod
+        def from_xml_string(cls, xml: str):
+            model = _compiled_models.get(xml)
+            if model is None:
+                model = _compiled_models[xml] = mujoco.MjModel.from_xml_string(xml)
+                while len(_compiled_models) > COMPILED_MODELS_KEPT:
+                    _compiled_models.popitem(last=False)
+            _compiled_models.move_to_end(xml)
+            return original(copy.deepcopy(model))
+
+    robosuite_base.MjSim = MjSimFromCompiledModel
+    try:
+        yield
+    finally:
+        robosuite_base.MjSim = original
 
 
 def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:
@@ -77,11 +115,12 @@ class LiberoEnv:
         self.camera_names = tuple(camera_names)
         self.camera_size = camera_size
         self.record_physics = record_physics
-        self._env = ControlEnv(
-            bddl_file_name=str(bddl),
-            has_offscreen_renderer=bool(self.camera_names),
-            use_camera_obs=False,
-        )
+        with compiled_once():
+            self._env = ControlEnv(
+                bddl_file_name=str(bddl),
+                has_offscreen_renderer=bool(self.camera_names),
+                use_camera_obs=False,
+            )
         self._mujoco = mujoco
         self._substeps: list[tuple[np.ndarray, ...]] = []
         self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
@@ -99,7 +138,8 @@ class LiberoEnv:
     def reset(self, init_index: int, seed: int, *, hard: bool | None = None) -> TickState:
         """Reset to init state ``init_index`` and run the wait steps; returns the state at tick 0.
 
-        The first reset of an env is hard (robosuite rebuilds the MjSim, ~2 s); later ones are soft by
+        The first reset of an env is hard (robosuite rebuilds the MjSim, ~0.3 s as its compiled model is reused:
+        :func:`compiled_once`); later ones are soft by
         default (same MjSim, ~0.2 s with the wait steps): MuJoCo's data is reset in full (constraint
         solver warm start included) and the one piece of robosuite state that survives a soft reset
         is cleared, so an episode is bit-identical whichever reset preceded it (tests check it).
@@ -111,7 +151,8 @@ class LiberoEnv:
         self._env.env.hard_reset = hard
         self._env.seed(seed)
         np.random.seed(seed)
-        self._reset_robosuite()  # hard: robosuite builds a new MjSim here; soft: mj_resetData
+        with compiled_once():
+            self._reset_robosuite()  # hard: a new MjSim (from the compiled model); soft: mj_resetData
         self._bind_sim()
         if not hard:
             for robot in self._env.env.robots:
