@@ -109,34 +109,70 @@ class LifecycleManager(Node):
             if not resp.success:
                 raise TransitionFailed(node, label, "refused (see the node's log)")
 
-    def set_parameters(self, node: str, values: dict) -> None:
-        self._ready(node, self.set_params[node], "set_parameters", SERVICE_WAIT_S)
-        req = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
-        (resp,) = self._wait(node, "set_parameters", CALL_S, self.set_params[node].call_async(req))
-        bad = [f"{p}: {r.reason}" for p, r in zip(values, resp.results, strict=True) if not r.successful]
-        if bad:
-            raise TransitionFailed(node, "set_parameters", "; ".join(bad))
+    def states(self, nodes: list[str]) -> dict[str, str]:
+        """Every node's state label, asked of all at once; a node that does not answer at once (restarted after a
+        SIGKILL: :meth:`state`) is asked again on its own."""
+        futures = {}
+        for node in nodes:
+            self._ready(node, self.get[node], "get_state", SERVICE_WAIT_S)
+            futures[node] = self.get[node].call_async(GetState.Request())
+        rclpy.spin_until_future_complete(self, _all(list(futures.values())), timeout_sec=RETRY_S)
+        labels = {}
+        for node, future in futures.items():
+            if future.done():
+                labels[node] = future.result().current_state.label
+            else:
+                self.get[node].remove_pending_request(future)
+                labels[node] = self.state(node)
+        return labels
+
+    def set_parameters(self, params: dict[str, dict]) -> None:
+        """Each node's parameters (``{node: {name: value}}``), sent to all at once."""
+        futures = {}
+        for node, values in params.items():
+            self._ready(node, self.set_params[node], "set_parameters", SERVICE_WAIT_S)
+            msgs = [Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]
+            futures[node] = self.set_params[node].call_async(SetParameters.Request(parameters=msgs))
+        for node, future in futures.items():
+            (resp,) = self._wait(node, "set_parameters", CALL_S, future)
+            values = params[node]
+            bad = [f"{p}: {r.reason}" for p, r in zip(values, resp.results, strict=True) if not r.successful]
+            if bad:
+                raise TransitionFailed(node, "set_parameters", "; ".join(bad))
 
     # -- operations ----------------------------------------------------------------------------------
     def episode(self, params: dict[str, dict], reconfigure: list[str]) -> None:
-        to_configure = []
+        """Every node to inactive with the episode's parameters, then activated: the recorder first, the node that
+        starts the episode last, the ones between together (calls to several nodes go out at once)."""
+        states = self.states(list(self.node_names))
+        active = [n for n in self.node_names if states[n] == "active"]
+        if active:
+            self.transition(active, "deactivate")
+            states.update(dict.fromkeys(active, "inactive"))
+        stale = [n for n in self.node_names if states[n] == "inactive" and n in reconfigure]
+        if stale:
+            self.transition(stale, "cleanup")
+            states.update(dict.fromkeys(stale, "unconfigured"))
         for node in self.node_names:
-            state = self.state(node)
-            if state == "active":
-                self.transition([node], "deactivate")
-                state = "inactive"
-            if state == "inactive" and node in reconfigure:
-                self.transition([node], "cleanup")
-                state = "unconfigured"
-            if state not in ("inactive", "unconfigured"):
-                raise TransitionFailed(node, "configure", f"node is {state}")
-            self.set_parameters(node, params.get(node, {}))
-            if state == "unconfigured":
-                to_configure.append(node)
+            if states[node] not in ("inactive", "unconfigured"):
+                raise TransitionFailed(node, "configure", f"node is {states[node]}")
+        self.set_parameters({node: params.get(node, {}) for node in self.node_names})
+        to_configure = [n for n in self.node_names if states[n] == "unconfigured"]
         if to_configure:
             self.transition(to_configure, "configure", CONFIGURE_S)  # concurrently: env creation, policy loading
-        for node in self.node_names:
-            self.transition([node], "activate")
+        first, *between, last = self.node_names
+        for group in ([first], between, [last]):
+            if group:
+                self.transition(group, "activate")
+
+    def end_episode(self) -> None:
+        """The recorder has closed and scored the bag: deactivate the other nodes, all at once."""
+        others = [n for n in self.node_names if n != RECORDER]
+        try:
+            self.transition(others, "deactivate", wait_s=5.0)
+        except TransitionFailed as exc:  # e.g. a node that died meanwhile: the stop below finds out
+            self.get_logger().error(str(exc))
+            self.stop(set())
 
     def stop(self, skip: set[str]) -> None:
         for node in reversed(self.node_names):
@@ -231,7 +267,7 @@ def serve(manager: LifecycleManager, replies) -> None:
             poll = None
             if recorded:
                 running = False
-                manager.stop(set())
+                manager.end_episode()
                 reply({"event": "done"})
         elif time.monotonic() - poll[1] > RETRY_S:
             forget_poll()  # asked again on the next pass
