@@ -66,6 +66,17 @@ def collect(
     ] = "",
     driver_replan: Annotated[int, typer.Option(help="Actions of each driver chunk run open loop.")] = 8,
     keep_failures: Annotated[bool, typer.Option(help="Keep unsuccessful episodes too (DAgger).")] = False,
+    latency_ticks: Annotated[
+        str, typer.Option(help="DAgger under latency: latency ticks drawn per episode, e.g. '0-8' (empty: off).")
+    ] = "",
+    modes: Annotated[str, typer.Option(help="With --latency-ticks: protocols drawn per episode.")] = "sync,async",
+    latency_driver: Annotated[
+        list[str] | None,
+        typer.Option(help="With --latency-ticks: a driver 'name[:key=value,...]' (repeatable; drawn per episode)."),
+    ] = None,
+    gripper_noise: Annotated[
+        float, typer.Option(help="Per-tick probability of a 2-7 tick burst of a wrong gripper command.")
+    ] = 0.0,
 ) -> None:
     """Collect expert demonstrations with DART-style action noise; keeps the successful episodes."""
     from lq_ros.training.collect import CollectConfig
@@ -77,6 +88,8 @@ def collect(
             suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, repeats=repeats, fresh=fresh,
             seed=seed, expert=expert, chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
             driver_replan=driver_replan, keep_failures=keep_failures, **_driver(driver),
+            latency_ticks=_ints(latency_ticks) if latency_ticks else (), modes=tuple(modes.split(",")),
+            latency_drivers=tuple(latency_driver or ("scripted",)), gripper_noise=gripper_noise,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
