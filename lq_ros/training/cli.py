@@ -140,6 +140,12 @@ def train(
     flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = _D.flow_steps,
     threads: Annotated[int, typer.Option(help="torch threads.")] = _D.threads,
     name: Annotated[str, typer.Option(help="Checkpoint name; default <policy>_c<H>_<suite>.")] = _D.name,
+    delay_max: Annotated[
+        int, typer.Option(help="Delay-aware variant: condition on d in 0..DELAY_MAX and the d executing actions.")
+    ] = _D.delay_max,
+    init_from: Annotated[
+        str, typer.Option(help="Fine-tune from a checkpoint (name: --out folder, then shipped; or a path).")
+    ] = _D.init_from,
 ) -> None:
     """Train a chunk policy on collected demonstrations (seeded; logs losses as JSON lines on stderr).
 
@@ -153,6 +159,7 @@ def train(
             policy=policy, horizon=chunk, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
             seed=seed, dropout=dropout, feature_noise=feature_noise, ema=ema, joint_velocity=joint_velocity,
             target=target, replan_steps=replan_steps, flow_steps=flow_steps, threads=threads, name=name,
+            delay_max=delay_max, init_from=init_from,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -65,6 +65,13 @@ class TrainConfig:
     threads: int = 1
     log_every: int = 500
     name: str = ""
+    #: Delay-aware variant (training-time real-time chunking, lq_ros/policies/learned/delay.py): the model is
+    #: also given d and the d executed actions that follow the frame, with d drawn per sample in 0..delay_max,
+    #: and its loss covers rows d.. only. 0: the naive model (no conditioning). At most horizon - 1.
+    delay_max: int = 0
+    #: Fine-tune from this checkpoint (a name: looked up in the output folder first, then among the shipped
+    #: weights; or a path): its weights (the conditioning inputs start at zero) and its normalisation. "": none.
+    init_from: str = ""
 
     def __post_init__(self) -> None:
         if self.policy not in KINDS:
@@ -87,14 +94,28 @@ class TrainConfig:
             raise ValueError(f"replan_steps must be in 1..horizon={self.horizon}, got {self.replan_steps}")
         if not 0.0 <= self.ema < 1.0:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
+        if not 0 <= self.delay_max < self.horizon:
+            raise ValueError(f"delay_max must be in 0..horizon-1={self.horizon - 1}, got {self.delay_max}")
 
     def run_name(self, suite: str) -> str:
-        """Checkpoint name: ``--name``, else ``<policy>_c<H>_<suite>`` (the shipped naming)."""
-        return self.name or f"{self.policy}_c{self.horizon}_{suite}"
+        """Checkpoint name: ``--name``, else ``<policy>_c<H>[_delay]_<suite>`` (the shipped naming)."""
+        delay = "_delay" if self.delay_max else ""
+        return self.name or f"{self.policy}_c{self.horizon}{delay}_{suite}"
 
     def to_dict(self) -> dict:
-        """The resolved configuration, as stored in the weights' JSON (``train_config``)."""
-        return asdict(self)
+        """The resolved configuration, as stored in the weights' JSON (``train_config``).
+
+        The fields added with the delay-aware variant (:data:`DELAY_FIELDS`) appear only when set: a naive
+        configuration is recorded exactly as before they existed."""
+        out = asdict(self)
+        for key in DELAY_FIELDS:
+            if out[key] == DELAY_FIELDS[key]:
+                del out[key]
+        return out
+
+
+#: Fields of the delay-aware variant with their defaults (omitted from ``TrainConfig.to_dict`` at the default).
+DELAY_FIELDS = {"delay_max": 0, "init_from": ""}
 
 
 def parse_ids(spec: str) -> tuple[int, ...]:
