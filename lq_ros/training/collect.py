@@ -105,8 +105,17 @@ def collect_task(cfg: CollectConfig, task_id: int) -> tuple[list[Episode], dict,
     env = LiberoEnv(cfg.suite, task_id)
     expert = make_policy(cfg.expert, chunk_size=cfg.chunk_rows, **cfg.expert_args)
     driver = make_policy(cfg.driver, **cfg.driver_args) if cfg.driver else None
-    specs = map(parse_spec, cfg.latency_drivers if cfg.latency_ticks else ())
-    pool = [make_policy(name, **args) for name, args in specs]
+    pool = [parse_spec(spec) for spec in cfg.latency_drivers] if cfg.latency_ticks else []
+    made: dict[tuple[int, str], object] = {}
+
+    def pooled(k: int, mode: str):
+        """Driver k for an episode in ``mode`` (a delay-aware learned policy is told the protocol it runs under)."""
+        name, args = pool[k]
+        key = (k, mode if args.get("variant") == "delay" else "")
+        if key not in made:
+            made[key] = make_policy(name, **({**args, "mode": mode} if key[1] else args))
+        return made[key]
+
     budget = cfg.max_steps or env.task.step_budget
     kept: list[Episode] = []
     stats = {"attempts": 0, "successes": 0, "failures": 0, "errors": 0, "frames": 0, "wall_s": 0.0}
@@ -122,9 +131,10 @@ def collect_task(cfg: CollectConfig, task_id: int) -> tuple[list[Episode], dict,
                 if pool:
                     pick = np.random.default_rng([cfg.seed, task_id, init, rep, 99])
                     k_driver = int(pick.integers(len(pool)))
+                    mode = str(cfg.modes[int(pick.integers(len(cfg.modes)))])
                     ep = _latency_episode(
-                        env, expert, layout, task_id, init, seed, noise, rng, budget, cfg.chunk_rows, pool[k_driver],
-                        str(cfg.modes[int(pick.integers(len(cfg.modes)))]),
+                        env, expert, layout, task_id, init, seed, noise, rng, budget, cfg.chunk_rows,
+                        pooled(k_driver, mode), mode,
                         int(cfg.latency_ticks[int(pick.integers(len(cfg.latency_ticks)))]),
                         cfg.gripper_noise, cfg.fresh,
                     )  # fmt: skip

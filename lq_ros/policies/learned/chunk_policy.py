@@ -141,7 +141,10 @@ class LearnedChunkPolicy(Policy):
         self.weights = str(weights)
         self._per_suite = is_shipped_base_name(self.weights)
         self._cache: dict[Path, Checkpoint] = {}
-        self._use(resolve_weights(self.weights))
+        have = shipped_suites(self.weights) if self._per_suite else []
+        # Until the first reset: the default suite's checkpoint, or the first shipped one (a variant shipped
+        # for some suites only).
+        self._use(resolve_weights(self.weights, DEFAULT_SUITE if DEFAULT_SUITE in have or not have else have[0]))
         self._task: TaskInfo | None = None
         self._slots = (-1, -1)
         self._seed = 0
