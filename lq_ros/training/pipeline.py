@@ -33,7 +33,10 @@ from lq_ros.training.recipe import TrainConfig, parse_ids
 PIPELINE_FILE = Path(__file__).resolve().parents[2] / "config" / "training" / "shipped_weights.yaml"
 #: ``lq collect`` options a dataset entry may set, with their defaults (those of the command).
 COLLECT_OPTIONS = {"suite": "libero_spatial", "tasks": "0-9", "inits": "10-29", "noise": "0,0.1,0.2", "repeats": 1,
-                   "seed": 7, "workers": 2}  # fmt: skip
+                   "seed": 7, "workers": 2, "keep_failures": False, "latency_ticks": "", "modes": "sync,async",
+                   "latency_driver": ["scripted"], "gripper_noise": 0.0}  # fmt: skip
+#: ``lq train`` options a weights entry may set beyond policy, chunk and data (the delay-aware fine-tunes).
+TRAIN_OPTIONS = ("steps", "lr", "delay_max", "init_from", "successful_only")
 
 
 @dataclass(frozen=True)
@@ -46,13 +49,22 @@ class Dataset:
         return CollectConfig(
             suite=o["suite"], tasks=parse_ids(o["tasks"]), inits=parse_ids(o["inits"]),
             noise_levels=tuple(float(x) for x in str(o["noise"]).split(",")), repeats=int(o["repeats"]),
-            seed=int(o["seed"]), workers=int(o["workers"]),
+            seed=int(o["seed"]), workers=int(o["workers"]), keep_failures=bool(o["keep_failures"]),
+            latency_ticks=parse_ids(o["latency_ticks"]) if o["latency_ticks"] else (),
+            modes=tuple(str(o["modes"]).split(",")), latency_drivers=tuple(o["latency_driver"]),
+            gripper_noise=float(o["gripper_noise"]),
         )  # fmt: skip
 
     def command(self, out: Path) -> list[str]:
         argv = [sys.executable, "-m", "lq_ros.cli", "collect", "--out", str(out / "data" / self.name)]
         for key, value in self.options.items():
-            argv += [f"--{key.replace('_', '-')}", str(value)]
+            flag = f"--{key.replace('_', '-')}"
+            if isinstance(value, bool):
+                argv += [flag] if value else []
+            elif isinstance(value, list):
+                argv += [a for v in value for a in (flag, str(v))]
+            else:
+                argv += [flag, str(value)]
         return argv
 
 
@@ -62,14 +74,19 @@ class Weights:
     policy: str
     chunk: int
     data: tuple[str, ...]
+    #: Further ``lq train`` options (TRAIN_OPTIONS); ``init_from`` names another weights entry, built first.
+    options: tuple[tuple[str, object], ...] = ()
 
     def config(self) -> TrainConfig:
-        return TrainConfig(policy=self.policy, horizon=self.chunk)
+        return TrainConfig(policy=self.policy, horizon=self.chunk, **dict(self.options))
 
     def command(self, out: Path) -> list[str]:
         argv = [sys.executable, "-m", "lq_ros.cli", "train", "--policy", self.policy, "--chunk", str(self.chunk)]
         for name in self.data:
             argv += ["--data", str(out / "data" / name)]
+        for key, value in self.options:
+            flag = f"--{key.replace('_', '-')}"
+            argv += ([flag] if value else []) if isinstance(value, bool) else [flag, str(value)]
         return argv + ["--out", str(out / "weights")]
 
 
@@ -77,9 +94,18 @@ def load_pipeline(path: Path = PIPELINE_FILE) -> tuple[dict[str, Dataset], dict[
     raw = yaml.safe_load(Path(path).read_text())
     datasets = {name: Dataset(name, dict(options)) for name, options in raw["datasets"].items()}
     weights = {
-        name: Weights(name, entry["policy"], int(entry["chunk"]), tuple(entry["data"]))
+        name: Weights(
+            name,
+            entry["policy"],
+            int(entry["chunk"]),
+            tuple(entry["data"]),
+            tuple((k, entry[k]) for k in TRAIN_OPTIONS if k in entry),
+        )  # fmt: skip
         for name, entry in raw["weights"].items()
     }
+    bad = {n: w for n, w in weights.items() if dict(w.options).get("init_from", n) not in weights}
+    if bad:
+        raise ValueError(f"{path}: init_from names no weights entry: {sorted(bad)}")
     unknown = {d for w in weights.values() for d in w.data} - set(datasets)
     if unknown:
         raise ValueError(f"{path}: weights use datasets that are not defined: {sorted(unknown)}")
@@ -106,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     datasets, weights = load_pipeline(args.pipeline)
     chosen = {n: w for n, w in weights.items() if args.only is None or n in args.only}
+    # A fine-tune needs the weights it starts from (built first: the YAML lists them before it).
+    starts = {dict(w.options).get("init_from") for w in chosen.values()} - {None}
+    chosen = {n: w for n, w in weights.items() if n in chosen or n in starts}
     if args.only and set(args.only) - set(weights):
         print(f"error: unknown weights {sorted(set(args.only) - set(weights))}; known: {sorted(weights)}")
         return 2

@@ -72,6 +72,8 @@ class TrainConfig:
     #: Fine-tune from this checkpoint (a name: looked up in the output folder first, then among the shipped
     #: weights; or a path): its weights (the conditioning inputs start at zero) and its normalisation. "": none.
     init_from: str = ""
+    #: Train on the frames of successful episodes only (a DAgger dataset collected with --keep-failures).
+    successful_only: bool = False
 
     def __post_init__(self) -> None:
         if self.policy not in KINDS:
@@ -115,7 +117,7 @@ class TrainConfig:
 
 
 #: Fields of the delay-aware variant with their defaults (omitted from ``TrainConfig.to_dict`` at the default).
-DELAY_FIELDS = {"delay_max": 0, "init_from": ""}
+DELAY_FIELDS = {"delay_max": 0, "init_from": "", "successful_only": False}
 
 
 def parse_ids(spec: str) -> tuple[int, ...]:

@@ -93,6 +93,18 @@ def executed_prefixes(data: list[Path], rows: int) -> np.ndarray:
     return np.concatenate(out).astype(np.float32)
 
 
+def successful_frames(data: list[Path]) -> np.ndarray:
+    """(N,) bool: the frame belongs to an episode that ended in success (frames in :func:`prepare`'s order)."""
+    out = []
+    for d in data:
+        _, cols = read_frames(Path(d))
+        ep, success = cols["episode_index"], cols["next.success"].astype(bool)
+        ended = np.zeros(int(ep.max()) + 1, bool)
+        np.logical_or.at(ended, ep, success)
+        out.append(ended[ep])
+    return np.concatenate(out)
+
+
 def delay_batch(prefix, horizon: int, delay_max: int, gen):
     """Training-time RTC for one batch of normalised executed prefixes (B, delay_max, 7): d drawn per sample in
     0..delay_max -> (conditioning (B, C) as delay.conditioning builds it, row mask (B, H): rows >= d, d (B,))."""
@@ -156,6 +168,10 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     infos, layout, feats, targets, episode = prepare(
         [Path(d) for d in data], cfg.horizon, cfg.target, cfg.joint_velocity
     )
+    if cfg.successful_only:
+        keep = successful_frames([Path(d) for d in data])
+        feats, targets, episode = feats[keep], targets[keep], episode[keep]
+        _log(f"successful episodes only: {int(keep.sum())} of {len(keep)} frames")
     rng = np.random.default_rng(cfg.seed)
     episodes = np.unique(episode)
     n_val = int(round(cfg.val_fraction * len(episodes))) if len(episodes) > 1 else 0
@@ -183,7 +199,9 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     extra = conditioning_dim(cfg.delay_max)
     prefix = None
     if cfg.delay_max:
-        prefix = torch.from_numpy((executed_prefixes([Path(d) for d in data], cfg.delay_max) - a_mean) / a_std)
+        executed = executed_prefixes([Path(d) for d in data], cfg.delay_max)
+        executed = executed[keep] if cfg.successful_only else executed
+        prefix = torch.from_numpy((executed - a_mean) / a_std)
     train_idx = torch.from_numpy(np.flatnonzero(~is_val))
     val_idx = torch.from_numpy(np.flatnonzero(is_val))
     _log(f"{len(episodes)} episodes ({n_val} held out), {len(train_idx)}/{len(val_idx)} train/val frames")

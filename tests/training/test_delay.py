@@ -137,6 +137,22 @@ def test_executed_prefixes_stay_in_their_episode(tmp_path):
     np.testing.assert_array_equal(pre[5], eps[1].action_executed[:3])
 
 
+def test_successful_only_keeps_the_frames_of_successful_episodes(tmp_path):
+    from dataclasses import replace
+
+    from lq_ros.training.dataset import write_dataset
+    from lq_ros.training.train import successful_frames
+    from tests.training.test_learned import SPATIAL, _episode
+
+    rng = np.random.default_rng(0)
+    ok, failed = _episode(rng, 0, 4), _episode(rng, 1, 3)
+    failed = replace(failed, success=np.zeros(3, bool))
+    goals = {str(t): [["on", "akita_black_bowl_1", "plate_1"]] for t in range(2)}
+    write_dataset(tmp_path, [failed, ok], {"suite": "libero_spatial", "layout": SPATIAL.to_dict(), "goals": goals},
+                  {0: "a", 1: "b"})  # fmt: skip
+    np.testing.assert_array_equal(successful_frames([tmp_path]), [False] * 3 + [True] * 4)
+
+
 @pytest.mark.parametrize("kind", ["oft", "flow"])
 def test_fine_tune_records_its_config_and_runs_as_delay_variant(tmp_path, kind):
     from lq_ros.core.types import TaskInfo
@@ -145,9 +161,10 @@ def test_fine_tune_records_its_config_and_runs_as_delay_variant(tmp_path, kind):
     _write_synthetic(data, lengths=(30, 40))
     naive = train(TrainConfig(policy=kind, horizon=6, steps=10, width=32, depth=1, log_every=5), [data], tmp_path)
     cfg = TrainConfig(policy=kind, horizon=6, steps=10, width=32, depth=1, log_every=5, delay_max=4,
-                      init_from=f"{kind}_c6_libero_spatial", lr=3e-4)  # fmt: skip
+                      init_from=f"{kind}_c6_libero_spatial", lr=3e-4, successful_only=True)  # fmt: skip
     meta = train(cfg, [data], tmp_path)
     assert meta["train_config"] == cfg.to_dict() and meta["train_config"]["delay_max"] == 4
+    assert meta["train_config"]["successful_only"] is True
     assert meta["delay"]["delay_max"] == 4 and meta["delay"]["init_from"]["name"] == f"{kind}_c6_libero_spatial"
     assert meta["stats"] == naive["stats"]  # the initial checkpoint's normalisation is kept
     assert "delay_max" not in naive["train_config"] and "init_from" not in naive["train_config"]
