@@ -160,6 +160,21 @@ def latency_task(job: tuple[str, int, list[str], list[str], list[float], list[in
     return rows
 
 
+def check_latency_rows(rows: list[dict]) -> list[dict]:
+    """Latency-study rows of several runs, refused if one episode (or one policy spec with two different weight
+    files) appears twice."""
+    keys = [(r["suite"], r["policy"], r["mode"], r["latency_s"], r["task"], r["init"]) for r in rows]
+    if len(set(keys)) != len(keys):
+        raise SystemExit("the same episode is in the merged runs twice")
+    digests: dict[tuple[str, str], set[str]] = {}
+    for r in rows:
+        digests.setdefault((r["suite"], r["policy"]), set()).add(r["weights_md5"])
+    bad = sorted(k for k, v in digests.items() if len(v) > 1)
+    if bad:
+        raise SystemExit(f"runs of {bad} used different weight files (md5)")
+    return rows
+
+
 def latency_report(rows: list[dict]) -> dict:
     """Print, per suite, the success table policy x protocol x latency (k/n = % [Wilson 95%]); returns it."""
     rows = [r for r in rows if "latency_s" in r]
@@ -367,10 +382,7 @@ def main() -> None:
     if args.merge:
         rows = [r for path in args.merge for r in json.loads(path.read_text())["rows"]]
         if any("latency_s" in r for r in rows):
-            keys = [(r["suite"], r["policy"], r["mode"], r["latency_s"], r["task"], r["init"]) for r in rows]
-            if len(set(keys)) != len(keys):
-                raise SystemExit("the same episode is in the merged runs twice")
-            summary = latency_report(rows)
+            summary = latency_report(check_latency_rows(rows))
             if args.json:
                 args.json.write_text(json.dumps({"latency": summary, "merged": [str(p) for p in args.merge]}))
             return
