@@ -146,6 +146,9 @@ def train(
     init_from: Annotated[
         str, typer.Option(help="Fine-tune from a checkpoint (name: --out folder, then shipped; or a path).")
     ] = _D.init_from,
+    freeze_base: Annotated[
+        bool, typer.Option(help="With --init-from: train only the conditioning inputs (d = 0 stays the initial model).")
+    ] = _D.freeze_base,
     successful_only: Annotated[
         bool, typer.Option(help="Only the frames of successful episodes (of a dataset that kept failures).")
     ] = _D.successful_only,
@@ -162,7 +165,8 @@ def train(
             policy=policy, horizon=chunk, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
             seed=seed, dropout=dropout, feature_noise=feature_noise, ema=ema, joint_velocity=joint_velocity,
             target=target, replan_steps=replan_steps, flow_steps=flow_steps, threads=threads, name=name,
-            delay_max=delay_max, init_from=init_from, successful_only=successful_only,
+            delay_max=delay_max, init_from=init_from, freeze_base=freeze_base,
+            successful_only=successful_only,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

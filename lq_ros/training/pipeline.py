@@ -36,7 +36,7 @@ COLLECT_OPTIONS = {"suite": "libero_spatial", "tasks": "0-9", "inits": "10-29", 
                    "seed": 7, "workers": 2, "keep_failures": False, "latency_ticks": "", "modes": "sync,async",
                    "latency_driver": ["scripted"], "gripper_noise": 0.0}  # fmt: skip
 #: ``lq train`` options a weights entry may set beyond policy, chunk and data (the delay-aware fine-tunes).
-TRAIN_OPTIONS = ("steps", "lr", "delay_max", "init_from", "successful_only")
+TRAIN_OPTIONS = ("steps", "lr", "delay_max", "init_from", "freeze_base", "successful_only")
 
 
 @dataclass(frozen=True)

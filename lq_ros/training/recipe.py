@@ -72,6 +72,9 @@ class TrainConfig:
     #: Fine-tune from this checkpoint (a name: looked up in the output folder first, then among the shipped
     #: weights; or a path): its weights (the conditioning inputs start at zero) and its normalisation. "": none.
     init_from: str = ""
+    #: With ``init_from``: train only the conditioning inputs' first-layer weights (for d >= 1; weight decay off),
+    #: the rest stays the initial checkpoint's, so at d = 0 the model is exactly the one it started from.
+    freeze_base: bool = False
     #: Train on the frames of successful episodes only (a DAgger dataset collected with --keep-failures).
     successful_only: bool = False
 
@@ -96,6 +99,8 @@ class TrainConfig:
             raise ValueError(f"replan_steps must be in 1..horizon={self.horizon}, got {self.replan_steps}")
         if not 0.0 <= self.ema < 1.0:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
+        if self.freeze_base and not (self.init_from and self.delay_max):
+            raise ValueError("freeze_base needs init_from and delay_max (it trains the conditioning inputs only)")
         if not 0 <= self.delay_max < self.horizon:
             raise ValueError(f"delay_max must be in 0..horizon-1={self.horizon - 1}, got {self.delay_max}")
 
@@ -117,7 +122,7 @@ class TrainConfig:
 
 
 #: Fields of the delay-aware variant with their defaults (omitted from ``TrainConfig.to_dict`` at the default).
-DELAY_FIELDS = {"delay_max": 0, "init_from": "", "successful_only": False}
+DELAY_FIELDS = {"delay_max": 0, "init_from": "", "freeze_base": False, "successful_only": False}
 
 
 def parse_ids(spec: str) -> tuple[int, ...]:

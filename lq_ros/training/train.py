@@ -211,7 +211,18 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         state = torch.load(init_path.with_name(init["weights_file"]), map_location="cpu", weights_only=True)
         model.load_state_dict(_expand_input({k: v.float() for k, v in state.items()}, cfg.policy, extra))
     n_params = sum(p.numel() for p in model.parameters())
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    params = list(model.parameters())
+    if cfg.freeze_base:
+        # Only the first layer's columns of the conditioning inputs for d >= 1 learn (the d = 0 slot and the
+        # features' columns keep their gradient at zero; Adam then leaves them exactly unchanged).
+        first = (model.inp if cfg.policy == "oft" else model.obs).weight
+        for p in model.parameters():
+            p.requires_grad_(p is first)
+        trainable = torch.zeros_like(first)
+        trainable[:, layout.feature_dim + 1 :] = 1.0
+        first.register_hook(lambda g: g * trainable)
+        params = [first]
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0 if cfg.freeze_base else cfg.weight_decay)
 
     def lr_at(step: int) -> float:
         if step < cfg.warmup_steps:
@@ -255,7 +266,7 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         loss = loss_of(model, batch, gen, cfg.feature_noise)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         if averaged is not None:
             averaged.update_parameters(model)

@@ -181,6 +181,39 @@ def test_fine_tune_records_its_config_and_runs_as_delay_variant(tmp_path, kind):
     np.testing.assert_array_equal(chunks[0], chunks[1])
 
 
+@pytest.mark.parametrize("kind", ["oft", "flow"])
+def test_freeze_base_trains_only_the_conditioning_and_keeps_d0_the_initial_model(tmp_path, kind):
+    from lq_ros.core.merge import ActionPrefix
+    from lq_ros.core.types import TaskInfo
+
+    data = tmp_path / "data"
+    _write_synthetic(data, lengths=(30, 40))
+    small = {"policy": kind, "horizon": 6, "width": 32, "depth": 1, "log_every": 5}
+    train(TrainConfig(**small, steps=10), [data], tmp_path)
+    cfg = TrainConfig(**small, steps=20, delay_max=4, init_from=f"{kind}_c6_libero_spatial", freeze_base=True, lr=1e-2)
+    train(cfg, [data], tmp_path)
+    naive = torch.load(tmp_path / f"{kind}_c6_libero_spatial.pt")
+    tuned = torch.load(tmp_path / f"{kind}_c6_delay_libero_spatial.pt")
+    first = "inp.weight" if kind == "oft" else "obs.weight"
+    features = naive[first].shape[1]
+    for key, value in naive.items():
+        if key != first:
+            assert torch.equal(tuned[key], value), key
+    np.testing.assert_array_equal(tuned[first][:, :features], naive[first])
+    assert not tuned[first][:, features + 1 :].eq(0).all()  # the conditioning columns learned something
+    np.testing.assert_array_equal(tuned[first][:, features], 0.0)  # the d = 0 slot stays zero
+    task = TaskInfo(suite="libero_spatial", task_id=0, name="t", instruction="t",
+                    goal=[["on", "akita_black_bowl_1", "plate_1"]], step_budget=220, num_init_states=50)  # fmt: skip
+    a = make_policy(kind, weights=str(tmp_path / f"{kind}_c6_libero_spatial.json"))
+    b = make_policy(kind, weights=str(tmp_path / f"{kind}_c6_delay_libero_spatial.json"), variant="delay")
+    for p in (a, b):
+        p.reset(task, 7)
+    np.testing.assert_allclose(b.infer(_obs(tick=0)), a.infer(_obs(tick=0)), atol=1e-5)  # d = 0: the naive chunk
+    if kind == "flow":  # with an executor prefix (merge rtc) d = 2: conditioned, not the naive chunk
+        prefix = ActionPrefix(np.full((3, 7), 0.5), 2, "hard")
+        assert not np.allclose(b.infer(_obs(tick=0), prefix)[2:], a.infer(_obs(tick=0))[2:])
+
+
 def test_shipped_naive_chunks_are_unchanged_by_the_variant_code():
     """The naive path is the one it was: same chunk from the default policy as from variant=naive."""
     from lq_ros.sim.libero_env import load_task
