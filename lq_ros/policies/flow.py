@@ -28,11 +28,11 @@ class FlowPolicy(LearnedChunkPolicy):
 
     def __init__(
         self, weights: str = "", steps: int = 0, threads: int = 1, variant: str = "naive", mode: str = "async",
-        delay: int = -1,
+        delay: int = -1, execute: int = -1,
     ) -> None:  # fmt: skip
         check_variant(variant)
         super().__init__(
-            weights or ("flow_c10_delay" if variant == "delay" else "flow_c10"), threads, variant, mode, delay
+            weights or ("flow_c10_delay" if variant == "delay" else "flow_c10"), threads, variant, mode, delay, execute
         )
         self._steps = int(steps)
         self._prefix: ActionPrefix | None = None  # set for the duration of one infer()

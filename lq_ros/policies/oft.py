@@ -19,7 +19,7 @@ class OFTPolicy(LearnedChunkPolicy):
 
     def __init__(
         self, chunk_size: int = 8, weights: str = "", threads: int = 1, variant: str = "naive", mode: str = "async",
-        delay: int = -1,
+        delay: int = -1, execute: int = -1,
     ) -> None:  # fmt: skip
         check_variant(variant)
         shipped = (1, 8) if variant == "naive" else (8,)
@@ -29,7 +29,7 @@ class OFTPolicy(LearnedChunkPolicy):
                 " pass weights=PATH"
             )
         base = f"oft_c{chunk_size}" + ("_delay" if variant == "delay" else "")
-        super().__init__(weights or base, threads, variant, mode, delay)
+        super().__init__(weights or base, threads, variant, mode, delay, execute)
         if weights and chunk_size not in (self.horizon, 8):
             raise ValueError(f"{self.weights_path.name} decodes chunks of {self.horizon}, not {chunk_size}")
 

@@ -179,6 +179,11 @@ def test_fine_tune_records_its_config_and_runs_as_delay_variant(tmp_path, kind):
         chunks.append(policy.infer(_obs(tick=0)))
     assert chunks[0].shape == (4, 7)  # sync: the chunk from row d on
     np.testing.assert_array_equal(chunks[0], chunks[1])
+    # Async: d + s rows, s = d by default (inference back to back), the whole chunk with execute=0, else s.
+    for execute, rows in ((-1, 4), (0, 6), (1, 3)):
+        policy = make_policy(kind, weights=str(path), variant="delay", delay=2, execute=execute)
+        policy.reset(task, 7)
+        assert policy.infer(_obs(tick=0)).shape == (rows, 7), execute
 
 
 @pytest.mark.parametrize("kind", ["oft", "flow"])

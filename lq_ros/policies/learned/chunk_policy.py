@@ -131,7 +131,10 @@ class LearnedChunkPolicy(Policy):
 
     kind = ""
 
-    def __init__(self, weights: str, threads: int = 1, variant: str = "naive", mode: str = "async", delay: int = -1):
+    def __init__(
+        self, weights: str, threads: int = 1, variant: str = "naive", mode: str = "async", delay: int = -1,
+        execute: int = -1,
+    ) -> None:  # fmt: skip
         import torch
 
         # One thread: the policy shares the CPU with the simulator (and torch's spin-waiting threads
@@ -154,6 +157,10 @@ class LearnedChunkPolicy(Policy):
         self._tracker = (
             DelayTracker(mode, int(delay), self.ckpt.delay_max, self.replan_steps) if variant == "delay" else None
         )
+        #: Async: actions run per chunk after the d executing ones (-1: d; 0: the whole chunk).
+        self.execute = int(execute)
+        if self.execute < -1:
+            raise ValueError(f"execute must be >= 0 actions (0: the whole chunk) or -1 (d), got {execute}")
         #: (d, normalised prefix (1, d, 7) tensor) for the duration of one delay-aware infer().
         self._ctx: tuple[int, object] | None = None
 
@@ -200,7 +207,7 @@ class LearnedChunkPolicy(Policy):
         where = "shipped, per suite" if self._per_suite else str(self.weights_path)
         out = {"weights": self.weights, "weights_source": where, "horizon": self.horizon}
         if self._tracker is not None:
-            out.update(variant=self.variant, mode=self._tracker.mode, delay=self._tracker.delay)
+            out.update(variant=self.variant, mode=self._tracker.mode, delay=self._tracker.delay, execute=self.execute)
         return out
 
     def reset(self, task: TaskInfo, seed: int) -> None:
@@ -269,6 +276,10 @@ class LearnedChunkPolicy(Policy):
         chunk[:d] = postprocess(rows) if d else chunk[:0]  # rows 0..d-1 are the prefix (async drops them as stale)
         if self._tracker.mode == "sync":
             chunk = chunk[min(d, self.horizon - 1) :]  # the sync executor runs row 0 after the hold of d ticks
+        elif d and self.execute:
+            # Async execution horizon s: return d + s rows, s = d (-1: the fewest that keep inference back to back
+            # without an underrun, so no executed row is older than 2d - 1 ticks) or the given s.
+            chunk = chunk[: d + (d if self.execute < 0 else self.execute)]
         self._tracker.returned(obs.tick, chunk)
         return chunk
 
