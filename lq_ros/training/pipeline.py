@@ -9,6 +9,10 @@ stopped when run again.
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild            # every stage, timed
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild --only oft_c8_libero_object
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild --plan     # the commands, and the recorded times
+    .venv/bin/python -m lq_ros.training.pipeline --out rebuild --only oft_c8_delay_libero_object   # a candidate
+
+The YAML's ``candidates`` are weight files that were built and evaluated but are not shipped (the delay-aware
+variants, docs/learned_policies.md): built only when named with ``--only``, after the weights they start from.
 
 ``--plan`` prints each stage's command and the wall time the shipped files record for it (collection: the
 sum over tasks of each task's time, with ``workers`` tasks at a time; training: ``train_wall_s``).
@@ -76,6 +80,8 @@ class Weights:
     data: tuple[str, ...]
     #: Further ``lq train`` options (TRAIN_OPTIONS); ``init_from`` names another weights entry, built first.
     options: tuple[tuple[str, object], ...] = ()
+    #: False for the YAML's ``candidates``: built and evaluated, not shipped (built with ``--only NAME``).
+    shipped: bool = True
 
     def config(self) -> TrainConfig:
         return TrainConfig(policy=self.policy, horizon=self.chunk, **dict(self.options))
@@ -100,8 +106,10 @@ def load_pipeline(path: Path = PIPELINE_FILE) -> tuple[dict[str, Dataset], dict[
             int(entry["chunk"]),
             tuple(entry["data"]),
             tuple((k, entry[k]) for k in TRAIN_OPTIONS if k in entry),
+            shipped=section == "weights",
         )  # fmt: skip
-        for name, entry in raw["weights"].items()
+        for section in ("weights", "candidates")
+        for name, entry in (raw.get(section) or {}).items()
     }
     bad = {n: w for n, w in weights.items() if dict(w.options).get("init_from", n) not in weights}
     if bad:
@@ -116,6 +124,8 @@ def recorded_times(weights: dict[str, Weights]) -> tuple[dict[str, float], dict[
     """Wall seconds the shipped JSONs record: per dataset (sum of its tasks' times) and per weight file."""
     collect_s, train_s = {}, {}
     for w in weights.values():
+        if not w.shipped:
+            continue
         meta = json.loads((WEIGHTS_DIR / f"{w.name}.json").read_text())
         train_s[w.name] = float(meta["metrics"]["train_wall_s"])
         for name, source in zip(w.data, meta["dataset"]["sources"], strict=True):
@@ -131,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pipeline", type=Path, default=PIPELINE_FILE)
     args = parser.parse_args(argv)
     datasets, weights = load_pipeline(args.pipeline)
-    chosen = {n: w for n, w in weights.items() if args.only is None or n in args.only}
+    chosen = {n: w for n, w in weights.items() if (w.shipped if args.only is None else n in args.only)}
     # A fine-tune needs the weights it starts from (built first: the YAML lists them before it).
     starts = {dict(w.options).get("init_from") for w in chosen.values()} - {None}
     chosen = {n: w for n, w in weights.items() if n in chosen or n in starts}
@@ -144,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     stages += [(f"train {w.name}", w.command(args.out), train_s.get(w.name)) for w in chosen.values()]
     for what, command, recorded in stages:
         shown = " ".join(["lq", *command[3:]])
-        print(f"{what}: {shown}  (recorded: {recorded:.0f} s)")
+        print(f"{what}: {shown}  " + ("(not shipped)" if recorded is None else f"(recorded: {recorded:.0f} s)"))
         if args.plan:
             continue
         started = time.monotonic()
