@@ -27,6 +27,15 @@ def test_unknown_variant_is_refused_naming_the_valid_ones(name):
         DelayTracker(mode="later")
 
 
+@pytest.mark.parametrize(("name", "base"), [("oft", "oft_c8_delay"), ("flow", "flow_c10_delay")])
+def test_delay_variant_without_shipped_weights_says_how_to_build_them(name, base, monkeypatch):
+    from lq_ros.policies.learned import chunk_policy
+
+    monkeypatch.setattr(chunk_policy, "shipped_suites", lambda weights: [])
+    with pytest.raises(FileNotFoundError, match=f"--only {base}_libero_object` and pass weights="):
+        make_policy(name, variant="delay")
+
+
 def test_naive_checkpoint_cannot_run_as_delay_variant():
     with pytest.raises(ValueError, match="needs a delay-aware checkpoint"):
         make_policy("oft", weights="oft_c8_libero_object", variant="delay")

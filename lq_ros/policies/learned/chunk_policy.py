@@ -145,6 +145,12 @@ class LearnedChunkPolicy(Policy):
         self._per_suite = is_shipped_base_name(self.weights)
         self._cache: dict[Path, Checkpoint] = {}
         have = shipped_suites(self.weights) if self._per_suite else []
+        if variant == "delay" and self._per_suite and not have:
+            raise FileNotFoundError(
+                f"no delay-aware weights {self.weights!r} are shipped (docs/learned_policies.md, 'Delay-aware "
+                f"variants'); build them with `python -m lq_ros.training.pipeline --out DIR --only "
+                f"{self.weights}_libero_object` and pass weights=DIR/weights/{self.weights}_libero_object.json"
+            )
         # Until the first reset: the default suite's checkpoint, or the first shipped one (a variant shipped
         # for some suites only).
         self._use(resolve_weights(self.weights, DEFAULT_SUITE if DEFAULT_SUITE in have or not have else have[0]))
