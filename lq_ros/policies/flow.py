@@ -17,9 +17,9 @@ class FlowPolicy(LearnedChunkPolicy):
 
     Real-time chunking (merge ``rtc`` / ``rtc_hard``): ``infer(obs, prefix)`` samples the same noise with
     guidance towards the actions still in flight (``rtc.inpaint_chunk``, in the policy's normalised units);
-    an empty prefix gives exactly the unguided chunk. ``variant=delay`` loads the delay-aware weights
-    (``flow_c10_delay``), which are conditioned on the prefix instead (training-time RTC: the d executing rows
-    are fed clean and the rest integrated from noise; LearnedChunkPolicy).
+    an empty prefix gives exactly the unguided chunk. ``variant=delay``: latency-aware execution
+    (LearnedChunkPolicy); a delay-aware checkpoint (``weights=``) is conditioned on the prefix instead of guided
+    (training-time RTC: the d executing rows are fed clean and the rest integrated from noise).
     """
 
     name = "flow"
@@ -31,9 +31,7 @@ class FlowPolicy(LearnedChunkPolicy):
         delay: int = -1, execute: int = -1,
     ) -> None:  # fmt: skip
         check_variant(variant)
-        super().__init__(
-            weights or ("flow_c10_delay" if variant == "delay" else "flow_c10"), threads, variant, mode, delay, execute
-        )
+        super().__init__(weights or "flow_c10", threads, variant, mode, delay, execute)
         self._steps = int(steps)
         self._prefix: ActionPrefix | None = None  # set for the duration of one infer()
         if self._steps < 0:
@@ -58,7 +56,7 @@ class FlowPolicy(LearnedChunkPolicy):
         return self.model.sample(x, noise, self.steps, hook)
 
     def infer(self, obs: Observation, prefix: ActionPrefix | None = None) -> np.ndarray:
-        if self._tracker is not None:
+        if self._tracker is not None and (self.ckpt.delay_max or prefix is None):
             return super().infer(obs, prefix)
         self._prefix = prefix
         try:

@@ -10,8 +10,8 @@ class OFTPolicy(LearnedChunkPolicy):
     """One forward pass -> (H, 7), executed open loop.
 
     ``chunk_size`` 8 (default) or 1 picks the shipped weights (``oft_c8`` / ``oft_c1``, per suite); the two
-    differ only in the chunk length they were trained for. ``variant=delay`` picks the delay-aware chunk-8
-    weights (``oft_c8_delay``; ``mode``/``delay``: see LearnedChunkPolicy).
+    differ only in the chunk length they were trained for. ``variant=delay``: latency-aware execution
+    (``mode``/``delay``/``execute``: see LearnedChunkPolicy), with these weights or a delay-aware ``weights=``.
     """
 
     name = "oft"
@@ -22,14 +22,9 @@ class OFTPolicy(LearnedChunkPolicy):
         delay: int = -1, execute: int = -1,
     ) -> None:  # fmt: skip
         check_variant(variant)
-        shipped = (1, 8) if variant == "naive" else (8,)
-        if not weights and chunk_size not in shipped:
-            raise ValueError(
-                f"shipped {variant} oft weights have chunk_size {' or '.join(map(str, shipped))}, got {chunk_size};"
-                " pass weights=PATH"
-            )
-        base = f"oft_c{chunk_size}" + ("_delay" if variant == "delay" else "")
-        super().__init__(weights or base, threads, variant, mode, delay, execute)
+        if not weights and chunk_size not in (1, 8):
+            raise ValueError(f"shipped oft weights have chunk_size 1 or 8, got {chunk_size}; pass weights=PATH")
+        super().__init__(weights or f"oft_c{chunk_size}", threads, variant, mode, delay, execute)
         if weights and chunk_size not in (self.horizon, 8):
             raise ValueError(f"{self.weights_path.name} decodes chunks of {self.horizon}, not {chunk_size}")
 

@@ -123,10 +123,11 @@ def check_variant(variant: str) -> None:
 class LearnedChunkPolicy(Policy):
     """Loads a checkpoint pair (per suite for shipped weights) and maps an observation to an (H, 7) chunk.
 
-    A delay-aware checkpoint (trained with delay conditioning, lq_ros/policies/learned/delay.py) is also told
-    the d actions that execute while it infers: the executor's prefix when given (merge rtc), else what its
-    :class:`DelayTracker` derives from the protocol ``mode`` and its own last chunk (``delay``: d in ticks, -1:
-    estimated). In sync it returns the chunk from row d on (what the executor runs after the hold).
+    ``variant="delay"``: the policy keeps track of the delay d and the actions executing while it infers (the
+    executor's prefix when given, merge rtc; else what its :class:`DelayTracker` derives from the protocol
+    ``mode`` and its own last chunk; ``delay``: d in ticks, -1: estimated). Async, it returns d + s rows
+    (``execute``). A delay-aware checkpoint (trained with delay conditioning, lq_ros/policies/learned/delay.py)
+    is also told d and the prefix, and in sync returns its chunk from row d on (the rows for after the hold).
     """
 
     kind = ""
@@ -145,12 +146,6 @@ class LearnedChunkPolicy(Policy):
         self._per_suite = is_shipped_base_name(self.weights)
         self._cache: dict[Path, Checkpoint] = {}
         have = shipped_suites(self.weights) if self._per_suite else []
-        if variant == "delay" and self._per_suite and not have:
-            raise FileNotFoundError(
-                f"no delay-aware weights {self.weights!r} are shipped (docs/learned_policies.md, 'Delay-aware "
-                f"variants'); build them with `python -m lq_ros.training.pipeline --out DIR --only "
-                f"{self.weights}_libero_object` and pass weights=DIR/weights/{self.weights}_libero_object.json"
-            )
         # Until the first reset: the default suite's checkpoint, or the first shipped one (a variant shipped
         # for some suites only).
         self._use(resolve_weights(self.weights, DEFAULT_SUITE if DEFAULT_SUITE in have or not have else have[0]))
@@ -158,10 +153,8 @@ class LearnedChunkPolicy(Policy):
         self._slots = (-1, -1)
         self._seed = 0
         self.variant = variant
-        if variant == "delay" and not self.ckpt.delay_max:
-            raise ValueError(f"variant 'delay' needs a delay-aware checkpoint; {self.weights_path.name} is naive")
         self._tracker = (
-            DelayTracker(mode, int(delay), self.ckpt.delay_max, self.replan_steps) if variant == "delay" else None
+            DelayTracker(mode, int(delay), self._delay_max(), self.replan_steps) if variant == "delay" else None
         )
         #: Async: actions run per chunk after the d executing ones (-1: d; 0: the whole chunk).
         self.execute = int(execute)
@@ -179,9 +172,6 @@ class LearnedChunkPolicy(Policy):
                 )
             self._cache[path] = ckpt
         self.ckpt = self._cache[path]
-        tracker = getattr(self, "_tracker", None)
-        if tracker is not None and not self.ckpt.delay_max:
-            raise PolicyError(f"variant 'delay' needs a delay-aware checkpoint; {path.name} is naive")
 
     # The current checkpoint's parts (the suite's, after reset).
     @property
@@ -230,7 +220,7 @@ class LearnedChunkPolicy(Policy):
         self._slots = goal_slots(self.layout, task.goal)
         self._seed = int(seed)
         if self._tracker is not None:
-            self._tracker.delay_max = self.ckpt.delay_max
+            self._tracker.delay_max = self._delay_max()
             self._tracker.replan_steps = self.replan_steps
             self._tracker.reset()
 
@@ -256,10 +246,14 @@ class LearnedChunkPolicy(Policy):
             return chunk
         return self._infer_delay(x, obs, prefix)
 
+    def _delay_max(self) -> int:
+        """Largest d the policy uses: its conditioning's, or (a naive checkpoint) H - 1."""
+        return self.ckpt.delay_max or max(self.horizon - 1, 0)
+
     def delay_context(self, obs: Observation, prefix=None) -> tuple[int, np.ndarray]:
         """(d, the d actions executing while inferring): the executor's prefix if given, else the tracker's."""
         if prefix is not None:
-            d = int(min(prefix.delay, self.ckpt.delay_max, len(prefix.actions)))
+            d = int(min(prefix.delay, self._delay_max(), len(prefix.actions)))
             return d, np.asarray(prefix.actions[:d], dtype=np.float64)
         return self._tracker.context(obs.tick)
 
@@ -267,10 +261,11 @@ class LearnedChunkPolicy(Policy):
         torch, dmax = self._torch, self.ckpt.delay_max
         d, rows = self.delay_context(obs, prefix)
         norm = ((rows - self.ckpt.a_mean) / self.ckpt.a_std).astype(np.float32)
-        padded = np.zeros((1, dmax, ACTION_DIM), np.float32)
-        padded[0, :d] = norm
-        x = torch.cat([x, torch.from_numpy(conditioning(np.array([d]), padded, dmax))], dim=1)
-        self._ctx = (d, torch.from_numpy(norm[None]))
+        if dmax:  # a delay-aware checkpoint is told d and the prefix
+            padded = np.zeros((1, dmax, ACTION_DIM), np.float32)
+            padded[0, :d] = norm
+            x = torch.cat([x, torch.from_numpy(conditioning(np.array([d]), padded, dmax))], dim=1)
+            self._ctx = (d, torch.from_numpy(norm[None]))
         try:
             with torch.no_grad():
                 chunk = self._decode(x, obs)[0].numpy()
@@ -279,9 +274,11 @@ class LearnedChunkPolicy(Policy):
         chunk = postprocess(self.denormalise(chunk))
         if not np.all(np.isfinite(chunk)):
             raise PolicyError("model produced a non-finite action")
-        chunk[:d] = postprocess(rows) if d else chunk[:0]  # rows 0..d-1 are the prefix (async drops them as stale)
+        if dmax and d:
+            chunk[:d] = postprocess(rows)  # rows 0..d-1 are the prefix (async drops them as stale)
         if self._tracker.mode == "sync":
-            chunk = chunk[min(d, self.horizon - 1) :]  # the sync executor runs row 0 after the hold of d ticks
+            if dmax:  # told about the hold, its rows from d on are the ones for after it (a naive chunk starts at 0)
+                chunk = chunk[min(d, self.horizon - 1) :]
         elif d and self.execute:
             # Async execution horizon s: return d + s rows, s = d (-1: the fewest that keep inference back to back
             # without an underrun, so no executed row is older than 2d - 1 ticks) or the given s.
