@@ -203,6 +203,9 @@ def latency_report(rows: list[dict]) -> dict:
                 print(line)
         errors = sum(r["status"].startswith("error") for r in mine)
         print(f"episodes: {len(mine)}, errors: {errors}")
+        for spec in dict.fromkeys(r["policy"] for r in mine):
+            files = sorted({(r["weights"], r["weights_md5"]) for r in mine if r["policy"] == spec})
+            print(f"  {spec}: " + ", ".join(f"{name} (md5 {md5})" for name, md5 in files))
     return summary
 
 
