@@ -267,3 +267,18 @@ def test_dagger_under_latency_collects_executor_driven_episodes(tmp_path):
     # Noise 0 on the arm: the executed arm commands are the driver's, not the labels; the gripper was perturbed.
     assert not np.array_equal(executed[:, :6], cols["action"][first][:, :6])
     assert (cols["action.executed"][:, 6] != cols["action"][:, 6]).any()
+
+
+@pytest.mark.parametrize("name", ["flow", "oft"])
+@pytest.mark.sim
+def test_real_delay_aware_episode_succeeds_async_at_0_1_s(tmp_path, name):
+    """LIBERO-Object task 7 init 0, async at 0.1 s, variant=delay on the shipped weights: a success (the latency
+    study, docs/learned_policies.md, recorded 114 ticks for flow and 108 for oft on its machine)."""
+    from lq_ros.core.run_config import RunConfig
+    from lq_ros.transport.inprocess import run_inprocess
+
+    replan = {"flow": 5, "oft": 8}[name]
+    cfg = RunConfig(suite="libero_object", task=7, init=0, seed=7, mode="async", latency_s=0.1, merge="replace",
+                    policy=name, policy_args={"variant": "delay"}, replan_steps=replan)  # fmt: skip
+    outcome = run_inprocess(cfg, tmp_path)
+    assert outcome.status == "success", (outcome.ticks, outcome.reason)
