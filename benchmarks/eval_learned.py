@@ -12,6 +12,16 @@ Usage: python benchmarks/eval_learned.py [--suite libero_spatial --suite libero_
        python benchmarks/eval_learned.py --merge a.json b.json   (one table from runs split by task/policy)
        python benchmarks/eval_learned.py --merge a.json b.json --by-weights   (columns per checkpoint, see below)
 
+Latency study (``--latency``): success at injected latencies Δt_sim (lockstep, in process, merge replace, the
+paper's step budget: holds count) in the protocols of ``--mode``, per policy, with Wilson 95% intervals. A
+delay-aware policy (``variant=delay``) is told the protocol it runs under (``mode=``), nothing else (it
+estimates d from its own requests, see lq_ros/policies/learned/delay.py). Each policy executes its weights'
+``replan_steps`` per chunk in sync; async runs the whole buffer (request threshold N).
+
+       python benchmarks/eval_learned.py --suite libero_object --latency 0 0.1 0.2 --mode async --mode sync \
+           --policy flow --policy flow:variant=delay --policy oft --policy oft:variant=delay --inits 10
+       python benchmarks/eval_learned.py --merge a.json b.json   (latency rows are merged into one latency table)
+
 ``--by-weights`` pools runs by the checkpoint they ran instead of by the policy spec string: ``oft`` and
 ``oft:weights=/some/copy/oft_c8_libero_spatial.json`` become one column ``oft_c8`` if the two ``.pt`` files
 are byte-identical (MD5; recorded in every row since it was added, else taken from the spec's ``weights=``
@@ -105,6 +115,98 @@ def eval_task(job: tuple[str, int, list[str], range, int]) -> list[dict]:
     finally:
         env.close()
     return rows
+
+
+def latency_task(job: tuple[str, int, list[str], list[str], list[float], list[int]]) -> list[dict]:
+    """Every (policy, protocol, latency, init) episode of one task through the in-process executor (one env)."""
+    import shutil
+    import tempfile
+
+    from lq_ros.core.run_config import RunConfig
+    from lq_ros.transport.inprocess import run_inprocess
+
+    suite, task_id, specs, modes, latencies, inits = job
+    env = LiberoEnv(suite, task_id)
+    rows = []
+    tmp = Path(tempfile.mkdtemp(prefix="lq_eval_latency_"))
+    try:
+        for spec in specs:
+            name, kwargs = parse_spec(spec)
+            for mode in modes:
+                args = {**kwargs, "mode": mode} if kwargs.get("variant") == "delay" else dict(kwargs)
+                policy = make_policy(name, **args)
+                policy.reset(env.task, SEED)
+                weights, replan = policy.weights_path.name, int(policy.replan_steps)
+                for latency in latencies:
+                    for init in inits:
+                        cfg = RunConfig(
+                            suite=suite, task=task_id, init=init, seed=SEED, mode=mode, latency_s=latency,
+                            replan_steps=replan, merge="replace", policy=name, policy_args=args,
+                        )  # fmt: skip
+                        t0 = time.perf_counter()
+                        out = run_inprocess(cfg, tmp, env=env, policy=policy)
+                        shutil.rmtree(out.bag_path, ignore_errors=True)
+                        status = out.status if out.status != "error" else f"error: {out.reason}"
+                        rows.append({"suite": suite, "policy": spec, "mode": mode, "latency_s": latency,
+                                     "task": task_id, "init": init, "status": status, "ticks": out.ticks,
+                                     "replan_steps": replan, "weights": weights,
+                                     "weights_md5": weights_digest(policy.weights_path),
+                                     "wall_s": round(time.perf_counter() - t0, 2)})  # fmt: skip
+                        print(f"{suite} {spec:18s} {mode:5s} {latency:.2f} s task {task_id} init {init}: {status}"
+                              f" {out.ticks}", file=sys.stderr, flush=True)  # fmt: skip
+    finally:
+        env.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return rows
+
+
+def check_latency_rows(rows: list[dict]) -> list[dict]:
+    """Latency-study rows of several runs, refused if one episode (or one policy spec with two different weight
+    files) appears twice."""
+    keys = [(r["suite"], r["policy"], r["mode"], r["latency_s"], r["task"], r["init"]) for r in rows]
+    if len(set(keys)) != len(keys):
+        raise SystemExit("the same episode is in the merged runs twice")
+    digests: dict[tuple[str, str], set[str]] = {}
+    for r in rows:
+        digests.setdefault((r["suite"], r["policy"]), set()).add(r["weights_md5"])
+    bad = sorted(k for k, v in digests.items() if len(v) > 1)
+    if bad:
+        raise SystemExit(f"runs of {bad} used different weight files (md5)")
+    return rows
+
+
+def latency_report(rows: list[dict]) -> dict:
+    """Print, per suite, the success table policy x protocol x latency (k/n = % [Wilson 95%]); returns it."""
+    rows = [r for r in rows if "latency_s" in r]
+    summary: dict = {}
+    for suite in sorted({r["suite"] for r in rows}):
+        mine = [r for r in rows if r["suite"] == suite]
+        lats = sorted({r["latency_s"] for r in mine})
+        tasks, inits = sorted({r["task"] for r in mine}), sorted({r["init"] for r in mine})
+        print(f"\n{suite}: latency study, seed={SEED}, tasks {tasks[0]}-{tasks[-1]}, inits {inits[0]}-{inits[-1]},"
+              " lockstep in process, merge replace, paper budget (holds count)")  # fmt: skip
+        print("success k/n = % [Wilson 95% interval, %]")
+        print(f"{'policy':22s} {'mode':6s}" + "".join(f"{f'{lat:g} s':>22s}" for lat in lats))
+        for spec in dict.fromkeys(r["policy"] for r in mine):
+            for mode in ("sync", "async"):
+                sel = [r for r in mine if r["policy"] == spec and r["mode"] == mode]
+                if not sel:
+                    continue
+                line = f"{spec:22s} {mode:6s}"
+                for lat in lats:
+                    cell_rows = [r for r in sel if r["latency_s"] == lat]
+                    ok, n = sum(r["status"] == "success" for r in cell_rows), len(cell_rows)
+                    lo, hi = wilson_interval(ok, n) if n else (0.0, 0.0)
+                    text = f"{ok}/{n} = {100 * ok / n:.0f}% [{100 * lo:.0f}-{100 * hi:.0f}]" if n else "-"
+                    line += f"{text:>22s}"
+                    summary.setdefault(suite, {}).setdefault(spec, {}).setdefault(mode, {})[f"{lat:g}"] = [ok, n]
+                print(line)
+        errors = sum(r["status"].startswith("error") for r in mine)
+        print(f"episodes: {len(mine)}, errors: {errors}")
+        for spec in dict.fromkeys(r["policy"] for r in mine):
+            files = sorted({(r["weights"], r["weights_md5"]) for r in mine if r["policy"] == spec})
+            print(f"  {spec}: " + ", ".join(f"{name} (md5 {md5})" for name, md5 in files))
+    return summary
 
 
 def weights_digest(checkpoint_json: Path) -> str:
@@ -276,10 +378,17 @@ def main() -> None:
     ap.add_argument("--merge", type=Path, nargs="+", help="only print the table of these --json files together")
     ap.add_argument("--by-weights", action="store_true", help="--merge: one column per checkpoint (see above)")
     ap.add_argument("--no-isolated", action="store_true", help="skip the isolated latency measurement")
+    ap.add_argument("--latency", type=float, nargs="+", help="latency study: injected Δt_sim values, s")
+    ap.add_argument("--mode", action="append", choices=("sync", "async"), help="latency study protocols (repeatable)")
     args = ap.parse_args()
 
     if args.merge:
         rows = [r for path in args.merge for r in json.loads(path.read_text())["rows"]]
+        if any("latency_s" in r for r in rows):
+            summary = latency_report(check_latency_rows(rows))
+            if args.json:
+                args.json.write_text(json.dumps({"latency": summary, "merged": [str(p) for p in args.merge]}))
+            return
         spec_of = None
         if args.by_weights:
             rows, specs, spec_of = by_weights(rows)
@@ -293,6 +402,20 @@ def main() -> None:
     suites = args.suite or list(SUITES)
     started = time.perf_counter()
     inits = range(args.init_start, args.init_start + args.inits)
+    if args.latency:
+        modes = args.mode or ["async"]
+        jobs = [(s, t, specs, modes, args.latency, list(inits)) for s in suites for t in args.tasks]
+        if args.workers > 1 and len(jobs) > 1:
+            with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
+                results = pool.map(latency_task, jobs, chunksize=1)
+        else:
+            results = [latency_task(j) for j in jobs]
+        rows = [r for res in results for r in res]
+        summary = latency_report(rows)
+        print(f"wall time {time.perf_counter() - started:.0f} s with {args.workers} workers")
+        if args.json:
+            args.json.write_text(json.dumps({"latency": summary, "rows": rows}, indent=1))
+        return
     jobs = [(s, t, specs, inits, args.replan_steps) for s in suites for t in args.tasks]
     if args.workers > 1 and len(jobs) > 1:
         with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:

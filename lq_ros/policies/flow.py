@@ -8,7 +8,7 @@ from lq_ros.core import rtc_guidance as rtc
 from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation
-from lq_ros.policies.learned.chunk_policy import LearnedChunkPolicy
+from lq_ros.policies.learned.chunk_policy import LearnedChunkPolicy, check_variant
 from lq_ros.policies.learned.networks import FlowHook
 
 
@@ -17,15 +17,21 @@ class FlowPolicy(LearnedChunkPolicy):
 
     Real-time chunking (merge ``rtc`` / ``rtc_hard``): ``infer(obs, prefix)`` samples the same noise with
     guidance towards the actions still in flight (``rtc.inpaint_chunk``, in the policy's normalised units);
-    an empty prefix gives exactly the unguided chunk.
+    an empty prefix gives exactly the unguided chunk. ``variant=delay``: latency-aware execution
+    (LearnedChunkPolicy); a delay-aware checkpoint (``weights=``) is conditioned on the prefix instead of guided
+    (training-time RTC: the d executing rows are fed clean and the rest integrated from noise).
     """
 
     name = "flow"
     kind = "flow"
     supports_prefix = True
 
-    def __init__(self, weights: str = "flow_c10", steps: int = 0, threads: int = 1) -> None:
-        super().__init__(weights, threads)
+    def __init__(
+        self, weights: str = "", steps: int = 0, threads: int = 1, variant: str = "naive", mode: str = "async",
+        delay: int = -1, execute: int = -1,
+    ) -> None:  # fmt: skip
+        check_variant(variant)
+        super().__init__(weights or "flow_c10", threads, variant, mode, delay, execute)
         self._steps = int(steps)
         self._prefix: ActionPrefix | None = None  # set for the duration of one infer()
         if self._steps < 0:
@@ -50,6 +56,8 @@ class FlowPolicy(LearnedChunkPolicy):
         return self.model.sample(x, noise, self.steps, hook)
 
     def infer(self, obs: Observation, prefix: ActionPrefix | None = None) -> np.ndarray:
+        if self._tracker is not None and (self.ckpt.delay_max or prefix is None):
+            return super().infer(obs, prefix)
         self._prefix = prefix
         try:
             return super().infer(obs)
@@ -57,6 +65,18 @@ class FlowPolicy(LearnedChunkPolicy):
             self._prefix = None
 
     def _decode(self, x, obs: Observation):
+        if self._ctx is not None:  # delay-aware: the d prefix rows stay clean (training-time RTC)
+            d, rows = self._ctx
+            noise = self.noise(obs)
+            if not d:
+                return self.sample(x, noise)
+            noise[:, :d] = rows
+
+            def keep_prefix(x_t, t: float, v):
+                x_t[:, :d] = rows
+                return x_t
+
+            return self.sample(x, noise, keep_prefix)
         prefix = self._prefix
         if prefix is None or not len(prefix.actions):
             return self.sample(x, self.noise(obs))

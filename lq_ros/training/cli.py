@@ -66,6 +66,17 @@ def collect(
     ] = "",
     driver_replan: Annotated[int, typer.Option(help="Actions of each driver chunk run open loop.")] = 8,
     keep_failures: Annotated[bool, typer.Option(help="Keep unsuccessful episodes too (DAgger).")] = False,
+    latency_ticks: Annotated[
+        str, typer.Option(help="DAgger under latency: latency ticks drawn per episode, e.g. '0-8' (empty: off).")
+    ] = "",
+    modes: Annotated[str, typer.Option(help="With --latency-ticks: protocols drawn per episode.")] = "sync,async",
+    latency_driver: Annotated[
+        list[str] | None,
+        typer.Option(help="With --latency-ticks: a driver 'name[:key=value,...]' (repeatable; drawn per episode)."),
+    ] = None,
+    gripper_noise: Annotated[
+        float, typer.Option(help="Per-tick probability of a 2-7 tick burst of a wrong gripper command.")
+    ] = 0.0,
 ) -> None:
     """Collect expert demonstrations with DART-style action noise; keeps the successful episodes."""
     from lq_ros.training.collect import CollectConfig
@@ -77,6 +88,8 @@ def collect(
             suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, repeats=repeats, fresh=fresh,
             seed=seed, expert=expert, chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
             driver_replan=driver_replan, keep_failures=keep_failures, **_driver(driver),
+            latency_ticks=_ints(latency_ticks) if latency_ticks else (), modes=tuple(modes.split(",")),
+            latency_drivers=tuple(latency_driver or ("scripted",)), gripper_noise=gripper_noise,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
@@ -127,6 +140,18 @@ def train(
     flow_steps: Annotated[int, typer.Option(help="Euler steps of the flow sampler.")] = _D.flow_steps,
     threads: Annotated[int, typer.Option(help="torch threads.")] = _D.threads,
     name: Annotated[str, typer.Option(help="Checkpoint name; default <policy>_c<H>_<suite>.")] = _D.name,
+    delay_max: Annotated[
+        int, typer.Option(help="Delay-aware variant: condition on d in 0..DELAY_MAX and the d executing actions.")
+    ] = _D.delay_max,
+    init_from: Annotated[
+        str, typer.Option(help="Fine-tune from a checkpoint (name: --out folder, then shipped; or a path).")
+    ] = _D.init_from,
+    freeze_base: Annotated[
+        bool, typer.Option(help="With --init-from: train only the conditioning inputs (d = 0 stays the initial model).")
+    ] = _D.freeze_base,
+    successful_only: Annotated[
+        bool, typer.Option(help="Only the frames of successful episodes (of a dataset that kept failures).")
+    ] = _D.successful_only,
 ) -> None:
     """Train a chunk policy on collected demonstrations (seeded; logs losses as JSON lines on stderr).
 
@@ -140,6 +165,8 @@ def train(
             policy=policy, horizon=chunk, width=width, depth=depth, steps=steps, batch_size=batch_size, lr=lr,
             seed=seed, dropout=dropout, feature_noise=feature_noise, ema=ema, joint_velocity=joint_velocity,
             target=target, replan_steps=replan_steps, flow_steps=flow_steps, threads=threads, name=name,
+            delay_max=delay_max, init_from=init_from, freeze_base=freeze_base,
+            successful_only=successful_only,
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

@@ -8,6 +8,14 @@ counted in info.json. Each init state can be run ``repeats`` times (different no
 With ``fresh`` the episodes start from new random object placements (LIBERO's own placement sampler,
 seeded) instead of the shipped init states: more distinct scenes than the 40 shipped ones outside the
 evaluation set. A task's episodes run in one env in a fixed order, deterministic given the configuration.
+
+DAgger under latency (``latency_ticks`` non-empty): each episode draws a driver from ``latency_drivers``, a
+protocol from ``modes`` and a latency N from ``latency_ticks``; the driver's chunks go through the executor's
+protocol core (lq_ros/core/executor_protocol.py, the same ``ExecutorCore``/``TickDriver`` every transport runs:
+sync holds, async drops the N stale rows and replaces the buffer), so the robot visits the states evaluation
+produces (held robot, stale-dropped plans, late chunks). The expert labels every tick closed loop; the
+simulator gets the executor's command plus arm noise and, with ``gripper_noise``, bursts of a wrong gripper
+command.
 """
 
 from __future__ import annotations
@@ -56,6 +64,14 @@ class CollectConfig:
     driver_replan: int = 8
     #: Keep unsuccessful episodes too (DAgger: the expert's labels of the states a learner got stuck in).
     keep_failures: bool = False
+    #: DAgger under latency: latency ticks N drawn per episode (empty: off, the loops above).
+    latency_ticks: tuple[int, ...] = ()
+    #: Protocols drawn per episode ("sync", "async"; merge replace) with ``latency_ticks``.
+    modes: tuple[str, ...] = ("sync", "async")
+    #: Drivers drawn per episode with ``latency_ticks`` (``name[:key=value,...]``, e.g. "scripted", "oft", "flow").
+    latency_drivers: tuple[str, ...] = ("scripted",)
+    #: Per tick, probability that a burst (2-7 ticks) of a wrong gripper command starts (0: never).
+    gripper_noise: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.tasks or not self.inits:
@@ -65,6 +81,12 @@ class CollectConfig:
         if self.chunk_rows < 1 or self.workers < 1 or self.repeats < 1:
             raise ValueError("chunk_rows, workers and repeats must be >= 1")
         layout_for(self.suite)  # fails early for a suite without a feature layout
+        if any(n < 0 for n in self.latency_ticks) or any(m not in ("sync", "async") for m in self.modes):
+            raise ValueError(f"latency ticks must be >= 0 and modes sync/async, got {self.latency_ticks} {self.modes}")
+        if self.latency_ticks and (not self.modes or not self.latency_drivers):
+            raise ValueError("DAgger under latency needs at least one mode and one driver")
+        if not 0.0 <= self.gripper_noise < 1.0:
+            raise ValueError(f"gripper_noise is a probability per tick in [0, 1), got {self.gripper_noise}")
 
     def to_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -83,6 +105,17 @@ def collect_task(cfg: CollectConfig, task_id: int) -> tuple[list[Episode], dict,
     env = LiberoEnv(cfg.suite, task_id)
     expert = make_policy(cfg.expert, chunk_size=cfg.chunk_rows, **cfg.expert_args)
     driver = make_policy(cfg.driver, **cfg.driver_args) if cfg.driver else None
+    pool = [parse_spec(spec) for spec in cfg.latency_drivers] if cfg.latency_ticks else []
+    made: dict[tuple[int, str], object] = {}
+
+    def pooled(k: int, mode: str):
+        """Driver k for an episode in ``mode`` (a delay-aware learned policy is told the protocol it runs under)."""
+        name, args = pool[k]
+        key = (k, mode if args.get("variant") == "delay" else "")
+        if key not in made:
+            made[key] = make_policy(name, **({**args, "mode": mode} if key[1] else args))
+        return made[key]
+
     budget = cfg.max_steps or env.task.step_budget
     kept: list[Episode] = []
     stats = {"attempts": 0, "successes": 0, "failures": 0, "errors": 0, "frames": 0, "wall_s": 0.0}
@@ -95,21 +128,22 @@ def collect_task(cfg: CollectConfig, task_id: int) -> tuple[list[Episode], dict,
             t0 = time.perf_counter()
             stats["attempts"] += 1
             try:
-                ep = _episode(
-                    env,
-                    expert,
-                    layout,
-                    task_id,
-                    init,
-                    seed,
-                    noise,
-                    rng,
-                    budget,
-                    cfg.chunk_rows,
-                    driver,
-                    cfg.driver_replan,
-                    cfg.fresh,
-                )
+                if pool:
+                    pick = np.random.default_rng([cfg.seed, task_id, init, rep, 99])
+                    k_driver = int(pick.integers(len(pool)))
+                    mode = str(cfg.modes[int(pick.integers(len(cfg.modes)))])
+                    ep = _latency_episode(
+                        env, expert, layout, task_id, init, seed, noise, rng, budget, cfg.chunk_rows,
+                        pooled(k_driver, mode), mode,
+                        int(cfg.latency_ticks[int(pick.integers(len(cfg.latency_ticks)))]),
+                        cfg.gripper_noise, cfg.fresh,
+                    )  # fmt: skip
+                    ep.extra["driver"] = cfg.latency_drivers[k_driver]
+                else:
+                    ep = _episode(
+                        env, expert, layout, task_id, init, seed, noise, rng, budget, cfg.chunk_rows, driver,
+                        cfg.driver_replan, cfg.fresh,
+                    )  # fmt: skip
             except Exception as exc:  # noqa: BLE001 - an expert crash loses one demo, it is counted
                 stats["errors"] += 1
                 _log(f"task {task_id} init {init}: error {type(exc).__name__}: {exc}")
@@ -118,6 +152,11 @@ def collect_task(cfg: CollectConfig, task_id: int) -> tuple[list[Episode], dict,
             stats["wall_s"] += wall
             ok = bool(ep.success[-1])
             stats["successes" if ok else "failures"] += 1
+            if pool:
+                label = f"{ep.extra['driver']} {ep.extra['mode']} N={ep.extra['latency_ticks']}"
+                stats.setdefault("by_setting", {}).setdefault(label, [0, 0])
+                stats["by_setting"][label][0] += ok
+                stats["by_setting"][label][1] += 1
             tally = by_noise.setdefault(f"{noise:g}", [0, 0])
             tally[0] += ok
             tally[1] += 1
@@ -125,7 +164,9 @@ def collect_task(cfg: CollectConfig, task_id: int) -> tuple[list[Episode], dict,
             if ok or cfg.keep_failures:
                 kept.append(ep)
                 stats["frames"] += len(ep)
-            _log(f"task {task_id} init {init} noise {noise:.2f}: {'ok' if ok else '--'} {len(ep)} ticks {wall:.1f} s")
+            how = " ".join(f"{k}={v}" for k, v in ep.extra.items())
+            outcome = "ok" if ok else "--"
+            _log(f"task {task_id} init {init} noise {noise:.2f} {how}: {outcome} {len(ep)} ticks {wall:.1f} s")
     finally:
         env.close()
     return kept, stats, env.task.instruction
@@ -214,6 +255,93 @@ def _episode(
         state=np.array(states), env_state=np.array(envs), action=np.array(labels, np.float32),
         action_executed=np.array(executed, np.float32), action_chunk=np.array(chunks, np.float32),
         success=np.array(success, bool),
+    )  # fmt: skip
+
+
+def parse_spec(spec: str) -> tuple[str, dict]:
+    """``name[:key=value,...]`` -> (policy name, keyword arguments); values parsed as JSON when possible."""
+    import json
+
+    name, _, rest = spec.partition(":")
+    args: dict = {}
+    for item in filter(None, rest.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"bad policy spec {spec!r}: expected name:key=value,...")
+        try:
+            args[key] = json.loads(value)
+        except json.JSONDecodeError:
+            args[key] = value
+    return name, args
+
+
+def _latency_episode(
+    env, expert, layout, task_id, init, seed, noise, rng, budget, chunk_rows, driver, mode, latency_ticks,
+    gripper_noise, fresh=False,
+) -> Episode:  # fmt: skip
+    """One DAgger episode: ``driver``'s chunks executed by the protocol core (``mode``, N = ``latency_ticks``,
+    merge replace, hold stop), the expert labelling every tick closed loop, arm and gripper noise on top."""
+    from lq_ros.core.executor_protocol import ExecutorConfig, ExecutorCore, TickDriver
+
+    if fresh:
+        init = fresh_init_state(env, 1_000_003 * task_id + init)
+    env.reset(init, seed)
+    expert.reset(env.task, seed)
+    _closed_loop(expert)
+    driver.reset(env.task, seed)
+    replan = int(getattr(driver, "replan_steps", 8))
+    core = ExecutorCore(ExecutorConfig(mode=mode, latency_ticks=latency_ticks, replan_steps=replan))
+    rec: dict[str, list] = {k: [] for k in ("state", "env", "label", "executed", "chunk", "success")}
+    pending: dict[int, np.ndarray] = {}
+    burst = {"left": 0, "value": 0.0}
+
+    class Handlers:
+        done = False
+
+        def ready(self) -> bool:
+            return not self.done
+
+        def request(self, req) -> bool:
+            pending[req.request_id] = np.asarray(driver.infer(env.observe(with_images=False)), dtype=np.float64)
+            return True
+
+        def chunk_due(self, req) -> bool:
+            core.deliver(req.request_id, pending.pop(req.request_id))
+            return True
+
+        def failed(self, reason: str) -> None:
+            raise RuntimeError(reason)
+
+        def command(self, cmd) -> bool:
+            obs = env.observe(with_images=False)
+            plan = np.asarray(expert.infer(obs), dtype=np.float64)
+            if plan.shape != (chunk_rows, ACTION_DIM):
+                raise ValueError(f"expert returned {plan.shape}, expected ({chunk_rows}, {ACTION_DIM})")
+            applied = np.array(cmd.action, dtype=np.float64)
+            if noise > 0:
+                applied[:6] = np.clip(applied[:6] + rng.normal(0.0, noise, 6), ACTION_LOW, ACTION_HIGH)
+            if gripper_noise > 0 and burst["left"] == 0 and rng.random() < gripper_noise:
+                g = applied[-1]
+                burst["left"] = int(rng.integers(2, 8))
+                burst["value"] = -np.sign(g) if g != 0 else float(rng.choice([-1.0, 1.0]))
+            if burst["left"] > 0:
+                applied[-1] = burst["value"]
+                burst["left"] -= 1
+            s, e = raw_from_observation(layout, obs)
+            for key, value in zip(rec, (s, e, plan[0].copy(), applied, plan)):
+                rec[key].append(value)
+            state = env.step(applied)
+            rec["success"].append(state.success)
+            self.done = bool(state.success) or len(rec["state"]) >= budget
+            return not self.done
+
+    TickDriver(core, Handlers()).drive()
+    return Episode(
+        task_index=task_id, init_index=init, seed=seed, noise_std=noise,
+        state=np.array(rec["state"]), env_state=np.array(rec["env"]), action=np.array(rec["label"], np.float32),
+        action_executed=np.array(rec["executed"], np.float32), action_chunk=np.array(rec["chunk"], np.float32),
+        success=np.array(rec["success"], bool),
+        extra={"mode": mode, "latency_ticks": latency_ticks},
     )  # fmt: skip
 
 

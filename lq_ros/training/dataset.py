@@ -11,7 +11,7 @@ Layout (after LeRobot's v2 format, single file)::
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,9 @@ class Episode:
     action_executed: np.ndarray  # (T, 7) action applied to the simulator (label + noise, clipped)
     action_chunk: np.ndarray  # (T, H_max, 7) expert's open-loop plan from each frame
     success: np.ndarray  # (T,) bool: the task was reached after this frame's action
+    #: How the episode was run beyond the columns (DAgger under latency: driver, mode, latency ticks);
+    #: written to meta/episodes.jsonl.
+    extra: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.state)
@@ -120,6 +123,7 @@ def write_dataset(root: Path, episodes: list[Episode], info_extra: dict, tasks: 
                 "seed": ep.seed,
                 "noise_std": ep.noise_std,
                 "length": len(ep),
+                **ep.extra,
             }
             f.write(json.dumps(row) + "\n")
     with open(root / "meta" / "tasks.jsonl", "w") as f:

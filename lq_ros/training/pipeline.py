@@ -9,6 +9,10 @@ stopped when run again.
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild            # every stage, timed
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild --only oft_c8_libero_object
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild --plan     # the commands, and the recorded times
+    .venv/bin/python -m lq_ros.training.pipeline --out rebuild --only oft_c8_delay_libero_object   # a candidate
+
+The YAML's ``candidates`` are weight files that were built and evaluated but are not shipped (the delay-aware
+variants, docs/learned_policies.md): built only when named with ``--only``, after the weights they start from.
 
 ``--plan`` prints each stage's command and the wall time the shipped files record for it (collection: the
 sum over tasks of each task's time, with ``workers`` tasks at a time; training: ``train_wall_s``).
@@ -33,7 +37,10 @@ from lq_ros.training.recipe import TrainConfig, parse_ids
 PIPELINE_FILE = Path(__file__).resolve().parents[2] / "config" / "training" / "shipped_weights.yaml"
 #: ``lq collect`` options a dataset entry may set, with their defaults (those of the command).
 COLLECT_OPTIONS = {"suite": "libero_spatial", "tasks": "0-9", "inits": "10-29", "noise": "0,0.1,0.2", "repeats": 1,
-                   "seed": 7, "workers": 2}  # fmt: skip
+                   "seed": 7, "workers": 2, "keep_failures": False, "latency_ticks": "", "modes": "sync,async",
+                   "latency_driver": ["scripted"], "gripper_noise": 0.0}  # fmt: skip
+#: ``lq train`` options a weights entry may set beyond policy, chunk and data (the delay-aware fine-tunes).
+TRAIN_OPTIONS = ("steps", "lr", "delay_max", "init_from", "freeze_base", "successful_only")
 
 
 @dataclass(frozen=True)
@@ -46,13 +53,22 @@ class Dataset:
         return CollectConfig(
             suite=o["suite"], tasks=parse_ids(o["tasks"]), inits=parse_ids(o["inits"]),
             noise_levels=tuple(float(x) for x in str(o["noise"]).split(",")), repeats=int(o["repeats"]),
-            seed=int(o["seed"]), workers=int(o["workers"]),
+            seed=int(o["seed"]), workers=int(o["workers"]), keep_failures=bool(o["keep_failures"]),
+            latency_ticks=parse_ids(o["latency_ticks"]) if o["latency_ticks"] else (),
+            modes=tuple(str(o["modes"]).split(",")), latency_drivers=tuple(o["latency_driver"]),
+            gripper_noise=float(o["gripper_noise"]),
         )  # fmt: skip
 
     def command(self, out: Path) -> list[str]:
         argv = [sys.executable, "-m", "lq_ros.cli", "collect", "--out", str(out / "data" / self.name)]
         for key, value in self.options.items():
-            argv += [f"--{key.replace('_', '-')}", str(value)]
+            flag = f"--{key.replace('_', '-')}"
+            if isinstance(value, bool):
+                argv += [flag] if value else []
+            elif isinstance(value, list):
+                argv += [a for v in value for a in (flag, str(v))]
+            else:
+                argv += [flag, str(value)]
         return argv
 
 
@@ -62,14 +78,21 @@ class Weights:
     policy: str
     chunk: int
     data: tuple[str, ...]
+    #: Further ``lq train`` options (TRAIN_OPTIONS); ``init_from`` names another weights entry, built first.
+    options: tuple[tuple[str, object], ...] = ()
+    #: False for the YAML's ``candidates``: built and evaluated, not shipped (built with ``--only NAME``).
+    shipped: bool = True
 
     def config(self) -> TrainConfig:
-        return TrainConfig(policy=self.policy, horizon=self.chunk)
+        return TrainConfig(policy=self.policy, horizon=self.chunk, **dict(self.options))
 
     def command(self, out: Path) -> list[str]:
         argv = [sys.executable, "-m", "lq_ros.cli", "train", "--policy", self.policy, "--chunk", str(self.chunk)]
         for name in self.data:
             argv += ["--data", str(out / "data" / name)]
+        for key, value in self.options:
+            flag = f"--{key.replace('_', '-')}"
+            argv += ([flag] if value else []) if isinstance(value, bool) else [flag, str(value)]
         return argv + ["--out", str(out / "weights")]
 
 
@@ -77,9 +100,20 @@ def load_pipeline(path: Path = PIPELINE_FILE) -> tuple[dict[str, Dataset], dict[
     raw = yaml.safe_load(Path(path).read_text())
     datasets = {name: Dataset(name, dict(options)) for name, options in raw["datasets"].items()}
     weights = {
-        name: Weights(name, entry["policy"], int(entry["chunk"]), tuple(entry["data"]))
-        for name, entry in raw["weights"].items()
+        name: Weights(
+            name,
+            entry["policy"],
+            int(entry["chunk"]),
+            tuple(entry["data"]),
+            tuple((k, entry[k]) for k in TRAIN_OPTIONS if k in entry),
+            shipped=section == "weights",
+        )  # fmt: skip
+        for section in ("weights", "candidates")
+        for name, entry in (raw.get(section) or {}).items()
     }
+    bad = {n: w for n, w in weights.items() if dict(w.options).get("init_from", n) not in weights}
+    if bad:
+        raise ValueError(f"{path}: init_from names no weights entry: {sorted(bad)}")
     unknown = {d for w in weights.values() for d in w.data} - set(datasets)
     if unknown:
         raise ValueError(f"{path}: weights use datasets that are not defined: {sorted(unknown)}")
@@ -90,6 +124,8 @@ def recorded_times(weights: dict[str, Weights]) -> tuple[dict[str, float], dict[
     """Wall seconds the shipped JSONs record: per dataset (sum of its tasks' times) and per weight file."""
     collect_s, train_s = {}, {}
     for w in weights.values():
+        if not w.shipped:
+            continue
         meta = json.loads((WEIGHTS_DIR / f"{w.name}.json").read_text())
         train_s[w.name] = float(meta["metrics"]["train_wall_s"])
         for name, source in zip(w.data, meta["dataset"]["sources"], strict=True):
@@ -105,7 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pipeline", type=Path, default=PIPELINE_FILE)
     args = parser.parse_args(argv)
     datasets, weights = load_pipeline(args.pipeline)
-    chosen = {n: w for n, w in weights.items() if args.only is None or n in args.only}
+    chosen = {n: w for n, w in weights.items() if (w.shipped if args.only is None else n in args.only)}
+    # A fine-tune needs the weights it starts from (built first: the YAML lists them before it).
+    starts = {dict(w.options).get("init_from") for w in chosen.values()} - {None}
+    chosen = {n: w for n, w in weights.items() if n in chosen or n in starts}
     if args.only and set(args.only) - set(weights):
         print(f"error: unknown weights {sorted(set(args.only) - set(weights))}; known: {sorted(weights)}")
         return 2
@@ -115,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     stages += [(f"train {w.name}", w.command(args.out), train_s.get(w.name)) for w in chosen.values()]
     for what, command, recorded in stages:
         shown = " ".join(["lq", *command[3:]])
-        print(f"{what}: {shown}  (recorded: {recorded:.0f} s)")
+        print(f"{what}: {shown}  " + ("(not shipped)" if recorded is None else f"(recorded: {recorded:.0f} s)"))
         if args.plan:
             continue
         started = time.monotonic()

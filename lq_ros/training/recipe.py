@@ -65,6 +65,18 @@ class TrainConfig:
     threads: int = 1
     log_every: int = 500
     name: str = ""
+    #: Delay-aware variant (training-time real-time chunking, lq_ros/policies/learned/delay.py): the model is
+    #: also given d and the d executed actions that follow the frame, with d drawn per sample in 0..delay_max,
+    #: and its loss covers rows d.. only. 0: the naive model (no conditioning). At most horizon - 1.
+    delay_max: int = 0
+    #: Fine-tune from this checkpoint (a name: looked up in the output folder first, then among the shipped
+    #: weights; or a path): its weights (the conditioning inputs start at zero) and its normalisation. "": none.
+    init_from: str = ""
+    #: With ``init_from``: train only the conditioning inputs' first-layer weights (for d >= 1; weight decay off),
+    #: the rest stays the initial checkpoint's, so at d = 0 the model is exactly the one it started from.
+    freeze_base: bool = False
+    #: Train on the frames of successful episodes only (a DAgger dataset collected with --keep-failures).
+    successful_only: bool = False
 
     def __post_init__(self) -> None:
         if self.policy not in KINDS:
@@ -87,14 +99,30 @@ class TrainConfig:
             raise ValueError(f"replan_steps must be in 1..horizon={self.horizon}, got {self.replan_steps}")
         if not 0.0 <= self.ema < 1.0:
             raise ValueError(f"ema must be in [0, 1), got {self.ema}")
+        if self.freeze_base and not (self.init_from and self.delay_max):
+            raise ValueError("freeze_base needs init_from and delay_max (it trains the conditioning inputs only)")
+        if not 0 <= self.delay_max < self.horizon:
+            raise ValueError(f"delay_max must be in 0..horizon-1={self.horizon - 1}, got {self.delay_max}")
 
     def run_name(self, suite: str) -> str:
-        """Checkpoint name: ``--name``, else ``<policy>_c<H>_<suite>`` (the shipped naming)."""
-        return self.name or f"{self.policy}_c{self.horizon}_{suite}"
+        """Checkpoint name: ``--name``, else ``<policy>_c<H>[_delay]_<suite>`` (the shipped naming)."""
+        delay = "_delay" if self.delay_max else ""
+        return self.name or f"{self.policy}_c{self.horizon}{delay}_{suite}"
 
     def to_dict(self) -> dict:
-        """The resolved configuration, as stored in the weights' JSON (``train_config``)."""
-        return asdict(self)
+        """The resolved configuration, as stored in the weights' JSON (``train_config``).
+
+        The fields added with the delay-aware variant (:data:`DELAY_FIELDS`) appear only when set: a naive
+        configuration is recorded exactly as before they existed."""
+        out = asdict(self)
+        for key in DELAY_FIELDS:
+            if out[key] == DELAY_FIELDS[key]:
+                del out[key]
+        return out
+
+
+#: Fields of the delay-aware variant with their defaults (omitted from ``TrainConfig.to_dict`` at the default).
+DELAY_FIELDS = {"delay_max": 0, "init_from": "", "freeze_base": False, "successful_only": False}
 
 
 def parse_ids(spec: str) -> tuple[int, ...]:

@@ -79,6 +79,74 @@ def prepare(
     return infos, layout, feats, targets, episode
 
 
+def executed_prefixes(data: list[Path], rows: int) -> np.ndarray:
+    """(N, rows, 7): the actions executed at frames t .. t + rows - 1 of each frame's episode (``action.executed``,
+    padded with the episode's last one), in the order of :func:`prepare`'s frames."""
+    out = []
+    for d in data:
+        _, cols = read_frames(Path(d))
+        ep, executed = cols["episode_index"], cols["action.executed"]
+        starts = np.flatnonzero(np.r_[True, ep[1:] != ep[:-1]])
+        ends = np.repeat(np.r_[starts[1:], len(ep)], np.diff(np.r_[starts, len(ep)]))
+        idx = np.minimum(np.arange(len(ep))[:, None] + np.arange(rows)[None, :], ends[:, None] - 1)
+        out.append(executed[idx])
+    return np.concatenate(out).astype(np.float32)
+
+
+def successful_frames(data: list[Path]) -> np.ndarray:
+    """(N,) bool: the frame belongs to an episode that ended in success (frames in :func:`prepare`'s order)."""
+    out = []
+    for d in data:
+        _, cols = read_frames(Path(d))
+        ep, success = cols["episode_index"], cols["next.success"].astype(bool)
+        ended = np.zeros(int(ep.max()) + 1, bool)
+        np.logical_or.at(ended, ep, success)
+        out.append(ended[ep])
+    return np.concatenate(out)
+
+
+def delay_batch(prefix, horizon: int, delay_max: int, gen):
+    """Training-time RTC for one batch of normalised executed prefixes (B, delay_max, 7): d drawn per sample in
+    0..delay_max -> (conditioning (B, C) as delay.conditioning builds it, row mask (B, H): rows >= d, d (B,))."""
+    import torch
+
+    d = torch.randint(0, delay_max + 1, (prefix.shape[0],), generator=gen)
+    keep = (torch.arange(delay_max)[None, :] < d[:, None]).float()
+    one_hot = torch.nn.functional.one_hot(d, delay_max + 1).float()
+    cond = torch.cat([one_hot, (prefix * keep[..., None]).flatten(1)], dim=1)
+    mask = (torch.arange(horizon)[None, :] >= d[:, None]).float()
+    return cond, mask, d
+
+
+def with_prefix(targets, prefix, mask):
+    """Chunk targets (B, H, 7) whose rows < d are the executed prefix (what the model is given, fed clean)."""
+    import torch
+
+    rows = prefix.shape[1]
+    head = torch.where(mask[:, :rows, None] > 0, targets[:, :rows], prefix)
+    return torch.cat([head, targets[:, rows:]], dim=1)
+
+
+def find_init(init_from: str, out: Path) -> Path:
+    """The checkpoint JSON to fine-tune from: a path, else a name in ``out``, else a shipped name."""
+    from lq_ros.policies.learned.chunk_policy import resolve_weights
+
+    path = Path(init_from)
+    if path.suffix in (".json", ".pt") or len(path.parts) > 1:
+        return path.with_suffix(".json")
+    local = Path(out) / f"{init_from}.json"
+    return local if local.is_file() else resolve_weights(init_from)
+
+
+def _expand_input(state: dict, kind: str, extra: int) -> dict:
+    """A naive checkpoint's state dict for a model with ``extra`` conditioning inputs: their weights start at 0."""
+    import torch
+
+    key = "inp.weight" if kind == "oft" else "obs.weight"
+    w = state[key]
+    return {**state, key: torch.cat([w, torch.zeros(w.shape[0], extra, dtype=w.dtype)], dim=1)}
+
+
 def _stats(x: np.ndarray, floor: float) -> tuple[np.ndarray, np.ndarray]:
     mean = x.mean(axis=0)
     std = x.std(axis=0)
@@ -91,6 +159,7 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     import torch
 
     from lq_ros.core.run_config import versions
+    from lq_ros.policies.learned.delay import conditioning_dim
     from lq_ros.policies.learned.networks import CHECKPOINT_FORMAT, build_model
 
     torch.set_num_threads(cfg.threads)
@@ -99,23 +168,61 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     infos, layout, feats, targets, episode = prepare(
         [Path(d) for d in data], cfg.horizon, cfg.target, cfg.joint_velocity
     )
+    if cfg.successful_only:
+        keep = successful_frames([Path(d) for d in data])
+        feats, targets, episode = feats[keep], targets[keep], episode[keep]
+        _log(f"successful episodes only: {int(keep.sum())} of {len(keep)} frames")
     rng = np.random.default_rng(cfg.seed)
     episodes = np.unique(episode)
     n_val = int(round(cfg.val_fraction * len(episodes))) if len(episodes) > 1 else 0
     val_eps = rng.choice(episodes, size=n_val, replace=False) if n_val else np.array([], np.int64)
     is_val = np.isin(episode, val_eps)
-    f_mean, f_std = _stats(feats[~is_val], 1e-4)
-    flat = targets[~is_val].reshape(-1, ACTION_DIM)
-    a_mean, a_std = _stats(flat, 1e-4)
+    init = None
+    if cfg.init_from:
+        init_path = find_init(cfg.init_from, out)
+        init = json.loads(init_path.read_text())
+        if (init["kind"], init["horizon"], init["layout"]) != (cfg.policy, cfg.horizon, layout.to_dict()):
+            raise ValueError(f"{init_path}: a {init['kind']} H={init['horizon']} checkpoint of another layout")
+        if int(init.get("delay", {}).get("delay_max", 0)):
+            raise ValueError(f"{init_path}: fine-tuning starts from a naive checkpoint")
+        # The initial weights work in their own normalisation: keep it.
+        stats = init["stats"]
+        f_mean, f_std, a_mean, a_std = (
+            np.asarray(stats[k], np.float32) for k in ("feature_mean", "feature_std", "action_mean", "action_std")
+        )
+    else:
+        f_mean, f_std = _stats(feats[~is_val], 1e-4)
+        flat = targets[~is_val].reshape(-1, ACTION_DIM)
+        a_mean, a_std = _stats(flat, 1e-4)
     x = torch.from_numpy((feats - f_mean) / f_std)
     y = torch.from_numpy((targets - a_mean) / a_std)
+    extra = conditioning_dim(cfg.delay_max)
+    prefix = None
+    if cfg.delay_max:
+        executed = executed_prefixes([Path(d) for d in data], cfg.delay_max)
+        executed = executed[keep] if cfg.successful_only else executed
+        prefix = torch.from_numpy((executed - a_mean) / a_std)
     train_idx = torch.from_numpy(np.flatnonzero(~is_val))
     val_idx = torch.from_numpy(np.flatnonzero(is_val))
     _log(f"{len(episodes)} episodes ({n_val} held out), {len(train_idx)}/{len(val_idx)} train/val frames")
 
-    model = build_model(cfg.policy, layout.feature_dim, cfg.horizon, cfg.width, cfg.depth, cfg.dropout)
+    model = build_model(cfg.policy, layout.feature_dim + extra, cfg.horizon, cfg.width, cfg.depth, cfg.dropout)
+    if init is not None:
+        state = torch.load(init_path.with_name(init["weights_file"]), map_location="cpu", weights_only=True)
+        model.load_state_dict(_expand_input({k: v.float() for k, v in state.items()}, cfg.policy, extra))
     n_params = sum(p.numel() for p in model.parameters())
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    params = list(model.parameters())
+    if cfg.freeze_base:
+        # Only the first layer's columns of the conditioning inputs for d >= 1 learn (the d = 0 slot and the
+        # features' columns keep their gradient at zero; Adam then leaves them exactly unchanged).
+        first = (model.inp if cfg.policy == "oft" else model.obs).weight
+        for p in model.parameters():
+            p.requires_grad_(p is first)
+        trainable = torch.zeros_like(first)
+        trainable[:, layout.feature_dim + 1 :] = 1.0
+        first.register_hook(lambda g: g * trainable)
+        params = [first]
+    opt = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=0.0 if cfg.freeze_base else cfg.weight_decay)
 
     def lr_at(step: int) -> float:
         if step < cfg.warmup_steps:
@@ -137,12 +244,18 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         final.eval()
         g = torch.Generator().manual_seed(val_gen_seed)  # the same noise every time: comparable numbers
         with torch.no_grad():
-            losses = [
-                final.loss(x[val_idx[i : i + 4096]], y[val_idx[i : i + 4096]], g).item()
-                for i in range(0, len(val_idx), 4096)
-            ]
+            losses = [loss_of(final, val_idx[i : i + 4096], g).item() for i in range(0, len(val_idx), 4096)]
         model.train()
         return float(np.mean(losses))
+
+    def loss_of(net, idx, g, noise: float = 0.0):
+        xb, yb = x[idx], y[idx]
+        if noise > 0:
+            xb = xb + noise * torch.randn(xb.shape, generator=g)
+        if prefix is None:
+            return net.loss(xb, yb, g)
+        cond, mask, _ = delay_batch(prefix[idx], cfg.horizon, cfg.delay_max, g)
+        return net.loss(torch.cat([xb, cond], dim=1), with_prefix(yb, prefix[idx], mask), g, mask)
 
     log, running = [], []
     model.train()
@@ -150,13 +263,10 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         for group in opt.param_groups:
             group["lr"] = lr_at(step)
         batch = train_idx[torch.randint(len(train_idx), (cfg.batch_size,), generator=gen)]
-        xb = x[batch]
-        if cfg.feature_noise > 0:
-            xb = xb + cfg.feature_noise * torch.randn(xb.shape, generator=gen)
-        loss = model.loss(xb, y[batch], gen)
+        loss = loss_of(model, batch, gen, cfg.feature_noise)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
         opt.step()
         if averaged is not None:
             averaged.update_parameters(model)
@@ -189,6 +299,20 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
             "action_std": a_std.tolist(),
         },
         "inference": {"replan_steps": cfg.replan_steps, "flow_steps": cfg.flow_steps},
+        **(
+            {
+                "delay": {
+                    "delay_max": cfg.delay_max,
+                    "method": "training-time RTC: d drawn per sample in 0..delay_max, conditioned on d and the d "
+                    "executed actions after the frame, loss on rows d.. only",
+                    "init_from": None
+                    if init is None
+                    else {"name": init_path.stem, "weights_md5": _md5(init_path, init)},
+                }
+            }
+            if cfg.delay_max
+            else {}
+        ),
         "train_config": cfg.to_dict(),
         "metrics": {
             "params": n_params,
@@ -211,6 +335,12 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     (out / f"{name}.json").write_text(json.dumps(meta, indent=1))
     _log(f"wrote {weights} ({weights.stat().st_size / 1e6:.2f} MB, {n_params} parameters)")
     return meta
+
+
+def _md5(path: Path, meta: dict) -> str:
+    import hashlib
+
+    return hashlib.md5(path.with_name(meta["weights_file"]).read_bytes()).hexdigest()
 
 
 def write_loss_curves(stem: Path, log: list[dict], title: str) -> None:

@@ -63,3 +63,25 @@ def test_a_run_without_recorded_digest_is_checked_against_the_file_it_names(ev, 
     (tmp_path / meta["weights_file"]).write_bytes(b"other bytes")
     with pytest.raises(SystemExit, match="not recorded"):
         ev.by_weights([_row("oft", 0, 1, md5=real), _row(copy, 0, 0, md5=None)])
+
+
+def _lat_row(spec: str, mode: str, latency: float, init: int, status: str, md5: str = "a" * 32) -> dict:
+    return {"suite": "libero_object", "policy": spec, "mode": mode, "latency_s": latency, "task": 0, "init": init,
+            "status": status, "ticks": 100, "replan_steps": 5, "weights": "w.json", "weights_md5": md5}  # fmt: skip
+
+
+def test_latency_table_cells_and_merge_refusals(ev, capsys):
+    rows = [_lat_row("flow", "async", 0.1, i, "success" if i < 3 else "failure") for i in range(4)]
+    rows += [
+        _lat_row("flow", "sync", 0.0, 0, "error: boom"),
+        _lat_row("flow:variant=delay", "async", 0.1, 0, "success"),
+    ]
+    summary = ev.latency_report(ev.check_latency_rows(rows))["libero_object"]
+    assert summary["flow"]["async"]["0.1"] == [3, 4] and summary["flow"]["sync"]["0"] == [0, 1]
+    out = capsys.readouterr().out
+    assert "3/4 = 75% [30-95]" in out and "errors: 1" in out and "flow:variant=delay" in out
+    assert f"flow: w.json (md5 {'a' * 32})" in out
+    with pytest.raises(SystemExit, match="twice"):
+        ev.check_latency_rows(rows + rows[:1])
+    with pytest.raises(SystemExit, match="different weight files"):
+        ev.check_latency_rows(rows + [_lat_row("flow", "async", 0.1, 9, "success", md5="b" * 32)])

@@ -11,7 +11,9 @@ from lq_ros.policies.learned.chunk_policy import WEIGHTS_DIR
 from lq_ros.training.collect import CollectConfig
 from lq_ros.training.pipeline import load_pipeline, main
 
-DATASETS, WEIGHTS = load_pipeline()
+DATASETS, STAGES = load_pipeline()
+WEIGHTS = {n: w for n, w in STAGES.items() if w.shipped}
+CANDIDATES = {n: w for n, w in STAGES.items() if not w.shipped}
 
 
 def test_every_shipped_weight_file_has_a_stage():
@@ -39,8 +41,29 @@ def test_stage_configuration_equals_what_the_weights_record(name):
 def test_plan_prints_every_command_and_the_recorded_times(capsys, tmp_path):
     assert main(["--out", str(tmp_path), "--plan"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert len(lines) == len(DATASETS) + len(WEIGHTS)
+    shipped_data = {d for w in WEIGHTS.values() for d in w.data}
+    assert len(lines) == len(shipped_data) + len(WEIGHTS)
     assert lines[0].startswith("collect spatial_a: lq collect --out ") and "--tasks 4,6 --inits 10-49" in lines[0]
     assert any(line.startswith("train flow_c10_libero_object: lq train --policy flow --chunk 10") for line in lines)
     assert all("(recorded: " in line for line in lines)
     assert main(["--out", str(tmp_path), "--plan", "--only", "nope"]) == 2
+
+
+def test_delay_aware_candidates_start_from_shipped_weights_and_are_built_when_named(capsys, tmp_path):
+    """The candidates (built and evaluated, not shipped) are valid configurations that fine-tune a shipped file;
+    naming one builds its datasets and the weights it starts from first."""
+    assert set(CANDIDATES) == {"oft_c8_delay_libero_object", "flow_c10_delay_libero_object"}
+    for name, stage in CANDIDATES.items():
+        cfg = stage.config()
+        assert cfg.run_name("libero_object") == name and cfg.delay_max >= 1 and cfg.freeze_base
+        assert WEIGHTS[cfg.init_from].policy == stage.policy and WEIGHTS[cfg.init_from].chunk == stage.chunk
+        for dataset in stage.data:
+            collect = DATASETS[dataset].config()
+            assert collect.latency_ticks and collect.suite == "libero_object"
+    assert main(["--out", str(tmp_path), "--plan", "--only", "flow_c10_delay_libero_object"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    order = [line.split(":")[0] for line in lines]
+    assert order == ["collect object", "collect object_expert_latency", "train flow_c10_libero_object",
+                     "train flow_c10_delay_libero_object"]  # fmt: skip
+    assert "--freeze-base" in lines[-1] and "--init-from flow_c10_libero_object" in lines[-1]
+    assert "--latency-ticks 0-8 --latency-driver scripted" in lines[1] and lines[-1].endswith("(not shipped)")

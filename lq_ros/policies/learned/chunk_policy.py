@@ -16,6 +16,7 @@ import numpy as np
 from lq_ros.core.suite_constants import ACTION_DIM, ACTION_HIGH, ACTION_LOW
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
+from lq_ros.policies.learned.delay import VARIANTS, DelayTracker, conditioning, conditioning_dim
 from lq_ros.policies.learned.features import FeatureLayout, features, goal_slots, raw_from_observation
 
 #: Shipped weights (``<name>_<suite>.pt`` + ``.json``), installed as package data.
@@ -75,6 +76,8 @@ class Checkpoint:
     f_std: np.ndarray
     a_mean: np.ndarray
     a_std: np.ndarray
+    #: Delay-aware checkpoints (``meta["delay"]["delay_max"]``): the largest d of the conditioning; 0: naive.
+    delay_max: int = 0
 
 
 def load_checkpoint(path: Path, kind: str) -> Checkpoint:
@@ -89,7 +92,8 @@ def load_checkpoint(path: Path, kind: str) -> Checkpoint:
         raise ValueError(f"{path}: checkpoint format {meta.get('format')}, this code reads {CHECKPOINT_FORMAT}")
     layout = FeatureLayout.from_dict(meta["layout"])
     horizon = int(meta["horizon"])
-    model = build_model(kind, layout.feature_dim, horizon, meta["width"], meta["depth"])
+    delay_max = int(meta.get("delay", {}).get("delay_max", 0))
+    model = build_model(kind, layout.feature_dim + conditioning_dim(delay_max), horizon, meta["width"], meta["depth"])
     state = torch.load(path.with_name(meta["weights_file"]), map_location="cpu", weights_only=True)
     model.load_state_dict({k: v.float() for k, v in state.items()})
     model.eval()
@@ -98,6 +102,7 @@ def load_checkpoint(path: Path, kind: str) -> Checkpoint:
         path=path, meta=meta, layout=layout, horizon=horizon, model=model,
         f_mean=np.asarray(stats["feature_mean"], np.float32), f_std=np.asarray(stats["feature_std"], np.float32),
         a_mean=np.asarray(stats["action_mean"], np.float32), a_std=np.asarray(stats["action_std"], np.float32),
+        delay_max=delay_max,
     )  # fmt: skip
 
 
@@ -109,12 +114,28 @@ def postprocess(chunk: np.ndarray) -> np.ndarray:
     return chunk
 
 
+def check_variant(variant: str) -> None:
+    """Refuse an unknown ``variant`` in one line naming the valid ones."""
+    if variant not in VARIANTS:
+        raise ValueError(f"unknown variant {variant!r}; valid: {', '.join(VARIANTS)}")
+
+
 class LearnedChunkPolicy(Policy):
-    """Loads a checkpoint pair (per suite for shipped weights) and maps an observation to an (H, 7) chunk."""
+    """Loads a checkpoint pair (per suite for shipped weights) and maps an observation to an (H, 7) chunk.
+
+    ``variant="delay"``: the policy keeps track of the delay d and the actions executing while it infers (the
+    executor's prefix when given, merge rtc; else what its :class:`DelayTracker` derives from the protocol
+    ``mode`` and its own last chunk; ``delay``: d in ticks, -1: estimated). Async, it returns d + s rows
+    (``execute``). A delay-aware checkpoint (trained with delay conditioning, lq_ros/policies/learned/delay.py)
+    is also told d and the prefix, and in sync returns its chunk from row d on (the rows for after the hold).
+    """
 
     kind = ""
 
-    def __init__(self, weights: str, threads: int = 1) -> None:
+    def __init__(
+        self, weights: str, threads: int = 1, variant: str = "naive", mode: str = "async", delay: int = -1,
+        execute: int = -1,
+    ) -> None:  # fmt: skip
         import torch
 
         # One thread: the policy shares the CPU with the simulator (and torch's spin-waiting threads
@@ -124,10 +145,23 @@ class LearnedChunkPolicy(Policy):
         self.weights = str(weights)
         self._per_suite = is_shipped_base_name(self.weights)
         self._cache: dict[Path, Checkpoint] = {}
-        self._use(resolve_weights(self.weights))
+        have = shipped_suites(self.weights) if self._per_suite else []
+        # Until the first reset: the default suite's checkpoint, or the first shipped one (a variant shipped
+        # for some suites only).
+        self._use(resolve_weights(self.weights, DEFAULT_SUITE if DEFAULT_SUITE in have or not have else have[0]))
         self._task: TaskInfo | None = None
         self._slots = (-1, -1)
         self._seed = 0
+        self.variant = variant
+        self._tracker = (
+            DelayTracker(mode, int(delay), self._delay_max(), self.replan_steps) if variant == "delay" else None
+        )
+        #: Async: actions run per chunk after the d executing ones (-1: d; 0: the whole chunk).
+        self.execute = int(execute)
+        if self.execute < -1:
+            raise ValueError(f"execute must be >= 0 actions (0: the whole chunk) or -1 (d), got {execute}")
+        #: (d, normalised prefix (1, d, 7) tensor) for the duration of one delay-aware infer().
+        self._ctx: tuple[int, object] | None = None
 
     def _use(self, path: Path) -> None:
         if path not in self._cache:
@@ -167,7 +201,10 @@ class LearnedChunkPolicy(Policy):
 
     def params(self) -> dict:
         where = "shipped, per suite" if self._per_suite else str(self.weights_path)
-        return {"weights": self.weights, "weights_source": where, "horizon": self.horizon}
+        out = {"weights": self.weights, "weights_source": where, "horizon": self.horizon}
+        if self._tracker is not None:
+            out.update(variant=self.variant, mode=self._tracker.mode, delay=self._tracker.delay, execute=self.execute)
+        return out
 
     def reset(self, task: TaskInfo, seed: int) -> None:
         if self._per_suite:
@@ -182,6 +219,10 @@ class LearnedChunkPolicy(Policy):
         self._task = task
         self._slots = goal_slots(self.layout, task.goal)
         self._seed = int(seed)
+        if self._tracker is not None:
+            self._tracker.delay_max = self._delay_max()
+            self._tracker.replan_steps = self.replan_steps
+            self._tracker.reset()
 
     def features(self, obs: Observation):
         """Normalised feature row (1, F) of ``obs`` as a torch tensor."""
@@ -194,13 +235,55 @@ class LearnedChunkPolicy(Policy):
     def denormalise(self, chunk: np.ndarray) -> np.ndarray:
         return chunk * self.ckpt.a_std + self.ckpt.a_mean
 
-    def infer(self, obs: Observation) -> np.ndarray:
+    def infer(self, obs: Observation, prefix=None) -> np.ndarray:
         x = self.features(obs)
-        with self._torch.no_grad():
-            chunk = self._decode(x, obs)[0].numpy()
+        if self._tracker is None:
+            with self._torch.no_grad():
+                chunk = self._decode(x, obs)[0].numpy()
+            chunk = postprocess(self.denormalise(chunk))
+            if not np.all(np.isfinite(chunk)):
+                raise PolicyError("model produced a non-finite action")
+            return chunk
+        return self._infer_delay(x, obs, prefix)
+
+    def _delay_max(self) -> int:
+        """Largest d the policy uses: its conditioning's, or (a naive checkpoint) H - 1."""
+        return self.ckpt.delay_max or max(self.horizon - 1, 0)
+
+    def delay_context(self, obs: Observation, prefix=None) -> tuple[int, np.ndarray]:
+        """(d, the d actions executing while inferring): the executor's prefix if given, else the tracker's."""
+        if prefix is not None:
+            d = int(min(prefix.delay, self._delay_max(), len(prefix.actions)))
+            return d, np.asarray(prefix.actions[:d], dtype=np.float64)
+        return self._tracker.context(obs.tick)
+
+    def _infer_delay(self, x, obs: Observation, prefix) -> np.ndarray:
+        torch, dmax = self._torch, self.ckpt.delay_max
+        d, rows = self.delay_context(obs, prefix)
+        norm = ((rows - self.ckpt.a_mean) / self.ckpt.a_std).astype(np.float32)
+        if dmax:  # a delay-aware checkpoint is told d and the prefix
+            padded = np.zeros((1, dmax, ACTION_DIM), np.float32)
+            padded[0, :d] = norm
+            x = torch.cat([x, torch.from_numpy(conditioning(np.array([d]), padded, dmax))], dim=1)
+            self._ctx = (d, torch.from_numpy(norm[None]))
+        try:
+            with torch.no_grad():
+                chunk = self._decode(x, obs)[0].numpy()
+        finally:
+            self._ctx = None
         chunk = postprocess(self.denormalise(chunk))
         if not np.all(np.isfinite(chunk)):
             raise PolicyError("model produced a non-finite action")
+        if dmax and d:
+            chunk[:d] = postprocess(rows)  # rows 0..d-1 are the prefix (async drops them as stale)
+        if self._tracker.mode == "sync":
+            if dmax:  # told about the hold, its rows from d on are the ones for after it (a naive chunk starts at 0)
+                chunk = chunk[min(d, self.horizon - 1) :]
+        elif d and self.execute:
+            # Async execution horizon s: return d + s rows, s = d (-1: the fewest that keep inference back to back
+            # without an underrun, so no executed row is older than 2d - 1 ticks) or the given s.
+            chunk = chunk[: d + (d if self.execute < 0 else self.execute)]
+        self._tracker.returned(obs.tick, chunk)
         return chunk
 
     def _decode(self, x, obs: Observation):  # -> torch.Tensor (1, H, 7), normalised

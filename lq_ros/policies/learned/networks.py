@@ -51,8 +51,21 @@ class ChunkRegressor(nn.Module):
         """(B, F) normalised features -> (B, H, 7) normalised actions."""
         return self.out(self.blocks(self.inp(feats))).view(-1, self.horizon, ACTION_DIM)
 
-    def loss(self, feats: torch.Tensor, actions: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
-        return (self(feats) - actions).abs().mean()
+    def loss(
+        self,
+        feats: torch.Tensor,
+        actions: torch.Tensor,
+        gen: torch.Generator | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """L1; ``mask`` (B, H), optional: rows weighted 0 (a given prefix) do not count (training-time RTC)."""
+        err = (self(feats) - actions).abs()
+        return err.mean() if mask is None else masked_mean(err, mask)
+
+
+def masked_mean(err: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of ``err`` (B, H, 7) over the rows ``mask`` (B, H) keeps."""
+    return (err * mask[..., None]).sum() / (mask.sum().clamp(min=1) * err.shape[-1])
 
 
 def _time_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -82,11 +95,22 @@ class FlowChunkModel(nn.Module):
         h = self.obs(feats) + self.act(x_t.flatten(1)) + self.time(_time_embedding(t, self.time_dim))
         return self.out(self.blocks(h)).view(-1, self.horizon, ACTION_DIM)
 
-    def loss(self, feats: torch.Tensor, actions: torch.Tensor, gen: torch.Generator | None = None) -> torch.Tensor:
+    def loss(
+        self,
+        feats: torch.Tensor,
+        actions: torch.Tensor,
+        gen: torch.Generator | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Flow matching. ``mask`` (B, H), optional (training-time RTC): the rows weighted 0 are the given prefix,
+        fed clean (as at t = 1) in x_t and left out of the loss."""
         noise = torch.randn(actions.shape, generator=gen)
         t = torch.rand(actions.shape[0], generator=gen)
         x_t = (1 - t)[:, None, None] * noise + t[:, None, None] * actions
-        return ((self.velocity(feats, x_t, t) - (actions - noise)) ** 2).mean()
+        if mask is None:
+            return ((self.velocity(feats, x_t, t) - (actions - noise)) ** 2).mean()
+        x_t = torch.where(mask[..., None] > 0, x_t, actions)
+        return masked_mean((self.velocity(feats, x_t, t) - (actions - noise)) ** 2, mask)
 
     @torch.no_grad()
     def sample(
