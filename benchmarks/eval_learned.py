@@ -47,6 +47,7 @@ from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies import Policy, make_policy
 from lq_ros.scoring.metrics import wilson_interval
 from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.training.collect import parse_spec as parse_policy_spec
 from lq_ros.transport.inprocess import run_conventional
 
 SUITES = ("libero_spatial", "libero_object")
@@ -55,18 +56,19 @@ DEFAULT_POLICIES = ("oft", "oft:chunk_size=1", "flow")
 
 
 def parse_spec(spec: str) -> tuple[str, dict]:
-    """``name[:k=v,k=v]`` -> (name, kwargs); values parsed as JSON when possible."""
-    name, _, rest = spec.partition(":")
-    kwargs = {}
-    for item in filter(None, rest.split(",")):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"bad policy spec {spec!r}: expected name:key=value,...")
-        try:
-            kwargs[key] = json.loads(value)
-        except json.JSONDecodeError:
-            kwargs[key] = value
-    return name, kwargs
+    """``name[:k=v,k=v]`` -> (name, kwargs) as ``lq collect --driver`` reads it; a bad spec ends the run in one line."""
+    try:
+        return parse_policy_spec(spec)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
+
+
+def run_jobs(task, jobs: list, workers: int) -> list:
+    """``task`` over ``jobs``: in ``workers`` spawned processes when there are several of both, else here."""
+    if workers > 1 and len(jobs) > 1:
+        with mp.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+            return pool.map(task, jobs, chunksize=1)
+    return [task(j) for j in jobs]
 
 
 class Timed(Policy):
@@ -405,11 +407,7 @@ def main() -> None:
     if args.latency:
         modes = args.mode or ["async"]
         jobs = [(s, t, specs, modes, args.latency, list(inits)) for s in suites for t in args.tasks]
-        if args.workers > 1 and len(jobs) > 1:
-            with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
-                results = pool.map(latency_task, jobs, chunksize=1)
-        else:
-            results = [latency_task(j) for j in jobs]
+        results = run_jobs(latency_task, jobs, args.workers)
         rows = [r for res in results for r in res]
         summary = latency_report(rows)
         print(f"wall time {time.perf_counter() - started:.0f} s with {args.workers} workers")
@@ -417,11 +415,7 @@ def main() -> None:
             args.json.write_text(json.dumps({"latency": summary, "rows": rows}, indent=1))
         return
     jobs = [(s, t, specs, inits, args.replan_steps) for s in suites for t in args.tasks]
-    if args.workers > 1 and len(jobs) > 1:
-        with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
-            results = pool.map(eval_task, jobs, chunksize=1)
-    else:
-        results = [eval_task(j) for j in jobs]
+    results = run_jobs(eval_task, jobs, args.workers)
     rows = [r for res in results for r in res]
     wall = time.perf_counter() - started
     if args.json:
