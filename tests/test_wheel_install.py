@@ -27,8 +27,9 @@ from lq_ros.core.shipped import SHIPPED
 pytestmark = [pytest.mark.slow, pytest.mark.sim, pytest.mark.ros]
 
 REPO = Path(__file__).resolve().parents[1]
-#: Not part of the package (or built from it): left out of the copy the wheel is built from.
-NOT_SOURCE = (".venv", "build", "bags", ".git", "__pycache__", "*.egg-info", ".pytest_cache", ".ruff_cache", "dist")
+#: Not part of the package (or built from it): left out of the copy the wheel is built from. ".*" covers the
+#: venvs (``.venv``, ``.venv-lerobot``: some 14 GB), ``.git`` and the tool caches.
+NOT_SOURCE = (".*", "build", "bags", "__pycache__", "*.egg-info", "dist")
 RUN = ("--policy", "sine", "--max-steps", "10")
 
 
