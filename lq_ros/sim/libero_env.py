@@ -32,11 +32,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 ARM_JOINTS = 7
 #: Compiled MuJoCo models this process keeps, by their XML (a few MB each; a sweep worker visits a few tasks).
 COMPILED_MODELS_KEPT = 8
-_compiled_models: OrderedDict[str, object] = OrderedDict()
+_compiled_models: OrderedDict[tuple[str, bool], object] = OrderedDict()  # by (XML, with textures)
 
 
 @contextlib.contextmanager
-def compiled_once():
+def compiled_once(*, textures: bool = True):
     """Within this block robosuite builds each MjSim from a copy of a model compiled once per distinct XML.
 
     robosuite compiles the task's XML when the env is made and again at every hard reset (an env's first reset),
@@ -44,6 +44,10 @@ def compiled_once():
     episode went to compiling it a second time. The model compiled first is kept untouched, and every MjSim gets
     a copy of it (MuJoCo's mj_copyModel: the compiled model itself, so episodes are bit-identical to compiling
     again; tests/sim/test_libero_env.py compares them).
+
+    ``textures=False`` (an env nothing renders from) compiles the scene with every image texture replaced by a
+    1x1 flat one (:func:`without_image_textures`): decoding a LIBERO scene's PNGs is about 1.5 s of its 2.2 s
+    compile, and no texture is read by the physics, so the episode is bit-identical (tests compare them).
     """
     import mujoco
     import robosuite.environments.base as robosuite_base
@@ -53,12 +57,14 @@ def compiled_once():
     class MjSimFromCompiledModel(original):
         @classmethod
         def from_xml_string(cls, xml: str):
-            model = _compiled_models.get(xml)
+            key = (xml, textures)
+            model = _compiled_models.get(key)
             if model is None:
-                model = _compiled_models[xml] = mujoco.MjModel.from_xml_string(xml)
+                model = mujoco.MjModel.from_xml_string(xml if textures else without_image_textures(xml))
+                _compiled_models[key] = model
                 while len(_compiled_models) > COMPILED_MODELS_KEPT:
                     _compiled_models.popitem(last=False)
-            _compiled_models.move_to_end(xml)
+            _compiled_models.move_to_end(key)
             return original(copy.deepcopy(model))
 
     robosuite_base.MjSim = MjSimFromCompiledModel
@@ -66,6 +72,30 @@ def compiled_once():
         yield
     finally:
         robosuite_base.MjSim = original
+
+
+#: MJCF texture attributes that name image files (a 2D texture's ``file``; a cube's six faces).
+TEXTURE_FILE_ATTRIBUTES = ("file", "fileright", "fileleft", "fileup", "filedown", "filefront", "fileback")
+
+
+def without_image_textures(xml: str) -> str:
+    """``xml`` with every texture loaded from an image file made a 1x1 builtin flat texture (same name and type).
+
+    Materials keep their textures (the model has the same elements, ids and sizes of everything the physics
+    reads); only the pixels are gone, so the scene cannot be rendered as it looks.
+    """
+    import xml.etree.ElementTree as ET
+
+    root = ET.fromstring(xml)
+    for texture in root.iter("texture"):
+        if not any(a in texture.attrib for a in TEXTURE_FILE_ATTRIBUTES):
+            continue
+        for attribute in (*TEXTURE_FILE_ATTRIBUTES, "gridsize", "gridlayout", "content_type", "builtin", "mark"):
+            texture.attrib.pop(attribute, None)
+        texture.set("builtin", "flat")
+        texture.set("width", "1")
+        texture.set("height", "1")
+    return ET.tostring(root, encoding="unicode")
 
 
 def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:
@@ -115,7 +145,7 @@ class LiberoEnv:
         self.camera_names = tuple(camera_names)
         self.camera_size = camera_size
         self.record_physics = record_physics
-        with compiled_once():
+        with compiled_once(textures=bool(self.camera_names)):
             self._env = ControlEnv(
                 bddl_file_name=str(bddl),
                 has_offscreen_renderer=bool(self.camera_names),
@@ -151,7 +181,7 @@ class LiberoEnv:
         self._env.env.hard_reset = hard
         self._env.seed(seed)
         np.random.seed(seed)
-        with compiled_once():
+        with compiled_once(textures=bool(self.camera_names)):
             self._reset_robosuite()  # hard: a new MjSim (from the compiled model); soft: mj_resetData
         self._bind_sim()
         if not hard:

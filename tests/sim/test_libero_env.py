@@ -1,4 +1,5 @@
-"""lq_ros/sim/libero_env.py: a first (hard) reset reuses the model compiled when the env was made, bit-identically."""
+"""lq_ros/sim/libero_env.py: a first (hard) reset reuses the model compiled when the env was made, and a scene
+compiled without its image textures (nothing renders) steps bit-identically to the full scene."""
 
 from __future__ import annotations
 
@@ -46,8 +47,43 @@ def test_the_first_reset_compiles_nothing_and_gives_the_episode_of_a_fresh_compi
     monkeypatch.setattr(mujoco.MjModel, "from_xml_string", counted)
     reused = _episode(suite, task)
     assert len(compiles) == 1, "the env's XML was compiled once: for the env, not again for its first reset"
-    monkeypatch.setattr(libero_env, "compiled_once", contextlib.nullcontext)  # robosuite's own path
+    monkeypatch.setattr(libero_env, "compiled_once", lambda **_: contextlib.nullcontext())  # robosuite's own path
     compiled_twice = _episode(suite, task)
     assert len(compiles) == 3
     for tick, (a, b) in enumerate(zip(reused, compiled_twice, strict=True)):
         assert np.array_equal(a, b), f"tick {tick}"
+
+
+@pytest.mark.parametrize(
+    ("suite", "task"), [("libero_spatial", 0), ("libero_object", 3), ("libero_goal", 5), ("libero_10", 2)]
+)
+def test_a_scene_without_image_textures_steps_as_the_full_scene(monkeypatch, suite, task):
+    libero_env._compiled_models.clear()
+    stripped = _episode(suite, task)
+    ((xml, textures),) = libero_env._compiled_models
+    assert not textures, "a camera-less env compiles its scene without image textures"
+    full_model = mujoco.MjModel.from_xml_string(xml)
+    light_model = libero_env._compiled_models[(xml, False)]
+    # The same elements (bodies, geoms, materials, textures...): only the texture pixels differ.
+    sizes = [n for n in dir(full_model) if n.startswith("n") and isinstance(getattr(full_model, n), int)]
+    differ = {n for n in sizes if getattr(full_model, n) != getattr(light_model, n)}
+    assert differ == {"ntexdata", "nbuffer"}, differ  # (nbuffer: the bytes of the whole model)
+    assert light_model.ntexdata < full_model.ntexdata  # (builtin textures, a skybox gradient, stay)
+
+    libero_env._compiled_models.clear()
+    monkeypatch.setattr(libero_env, "without_image_textures", lambda xml: xml)
+    full = _episode(suite, task)
+    for tick, (a, b) in enumerate(zip(stripped, full, strict=True)):
+        assert np.array_equal(a, b), f"tick {tick}"
+
+
+def test_an_env_with_cameras_compiles_its_textures():
+    libero_env._compiled_models.clear()
+    env = LiberoEnv("libero_spatial", 0, camera_names=("agentview",), camera_size=32)
+    try:
+        env.reset(0, 7)
+        assert [textures for _xml, textures in libero_env._compiled_models] == [True]
+        assert env._env.env.sim.model.ntexdata > 10**6, "the scene's image textures (floor, table, objects)"
+        assert env.observe(with_images=True).images["agentview"].shape == (32, 32, 3)
+    finally:
+        env.close()
