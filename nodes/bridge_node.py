@@ -25,7 +25,6 @@ peer are there; deactivate stops commanding the robot.
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -277,6 +276,7 @@ class BridgeNode(EpisodeNode):
         if event.kind in m.EventKind.TERMINAL and not self.finished:
             self.get_logger().info(f"episode ended by a peer: {m.EventKind.NAMES[event.kind]} {event.reason}")
             self.finished = True
+            self.seal_episode()
 
     # -- helpers ----------------------------------------------------------------------------------------
     def publish_event(self, t_ns: int, kind: int, tick: int, reason: str = "", detail: dict | None = None) -> None:
@@ -293,10 +293,11 @@ class BridgeNode(EpisodeNode):
                 detail["robot_time_factor"] = round((self.builder.ee.stamp_ns - robot0) / 1e9 / wall_s, 4)
         self.publish_event(self.builder.ee.stamp_ns, kind, tick, reason, detail)
         self.finished = True
+        self.seal_episode()
 
 
 def main() -> None:
-    sys.exit(run_managed(BridgeNode))
+    run_managed(BridgeNode)
 
 
 if __name__ == "__main__":

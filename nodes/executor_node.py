@@ -28,7 +28,6 @@ clock... may change between episodes); deactivate stops it.
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 from std_msgs.msg import String
@@ -80,6 +79,7 @@ class ExecutorNode(EpisodeNode):
     def finish(self) -> None:
         self.finished = True
         self.ticks.stop()
+        self.seal_episode()
 
     def warn(self, reason: str, detail: dict | None = None) -> None:
         """A WARNING event (recorded in the bag), at most MAX_WARNING_EVENTS per episode; the rest are logged."""
@@ -326,7 +326,7 @@ class WallClockTicks(_Ticks):
 
 
 def main() -> None:
-    sys.exit(run_managed(ExecutorNode))
+    run_managed(ExecutorNode)
 
 
 if __name__ == "__main__":

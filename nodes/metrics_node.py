@@ -3,8 +3,11 @@
 Messages are written exactly as received (serialized CDR) with their header stamps as log times (sim time in
 lockstep). The bag is crash-safe (lq_ros.recording.episode_bag): killed with SIGKILL, it keeps all but the last
 0.5 s of sim time, and its metadata.yaml (with the run metadata) exists from the start. Once a terminal event
-(success, timeout, error) has arrived and the topics have been quiet for a moment, the bag is closed, scored
-with lq_ros.scoring.bag_scorer and the score written next to it (score.json).
+(success, timeout, error) has arrived and, from every node that publishes episode topics, its message counts
+(/lq/published_counts, sent when the episode ends for that node) with that many messages received on every
+recorded topic, the bag is closed, scored with lq_ros.scoring.bag_scorer and the score written next to it
+(score.json). A node whose counts do not come (it died) is waited for ``COUNTS_WAIT_S``, then the bag is closed once
+the topics have been quiet for ``quiet_period_s``, with a WARNING event naming what was missing.
 Stopped early (deactivated, Ctrl-C), it records a STOPPED event so the episode scores as an error, not
 a failure.
 
@@ -26,8 +29,7 @@ record besides:
 
 The score then uses ``ee_topic``/``joint_topic`` and the ``trajectory_rate``/``energy_rate`` given (a robot's
 topics have their own rates: ``native``), i.e. ``lq score BAG --ee-topic ... --rate native``. A robot keeps
-publishing after the episode, so the bag is closed once the episode topics have been quiet for
-``quiet_period_s`` after the terminal event and the executor's counts have arrived (or 2 s passed).
+publishing after the episode: its topics are recorded until the bag closes, and never keep it open.
 
 Managed node: activate opens the episode's bag (``bag_path``); once the bag is closed and scored the
 node deactivates itself, which tells the lifecycle manager the episode is over.
@@ -37,12 +39,13 @@ from __future__ import annotations
 
 import contextlib
 import json
-import sys
 import time
 import traceback
+from collections import Counter
 from pathlib import Path
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
 
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
@@ -52,7 +55,7 @@ from lq_ros.scoring.bag_scorer import score_bag, to_json
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, msg_class, run_managed
 from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
-from lq_ros.wire.node_names import NODE_NAMES
+from lq_ros.wire.node_names import NODE_NAMES, stack_node_names
 
 #: WARNING events the recorder writes per episode at most (rogue or unusable messages); then one count.
 MAX_WARNING_EVENTS = 100
@@ -66,8 +69,8 @@ ROBOT_QOS = QoSProfile(
 #: Types whose first field is a std_msgs/Header or a Time (log time = its stamp); others: receive time.
 _STAMPED_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped", m.IMAGE_MSGTYPE,
                   "rosgraph_msgs/msg/Clock"}  # fmt: skip
-#: Wall seconds after the terminal event a real-time recorder waits at most for the executor's counts.
-STATS_WAIT_S = 2.0
+#: Wall seconds after the terminal event the recorder waits at most for every node's message counts.
+COUNTS_WAIT_S = 2.0
 
 
 class MetricsNode(EpisodeNode):
@@ -76,7 +79,7 @@ class MetricsNode(EpisodeNode):
         self.declare_parameter("bag_path", "")
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
-        # Wall seconds without messages, after the terminal event, before the bag is closed.
+        # Wall seconds without messages before the bag is closed when a node's message counts did not come.
         self.declare_parameter("quiet_period_s", 0.3)
         self.declare_parameter("policy_params_json", "{}")
         # Real time against a robot (the launcher sets them from the robot's YAML): what to record and score.
@@ -106,6 +109,11 @@ class MetricsNode(EpisodeNode):
                 m.Topic(t["name"], t["type"]) for t in json.loads(self.get_parameter("robot_topics_json").value)
             ]
         self.robot_info = json.loads(self.get_parameter("robot_json").value)
+        # The nodes whose message counts close the bag: the stack's other nodes (the bridge instead of the sim).
+        self.counted_nodes = tuple(n for n in stack_node_names(robot=bool(self.robot_info)) if n != self.get_name())
+        self.announced: dict[str, dict[str, int]] = {}  # node -> topic -> messages it published
+        self.received: Counter[str] = Counter()  # topic -> messages received from the stack's nodes
+        self.closing = False
         self.stats: dict[str, dict] = {}  # real time: node -> its counts
         self.terminal_at: float | None = None
         self.started_detail: dict = {}
@@ -131,6 +139,8 @@ class MetricsNode(EpisodeNode):
             sub = self.create_subscription(msg_class(topic.msgtype), topic.name, self._robot_recorder(topic), ROBOT_QOS,
                                            raw=True)  # fmt: skip
             self._episode_entities.append(sub)
+        counts_sub = self.create_subscription(String, m.PUBLISHED_COUNTS.name, self.on_counts, LOSSLESS_QOS)
+        self._episode_entities.append(counts_sub)
         self.episode_timer(0.1, self.finish_when_quiet)
 
     def deactivate(self) -> None:
@@ -150,6 +160,7 @@ class MetricsNode(EpisodeNode):
             if checked and not expected_sender(self, topic.name, sender):
                 self.on_rogue_message(topic, sender, data)
                 return
+            self.received[topic.name] += 1
             try:
                 log_ns = self._log_time_ns(topic, data)
                 message = m.deserialize(data, topic.msgtype) if topic.name in _DECODED else None
@@ -180,6 +191,7 @@ class MetricsNode(EpisodeNode):
             except Exception as exc:  # noqa: BLE001 - never out of the spin loop: the recorder must live
                 self.get_logger().error(f"recording {topic.name} failed: {exc}\n{traceback.format_exc()}")
                 self.record_warning(f"recorder: a message on {topic.name} failed: {type(exc).__name__}: {exc}")
+            self.close_when_complete()
 
         return record
 
@@ -275,11 +287,11 @@ class MetricsNode(EpisodeNode):
         if event.kind == m.EventKind.STARTED:
             self.started_detail = json.loads(event.detail_json)
             self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
-        elif event.kind in m.EventKind.TERMINAL and self.realtime:
-            self.terminal_seen = True
-            self.terminal_at = self.terminal_at or time.monotonic()
         elif event.kind in m.EventKind.TERMINAL:
             self.terminal_seen = True
+            self.terminal_at = self.terminal_at or time.monotonic()
+            if self.realtime:
+                return
             # SUCCESS and TIMEOUT at tick T come after the sim stepped T - 1: commands of T on were never applied.
             # An ERROR at T (e.g. the step of T failed) keeps the command of T, as the in-process runner does.
             stepped = event.kind in (m.EventKind.SUCCESS, m.EventKind.TIMEOUT)
@@ -287,16 +299,58 @@ class MetricsNode(EpisodeNode):
             self.flush_commands(self.end_tick)
             self.held_commands = []
 
+    # -- closing the bag -----------------------------------------------------------------------------------
+    def on_counts(self, msg) -> None:
+        """A node's message counts for the episode (it publishes nothing more of it)."""
+        try:
+            announced = json.loads(msg.data)
+            node, counts = announced["node"], {str(k): int(v) for k, v in announced["counts"].items()}
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            self.record_warning(f"recorder: unusable message counts {msg.data[:200]!r}: {exc}")
+            return
+        if node in self.counted_nodes and node not in self.announced:
+            self.announced[node] = counts
+            self.close_when_complete()
+
+    def missing(self) -> list[str]:
+        """What the bag still lacks: nodes whose counts have not come, topics with fewer messages than counted."""
+        lacking = [f"{node}'s message counts" for node in self.counted_nodes if node not in self.announced]
+        expected: Counter[str] = Counter()
+        for counts in self.announced.values():
+            expected.update(counts)
+        lacking += [
+            f"{t.name}: {self.received[t.name]} of {expected[t.name]} messages"
+            for t in self.topics
+            if self.received[t.name] < expected[t.name]
+        ]
+        return lacking
+
+    def close_when_complete(self) -> None:
+        """Once the episode has ended and every message of it has arrived, close the bag (in a timer callback:
+        deactivating destroys the subscription this may be called from)."""
+        if self.terminal_seen and not self.finished and not self.closing and not self.missing():
+            self.closing = True
+            self.episode_timer(0.0, self.close_bag)
+
     def finish_when_quiet(self) -> None:
-        quiet = self.terminal_seen and not self.finished and time.monotonic() - self.last_message > self.quiet_period_s
-        if quiet and self.realtime:  # (the executor's counts go out with its last messages)
-            quiet = "executor" in self.stats or time.monotonic() - self.terminal_at > STATS_WAIT_S
-        if quiet:
-            try:
-                self.finish()
-            finally:
-                # The episode is recorded: leave the active state (the manager waits for this transition).
-                self.trigger_deactivate()
+        """A node's counts or messages did not come (it died): close once waited for and quiet, saying what lacks."""
+        if not self.terminal_seen or self.finished or self.closing:
+            return
+        now = time.monotonic()
+        if now - self.terminal_at > COUNTS_WAIT_S and now - self.last_message > self.quiet_period_s:
+            self.record_warning(f"recorder: closed the bag {COUNTS_WAIT_S:g} s after the episode's end without "
+                                f"{'; '.join(self.missing())}")  # fmt: skip
+            self.closing = True
+            self.close_bag()
+
+    def close_bag(self) -> None:
+        if self.finished:
+            return
+        try:
+            self.finish()
+        finally:
+            # The episode is recorded: leave the active state (the manager waits for this transition).
+            self.trigger_deactivate()
 
     def _env_versions(self) -> dict:
         """The simulator's versions (from its STARTED event), with this node's rclpy."""
@@ -336,7 +390,7 @@ class MetricsNode(EpisodeNode):
 
 
 def main() -> None:
-    sys.exit(run_managed(MetricsNode))
+    run_managed(MetricsNode)
 
 
 if __name__ == "__main__":

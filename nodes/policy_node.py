@@ -120,7 +120,7 @@ class PolicyNode(EpisodeNode):
         self.server = ChunkServer(
             self.policy, cfg, self.episode_publisher(m.ACTION_CHUNK).publish, self.get_logger(),
             now_ns=time.time_ns if realtime else lambda: self.now_ns,
-            hold_from="inference_end" if realtime else "observation",
+            hold_from="inference_end" if realtime else "observation", on_end=self.seal_episode,
         )  # fmt: skip
         self.server.subscribe(self.episode_subscription)
         if realtime:
@@ -139,7 +139,7 @@ class PolicyNode(EpisodeNode):
 
 
 def main() -> None:
-    sys.exit(run_managed(PolicyNode))
+    run_managed(PolicyNode)
 
 
 if __name__ == "__main__":

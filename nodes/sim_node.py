@@ -21,7 +21,6 @@ starts the episode once every peer is connected; deactivate stops stepping.
 
 from __future__ import annotations
 
-import sys
 import time
 import traceback
 
@@ -230,6 +229,7 @@ class SimNode(EpisodeNode):
             self.get_logger().info(f"episode ended by a peer: {m.EventKind.NAMES[event.kind]} {event.reason}")
             self.finished = True
             self.publish_stats()
+            self.seal_episode()
 
     # -- helpers ----------------------------------------------------------------------------
     def _expect_tick(self, tick: int, what: str) -> bool:
@@ -254,6 +254,7 @@ class SimNode(EpisodeNode):
         self.event(kind, self.state.tick, reason, detail)
         self.finished = True
         self.publish_stats()
+        self.seal_episode()
 
     def fail(self, reason: str, trace: str) -> None:
         self.get_logger().error(reason)
@@ -270,7 +271,7 @@ class SimNode(EpisodeNode):
 
 
 def main() -> None:
-    sys.exit(run_managed(SimNode))
+    run_managed(SimNode)
 
 
 if __name__ == "__main__":

@@ -51,6 +51,10 @@ ACTION_PREFIX = Topic("/lq/action_prefix", "lq_msgs/msg/ActionPrefix")
 #: Real-time runs (``clock: realtime``): what a node counted over the episode (overrun ticks, missed commands,
 #: late chunks), one JSON object per node, published when the episode ends and recorded in the bag.
 REALTIME_STATS = Topic("/lq/realtime_stats", "std_msgs/msg/String")
+#: Every node that publishes episode topics, once the episode has ended for it: how many messages it published on
+#: each topic, as JSON ``{"node": name, "counts": {topic: n}}`` (the recorder closes the bag once it has received
+#: them all; not recorded).
+PUBLISHED_COUNTS = Topic("/lq/published_counts", "std_msgs/msg/String")
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 
 

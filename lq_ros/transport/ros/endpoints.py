@@ -47,11 +47,20 @@ class ChunkServer:
     """
 
     def __init__(
-        self, policy: Policy, cfg: RunConfig, publish: Publish, logger, *, now_ns: Callable[[], int], hold_from: str
+        self,
+        policy: Policy,
+        cfg: RunConfig,
+        publish: Publish,
+        logger,
+        *,
+        now_ns: Callable[[], int],
+        hold_from: str,
+        on_end: Callable[[], None] = lambda: None,
     ) -> None:
         if hold_from not in ("observation", "inference_end"):
             raise ValueError(f"hold_from must be observation or inference_end, got {hold_from!r}")
         self.policy, self.publish, self.logger, self.now_ns = policy, publish, logger, now_ns
+        self.on_end = on_end  # called at the episode's terminal event (a chunk still held is not published)
         self.hold_from_observation = hold_from == "observation"
         self.latency = cfg.latency_model()
         self.latency_stream = cfg.latency_stream()
@@ -83,6 +92,8 @@ class ChunkServer:
                 self.logger.error(f"{self.reset_error}\n{traceback.format_exc()}")
             self.ready = True
             self.try_infer()
+        elif event.kind in m.EventKind.TERMINAL:
+            self.on_end()
 
     def on_image(self, msg) -> None:
         self.images.setdefault(m.stamp_ns(msg), {})[msg.header.frame_id] = m.image_from_msg(msg)
