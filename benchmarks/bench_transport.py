@@ -11,9 +11,11 @@ steps, alternated in the same process.
 
 The floor: the same scene's bare robosuite ``env.step`` per tick (LIBERO's ControlEnv, no wrapper, no energy
 integration, no messages, no bag) and raw ``mj_step`` x 25 (the physics alone), and the in-process tick's ratio to
-both (target: within 1.3x of bare env.step). A slow policy: with ``--slow-policy S`` the scripted expert sleeps S
-wall seconds per inference at Δt_sim 0.2 s, in process and through the long-lived stack, where the policy node's
-inference overlaps the simulation of the ticks that do not wait for it.
+both (target: within 1.3x of bare env.step). Where (b)'s time goes: the CPU seconds each of its node processes
+used per episode (episodes 2.., from /proc), against (a)'s wall per episode. A slow policy: with
+``--slow-policy S`` the scripted expert sleeps S wall seconds per inference at Δt_sim 0.2 s, in process and
+through the long-lived stack, where the policy node's inference overlaps the simulation of the ticks that do not
+wait for it.
 
     .venv/bin/python benchmarks/bench_transport.py [--policy scripted] [--episodes 10] [--resets 5]
         [--floor-ticks 200] [--slow-policy 0.15]
@@ -58,6 +60,7 @@ def main() -> None:
     ticks: dict[str, list[int]] = {n: [] for n in names}
     worker = EpisodeWorker("inprocess", out / "inprocess")
     stack = RosStack()
+    stack_cpu: dict[str, float] = {}  # node -> CPU seconds at the end of (b)'s first episode
     try:
         # Interleaved, so a change of machine load hits the three alike.
         for i, cfg in enumerate(cfgs):
@@ -71,6 +74,9 @@ def main() -> None:
                 times[name].append(time.perf_counter() - start)
                 ticks[name].append(outcome.ticks)
                 assert outcome.status != "error", f"{name} episode {i}: {outcome.reason}"
+                if name == "ros_stack" and i == 0:
+                    stack_cpu = {node: cpu_seconds(p.pid) for node, p in stack.procs.items()}
+        stack_cpu = {node: cpu_seconds(stack.procs[node].pid) - s for node, s in stack_cpu.items()}
     finally:
         stack.close()
         worker.close()
@@ -86,6 +92,13 @@ def main() -> None:
     print(f"(b)/(a): {statistics.mean(times['ros_stack']) / base:.2f} on means, "
           f"{statistics.median(times['ros_stack']) / base_median:.2f} on medians  (target <= 1.1)")  # fmt: skip
     print(f"(c)/(a): {statistics.mean(times['ros_fresh']) / base:.2f}")
+    if len(cfgs) > 1:
+        later = len(cfgs) - 1
+        base_later = statistics.mean(times["inprocess"][1:])
+        per_node = ", ".join(f"{node} {s / later:.2f} s" for node, s in sorted(stack_cpu.items(), key=lambda x: -x[1]))
+        print(f"(b) CPU per episode (episodes 2..): {per_node}; all nodes {sum(stack_cpu.values()) / later:.2f} s, "
+              f"the sim alone {stack_cpu['sim'] / later / base_later:.2f}x (a)'s wall per episode "
+              f"({base_later:.2f} s)")  # fmt: skip
     if args.floor_ticks:
         # The in-process tick over the episodes after the first (which builds the env): wall per tick.
         tick_s = statistics.median(t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True))
@@ -100,6 +113,12 @@ def main() -> None:
         hard, soft = reset_times(args.resets)
         print(f"reset of one env (10 wait steps included): hard {hard:.3f} s, soft {soft:.3f} s, "
               f"hard / soft {hard / soft:.1f}  (target soft <= 0.3 s)")  # fmt: skip
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds a live process has used (/proc/PID/stat, fields 14 and 15)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float]:

@@ -51,11 +51,12 @@ from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
 from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
 from lq_ros.recording.episode_folder import SCORE_FILE
+from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS
 from lq_ros.scoring.bag_scorer import score_bag, to_json
 from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, msg_class, run_managed
 from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
-from lq_ros.wire.node_names import NODE_NAMES, stack_node_names
+from lq_ros.wire.node_names import NODE_NAMES
 
 #: WARNING events the recorder writes per episode at most (rogue or unusable messages); then one count.
 MAX_WARNING_EVENTS = 100
@@ -83,12 +84,8 @@ class MetricsNode(EpisodeNode):
         self.declare_parameter("quiet_period_s", 0.3)
         self.declare_parameter("policy_params_json", "{}")
         # Real time against a robot (the launcher sets them from the robot's YAML): what to record and score.
-        self.declare_parameter("robot_topics_json", "[]")
-        self.declare_parameter("robot_json", "null")
-        self.declare_parameter("ee_topic", m.EE_POSE.name)
-        self.declare_parameter("joint_topic", m.JOINT_STATES.name)
-        self.declare_parameter("trajectory_rate", "auto")
-        self.declare_parameter("energy_rate", "auto")
+        for name, value in SIM_RECORDER_PARAMETERS.items():
+            self.declare_parameter(name, value)
         self.versions = versions()
         self.finished = True
 
@@ -109,8 +106,7 @@ class MetricsNode(EpisodeNode):
                 m.Topic(t["name"], t["type"]) for t in json.loads(self.get_parameter("robot_topics_json").value)
             ]
         self.robot_info = json.loads(self.get_parameter("robot_json").value)
-        # The nodes whose message counts close the bag: the stack's other nodes (the bridge instead of the sim).
-        self.counted_nodes = tuple(n for n in stack_node_names(robot=bool(self.robot_info)) if n != self.get_name())
+        self.stepping_node: str | None = None  # the node that started the episode: the sim, or the bridge
         self.announced: dict[str, dict[str, int]] = {}  # node -> topic -> messages it published
         self.received: Counter[str] = Counter()  # topic -> messages received from the stack's nodes
         self.closing = False
@@ -180,6 +176,8 @@ class MetricsNode(EpisodeNode):
                     return
                 self.writer.write(topic, log_ns, data)
                 if topic.name == m.EPISODE_EVENTS.name:
+                    if message.kind == m.EventKind.STARTED and sender:
+                        self.stepping_node = sender.rsplit("/", 1)[-1]
                     self.on_event(message)
                 elif topic.name == m.COMMAND.name:  # (real time: recorded as it arrives)
                     self.last_tick = max(self.last_tick, message.tick)
@@ -308,13 +306,20 @@ class MetricsNode(EpisodeNode):
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             self.record_warning(f"recorder: unusable message counts {msg.data[:200]!r}: {exc}")
             return
-        if node in self.counted_nodes and node not in self.announced:
+        if node in (*self.counted_nodes, NODE_NAMES["sim"], NODE_NAMES["bridge"]) and node not in self.announced:
             self.announced[node] = counts
             self.close_when_complete()
 
+    @property
+    def counted_nodes(self) -> tuple[str, ...]:
+        """The nodes whose message counts close the bag: policy, executor and the node that started the episode."""
+        stepping = (self.stepping_node,) if self.stepping_node else ()
+        return (NODE_NAMES["policy"], NODE_NAMES["executor"], *stepping)
+
     def missing(self) -> list[str]:
         """What the bag still lacks: nodes whose counts have not come, topics with fewer messages than counted."""
-        lacking = [f"{node}'s message counts" for node in self.counted_nodes if node not in self.announced]
+        lacking = [] if self.stepping_node else ["the STARTED event"]
+        lacking += [f"{node}'s message counts" for node in self.counted_nodes if node not in self.announced]
         expected: Counter[str] = Counter()
         for counts in self.announced.values():
             expected.update(counts)
@@ -330,6 +335,7 @@ class MetricsNode(EpisodeNode):
         deactivating destroys the subscription this may be called from)."""
         if self.terminal_seen and not self.finished and not self.closing and not self.missing():
             self.closing = True
+            self.get_logger().info(f"every message of the episode arrived; counts: {json.dumps(self.announced)}")
             self.episode_timer(0.0, self.close_bag)
 
     def finish_when_quiet(self) -> None:

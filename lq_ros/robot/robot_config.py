@@ -12,12 +12,14 @@ A bad file is refused with one line naming the entry and the valid values (:clas
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from lq_ros.core.shipped import shipped_path
+from lq_ros.wire import messages as m
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -121,6 +123,21 @@ class RobotConfig:
     def to_dict(self) -> dict:
         return {"name": self.name, "source": self.source, "frame_id": self.frame_id, "clock": self.clock,
                 "topics": self.topic_map()}  # fmt: skip
+
+    def recorder_parameters(self) -> dict:
+        """The recorder's parameters for this robot (:data:`SIM_RECORDER_PARAMETERS` has the same names): what it
+        records of the robot and which topics it scores, at the robot's own rates."""
+        return {"robot_topics_json": json.dumps(self.recorded_topics()), "robot_json": json.dumps(self.to_dict()),
+                "ee_topic": self.ee_pose.topic, "joint_topic": self.joint_states.topic,
+                "trajectory_rate": "native", "energy_rate": "native"}  # fmt: skip
+
+
+#: The recorder's robot parameters for a simulated run (the metrics node's defaults; set for every episode, so an
+#: episode after a robot's on the same stack records and scores the sim's topics again): no robot topics, the
+#: sim's /ee_pose and /joint_states scored at the ``auto`` rates.
+SIM_RECORDER_PARAMETERS = {"robot_topics_json": "[]", "robot_json": "null", "ee_topic": m.EE_POSE.name,
+                           "joint_topic": m.JOINT_STATES.name, "trajectory_rate": "auto",
+                           "energy_rate": "auto"}  # fmt: skip
 
 
 def resolve_path(spec: str) -> Path:

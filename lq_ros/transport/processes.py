@@ -122,10 +122,19 @@ class ShmTracker:
                     tracker.names.add(name)
         return tracker
 
-    def cleanup(self) -> list[str]:
-        """Remove the orphaned files; returns their names."""
+    def cleanup(self, ports: bool = True) -> list[str]:
+        """Remove the orphaned files; returns their names.
+
+        ``ports=False`` while other participants of the domain live on: a port file is shared by every
+        participant that uses the port, but only its creator holds the lock, so once the creator has exited
+        nothing tells whether others still use it. Removing it then cut the survivors off from the participants
+        started next ("Failed init_port ... open_and_lock_file failed", an episode that never started). Ports are
+        kept in mind and removed once the whole stack has gone.
+        """
         removed = []
         for name in sorted(self.names):
+            if not ports and name.startswith("fastrtps_port"):
+                continue
             files = (SHM_DIR / name, SHM_DIR / f"sem.{name}_mutex")
             lock_path = SHM_DIR / f"{name}_el"
             if not lock_path.exists() and not any(f.exists() for f in files):

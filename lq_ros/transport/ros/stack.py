@@ -46,7 +46,7 @@ import yaml
 from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import logs_dir
 from lq_ros.robot.observation_builder import Requirements, check_robot
-from lq_ros.robot.robot_config import RobotConfig
+from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS, RobotConfig
 from lq_ros.transport.processes import ShmTracker, die_with_parent, stop_processes
 from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
 
@@ -140,15 +140,11 @@ def node_parameters(
     params = {"/**": {**cfg.ros_parameters(), "use_sim_time": cfg.clock == "lockstep"}}
     if robot is None:
         params[NODE_NAMES["sim"]] = {"cameras": list(cams), "camera_size_px": camera_size_px}
+        recorder.update(SIM_RECORDER_PARAMETERS)
     else:
         needs_objects = bool(requirements and requirements.objects)
         params[NODE_NAMES["bridge"]] = {"cameras": list(cams), "needs_object_poses": needs_objects}
-        recorder.update(
-            robot_topics_json=json.dumps(robot.recorded_topics()), robot_json=json.dumps(robot.to_dict()),
-            ee_topic=robot.ee_pose.topic, joint_topic=robot.joint_states.topic,
-            # A robot's topics come at its own rates: score them at those (rows name the rates).
-            trajectory_rate="native", energy_rate="native",
-        )  # fmt: skip
+        recorder.update(robot.recorder_parameters())
         params[NODE_NAMES["robot"]] = {"robot_config": str(robot.source), "camera_size_px": camera_size_px}
     params[NODE_NAMES["metrics"]] = recorder
     return params
@@ -295,7 +291,7 @@ class RosStack:
                 if pipe is not None:
                     with suppress(OSError):
                         pipe.close()
-        removed = self.shm.cleanup()
+        removed = self.shm.cleanup(ports=False)  # (the other nodes live on)
         if removed:
             with open(self.work / "launcher.log", "a") as f:
                 f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
@@ -444,7 +440,7 @@ class RosStack:
             self.close(logs_to)
             return
         if self._dead():
-            self.shm.cleanup()  # the dead nodes' orphaned /dev/shm files (a live node's are never touched)
+            self.shm.cleanup(ports=False)  # the dead nodes' orphaned /dev/shm files (a live node's are never touched)
 
     def _log_sizes(self) -> dict[str, int]:
         return {n: (self.work / f"{n}.log").stat().st_size if (self.work / f"{n}.log").exists() else 0

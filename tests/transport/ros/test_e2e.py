@@ -76,6 +76,28 @@ def test_four_node_episode_bag_and_scores(tmp_path):
     assert scored["underrun_ticks"] == 0 and scored["hold_ticks"] == 4  # async startup: N = 4 ticks
 
 
+def test_the_bag_closes_on_every_nodes_message_counts_and_holds_what_they_published(tmp_path):
+    """The recorder closed the bag because the counts announced by sim, policy and executor had all arrived (not
+    after a quiet period): every topic holds exactly what its nodes published (commands: those applied)."""
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.1, max_steps=20, replan_steps=3)
+    outcome, _ = run_episode(cfg, tmp_path, "ros")
+    assert outcome.status == "failure", outcome.reason
+    marker = "every message of the episode arrived; counts: "
+    (line,) = [ln for ln in (outcome.bag_path / "logs" / "metrics.log").read_text().splitlines() if marker in ln]
+    announced = json.loads(line.split(marker, 1)[1])
+    assert set(announced) == {"lq_sim", "lq_policy", "lq_executor"}
+    published: dict[str, int] = {}
+    for counts in announced.values():
+        for topic, n in counts.items():
+            published[topic] = published.get(topic, 0) + n
+    in_bag = {topic: len(items) for topic, items in bag_messages(outcome.bag_path).items()}
+    assert in_bag[m.COMMAND.name] == 20 <= published[m.COMMAND.name]  # (sent ahead of the end: never applied)
+    assert {t: n for t, n in in_bag.items() if t != m.COMMAND.name} == {
+        t: n for t, n in published.items() if t in in_bag and t != m.COMMAND.name
+    }
+    assert published[m.EE_POSE.name] == 21 and published[m.ACTION_CHUNK.name] > 0
+
+
 @pytest.mark.parametrize("mode, latency", [("sync", 0.0), ("sync", 0.15), ("async", 0.0), ("async", 0.2)])
 def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
     """Bit-identical trajectories, commands and chunks for both transports (wall-clock fields aside)."""

@@ -14,7 +14,7 @@ import yaml
 from lq_ros.core.run_config import RunConfig
 from lq_ros.policies import make_policy
 from lq_ros.robot.observation_builder import Requirements
-from lq_ros.robot.robot_config import load_robot_config
+from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS, load_robot_config
 from lq_ros.run.sweep.worker import env_key
 from lq_ros.transport.ros.stack import NODES, RosStack, configure_keys, node_parameters, params_yaml, policy_key
 from lq_ros.wire.node_names import stack_node_names, stack_roles
@@ -150,4 +150,6 @@ def test_parameters_of_a_robot_run() -> None:
 def test_parameters_of_a_realtime_sim_run() -> None:
     params = node_parameters(RunConfig(clock="realtime"), Path("/tmp/bag"), (), 224, {})
     assert "lq_bridge" not in params and "robot_standin" not in params and "lq_sim" in params
-    assert "ee_topic" not in params["lq_metrics"]  # the sim's own 20 Hz topics: the scorer's defaults
+    # The sim's own 20 Hz topics at the scorer's defaults, set again for every episode (one after a robot's too).
+    assert {k: params["lq_metrics"][k] for k in SIM_RECORDER_PARAMETERS} == SIM_RECORDER_PARAMETERS
+    assert params["lq_metrics"]["ee_topic"] == "/ee_pose" and params["lq_metrics"]["trajectory_rate"] == "auto"
