@@ -10,6 +10,9 @@ Each phase is measured as a fresh process that stops after it, so the difference
     episode       `lq run --transport inprocess`: + the ticks, the bag and its scoring (the whole command)
     ROS           `lq run --transport ros`: the same episode through the four node processes (the whole command)
 
+Then the env phase's compile alone: the task's scene compiled by MuJoCo with its image textures (what an env with
+cameras does) and without them (1x1 flat textures: an env that renders nothing), in this process, alternated.
+
 Default episode: the scripted expert, async, Δt_sim 0.2 s, LIBERO-Spatial task 0, init state 0 (164 ticks).
 Targets: in process <= 4 s; through ROS <= in process + 1.5 s (2 idle cores).
 
@@ -69,7 +72,28 @@ def main() -> None:
     print(f"{'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
     print(f"targets: in process {median['episode']:.2f} s <= 4 s; ROS {median['ROS']:.2f} s <= in process + 1.5 s = "
           f"{median['episode'] + 1.5:.2f} s  (medians of {args.repeats})")  # fmt: skip
+    textured, light = compile_times(args.repeats)
+    print(f"scene compile (median of {args.repeats}): with image textures {textured:.2f} s, without "
+          f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s)")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+def compile_times(repeats: int) -> tuple[float, float]:
+    """Median wall seconds of MuJoCo compiling LIBERO-Spatial task 0's scene with and without its image textures."""
+    import mujoco
+
+    from lq_ros.sim import libero_env
+
+    env = libero_env.LiberoEnv("libero_spatial", 0)  # (camera-less: its XML is the key of the kept model)
+    ((xml, _),) = libero_env._compiled_models
+    env.close()
+    times: dict[bool, list[float]] = {True: [], False: []}
+    for _ in range(repeats):
+        for textures in (True, False):
+            start = time.perf_counter()
+            mujoco.MjModel.from_xml_string(xml if textures else libero_env.without_image_textures(xml))
+            times[textures].append(time.perf_counter() - start)
+    return statistics.median(times[True]), statistics.median(times[False])
 
 
 if __name__ == "__main__":

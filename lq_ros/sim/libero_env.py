@@ -46,8 +46,9 @@ def compiled_once(*, textures: bool = True):
     again; tests/sim/test_libero_env.py compares them).
 
     ``textures=False`` (an env nothing renders from) compiles the scene with every image texture replaced by a
-    1x1 flat one (:func:`without_image_textures`): decoding a LIBERO scene's PNGs is about 1.5 s of its 2.2 s
-    compile, and no texture is read by the physics, so the episode is bit-identical (tests compare them).
+    1x1 flat one (:func:`without_image_textures`): decoding a LIBERO scene's PNGs is most of its compile
+    (benchmarks/bench_first_episode.py prints both), and no texture is read by the physics, so the episode is
+    bit-identical (tests compare them).
     """
     import mujoco
     import robosuite.environments.base as robosuite_base
