@@ -10,12 +10,13 @@ sign (close > 0, open < 0), derived from a width command. Success is the task's 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from lq_ros.core.suite_constants import DUMMY_ACTION, NUM_WAIT_STEPS, PHYSICS_DT_S
-from lq_ros.sim.libero_env import load_task
+from lq_ros.sim.libero_env import compiled_once, load_task
 
 
 @dataclass
@@ -34,7 +35,10 @@ class StandinRobot:
 
         self.task, bddl, self._init_states = load_task(suite, task_id)
         self.cameras, self.camera_size = tuple(cameras), camera_size
-        self._env = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=bool(cameras), use_camera_obs=False)
+        # The scene compiled once for the env and its hard resets, without image textures when nothing renders.
+        self._compiled = functools.partial(compiled_once, textures=bool(cameras))
+        with self._compiled():
+            self._env = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=bool(cameras), use_camera_obs=False)
         self._mujoco = mujoco
         self._target: tuple[np.ndarray, np.ndarray] | None = None
         self._new_target = False
@@ -47,7 +51,8 @@ class StandinRobot:
             raise ValueError(f"init state {init_index} out of range 0..{len(self._init_states) - 1}")
         self._env.seed(seed)
         np.random.seed(seed)
-        self._env.reset()
+        with self._compiled():
+            self._env.reset()
         self._env.set_init_state(self._init_states[init_index])
         obs = None
         for _ in range(NUM_WAIT_STEPS):
