@@ -75,6 +75,8 @@ COUNTS_WAIT_S = 2.0
 
 
 class MetricsNode(EpisodeNode):
+    PUBLISHES_EPISODE = False  # it records the others' counts
+
     def __init__(self) -> None:
         super().__init__(NODE_NAMES["metrics"])
         self.declare_parameter("bag_path", "")
@@ -135,7 +137,10 @@ class MetricsNode(EpisodeNode):
             sub = self.create_subscription(msg_class(topic.msgtype), topic.name, self._robot_recorder(topic), ROBOT_QOS,
                                            raw=True)  # fmt: skip
             self._episode_entities.append(sub)
-        counts_sub = self.create_subscription(String, m.PUBLISHED_COUNTS.name, self.on_counts, LOSSLESS_QOS)
+        counts_sub = self.create_subscription(
+            String, m.PUBLISHED_COUNTS.name, lambda msg: self.guarded("message counts", self.on_counts, msg),
+            LOSSLESS_QOS,
+        )  # fmt: skip
         self._episode_entities.append(counts_sub)
         self.episode_timer(0.1, self.finish_when_quiet)
 
