@@ -163,6 +163,12 @@ class MetricsNode(EpisodeNode):
                 return
             self.received[topic.name] += 1
             try:
+                write(data, sender)
+            finally:
+                self.close_when_complete()  # (this may be the episode's last message, whatever became of it)
+
+        def write(data: bytes, sender: str | None) -> None:
+            try:
                 log_ns = self._log_time_ns(topic, data)
                 message = m.deserialize(data, topic.msgtype) if topic.name in _DECODED else None
             except Exception as exc:  # noqa: BLE001 - e.g. a chunk whose latency is no whole number of ticks
@@ -194,7 +200,6 @@ class MetricsNode(EpisodeNode):
             except Exception as exc:  # noqa: BLE001 - never out of the spin loop: the recorder must live
                 self.get_logger().error(f"recording {topic.name} failed: {exc}\n{traceback.format_exc()}")
                 self.record_warning(f"recorder: a message on {topic.name} failed: {type(exc).__name__}: {exc}")
-            self.close_when_complete()
 
         return record
 
@@ -349,8 +354,10 @@ class MetricsNode(EpisodeNode):
             return
         now = time.monotonic()
         if now - self.terminal_at > COUNTS_WAIT_S and now - self.last_message > self.quiet_period_s:
-            self.record_warning(f"recorder: closed the bag {COUNTS_WAIT_S:g} s after the episode's end without "
-                                f"{'; '.join(self.missing())}")  # fmt: skip
+            lacking = self.missing()
+            if lacking:
+                self.record_warning(f"recorder: closed the bag {COUNTS_WAIT_S:g} s after the episode's end without "
+                                    f"{'; '.join(lacking)}")  # fmt: skip
             self.closing = True
             self.close_bag()
 

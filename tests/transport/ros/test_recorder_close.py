@@ -9,8 +9,10 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
+from lq_ros.core.executor_protocol import Command, Source
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.transport.processes import die_with_parent
 from lq_ros.transport.ros.stack import NODE_MODULE, child_environment, reserved_domain
@@ -39,6 +41,9 @@ class StandInNodes:
         self.events = self.nodes["lq_sim"].create_publisher(
             msg_class(m.EPISODE_EVENTS.msgtype), m.EPISODE_EVENTS.name, LOSSLESS_QOS
         )
+        self.commands = self.nodes["lq_executor"].create_publisher(
+            msg_class(m.COMMAND.msgtype), m.COMMAND.name, LOSSLESS_QOS
+        )
         self.counts = {
             name: node.create_publisher(String, m.PUBLISHED_COUNTS.name, LOSSLESS_QOS)
             for name, node in self.nodes.items()
@@ -54,8 +59,10 @@ class StandInNodes:
 
     def wait_matched(self) -> None:
         end = time.monotonic() + 30
-        while self.events.get_subscription_count() == 0 or any(
-            p.get_subscription_count() == 0 for p in self.counts.values()
+        while (
+            self.events.get_subscription_count() == 0
+            or self.commands.get_subscription_count() == 0
+            or any(p.get_subscription_count() == 0 for p in self.counts.values())
         ):
             assert time.monotonic() < end, "the recorder never subscribed"
             self.spin(0.05)
@@ -120,6 +127,21 @@ def test_the_bag_closes_as_soon_as_every_count_adds_up(tmp_path):
 
     events, log, _ = run_recorder(tmp_path, announce)
     assert warnings(events) == [] and "every message of the episode arrived" in log  # (not the fallback)
+
+
+def test_the_last_message_to_arrive_may_be_a_command_sent_ahead_of_the_end(tmp_path):
+    """A command the executor sent ahead for a tick the episode never reached: not recorded (never applied), but
+    counted, and the bag closes on its arrival."""
+
+    def announce(stand_ins: StandInNodes) -> None:
+        stand_ins.announce("lq_sim", {m.EPISODE_EVENTS.name: 2})
+        stand_ins.announce("lq_executor", {m.COMMAND.name: 1})
+        stand_ins.announce("lq_policy", {})
+        stand_ins.spin(0.5)  # (the counts are in; the command is not)
+        stand_ins.commands.publish(m.command_msg(m.to_ns(0.05), Command(3, np.zeros(7), Source.CHUNK)))
+
+    events, log, _ = run_recorder(tmp_path, announce)
+    assert warnings(events) == [] and "every message of the episode arrived" in log
 
 
 def test_a_missing_count_and_a_lost_message_are_named_in_the_bag(tmp_path):
