@@ -22,7 +22,6 @@ leaves no Fast DDS file behind) sends it one JSON object per line on stdin and r
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import select
@@ -37,7 +36,6 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from lq_ros.transport.ros.rclpy_helpers import exit_now
 from lq_ros.wire.node_names import NODE_NAMES, stack_node_names
 
 #: The recorder: the episode is over once it has left the active state (its bag is closed and scored).
@@ -290,9 +288,6 @@ def main() -> None:
         pass
     finally:
         rclpy.try_shutdown()
-    with contextlib.suppress(OSError):
-        replies.flush()
-    exit_now(0)
 
 
 if __name__ == "__main__":

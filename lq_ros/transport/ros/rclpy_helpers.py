@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import gc
 import importlib
 import json
 import sys
@@ -361,7 +360,7 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
     """Main of a managed node: spin until the shutdown transition (finalized), Ctrl-C or SIGTERM, then exit.
 
     A signal ends an active episode the same way deactivate does (the recorder closes its bag with a
-    STOPPED event), then releases the configuration; the exit code is 0 either way (:func:`exit_now`).
+    STOPPED event), then releases the configuration; the exit code is 0 either way.
     """
     try:
         rclpy.init()
@@ -376,17 +375,4 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
         pass
     finally:
         rclpy.try_shutdown()
-    exit_now(0)
-
-
-def exit_now(code: int) -> NoReturn:
-    """End a node process that has shut down, without the interpreter's last garbage collections.
-
-    Everything the node owns is released by then (the lifecycle's cleanup closed its env or bag, rclpy is shut
-    down). Python's shutdown still collects every object it holds, which for a process holding MuJoCo,
-    robosuite and numba took about 0.2 s of the 0.35 s it spent exiting, paid by every ``lq run``. Frozen objects
-    are not collected (they are freed with their modules); the rest of a normal exit runs, including the
-    middleware's teardown, which removes its /dev/shm files.
-    """
-    gc.freeze()
-    sys.exit(code)
+    sys.exit(0)
