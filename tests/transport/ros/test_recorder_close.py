@@ -23,7 +23,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
 
 class StandInNodes:
-    """Publishers on the episode events and the counts topic, in nodes named as the stack's sim, executor, policy."""
+    """Publishers of episode events, commands and message counts, in nodes named as the stack's nodes."""
 
     def __init__(self, domain_id: int) -> None:
         import rclpy
