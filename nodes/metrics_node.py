@@ -72,6 +72,8 @@ _STAMPED_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped",
                   "rosgraph_msgs/msg/Clock"}  # fmt: skip
 #: Wall seconds after the terminal event the recorder waits at most for every node's message counts.
 COUNTS_WAIT_S = 2.0
+#: The nodes whose message counts the recorder takes (the sim or, against a robot, the bridge steps the episode).
+ANNOUNCING_NODES = tuple(NODE_NAMES[role] for role in ("sim", "bridge", "policy", "executor"))
 
 
 class MetricsNode(EpisodeNode):
@@ -316,7 +318,7 @@ class MetricsNode(EpisodeNode):
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             self.record_warning(f"recorder: unusable message counts {msg.data[:200]!r}: {exc}")
             return
-        if node in (*self.counted_nodes, NODE_NAMES["sim"], NODE_NAMES["bridge"]) and node not in self.announced:
+        if node in ANNOUNCING_NODES and node not in self.announced:
             self.announced[node] = counts
             self.close_when_complete()
 

@@ -282,8 +282,11 @@ class RosStack:
         self.roles = roles
         self._keys = None
 
-    def _stop(self, procs: dict[str, subprocess.Popen]) -> None:
-        """Stop these processes (SIGTERM, then SIGKILL) and remove the /dev/shm files they leave."""
+    def _stop(self, procs: dict[str, subprocess.Popen], ports: bool = False) -> None:
+        """Stop these processes (SIGINT, SIGTERM, then SIGKILL) and remove the /dev/shm files they leave.
+
+        ``ports``: also the shared port files (:meth:`ShmTracker.cleanup`): only once no node of the stack lives on.
+        """
         self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
         stop_processes(procs)
         for p in procs.values():
@@ -291,7 +294,7 @@ class RosStack:
                 if pipe is not None:
                     with suppress(OSError):
                         pipe.close()
-        removed = self.shm.cleanup(ports=False)  # (the other nodes live on)
+        removed = self.shm.cleanup(ports=ports)
         if removed:
             with open(self.work / "launcher.log", "a") as f:
                 f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
@@ -479,17 +482,7 @@ class RosStack:
                     with suppress(subprocess.TimeoutExpired):
                         p.wait(timeout=10.0)
         finally:
-            self.shm.sample(p.pid for p in self.procs.values() if p.returncode is None)
-            stop_processes(self.procs)
-            removed = self.shm.cleanup()
-            if removed:
-                with open(self.work / "launcher.log", "a") as f:
-                    f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
-            for p in self.procs.values():
-                for pipe in (p.stdin, p.stdout):
-                    if pipe is not None:
-                        with suppress(OSError):
-                            pipe.close()
+            self._stop(self.procs, ports=True)
             if logs_to is not None:
                 with suppress(OSError):
                     self._collect_logs(*logs_to)
