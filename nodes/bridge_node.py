@@ -6,11 +6,12 @@ images) built from them, stamped with the robot's EE-pose stamp. Stack -> robot:
 executor's 7-D LIBERO delta) becomes an absolute EE target ``PoseStamped`` and a gripper width
 ``Float64MultiArray`` (lq_ros/robot/delta_to_target.py: LIBERO's OSC scaling), applied by the robot when it arrives.
 
-Episode: STARTED (task from the run configuration) once every input the policy needs has arrived and
-every peer is connected; SUCCESS when the robot's success topic (an operator or a detector; the
-stand-in's goal check) says true; TIMEOUT once the step budget's wall time has passed. Ticks run on this
-machine's wall clock (``tick0_wall_ns``); every episode event is stamped with the robot's latest EE-pose
-stamp (the robot's clock), so the recorded pose series spans the episode exactly.
+Episode: STARTED (task from the run configuration) once every input the policy needs has arrived, the
+recorder says it receives the robot's state topics (/lq/recorder_hears) and every peer is connected;
+SUCCESS when the robot's success topic (an operator or a detector; the stand-in's goal check) says true;
+TIMEOUT once the step budget's wall time has passed. Ticks run on this machine's wall clock
+(``tick0_wall_ns``); every episode event is stamped with the robot's latest EE-pose stamp (the robot's
+clock), so the recorded pose series spans the episode exactly.
 
 The robot's clock is the YAML's ``clock``: ``wall`` (its stamps are wall-clock time) or ``sim`` (it stamps
 in simulated time and publishes it on /clock, which this node then waits for and stamps its targets
@@ -25,6 +26,7 @@ peer are there; deactivate stops commanding the robot.
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -32,7 +34,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Bool, Float64MultiArray
+from std_msgs.msg import Bool, Float64MultiArray, String
 
 from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import RunConfig, versions
@@ -41,7 +43,7 @@ from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, m
 from lq_ros.robot.robot_config import load_robot_config
 from lq_ros.sim.libero_env import load_task
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, run_managed
 from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
@@ -70,8 +72,6 @@ class BridgeNode(EpisodeNode):
         # What the policy needs (the launcher asks the policy and refuses a robot that lacks it).
         self.declare_parameter("cameras", [""])
         self.declare_parameter("needs_object_poses", False)
-        # Subscribers each robot topic needs before the episode starts (this node and the recorder).
-        self.declare_parameter("min_robot_subscribers", 2)
         # Subscribers of the episode events before the episode starts (this node, the policy, executor and
         # recorder: STARTED must reach all of them at once).
         self.declare_parameter("min_event_subscribers", 4)
@@ -93,7 +93,6 @@ class BridgeNode(EpisodeNode):
     def activate(self, cfg: RunConfig) -> None:
         cams = tuple(c for c in self.get_parameter("cameras").value if c)
         self.req = Requirements(cameras=cams, objects=bool(self.get_parameter("needs_object_poses").value))
-        self.min_robot_subs = self.get_parameter("min_robot_subscribers").value
         self.min_event_subs = self.get_parameter("min_event_subscribers").value
         self.start_deadline = time.monotonic() + self.get_parameter("start_timeout_s").value
         self.builder = ObservationBuilder(self.robot, self.req)
@@ -125,6 +124,10 @@ class BridgeNode(EpisodeNode):
         self.request_sub = self.episode_subscription(m.OBSERVATION_REQUEST, self.on_request)
         self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
         self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
+        self.recorder_hears: set[str] = set()  # robot topics the recorder has received this episode
+        self._episode_entities.append(
+            self.create_subscription(String, m.RECORDER_HEARS.name, self.on_recorder_hears, LOSSLESS_QOS)
+        )
 
         self.clock: TickClock | None = None
         self.finished = False
@@ -164,6 +167,12 @@ class BridgeNode(EpisodeNode):
         )
         self._episode_entities.append(self.object_subs[name])
 
+    def on_recorder_hears(self, msg: String) -> None:
+        try:
+            self.recorder_hears.update(str(t) for t in json.loads(msg.data)["topics"])
+        except (ValueError, KeyError, TypeError) as exc:
+            self.get_logger().error(f"unusable message on {m.RECORDER_HEARS.name}: {msg.data[:200]!r}: {exc}")
+
     def on_clock(self, msg: Clock) -> None:
         self.robot_now_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
 
@@ -195,8 +204,9 @@ class BridgeNode(EpisodeNode):
             waiting += [
                 self.robot.objects.topic(n) for n in missing_task_objects(self.task.goal, set(self.builder.objects))
             ]
-        robot_topics = [self.robot.joint_states.topic, self.robot.ee_pose.topic]
-        waiting += [f"recorder on {t}" for t in robot_topics if self.count_subscribers(t) < self.min_robot_subs]
+        # The series the score needs from the first tick on: the recorder must be receiving them, not only subscribed.
+        state = [s.topic for s in (self.robot.joint_states, self.robot.ee_pose, self.robot.gripper_state) if s]
+        waiting += [f"{t} at the recorder" for t in state if t not in self.recorder_hears]
         peers_ok = self.command_sub.get_publisher_count() > 0 and self.request_sub.get_publisher_count() > 0
         # This node, the policy, the executor and the recorder: STARTED must reach all of them at once.
         subs_ok = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count() >= self.min_event_subs

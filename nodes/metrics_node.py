@@ -22,7 +22,8 @@ record besides:
 - a robot's own topics (``robot_topics_json``: [{name, type}], e.g. its 500 Hz joint states, 100 Hz EE pose,
   the bridge's targets, the /clock of a robot on sim time) under their own names, subscribed reliable + volatile
   as a robot driver publishes them, logged at their stamps (the robot's clock); messages without a header or
-  time are logged at their receive (wall) time;
+  time are logged at their receive (wall) time; each robot topic, once its first message has arrived, is named
+  on /lq/recorder_hears (the bridge starts the episode only when the robot's state topics are there);
 - the nodes' counts on /lq/realtime_stats (overrun ticks, missed commands), also copied into the run metadata
   (``realtime``), with ``clock: realtime`` and the robot's interface, so the bag says it is not bit-reproducible;
 - commands as they arrive (a robot applies each when it arrives; the wall-clock sim steps on time whatever came).
@@ -135,6 +136,11 @@ class MetricsNode(EpisodeNode):
             else:
                 sub = self.create_subscription(msg_class(topic.msgtype), topic.name, record, LOSSLESS_QOS, raw=True)
             self._episode_entities.append(sub)
+        self.robot_heard: set[str] = set()  # robot topics with a message received this episode
+        self.heard_pub = None
+        if robot_topics:
+            self.heard_pub = self.create_publisher(String, m.RECORDER_HEARS.name, LOSSLESS_QOS)
+            self._episode_entities.append(self.heard_pub)
         for topic in robot_topics:
             sub = self.create_subscription(msg_class(topic.msgtype), topic.name, self._robot_recorder(topic), ROBOT_QOS,
                                            raw=True)  # fmt: skip
@@ -217,6 +223,9 @@ class MetricsNode(EpisodeNode):
         def record(data: bytes) -> None:
             if self.finished:
                 return
+            if topic.name not in self.robot_heard:
+                self.robot_heard.add(topic.name)
+                self.heard_pub.publish(String(data=json.dumps({"topics": sorted(self.robot_heard)})))
             try:
                 self.writer.write(topic, self._log_time_ns(topic, data), data)
             except Exception as exc:  # noqa: BLE001 - never out of the spin loop

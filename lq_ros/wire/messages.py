@@ -55,6 +55,11 @@ REALTIME_STATS = Topic("/lq/realtime_stats", "std_msgs/msg/String")
 #: each topic, as JSON ``{"node": name, "counts": {topic: n}}`` (the recorder closes the bag once it has received
 #: them all; not recorded).
 PUBLISHED_COUNTS = Topic("/lq/published_counts", "std_msgs/msg/String")
+#: Robot episodes: the robot topics the recorder has received a message on, as JSON ``{"topics": [name, ...]}``
+#: (published when the set grows; not recorded). The bridge starts the episode once the recorder hears the robot's
+#: state topics: a subscription the ROS graph lists may not yet be matched by the robot's publisher, and a volatile
+#: robot topic loses what it sent before.
+RECORDER_HEARS = Topic("/lq/recorder_hears", "std_msgs/msg/String")
 IMAGE_MSGTYPE = "sensor_msgs/msg/Image"
 
 

@@ -154,3 +154,61 @@ def test_a_missing_count_and_a_lost_message_are_named_in_the_bag(tmp_path):
     assert "without lq_policy's message counts; /lq/episode_events: 2 of 3 messages" in warning, warning
     assert "every message of the episode arrived" not in log
     assert closed_after_s >= 2.0  # it waited for the counts before giving up on them
+
+
+def test_the_recorder_says_when_it_receives_a_robot_topic(tmp_path):
+    """The bridge starts a robot episode on /lq/recorder_hears, not on the recorder's subscription: the graph lists
+    a subscription before the robot's publisher has matched it, and a volatile robot topic loses what it sent
+    before (a CI run once recorded the EE pose from 0.2 s into the episode)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+
+    from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS
+
+    topic = "/test_robot/joint_states"
+    robot_topics = json.dumps([{"name": topic, "type": "sensor_msgs/msg/JointState"}])
+    with reserved_domain() as domain:
+        env = child_environment(domain.id, tmp_path / "ros_logs")
+        with open(tmp_path / "metrics.log", "wb") as log:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", NODE_MODULE.format("metrics"), "--ros-args", "-p", f"bag_path:={tmp_path}/b",
+                 "-p", "clock:=realtime", "-p", f"robot_topics_json:='{robot_topics}'"],
+                env=env, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent, pass_fds=(domain.lock_fd,),
+            )  # fmt: skip
+        client = LifecycleClient(domain.id, "lq_metrics")
+        stand_ins = StandInNodes(domain.id)
+        heard: list[list[str]] = []
+        node = stand_ins.nodes["lq_sim"]
+
+        def on_heard(msg) -> None:
+            heard.append(json.loads(msg.data)["topics"])
+
+        node.create_subscription(String, m.RECORDER_HEARS.name, on_heard, LOSSLESS_QOS)
+        volatile = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+        joints = node.create_publisher(JointState, topic, volatile)
+        try:
+            assert client.set_state("configure") and client.set_state("activate")
+            end = time.monotonic() + 30
+            while joints.get_subscription_count() == 0:
+                assert time.monotonic() < end, "the recorder never subscribed"
+                stand_ins.spin(0.05)
+            stand_ins.spin(1.0)
+            assert heard == []  # subscribed, but nothing received yet
+            msg = JointState()
+            msg.header.stamp.sec = 1
+            for _ in range(3):
+                joints.publish(msg)
+            end = time.monotonic() + 30
+            while not heard:
+                assert time.monotonic() < end, "the recorder never said it receives the robot's topic"
+                stand_ins.spin(0.05)
+            stand_ins.spin(0.5)
+            assert heard == [[topic]]  # once, when the first message arrived
+            assert client.set_state("shutdown") and proc.wait(timeout=30) == 0
+        finally:
+            stand_ins.close()
+            client.close()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
