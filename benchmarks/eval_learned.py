@@ -43,6 +43,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lq_ros.core.run_config import versions
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies import Policy, make_policy
 from lq_ros.scoring.metrics import wilson_interval
@@ -367,6 +368,15 @@ def report(
     return summary
 
 
+def print_provenance(runs: list[dict | None]) -> None:
+    """The commits, CPU classes and library versions the runs recorded (a run from before they were: unknown)."""
+    known = [p for p in runs if p]
+    commits = sorted({p["git_commit"] for p in known}) + (["unknown"] if len(known) < len(runs) else [])
+    classes = sorted({p["cpu"]["class"] for p in known})
+    libs = sorted({f"mujoco {p['mujoco']}, torch {p['torch']}, numpy {p['numpy']}" for p in known})
+    print(f"commit {', '.join(commits)}; CPU class {', '.join(classes) or 'unknown'}; {'; '.join(libs)}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--suite", action="append", choices=SUITES, help="repeatable; default: both")
@@ -385,9 +395,11 @@ def main() -> None:
     args = ap.parse_args()
 
     if args.merge:
-        rows = [r for path in args.merge for r in json.loads(path.read_text())["rows"]]
+        loaded = [json.loads(path.read_text()) for path in args.merge]
+        rows = [r for run in loaded for r in run["rows"]]
         if any("latency_s" in r for r in rows):
             summary = latency_report(check_latency_rows(rows))
+            print_provenance([run.get("provenance") for run in loaded])
             if args.json:
                 args.json.write_text(json.dumps({"latency": summary, "merged": [str(p) for p in args.merge]}))
             return
@@ -402,6 +414,7 @@ def main() -> None:
         return
     specs = args.policy or list(DEFAULT_POLICIES)
     suites = args.suite or list(SUITES)
+    provenance = versions()
     started = time.perf_counter()
     inits = range(args.init_start, args.init_start + args.inits)
     if args.latency:
@@ -410,9 +423,10 @@ def main() -> None:
         results = run_jobs(latency_task, jobs, args.workers)
         rows = [r for res in results for r in res]
         summary = latency_report(rows)
+        print_provenance([provenance])
         print(f"wall time {time.perf_counter() - started:.0f} s with {args.workers} workers")
         if args.json:
-            args.json.write_text(json.dumps({"latency": summary, "rows": rows}, indent=1))
+            args.json.write_text(json.dumps({"latency": summary, "rows": rows, "provenance": provenance}, indent=1))
         return
     jobs = [(s, t, specs, inits, args.replan_steps) for s in suites for t in args.tasks]
     results = run_jobs(eval_task, jobs, args.workers)

@@ -208,15 +208,24 @@ def label_variants(episodes: pd.DataFrame) -> pd.DataFrame:
     """Group variants apart: ``policy`` becomes a label carrying the policy arguments and any protocol
     parameter that differs from RunConfig's default (the bare name stays in ``policy_name``).
 
-    Without this, ``oft`` at chunk 1 and at chunk 8, or sync at replan 5 and 8, would pool into one row.
+    Without this, ``oft`` at chunk 1 and at chunk 8, or sync at replan 5 and 8, would pool into one row. With
+    episodes of several suites the label ends with the suite (``flow · libero_object``): a figure pools the
+    tasks of a line, never two suites.
     """
     out = episodes.copy()
     if "policy_name" in out:  # already labelled
         return out
     out["policy_name"] = out["policy"]
     if len(out):
-        out["policy"] = out.apply(_variant_label, axis=1)
+        out["policy"] = _with_suite(out, out.apply(_variant_label, axis=1))
     return out
+
+
+def _with_suite(episodes: pd.DataFrame, labels: pd.Series) -> pd.Series:
+    """``labels`` with `` · <suite>`` appended when ``episodes`` hold more than one suite."""
+    if "suite" not in episodes or episodes["suite"].nunique() < 2:
+        return labels
+    return labels.astype(str) + " · " + episodes["suite"].astype(str)
 
 
 def base_labels(episodes: pd.DataFrame, without: tuple[str, ...]) -> pd.Series:
@@ -227,7 +236,7 @@ def base_labels(episodes: pd.DataFrame, without: tuple[str, ...]) -> pd.Series:
         unlabelled["policy"] = unlabelled["policy_name"]
     if unlabelled.empty:
         return pd.Series([], index=episodes.index, dtype=object)
-    return unlabelled.apply(lambda r: _variant_label(r, without), axis=1)
+    return _with_suite(episodes, unlabelled.apply(lambda r: _variant_label(r, without), axis=1))
 
 
 def _pair_keys(episodes: pd.DataFrame) -> list[tuple[str, ...]]:

@@ -176,6 +176,18 @@ def test_policy_and_protocol_variants_are_not_pooled():
     assert len(aggregate(frame)) == 4
 
 
+def test_two_suites_never_share_a_label():
+    """A figure pools the tasks of a label: with two suites in one sweep each suite is its own series."""
+    rows = [
+        _episode("success", policy="flow", policy_args='{"variant": "delay"}'),
+        _episode("failure", policy="flow", policy_args='{"variant": "delay"}', suite="libero_object"),
+    ]
+    frame = episodes_frame(rows)
+    assert frame["policy"].tolist() == ["flow [variant=delay] · libero_spatial", "flow [variant=delay] · libero_object"]
+    assert episodes_frame(rows[:1])["policy"].tolist() == ["flow [variant=delay]"]  # one suite: as before
+    assert len(aggregate(frame, by=("policy", "mode", "latency_s"))) == 2
+
+
 def test_latency_distributions_are_kept_apart_and_labelled():
     rows = [
         _episode("success", latency=0.2, latency_dist="constant"),

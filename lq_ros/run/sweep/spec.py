@@ -46,8 +46,14 @@ PROTOCOL_KEYS = PROTOCOL_FIELDS
 SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
     "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budget_counts",
-    "clock", "robot",
+    "clock", "robot", "parts",
 }  # fmt: skip
+#: Keys that apply to the whole sweep: a ``parts`` entry may not set them.
+SWEEP_WIDE_KEYS = {"name", "transport", "timeout_s", "clock", "robot", "parts"}
+#: The one-suite shorthand: a part's ``suites`` replaces the top level's shorthand, a shorthand key its ``suites``.
+_SHORTHAND_KEYS = {"suite", "tasks", "inits"}
+#: ``parts`` entries at most.
+MAX_PARTS = 64
 
 
 class SpecError(ValueError):
@@ -96,9 +102,42 @@ def _cells(suite, body) -> int:
     return max(n_tasks, 1) * max(_n(body.get("inits")), 1)
 
 
+def _parts(raw: dict) -> list[dict] | None:
+    """``parts``: several products in one sweep, each the top-level keys with the part's keys over them (a part's
+    ``suites`` replaces the top level's ``suite/tasks/inits``, and the other way round). None when there are none."""
+    if "parts" not in raw:
+        return None
+    parts = raw["parts"]
+    if not isinstance(parts, list) or not parts or len(parts) > MAX_PARTS:
+        raise SpecError(f"parts: expected a list of 1..{MAX_PARTS} mappings, got {_short(parts)}")
+    base = {k: v for k, v in raw.items() if k != "parts"}
+    merged = []
+    for i, part in enumerate(parts):
+        if not isinstance(part, dict):
+            raise SpecError(f"parts[{i}]: expected a mapping of episode keys, got {_short(part)}")
+        wide = set(part) & SWEEP_WIDE_KEYS
+        if wide:
+            raise SpecError(f"parts[{i}]: {sorted(wide)} apply to the whole sweep; set them at the top level")
+        unknown = set(part) - SPEC_KEYS
+        if unknown:
+            raise SpecError(f"parts[{i}]: unknown key(s) {sorted(unknown, key=str)}; known: "
+                            f"{sorted(SPEC_KEYS - SWEEP_WIDE_KEYS)}")  # fmt: skip
+        replaced = _SHORTHAND_KEYS if "suites" in part else {"suites"} if set(part) & _SHORTHAND_KEYS else set()
+        merged.append({**{k: v for k, v in base.items() if k not in replaced}, **part})
+    return merged
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
 def count_episodes(raw: dict) -> int:
     """The episodes ``raw`` expands to, from its list lengths alone (nothing is expanded or read; a malformed
     part counts once, and is refused by the validation that follows)."""
+    parts = _parts(raw)
+    if parts is not None:
+        return sum(count_episodes(part) for part in parts)
     n = 1
     for key, default in (("policies", None), ("latencies_s", None), ("seeds", None), ("budget_counts", None)):
         n *= max(_n(raw.get(key, default)), 1)
@@ -341,6 +380,19 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
     timeout_s = raw.get("timeout_s")
     if timeout_s is not None:
         _number(timeout_s, "timeout_s", 0, MAX_TIMEOUT_S, lo_open=True)
+    clock_and_robot = _clock_and_robot(raw, transport)
+    configs: dict[str, RunConfig] = {}
+    parts = _parts(raw)
+    for i, part in enumerate(parts or [raw]):
+        try:
+            _expand_product(part, clock_and_robot, configs)
+        except SpecError as exc:
+            raise SpecError(f"parts[{i}]: {exc}" if parts else str(exc)) from exc
+    return SweepSpec(name, tuple(configs.values()), transport, timeout_s, raw)
+
+
+def _expand_product(raw: dict, clock_and_robot: dict, configs: dict[str, RunConfig]) -> None:
+    """Add one product's episodes to ``configs`` (key -> RunConfig, in order); refuse an episode already there."""
     seeds = _ints(raw.get("seeds", [7]), "seeds", 0, 2**31 - 1)
     common = {}
     for key, typ in (("camera_size", int), ("physics_rate", bool), ("max_steps", int)):
@@ -348,7 +400,7 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             if not isinstance(raw[key], typ) or (typ is int and isinstance(raw[key], bool)):
                 raise SpecError(f"{key}: expected {typ.__name__}, got {raw[key]!r}")
             common[key] = raw[key]
-    common.update(_clock_and_robot(raw, transport))
+    common.update(clock_and_robot)
     if not 0 <= common.get("max_steps", 0) <= MAX_STEPS:
         raise SpecError(f"max_steps: expected 0 (the suite's budget) or 1..{MAX_STEPS} ticks, got {raw['max_steps']}")
     if not 0 <= common.get("camera_size", 0) <= MAX_CAMERA_SIZE_PX:
@@ -357,7 +409,6 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
         )
     policies, latencies, modes, suites = _policies(raw), _latencies(raw), _modes(raw), _suites(raw)
     budgets = _budget_counts(raw)
-    configs: dict[str, RunConfig] = {}
     for (policy, args), proto, latency, budget_counts, (suite, tasks, inits) in itertools.product(
         policies, modes, latencies, budgets, suites
     ):
@@ -373,7 +424,6 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             if cfg.key() in configs:
                 raise SpecError(f"the spec lists the same episode twice: {cfg.episode_name()}")
             configs[cfg.key()] = cfg
-    return SweepSpec(name, tuple(configs.values()), transport, timeout_s, raw)
 
 
 def _clock_and_robot(raw: dict, transport: str | None) -> dict:

@@ -94,6 +94,43 @@ def test_tasks_all_and_shorthand_and_defaults():
     assert spec.transport is None and spec.name == "sweep"
 
 
+def test_parts_join_several_products_in_one_sweep():
+    """Each part is the top level with its own keys over it (here: the top level's init state 0 in both parts)."""
+    raw = small_spec(
+        parts=[
+            {},  # the top level as it is: 1 policy x 2 latencies x 2 modes x task 0
+            {"suite": "libero_object", "tasks": [1, 2], "policies": ["scripted"], "modes": ["async"]},
+        ]
+    )
+    spec = sw.expand_spec(raw)
+    assert sw.spec.count_episodes(raw) == len(spec.configs) == 4 + 1 * 2 * 1 * 2
+    first, second = spec.configs[:4], spec.configs[4:]
+    assert {(c.suite, c.task, c.policy) for c in first} == {("libero_spatial", 0, "sine")}
+    assert {(c.suite, c.task, c.policy, c.mode) for c in second} == {
+        ("libero_object", 1, "scripted", "async"), ("libero_object", 2, "scripted", "async")}  # fmt: skip
+    assert all(c.max_steps == 8 for c in spec.configs)  # the top level's, in both parts
+    assert [c.key() for c in sw.expand_spec(raw).configs] == [c.key() for c in spec.configs]
+
+
+@pytest.mark.parametrize(
+    "parts, message",
+    [
+        ([], "parts: expected a list of 1..64 mappings"),
+        ("all", "parts: expected a list"),
+        ([{}, 3], "parts[1]: expected a mapping"),
+        ([{"transport": "ros"}], "parts[0]: ['transport'] apply to the whole sweep"),
+        ([{"latencies": [0.1]}], "parts[0]: unknown key(s) ['latencies']"),
+        ([{"tasks": [12]}], "parts[0]: suites.libero_spatial.tasks"),
+        ([{"suites": {"libero_goal": {"tasks": [0]}}}], "parts[0]: suites.libero_goal: 'tasks'"),
+        ([{}, {"modes": ["sync"]}], "parts[1]: the spec lists the same episode twice"),
+    ],
+)
+def test_bad_parts_are_refused_naming_the_part(parts, message):
+    with pytest.raises(sw.SpecError) as info:
+        sw.expand_spec(small_spec(parts=parts))
+    assert message in str(info.value)
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
@@ -147,6 +184,9 @@ def test_shipped_demo_spec_is_valid():
     assert {c.latency_s for c in spec.configs} == {0.0, 0.1, 0.2, 0.4}
     assert {c.mode for c in spec.configs} == {"sync", "async"}
     assert {c.init for c in spec.configs} == {0, 1}
+    object_part = [c for c in spec.configs if c.suite == "libero_object"]
+    assert {c.policy_args.get("variant", "naive") for c in object_part} == {"naive", "delay"}  # the contrast
+    assert {c.mode for c in object_part} == {"async"}
     sw.check_policies(spec.configs)
 
 
