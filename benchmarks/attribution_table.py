@@ -39,13 +39,15 @@ def table(sweep: Path) -> str:
     rows = decompose(load_episodes(sweep))
     if rows.empty:
         raise SystemExit(f"{sweep}: no cells to decompose (needs zero-latency and latency > 0 cells with outcomes)")
-    head = ("| policy | protocol | Δt_sim s | n | success at 0 s | paper budget | action budget | action budget, "
-            "hold repeat | drop (pp) | budget | hold | rest |")  # fmt: skip
+    suites = rows["suite"].nunique() > 1  # then a column of its own: a cell is one suite's
+    head = ("| policy |" + (" suite |" if suites else "") + " protocol | Δt_sim s | n | success at 0 s | paper budget "
+            "| action budget | action budget, hold repeat | drop (pp) | budget | hold | rest |")  # fmt: skip
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    for _, row in rows.sort_values(["policy", "policy_args", "mode", "latency_s"]).iterrows():
+    for _, row in rows.sort_values(["suite", "policy", "policy_args", "mode", "latency_s"]).iterrows():
         policy = row["policy"] if row["policy_args"] in (None, "{}") else f"{row['policy']} {row['policy_args']}"
+        suite = f" {row['suite']} |" if suites else ""
         lines.append(
-            f"| {policy} | {row['mode']} | {row['latency_s']:g} | {row['n_pairs']} | {_rate(row, 'zero')} | "
+            f"| {policy} |{suite} {row['mode']} | {row['latency_s']:g} | {row['n_pairs']} | {_rate(row, 'zero')} | "
             f"{_rate(row, 'paper')} | {_rate(row, 'action')} | {_rate(row, 'action_repeat')} | {_pp(row, 'total')}"
             f" | {_pp(row, 'budget')} | {_pp(row, 'hold')} | {_pp(row, 'rest')} |"
         )

@@ -492,7 +492,7 @@ def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Fig
         row_axes[1].legend(fontsize=7, title=f"{title}\nfailures: | at their end", title_fontsize=7, loc="upper left",
                            bbox_to_anchor=(1.02, 1.0))  # fmt: skip
     fig.suptitle(FIGURES["fig9_time_to_success"])
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.4 / fig.get_figheight()))  # the title keeps 0.4 in above the panels
     return fig
 
 
