@@ -4,6 +4,7 @@ take the stack nodes' names from this test process."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -78,32 +79,22 @@ class StandInNodes:
         self.rclpy.try_shutdown(context=self.context)
 
 
-def run_recorder(tmp_path, announce) -> tuple[list[tuple[int, bytes]], str, float]:
-    """Activate a recorder, publish STARTED and SUCCESS events from "lq_sim", then ``announce(stand_ins)``; wait
-    until the recorder deactivates itself. Returns the bag's events, its log and the wall seconds from SUCCESS to
-    inactive."""
-    bag = tmp_path / "bag"
+@contextlib.contextmanager
+def recorder_process(tmp_path, *parameters: str):
+    """A metrics node process (``-p name:=value`` for each of ``parameters``), its lifecycle client and the stand-in
+    nodes, on a domain of their own; shut down (or killed) and closed afterwards."""
     with reserved_domain() as domain:
         env = child_environment(domain.id, tmp_path / "ros_logs")
+        args = [a for p in parameters for a in ("-p", p)]
         with open(tmp_path / "metrics.log", "wb") as log:
             proc = subprocess.Popen(
-                [sys.executable, "-m", NODE_MODULE.format("metrics"), "--ros-args", "-p", f"bag_path:={bag}",
-                 "-p", "max_steps:=10"], env=env, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent,
-                pass_fds=(domain.lock_fd,),
+                [sys.executable, "-m", NODE_MODULE.format("metrics"), "--ros-args", *args], env=env, stdout=log,
+                stderr=subprocess.STDOUT, preexec_fn=die_with_parent, pass_fds=(domain.lock_fd,),
             )  # fmt: skip
         client = LifecycleClient(domain.id, "lq_metrics")
         stand_ins = StandInNodes(domain.id)
         try:
-            assert client.set_state("configure") and client.set_state("activate")
-            stand_ins.wait_matched()
-            stand_ins.events.publish(m.event_msg(0, m.EventKind.STARTED, 0, "", {"versions": {}}))
-            stand_ins.events.publish(m.event_msg(0, m.EventKind.SUCCESS, 0, ""))
-            sent = time.monotonic()
-            announce(stand_ins)
-            while client.state() == "active":
-                assert time.monotonic() - sent < 30, "the recorder never closed the bag"
-                stand_ins.spin(0.05)
-            closed_after_s = time.monotonic() - sent
+            yield proc, client, stand_ins
             assert client.set_state("shutdown") and proc.wait(timeout=30) == 0
         finally:
             stand_ins.close()
@@ -111,6 +102,24 @@ def run_recorder(tmp_path, announce) -> tuple[list[tuple[int, bytes]], str, floa
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+def run_recorder(tmp_path, announce) -> tuple[list[tuple[int, bytes]], str, float]:
+    """Activate a recorder, publish STARTED and SUCCESS events from "lq_sim", then ``announce(stand_ins)``; wait
+    until the recorder deactivates itself. Returns the bag's events, its log and the wall seconds from SUCCESS to
+    inactive."""
+    bag = tmp_path / "bag"
+    with recorder_process(tmp_path, f"bag_path:={bag}", "max_steps:=10") as (_, client, stand_ins):
+        assert client.set_state("configure") and client.set_state("activate")
+        stand_ins.wait_matched()
+        stand_ins.events.publish(m.event_msg(0, m.EventKind.STARTED, 0, "", {"versions": {}}))
+        stand_ins.events.publish(m.event_msg(0, m.EventKind.SUCCESS, 0, ""))
+        sent = time.monotonic()
+        announce(stand_ins)
+        while client.state() == "active":
+            assert time.monotonic() - sent < 30, "the recorder never closed the bag"
+            stand_ins.spin(0.05)
+        closed_after_s = time.monotonic() - sent
     return bag_messages(bag)[m.EPISODE_EVENTS.name], (tmp_path / "metrics.log").read_text(), closed_after_s
 
 
@@ -168,16 +177,8 @@ def test_the_recorder_says_when_it_receives_a_robot_topic(tmp_path):
 
     topic = "/test_robot/joint_states"
     robot_topics = json.dumps([{"name": topic, "type": "sensor_msgs/msg/JointState"}])
-    with reserved_domain() as domain:
-        env = child_environment(domain.id, tmp_path / "ros_logs")
-        with open(tmp_path / "metrics.log", "wb") as log:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", NODE_MODULE.format("metrics"), "--ros-args", "-p", f"bag_path:={tmp_path}/b",
-                 "-p", "clock:=realtime", "-p", f"robot_topics_json:='{robot_topics}'"],
-                env=env, stdout=log, stderr=subprocess.STDOUT, preexec_fn=die_with_parent, pass_fds=(domain.lock_fd,),
-            )  # fmt: skip
-        client = LifecycleClient(domain.id, "lq_metrics")
-        stand_ins = StandInNodes(domain.id)
+    parameters = (f"bag_path:={tmp_path}/b", "clock:=realtime", f"robot_topics_json:='{robot_topics}'")
+    with recorder_process(tmp_path, *parameters) as (_, client, stand_ins):
         heard: list[list[str]] = []
         node = stand_ins.nodes["lq_sim"]
 
@@ -187,28 +188,20 @@ def test_the_recorder_says_when_it_receives_a_robot_topic(tmp_path):
         node.create_subscription(String, m.RECORDER_HEARS.name, on_heard, LOSSLESS_QOS)
         volatile = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
         joints = node.create_publisher(JointState, topic, volatile)
-        try:
-            assert client.set_state("configure") and client.set_state("activate")
-            end = time.monotonic() + 30
-            while joints.get_subscription_count() == 0:
-                assert time.monotonic() < end, "the recorder never subscribed"
-                stand_ins.spin(0.05)
-            stand_ins.spin(1.0)
-            assert heard == []  # subscribed, but nothing received yet
-            msg = JointState()
-            msg.header.stamp.sec = 1
-            for _ in range(3):
-                joints.publish(msg)
-            end = time.monotonic() + 30
-            while not heard:
-                assert time.monotonic() < end, "the recorder never said it receives the robot's topic"
-                stand_ins.spin(0.05)
-            stand_ins.spin(0.5)
-            assert heard == [[topic]]  # once, when the first message arrived
-            assert client.set_state("shutdown") and proc.wait(timeout=30) == 0
-        finally:
-            stand_ins.close()
-            client.close()
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
+        assert client.set_state("configure") and client.set_state("activate")
+        end = time.monotonic() + 30
+        while joints.get_subscription_count() == 0:
+            assert time.monotonic() < end, "the recorder never subscribed"
+            stand_ins.spin(0.05)
+        stand_ins.spin(1.0)
+        assert heard == []  # subscribed, but nothing received yet
+        msg = JointState()
+        msg.header.stamp.sec = 1
+        for _ in range(3):
+            joints.publish(msg)
+        end = time.monotonic() + 30
+        while not heard:
+            assert time.monotonic() < end, "the recorder never said it receives the robot's topic"
+            stand_ins.spin(0.05)
+        stand_ins.spin(0.5)
+        assert heard == [[topic]]  # once, when the first message arrived
