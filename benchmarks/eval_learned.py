@@ -189,7 +189,7 @@ def latency_report(rows: list[dict]) -> dict:
         print(f"\n{suite}: latency study, seed={SEED}, tasks {tasks[0]}-{tasks[-1]}, inits {inits[0]}-{inits[-1]},"
               " lockstep in process, merge replace, paper budget (holds count)")  # fmt: skip
         print("success k/n = % [Wilson 95% interval, %]")
-        print(f"{'policy':22s} {'mode':6s}" + "".join(f"{f'{lat:g} s':>22s}" for lat in lats))
+        print(f"{'policy':22s} {'mode':6s}" + "".join(f"{f'{lat:g} s':>24s}" for lat in lats))
         for spec in dict.fromkeys(r["policy"] for r in mine):
             for mode in ("sync", "async"):
                 sel = [r for r in mine if r["policy"] == spec and r["mode"] == mode]
@@ -201,7 +201,7 @@ def latency_report(rows: list[dict]) -> dict:
                     ok, n = sum(r["status"] == "success" for r in cell_rows), len(cell_rows)
                     lo, hi = wilson_interval(ok, n) if n else (0.0, 0.0)
                     text = f"{ok}/{n} = {100 * ok / n:.0f}% [{100 * lo:.0f}-{100 * hi:.0f}]" if n else "-"
-                    line += f"{text:>22s}"
+                    line += f"{text:>24s}"
                     summary.setdefault(suite, {}).setdefault(spec, {}).setdefault(mode, {})[f"{lat:g}"] = [ok, n]
                 print(line)
         errors = sum(r["status"].startswith("error") for r in mine)
