@@ -409,6 +409,7 @@ def main() -> None:
         else:
             specs = list(dict.fromkeys(r["policy"] for r in rows))
         summary = report(rows, specs, isolated=not args.no_isolated, spec_of=spec_of)
+        print_provenance([run.get("provenance") for run in loaded])
         if args.json:
             args.json.write_text(json.dumps({"summary": summary, "merged": [str(p) for p in args.merge]}, indent=1))
         return
@@ -433,11 +434,12 @@ def main() -> None:
     rows = [r for res in results for r in res]
     wall = time.perf_counter() - started
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows}, indent=1))
+        args.json.write_text(json.dumps({"rows": rows, "provenance": provenance}, indent=1))
     summary = report(rows, specs, isolated=not args.no_isolated)
+    print_provenance([provenance])
     print(f"wall time {wall:.0f} s with {args.workers} workers (episodes only)")
     if args.json:
-        args.json.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1))
+        args.json.write_text(json.dumps({"summary": summary, "rows": rows, "provenance": provenance}, indent=1))
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
-from std_msgs.msg import Bool, Float64MultiArray, String
+from std_msgs.msg import Bool, Float64MultiArray
 
 from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import RunConfig, versions
@@ -43,7 +43,7 @@ from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, m
 from lq_ros.robot.robot_config import load_robot_config
 from lq_ros.sim.libero_env import load_task
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, run_managed
+from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
@@ -125,9 +125,7 @@ class BridgeNode(EpisodeNode):
         self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
         self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
         self.recorder_hears: set[str] = set()  # robot topics the recorder has received this episode
-        self._episode_entities.append(
-            self.create_subscription(String, m.RECORDER_HEARS.name, self.on_recorder_hears, LOSSLESS_QOS)
-        )
+        self.episode_subscription(m.RECORDER_HEARS, self.on_recorder_hears)
 
         self.clock: TickClock | None = None
         self.finished = False
@@ -167,11 +165,8 @@ class BridgeNode(EpisodeNode):
         )
         self._episode_entities.append(self.object_subs[name])
 
-    def on_recorder_hears(self, msg: String) -> None:
-        try:
-            self.recorder_hears.update(str(t) for t in json.loads(msg.data)["topics"])
-        except (ValueError, KeyError, TypeError) as exc:
-            self.get_logger().error(f"unusable message on {m.RECORDER_HEARS.name}: {msg.data[:200]!r}: {exc}")
+    def on_recorder_hears(self, msg) -> None:
+        self.recorder_hears.update(str(t) for t in json.loads(msg.data)["topics"])  # (a bad one is logged, ignored)
 
     def on_clock(self, msg: Clock) -> None:
         self.robot_now_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec

@@ -54,7 +54,7 @@ from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_t
 from lq_ros.recording.episode_folder import SCORE_FILE
 from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS
 from lq_ros.scoring.bag_scorer import score_bag, to_json
-from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, msg_class, run_managed
+from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, EpisodeNode, msg_class, publisher, run_managed
 from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
@@ -137,9 +137,8 @@ class MetricsNode(EpisodeNode):
                 sub = self.create_subscription(msg_class(topic.msgtype), topic.name, record, LOSSLESS_QOS, raw=True)
             self._episode_entities.append(sub)
         self.robot_heard: set[str] = set()  # robot topics with a message received this episode
-        self.heard_pub = None
         if robot_topics:
-            self.heard_pub = self.create_publisher(String, m.RECORDER_HEARS.name, LOSSLESS_QOS)
+            self.heard_pub = publisher(self, m.RECORDER_HEARS)
             self._episode_entities.append(self.heard_pub)
         for topic in robot_topics:
             sub = self.create_subscription(msg_class(topic.msgtype), topic.name, self._robot_recorder(topic), ROBOT_QOS,
