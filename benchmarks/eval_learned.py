@@ -43,7 +43,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lq_ros.core.run_config import versions
+from lq_ros.core.run_config import BUDGET_COUNTS, versions
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies import Policy, make_policy
 from lq_ros.scoring.metrics import wilson_interval
@@ -120,7 +120,7 @@ def eval_task(job: tuple[str, int, list[str], range, int]) -> list[dict]:
     return rows
 
 
-def latency_task(job: tuple[str, int, list[str], list[str], list[float], list[int]]) -> list[dict]:
+def latency_task(job: tuple[str, int, list[str], list[str], list[float], list[int], str]) -> list[dict]:
     """Every (policy, protocol, latency, init) episode of one task through the in-process executor (one env)."""
     import shutil
     import tempfile
@@ -128,7 +128,7 @@ def latency_task(job: tuple[str, int, list[str], list[str], list[float], list[in
     from lq_ros.core.run_config import RunConfig
     from lq_ros.transport.inprocess import run_inprocess
 
-    suite, task_id, specs, modes, latencies, inits = job
+    suite, task_id, specs, modes, latencies, inits, budget_counts = job
     env = LiberoEnv(suite, task_id)
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="lq_eval_latency_"))
@@ -145,28 +145,38 @@ def latency_task(job: tuple[str, int, list[str], list[str], list[float], list[in
                         cfg = RunConfig(
                             suite=suite, task=task_id, init=init, seed=SEED, mode=mode, latency_s=latency,
                             replan_steps=replan, merge="replace", policy=name, policy_args=args,
+                            budget_counts=budget_counts,
                         )  # fmt: skip
                         t0 = time.perf_counter()
                         out = run_inprocess(cfg, tmp, env=env, policy=policy)
                         shutil.rmtree(out.bag_path, ignore_errors=True)
                         status = out.status if out.status != "error" else f"error: {out.reason}"
                         rows.append({"suite": suite, "policy": spec, "mode": mode, "latency_s": latency,
-                                     "task": task_id, "init": init, "status": status, "ticks": out.ticks,
+                                     "budget_counts": budget_counts, "task": task_id, "init": init,
+                                     "status": status, "ticks": out.ticks,
                                      "replan_steps": replan, "weights": weights,
                                      "weights_md5": weights_digest(policy.weights_path),
                                      "wall_s": round(time.perf_counter() - t0, 2)})  # fmt: skip
-                        print(f"{suite} {spec:18s} {mode:5s} {latency:.2f} s task {task_id} init {init}: {status}"
-                              f" {out.ticks}", file=sys.stderr, flush=True)  # fmt: skip
+                        print(f"{suite} {spec:18s} {mode:5s} {latency:.2f} s {budget_counts} task {task_id}"
+                              f" init {init}: {status} {out.ticks}", file=sys.stderr, flush=True)  # fmt: skip
     finally:
         env.close()
         shutil.rmtree(tmp, ignore_errors=True)
     return rows
 
 
+def budget_of(row: dict) -> str:
+    """What the row's step budget counted (rows from before the action budget existed: ``all``, the paper's)."""
+    return row.get("budget_counts", "all")
+
+
+BUDGET_TITLES = {"all": "paper budget (holds count)", "action": "action budget (holds do not count)"}
+
+
 def check_latency_rows(rows: list[dict]) -> list[dict]:
     """Latency-study rows of several runs, refused if one episode (or one policy spec with two different weight
     files) appears twice."""
-    keys = [(r["suite"], r["policy"], r["mode"], r["latency_s"], r["task"], r["init"]) for r in rows]
+    keys = [(r["suite"], r["policy"], r["mode"], budget_of(r), r["latency_s"], r["task"], r["init"]) for r in rows]
     if len(set(keys)) != len(keys):
         raise SystemExit("the same episode is in the merged runs twice")
     digests: dict[tuple[str, str], set[str]] = {}
@@ -179,18 +189,21 @@ def check_latency_rows(rows: list[dict]) -> list[dict]:
 
 
 def latency_report(rows: list[dict]) -> dict:
-    """Print, per suite, the success table policy x protocol x latency (k/n = % [Wilson 95%]); returns it."""
+    """Print, per suite and budget, the success table policy x protocol x latency (k/n = % [Wilson 95%]); returns
+    it as {suite: {policy: {mode: {latency: [k, n]}}}} for the paper's budget, with ``" budget=action"`` appended to
+    the policy key for the action budget."""
     rows = [r for r in rows if "latency_s" in r]
     summary: dict = {}
-    for suite in sorted({r["suite"] for r in rows}):
-        mine = [r for r in rows if r["suite"] == suite]
+    for suite, budget in sorted({(r["suite"], budget_of(r)) for r in rows}):
+        mine = [r for r in rows if r["suite"] == suite and budget_of(r) == budget]
         lats = sorted({r["latency_s"] for r in mine})
         tasks, inits = sorted({r["task"] for r in mine}), sorted({r["init"] for r in mine})
         print(f"\n{suite}: latency study, seed={SEED}, tasks {tasks[0]}-{tasks[-1]}, inits {inits[0]}-{inits[-1]},"
-              " lockstep in process, merge replace, paper budget (holds count)")  # fmt: skip
+              f" lockstep in process, merge replace, {BUDGET_TITLES[budget]}")  # fmt: skip
         print("success k/n = % [Wilson 95% interval, %]")
         print(f"{'policy':22s} {'mode':6s}" + "".join(f"{f'{lat:g} s':>24s}" for lat in lats))
         for spec in dict.fromkeys(r["policy"] for r in mine):
+            key = spec if budget == "all" else f"{spec} budget={budget}"
             for mode in ("sync", "async"):
                 sel = [r for r in mine if r["policy"] == spec and r["mode"] == mode]
                 if not sel:
@@ -202,7 +215,7 @@ def latency_report(rows: list[dict]) -> dict:
                     lo, hi = wilson_interval(ok, n) if n else (0.0, 0.0)
                     text = f"{ok}/{n} = {100 * ok / n:.0f}% [{100 * lo:.0f}-{100 * hi:.0f}]" if n else "-"
                     line += f"{text:>24s}"
-                    summary.setdefault(suite, {}).setdefault(spec, {}).setdefault(mode, {})[f"{lat:g}"] = [ok, n]
+                    summary.setdefault(suite, {}).setdefault(key, {}).setdefault(mode, {})[f"{lat:g}"] = [ok, n]
                 print(line)
         errors = sum(r["status"].startswith("error") for r in mine)
         print(f"episodes: {len(mine)}, errors: {errors}")
@@ -392,6 +405,10 @@ def main() -> None:
     ap.add_argument("--no-isolated", action="store_true", help="skip the isolated latency measurement")
     ap.add_argument("--latency", type=float, nargs="+", help="latency study: injected Δt_sim values, s")
     ap.add_argument("--mode", action="append", choices=("sync", "async"), help="latency study protocols (repeatable)")
+    ap.add_argument(
+        "--budget", choices=BUDGET_COUNTS, default="all",
+        help="latency study: what the step budget counts (all ticks: the paper's; action ticks only)",
+    )  # fmt: skip
     args = ap.parse_args()
 
     if args.merge:
@@ -420,7 +437,7 @@ def main() -> None:
     inits = range(args.init_start, args.init_start + args.inits)
     if args.latency:
         modes = args.mode or ["async"]
-        jobs = [(s, t, specs, modes, args.latency, list(inits)) for s in suites for t in args.tasks]
+        jobs = [(s, t, specs, modes, args.latency, list(inits), args.budget) for s in suites for t in args.tasks]
         results = run_jobs(latency_task, jobs, args.workers)
         rows = [r for res in results for r in res]
         summary = latency_report(rows)

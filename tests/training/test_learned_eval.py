@@ -85,3 +85,15 @@ def test_latency_table_cells_and_merge_refusals(ev, capsys):
         ev.check_latency_rows(rows + rows[:1])
     with pytest.raises(SystemExit, match="different weight files"):
         ev.check_latency_rows(rows + [_lat_row("flow", "async", 0.1, 9, "success", md5="b" * 32)])
+
+
+def test_each_budget_gets_its_own_table_and_the_same_episode_under_both_is_not_a_repeat(ev, capsys):
+    paper = [_lat_row("flow", "sync", 0.2, i, "failure") for i in range(2)]  # rows without the key: the paper's
+    action = [{**_lat_row("flow", "sync", 0.2, i, "success"), "budget_counts": "action"} for i in range(2)]
+    summary = ev.latency_report(ev.check_latency_rows(paper + action))["libero_object"]
+    assert summary["flow"]["sync"]["0.2"] == [0, 2]
+    assert summary["flow budget=action"]["sync"]["0.2"] == [2, 2]
+    out = capsys.readouterr().out
+    assert "paper budget (holds count)" in out and "action budget (holds do not count)" in out
+    with pytest.raises(SystemExit, match="twice"):
+        ev.check_latency_rows(paper + action + action[:1])
