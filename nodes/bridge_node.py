@@ -43,7 +43,7 @@ from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, m
 from lq_ros.robot.robot_config import load_robot_config
 from lq_ros.sim.libero_env import load_task
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
+from lq_ros.transport.ros.rclpy_helpers import START_CHECK_PERIOD_S, EpisodeNode, run_managed
 from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
@@ -133,7 +133,7 @@ class BridgeNode(EpisodeNode):
         self.timeout_tick = 0  # the tick count a TIMEOUT reports
         self.commands = 0
         self.action_ticks = 0  # commanded ticks whose command came from a chunk (budget_counts action)
-        self.start_timer = self.episode_timer(0.05, self.start_when_ready)
+        self.start_timer = self.episode_timer(START_CHECK_PERIOD_S, self.start_when_ready)
         self.episode_timer(0.01, self.check_timeout)
         self._waiting_logged = 0.0
 

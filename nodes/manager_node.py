@@ -24,12 +24,13 @@ from __future__ import annotations
 
 import json
 import os
-import select
+import queue
 import sys
+import threading
 import time
 
 import rclpy
-from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.msg import Transition, TransitionEvent
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import ExternalShutdownException
@@ -43,8 +44,9 @@ RECORDER = NODE_NAMES["metrics"]
 #: Wall seconds: a node's services to appear (a cold process imports MuJoCo, torch...), a configure (creates
 #: the task's simulator or loads a policy), any other transition or call.
 SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
-#: Wall seconds between two looks at the recorder's state during an episode; between get_state attempts.
-POLL_PERIOD_S, RETRY_S = 0.05, 2.0
+#: Wall seconds between two looks at the recorder's state during an episode when no transition event of it was
+#: heard (a missed event costs at most this); between get_state attempts.
+POLL_PERIOD_S, RETRY_S = 0.5, 2.0
 
 
 class TransitionFailed(Exception):
@@ -210,11 +212,38 @@ def _all(futures):
     return combined
 
 
-def serve(manager: LifecycleManager, replies) -> None:
-    """Answer the launcher's operations until shutdown or until the launcher goes away (stdin closed)."""
+def read_ops(ops: queue.SimpleQueue, wake) -> None:
+    """Put each of the launcher's lines on ``ops`` (None once stdin closes: the launcher is gone) and wake the spin."""
     buffer = b""
+    while True:
+        chunk = os.read(sys.stdin.fileno(), 65536)
+        if not chunk:
+            break
+        buffer += chunk
+        while b"\n" in buffer:
+            line, buffer = buffer.split(b"\n", 1)
+            ops.put(json.loads(line))
+        wake.trigger()
+    ops.put(None)
+    wake.trigger()
+
+
+def serve(manager: LifecycleManager, replies) -> None:
+    """Answer the launcher's operations until shutdown or until the launcher goes away (stdin closed).
+
+    Nothing here polls on a period: the launcher's lines arrive through a reader thread that wakes the spin
+    (a guard condition), and the end of an episode is the recorder's own transition event (lifecycle_msgs
+    TransitionEvent on ``/lq_metrics/transition_event``), confirmed with ``get_state`` (a stale event of an
+    earlier episode must not end this one). A look every POLL_PERIOD_S covers an event that was never heard.
+    """
+    ops: queue.SimpleQueue = queue.SimpleQueue()
+    wake = manager.create_guard_condition(lambda: None)
+    threading.Thread(target=read_ops, args=(ops, wake), daemon=True).start()
+    heard = []  # the recorder's transition events since the last look at its state
+    manager.create_subscription(TransitionEvent, f"/{RECORDER}/transition_event", heard.append, 10)
     running = False  # an episode is active: watch the recorder
     poll = None  # (get_state future of the recorder, when it was sent)
+    next_look = 0.0  # monotonic time of the next look at the recorder's state without an event
     recorder = manager.get[RECORDER]
 
     def reply(obj: dict) -> None:
@@ -228,15 +257,14 @@ def serve(manager: LifecycleManager, replies) -> None:
         poll = None
 
     while rclpy.ok():
-        readable, _, _ = select.select([sys.stdin.fileno()], [], [], POLL_PERIOD_S)
-        if readable:
-            chunk = os.read(sys.stdin.fileno(), 65536)
-            if not chunk:
+        # Never blocks longer than a look: a stop from the launcher (a node died) wakes it at once, even when the
+        # recorder is the node that died and will never answer.
+        look_now = running and poll is None and bool(heard)
+        rclpy.spin_once(manager, timeout_sec=0.0 if look_now else POLL_PERIOD_S if running else None)
+        while not ops.empty():
+            op = ops.get()
+            if op is None:
                 return  # the launcher is gone
-            buffer += chunk
-        while b"\n" in buffer:
-            line, buffer = buffer.split(b"\n", 1)
-            op = json.loads(line)
             skip = set(op.get("skip", ()))
             running = False
             forget_poll()
@@ -247,6 +275,8 @@ def serve(manager: LifecycleManager, replies) -> None:
                     reply({"event": "failed", "node": exc.node, "transition": exc.transition, "reason": exc.reason})
                     continue
                 running = True
+                heard.clear()
+                next_look = time.monotonic() + POLL_PERIOD_S
                 reply({"event": "active"})
             elif op["op"] == "stop":
                 manager.stop(skip)
@@ -257,19 +287,18 @@ def serve(manager: LifecycleManager, replies) -> None:
                 return
         if not running:
             continue
-        # Never block here: a stop from the launcher (a node died) must be handled at once, even when the
-        # recorder is the node that died and will never answer.
-        rclpy.spin_once(manager, timeout_sec=0.0)
-        if poll is None:
+        if poll is None and (heard or time.monotonic() >= next_look):
+            heard.clear()
             poll = (recorder.call_async(GetState.Request()), time.monotonic())
-        elif poll[0].done():
+            next_look = time.monotonic() + POLL_PERIOD_S
+        elif poll is not None and poll[0].done():
             recorded = poll[0].result().current_state.label != "active"
             poll = None
             if recorded:
                 running = False
                 manager.end_episode()
                 reply({"event": "done"})
-        elif time.monotonic() - poll[1] > RETRY_S:
+        elif poll is not None and time.monotonic() - poll[1] > RETRY_S:
             forget_poll()  # asked again on the next pass
 
 

@@ -32,7 +32,13 @@ from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import DUMMY_ACTION, sim_time_of_tick
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, reliable_subscribers, run_managed, take_pending
+from lq_ros.transport.ros.rclpy_helpers import (
+    START_CHECK_PERIOD_S,
+    EpisodeNode,
+    reliable_subscribers,
+    run_managed,
+    take_pending,
+)
 from lq_ros.transport.ros.wall_clock import (
     SIM_STEP_OFFSET_S,
     START_DELAY_S,
@@ -108,7 +114,7 @@ class SimNode(EpisodeNode):
             self.step_delay_s = self.get_parameter("step_delay_s").value
             self.stats_pub = self.episode_publisher(m.REALTIME_STATS)
             self.episode_timer(0.002, self.step_on_time)
-        self.start_timer = self.episode_timer(0.05, self.start_when_ready)
+        self.start_timer = self.episode_timer(START_CHECK_PERIOD_S, self.start_when_ready)
 
     def deactivate(self) -> None:
         self.finished = True

@@ -69,6 +69,11 @@ def raw_subscription(node: Node, topic: m.Topic, callback: Callable[[object], No
     return node.create_subscription(msg_class(topic.msgtype), topic.name, on_raw, LOSSLESS_QOS, raw=True)
 
 
+#: Wall seconds between two checks that an episode's peers are connected, before the node that steps starts it:
+#: the episode starts within this of its last peer matching (a check reads a few subscription counts, ~0.1 ms).
+START_CHECK_PERIOD_S = 0.005
+
+
 def steady_timer(node: Node, period_s: float, callback: Callable[[], None]):
     """A timer on the steady (wall) clock whatever the node's ``use_sim_time``: polling, start barriers and
     timeouts are wall-clock waits, and a lockstep node's sim time stands still until the episode starts."""
