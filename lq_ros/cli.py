@@ -599,6 +599,13 @@ def main() -> int:
         from click import exceptions
 
     try:
+        from lq_ros.transport.processes import executor_choice
+
+        executor_choice(dict(os.environ))  # the node processes' executor: refused before anything starts
+    except ValueError as exc:
+        console.print(f"[red]error:[/red] {exc}", soft_wrap=True, highlight=False)
+        return 2
+    try:
         return app(standalone_mode=False) or 0
     except exceptions.NoArgsIsHelpError as exc:
         exc.show()

@@ -70,6 +70,13 @@ def test_lq_run_refuses_in_one_line(tmp_path, case):
 
 @pytest.mark.slow
 @pytest.mark.sim
+def test_an_unknown_node_executor_is_refused_in_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("LQ_RCLPY_EXECUTOR", "multi")
+    out = tmp_path / "bags"
+    assert_refused(lq("run", "--out", str(out)), "LQ_RCLPY_EXECUTOR must be events or single_threaded, got 'multi'")
+    assert not out.exists()
+
+
 def test_rerun_into_the_same_out_is_refused_unless_overwrite(tmp_path):
     args = ["run", "--policy", "sine", "--max-steps", "3", "--transport", "inprocess", "--out", str(tmp_path)]
     first = lq(*args)

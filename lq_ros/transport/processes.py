@@ -17,6 +17,22 @@ from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
 
+#: The environment variable that chooses the executor every node spins, and its values (the first: the default).
+#: ``events`` is rclpy.experimental.EventsExecutor: it dispatches each callback from C++ as its event arrives, where
+#: rclpy's SingleThreadedExecutor (``single_threaded``) rebuilds its wait set in Python for every message; a lockstep
+#: tick that waits for a message chain through three nodes (the chunk due, the request, the observation) waits
+#: about a third less (benchmarks/bench_transport.py).
+EXECUTOR_ENV, EXECUTORS = "LQ_RCLPY_EXECUTOR", ("events", "single_threaded")
+
+
+def executor_choice(environ: dict[str, str]) -> str:
+    """The executor ``environ`` chooses (ValueError naming the valid values)."""
+    name = environ.get(EXECUTOR_ENV) or EXECUTORS[0]
+    if name not in EXECUTORS:
+        raise ValueError(f"{EXECUTOR_ENV} must be {' or '.join(EXECUTORS)}, got {name!r}")
+    return name
+
+
 #: prctl option from <linux/prctl.h>.
 _PR_SET_PDEATHSIG = 1
 

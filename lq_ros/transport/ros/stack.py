@@ -47,7 +47,7 @@ from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import logs_dir
 from lq_ros.robot.observation_builder import Requirements, check_robot
 from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS, RobotConfig
-from lq_ros.transport.processes import ShmTracker, die_with_parent, stop_processes
+from lq_ros.transport.processes import ShmTracker, die_with_parent, executor_choice, stop_processes
 from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
 
 #: The managed nodes of a simulated run (against a robot the bridge replaces the sim: stack_roles).
@@ -105,6 +105,7 @@ def reserved_domain(domain_id: int | None = None):
 
 def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
     env = dict(os.environ)
+    executor_choice(env)  # a wrong value is refused here, in one line, not by five node processes
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["ROS_LOG_DIR"] = str(log_dir)

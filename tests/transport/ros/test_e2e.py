@@ -16,7 +16,7 @@ from lq_ros.recording.bag_compare import bag_messages, comparable
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.run.episode import run_episode
 from lq_ros.transport.inprocess import run_inprocess
-from lq_ros.transport.processes import fastdds_shm_owned
+from lq_ros.transport.processes import EXECUTOR_ENV, fastdds_shm_owned
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_lifecycle import wait_until_recording
 
@@ -103,6 +103,19 @@ def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
     """Bit-identical trajectories, commands and chunks for both transports (wall-clock fields aside)."""
     cfg = RunConfig(policy="sine", mode=mode, latency_s=latency, max_steps=30, replan_steps=3)
     ros, _ = run_episode(cfg, tmp_path / "ros", "ros")
+    local = run_inprocess(cfg, tmp_path / "local")
+    assert ros.status == local.status == "failure"
+    assert comparable(ros.bag_path) == comparable(local.bag_path)
+
+
+def test_rclpys_single_threaded_executor_gives_the_same_episode(tmp_path, monkeypatch):
+    """The nodes spin rclpy's EventsExecutor by default; LQ_RCLPY_EXECUTOR=single_threaded (the fallback) runs the
+    same episode, bit for bit."""
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
+    monkeypatch.setenv(EXECUTOR_ENV, "single_threaded")
+    ros, _ = run_episode(cfg, tmp_path / "ros", "ros")
+    (line,) = [ln for ln in (ros.bag_path / "logs" / "sim.log").read_text().splitlines() if "executor:" in ln]
+    assert "SingleThreadedExecutor" in line
     local = run_inprocess(cfg, tmp_path / "local")
     assert ros.status == local.status == "failure"
     assert comparable(ros.bag_path) == comparable(local.bag_path)
