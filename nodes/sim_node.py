@@ -82,6 +82,7 @@ class SimNode(EpisodeNode):
             record_physics=self.physics_rate,
         )  # fmt: skip
         self.state = self.env.reset(cfg.init, cfg.seed)  # the hard reset (MjSim built) belongs to configure
+        self.reset_for = (cfg.init, cfg.seed)  # what the env is reset to and not stepped since
 
     def activate(self, cfg: RunConfig) -> None:
         self.init_index, self.seed, self.run_cfg = cfg.init, cfg.seed, cfg
@@ -93,7 +94,9 @@ class SimNode(EpisodeNode):
         self.min_event_subscribers = self.get_parameter("min_event_subscribers").value
         self.finished = False
         self.started = False
-        self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
+        if self.reset_for != (cfg.init, cfg.seed):  # (the first episode after configure starts from its reset)
+            self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
+        self.reset_for = None
         state_topics = (m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
         if not self.realtime:
             state_topics = (m.CLOCK, *state_topics) + (

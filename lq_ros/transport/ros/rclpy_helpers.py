@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import importlib
 import json
 import os
@@ -399,12 +400,15 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
 
 
 def exit_after_shutdown(code: int) -> NoReturn:
-    """End a node's process once its node is destroyed and rclpy shut down (its Fast DDS participant is gone).
+    """End a node's process once its node is destroyed and rclpy shut down: C's ``exit``, without Python's own
+    finalization.
 
-    Skips the interpreter's own teardown, which frees module by module what the exit frees anyway: a sim node's
-    (MuJoCo, robosuite, numba) took 0.3-0.4 s, paid at the end of every ``lq run``. Every file a node writes is
-    closed by then (the bag at the end of its episode); the console streams are flushed here."""
+    Python's teardown frees module by module what the exit frees anyway: a sim node's (MuJoCo, robosuite, numba)
+    took about 0.3 s, paid at the end of every ``lq run``. C's ``exit`` still runs the C++ static destructors, where
+    Fast DDS removes its /dev/shm files (``os._exit`` would leave them behind). Every file a node writes is closed
+    by then (the bag at the end of its episode); the console streams are flushed here."""
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()
-    os._exit(code)
+    ctypes.CDLL(None).exit(code)  # (CDLL releases the GIL for the call: a destructor that takes it cannot deadlock)
+    os._exit(code)  # (not reached)
