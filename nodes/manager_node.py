@@ -37,7 +37,6 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from lq_ros.transport.ros.rclpy_helpers import exit_after_shutdown
 from lq_ros.wire.node_names import NODE_NAMES, stack_node_names
 
 #: The recorder: the episode is over once it has left the active state (its bag is closed and scored).
@@ -318,7 +317,6 @@ def main() -> None:
         pass
     finally:
         rclpy.try_shutdown()
-    exit_after_shutdown(0)
 
 
 if __name__ == "__main__":

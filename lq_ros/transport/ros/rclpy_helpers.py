@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import importlib
 import json
 import os
@@ -396,19 +395,7 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
         pass
     finally:
         rclpy.try_shutdown()
-    exit_after_shutdown(0)
-
-
-def exit_after_shutdown(code: int) -> NoReturn:
-    """End a node's process once its node is destroyed and rclpy shut down: C's ``exit``, without Python's own
-    finalization.
-
-    Python's teardown frees module by module what the exit frees anyway: a sim node's (MuJoCo, robosuite, numba)
-    took about 0.3 s, paid at the end of every ``lq run``. C's ``exit`` still runs the C++ static destructors, where
-    Fast DDS removes its /dev/shm files (``os._exit`` would leave them behind). Every file a node writes is closed
-    by then (the bag at the end of its episode); the console streams are flushed here."""
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    ctypes.CDLL(None).exit(code)  # (CDLL releases the GIL for the call: a destructor that takes it cannot deadlock)
-    os._exit(code)  # (not reached)
+    # The interpreter's own exit, not os._exit or C's exit: Fast DDS's shared-memory teardown must run after the
+    # participant is destroyed, or a peer still running is left deaf to its next service call now and then (seen:
+    # a surviving node's shutdown call unanswered for 10 s after the sim node left by C's exit).
+    sys.exit(0)

@@ -478,7 +478,8 @@ class RosStack:
             if manager is not None and manager.poll() is None:
                 dead = tuple(self._dead())
                 self._send({"op": "shutdown", "skip": [NODE_NAMES[n] for n in dead if n in self.roles]})
-                self._await(("shutdown",), time.monotonic() + 30.0, tolerate=dead)
+                # Nodes exit as they are shut down: only the manager's own exit ends the wait early.
+                self._await(("shutdown",), time.monotonic() + 30.0, tolerate=tuple(self.procs))
                 for p in self.procs.values():
                     with suppress(subprocess.TimeoutExpired):
                         p.wait(timeout=10.0)
