@@ -187,13 +187,29 @@ class LifecycleManager(Node):
                 self.get_logger().error(str(exc))
 
     def shutdown(self, skip: set[str]) -> None:
-        for node in reversed(self.node_names):
-            if node in skip:
-                continue
-            try:
-                self.transition([node], "shutdown", wait_s=5.0)
-            except TransitionFailed as exc:
-                self.get_logger().error(str(exc))
+        """The shutdown transition for every node not in ``skip``: the others all at once (they exit concurrently),
+        then the recorder, which closes an unfinished bag once nothing else publishes. A node that is not there,
+        refuses or does not answer is logged, and the others still go."""
+        others = [n for n in reversed(self.node_names) if n not in skip and n != RECORDER]
+        for group in (others, [RECORDER] if RECORDER not in skip else []):
+            futures = {}
+            for node in group:
+                try:
+                    self._ready(node, self.change[node], "shutdown", 5.0)
+                except TransitionFailed as exc:
+                    self.get_logger().error(str(exc))
+                    continue
+                request = ChangeState.Request(transition=Transition(label="shutdown"))
+                futures[node] = self.change[node].call_async(request)
+            rclpy.spin_until_future_complete(self, _all(list(futures.values())), timeout_sec=CALL_S)
+            for node, future in futures.items():
+                if not future.done():
+                    why = f"no answer within {CALL_S:.0f} s"
+                elif not future.result().success:
+                    why = "refused (see the node's log)"
+                else:
+                    continue
+                self.get_logger().error(str(TransitionFailed(node, "shutdown", why)))
 
 
 def _all(futures):

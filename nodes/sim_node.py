@@ -30,7 +30,7 @@ from std_msgs.msg import String
 from lq_ros.core.executor_protocol import Source, stop_hold
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import DUMMY_ACTION, sim_time_of_tick
-from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.sim.libero_env import LiberoEnv, import_simulator_in_background
 from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import (
     START_CHECK_PERIOD_S,
@@ -280,6 +280,7 @@ class SimNode(EpisodeNode):
 
 
 def main() -> None:
+    import_simulator_in_background()  # while rclpy starts and the launcher discovers this node
     run_managed(SimNode)
 
 

@@ -28,10 +28,10 @@ class FlowPolicy(LearnedChunkPolicy):
 
     def __init__(
         self, weights: str = "", steps: int = 0, threads: int = 1, variant: str = "naive", mode: str = "async",
-        delay: int = -1, execute: int = -1,
+        delay: int = -1, execute: int = -1, lookahead: int = 0,
     ) -> None:  # fmt: skip
         check_variant(variant)
-        super().__init__(weights or "flow_c10", threads, variant, mode, delay, execute)
+        super().__init__(weights or "flow_c10", threads, variant, mode, delay, execute, lookahead)
         self._steps = int(steps)
         self._prefix: ActionPrefix | None = None  # set for the duration of one infer()
         if self._steps < 0:

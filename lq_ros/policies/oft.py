@@ -19,12 +19,12 @@ class OFTPolicy(LearnedChunkPolicy):
 
     def __init__(
         self, chunk_size: int = 8, weights: str = "", threads: int = 1, variant: str = "naive", mode: str = "async",
-        delay: int = -1, execute: int = -1,
+        delay: int = -1, execute: int = -1, lookahead: int = 0,
     ) -> None:  # fmt: skip
         check_variant(variant)
         if not weights and chunk_size not in (1, 8):
             raise ValueError(f"shipped oft weights have chunk_size 1 or 8, got {chunk_size}; pass weights=PATH")
-        super().__init__(weights or f"oft_c{chunk_size}", threads, variant, mode, delay, execute)
+        super().__init__(weights or f"oft_c{chunk_size}", threads, variant, mode, delay, execute, lookahead)
         if weights and chunk_size not in (self.horizon, 8):
             raise ValueError(f"{self.weights_path.name} decodes chunks of {self.horizon}, not {chunk_size}")
 

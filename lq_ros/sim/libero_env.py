@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import os
+import threading
 from collections import OrderedDict
 from pathlib import Path
 
@@ -97,6 +98,26 @@ def without_image_textures(xml: str) -> str:
         texture.set("width", "1")
         texture.set("height", "1")
     return ET.tostring(root, encoding="unicode")
+
+
+def import_simulator_in_background() -> threading.Thread:
+    """Start importing MuJoCo, robosuite and LIBERO on a daemon thread; returns it.
+
+    For a process that will create an env once told to (the sim node before its configure call): the imports
+    (about half of env creation) then overlap with its start-up and discovery instead of following them. An
+    import that fails here is left for the env's own import to raise, where it is reported.
+    """
+
+    def load() -> None:
+        with contextlib.suppress(Exception):
+            import mujoco  # noqa: F401
+            from libero.libero import benchmark  # noqa: F401
+            from libero.libero.envs.bddl_utils import robosuite_parse_problem  # noqa: F401
+            from libero.libero.envs.env_wrapper import ControlEnv  # noqa: F401
+
+    thread = threading.Thread(target=load, name="simulator-imports", daemon=True)
+    thread.start()
+    return thread
 
 
 def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:

@@ -85,9 +85,11 @@ def _same_outputs(kind, naive, delayed, x, cond):
         )
 
 
-def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks: int = 60):
+def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks: int = 60, log=None):
     """Run the protocol core with a stub chunk source; returns [(request tick, tracker's (d, prefix), the commands
-    actually executed at ticks t .. t + d - 1)] and the tracker's chunks."""
+    actually executed at ticks t .. t + d - 1)] and the tracker's chunks. ``log`` (an ExecutedLog) is told every
+    chunk as the look-ahead tells it, and the commands it names for the 6 ticks before each request are recorded
+    in ``log.seen`` beside the ones executed."""
     core = ExecutorCore(ExecutorConfig(mode=mode, latency_ticks=n, replan_steps=replan))
     tracker = DelayTracker(mode, delay, delay_max=8, replan_steps=replan)
     rng = np.random.default_rng(1)
@@ -98,12 +100,18 @@ def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks:
             return True
 
         def request(self, req):
+            known = tracker.knows_delay
             d, rows = tracker.context(req.tick)
             chunk = np.round(rng.uniform(-1, 1, (horizon, 7)), 3)
             chunk[:, -1] = rng.choice([-1.0, 1.0])
             if mode == "sync":
                 chunk = chunk[d:]
             tracker.returned(req.tick, chunk)
+            if log is not None:  # (as the policy tells it: lq_ros.policies.learned.chunk_policy)
+                if known:
+                    log.place(d)
+                log.seen.append((req.tick, log.before(req.tick, 6)))
+                log.chunk(req.tick, d if known else None, chunk)
             pending[req.request_id] = chunk
             seen.append((req.tick, d, rows))
             return True
@@ -121,6 +129,8 @@ def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks:
 
     TickDriver(core, Handlers()).drive()
     done = [(t, d, rows) for t, d, rows in seen if t + d <= max(commands) + 1]
+    if log is not None:
+        log.commands = commands
     return [(t, d, rows, np.array([commands[k] for k in range(t, t + d)]).reshape(d, 7)) for t, d, rows in done]
 
 

@@ -18,6 +18,7 @@ from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
 from lq_ros.policies.learned.delay import VARIANTS, DelayTracker, conditioning, conditioning_dim
 from lq_ros.policies.learned.features import FeatureLayout, features, goal_slots, raw_from_observation
+from lq_ros.policies.learned.lookahead import ExecutedLog, MotionModel, looked_ahead
 
 #: Shipped weights (``<name>_<suite>.pt`` + ``.json``), installed as package data.
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
@@ -134,7 +135,7 @@ class LearnedChunkPolicy(Policy):
 
     def __init__(
         self, weights: str, threads: int = 1, variant: str = "naive", mode: str = "async", delay: int = -1,
-        execute: int = -1,
+        execute: int = -1, lookahead: int = 0,
     ) -> None:  # fmt: skip
         import torch
 
@@ -162,6 +163,13 @@ class LearnedChunkPolicy(Policy):
             raise ValueError(f"execute must be >= 0 actions (0: the whole chunk) or -1 (d), got {execute}")
         #: (d, normalised prefix (1, d, 7) tensor) for the duration of one delay-aware infer().
         self._ctx: tuple[int, object] | None = None
+        #: Async look-ahead (lookahead.py): infer on the state predicted for tick t + d (naive checkpoints only).
+        if int(lookahead) not in (0, 1):
+            raise ValueError(f"lookahead must be 0 or 1, got {lookahead}")
+        if lookahead and variant != "delay":
+            raise ValueError("lookahead=1 needs variant=delay (it looks ahead over the delay the variant tracks)")
+        self._motion = MotionModel.load() if lookahead else None
+        self._executed = ExecutedLog()
 
     def _use(self, path: Path) -> None:
         if path not in self._cache:
@@ -204,6 +212,8 @@ class LearnedChunkPolicy(Policy):
         out = {"weights": self.weights, "weights_source": where, "horizon": self.horizon}
         if self._tracker is not None:
             out.update(variant=self.variant, mode=self._tracker.mode, delay=self._tracker.delay, execute=self.execute)
+            if self._motion is not None:
+                out.update(lookahead=1, motion_model=self._motion.meta.get("fit", {}))
         return out
 
     def reset(self, task: TaskInfo, seed: int) -> None:
@@ -223,6 +233,7 @@ class LearnedChunkPolicy(Policy):
             self._tracker.delay_max = self._delay_max()
             self._tracker.replan_steps = self.replan_steps
             self._tracker.reset()
+            self._executed.reset()
 
     def features(self, obs: Observation):
         """Normalised feature row (1, F) of ``obs`` as a torch tensor."""
@@ -259,13 +270,22 @@ class LearnedChunkPolicy(Policy):
 
     def _infer_delay(self, x, obs: Observation, prefix) -> np.ndarray:
         torch, dmax = self._torch, self.ckpt.delay_max
+        known = prefix is not None or self._tracker.knows_delay
         d, rows = self.delay_context(obs, prefix)
+        if known:
+            self._executed.place(d)
         norm = ((rows - self.ckpt.a_mean) / self.ckpt.a_std).astype(np.float32)
         if dmax:  # a delay-aware checkpoint is told d and the prefix
             padded = np.zeros((1, dmax, ACTION_DIM), np.float32)
             padded[0, :d] = norm
             x = torch.cat([x, torch.from_numpy(conditioning(np.array([d]), padded, dmax))], dim=1)
             self._ctx = (d, torch.from_numpy(norm[None]))
+        ahead = self._motion is not None and not dmax and d > 0 and self._tracker.mode == "async"
+        if ahead:  # plan from the state the prefix will have brought the robot to: row 0 is for tick t + d
+            past = self._executed.before(obs.tick, self._motion.history)
+            closed = float(rows[-1, -1]) > 0
+            obs = looked_ahead(obs, self._motion.displacement(rows, past), closed)
+            x = self.features(obs)
         try:
             with torch.no_grad():
                 chunk = self._decode(x, obs)[0].numpy()
@@ -274,6 +294,8 @@ class LearnedChunkPolicy(Policy):
         chunk = postprocess(self.denormalise(chunk))
         if not np.all(np.isfinite(chunk)):
             raise PolicyError("model produced a non-finite action")
+        if ahead:
+            chunk = np.concatenate([postprocess(rows), chunk])  # the prefix as rows 0..d-1 (async drops them)
         if dmax and d:
             chunk[:d] = postprocess(rows)  # rows 0..d-1 are the prefix (async drops them as stale)
         if self._tracker.mode == "sync":
@@ -284,6 +306,8 @@ class LearnedChunkPolicy(Policy):
             # without an underrun, so no executed row is older than 2d - 1 ticks) or the given s.
             chunk = chunk[: d + (d if self.execute < 0 else self.execute)]
         self._tracker.returned(obs.tick, chunk)
+        if self._tracker.mode == "async":
+            self._executed.chunk(obs.tick, d if known else None, chunk)
         return chunk
 
     def _decode(self, x, obs: Observation):  # -> torch.Tensor (1, H, 7), normalised

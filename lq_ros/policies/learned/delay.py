@@ -72,6 +72,11 @@ class DelayTracker:
         self._last_tick = 0
         self._gripper = float(DUMMY_ACTION[-1])
 
+    @property
+    def knows_delay(self) -> bool:
+        """Whether the next context's d is known (told, or estimated from a previous chunk), not assumed."""
+        return self.delay >= 0 or self._last is not None
+
     def context(self, tick: int) -> tuple[int, np.ndarray]:
         """(d, prefix (d, 7) in executed action units) for a request on the observation of ``tick``."""
         last = self._last
