@@ -99,3 +99,19 @@ def test_real_lookahead_episode_succeeds_async_at_0_2_s(tmp_path, name):
                     policy=name, policy_args={"variant": "delay", "lookahead": 1}, replan_steps=replan)  # fmt: skip
     outcome = run_inprocess(cfg, tmp_path)
     assert outcome.status == "success", (outcome.ticks, outcome.reason)
+
+
+@pytest.mark.parametrize("name", ["oft", "flow"])
+def test_lookahead_changes_nothing_without_a_delay_or_in_sync(name):
+    """At d = 0 (no latency) and in sync the look-ahead has nothing to look ahead over: the variant's own chunk."""
+    from lq_ros.sim.libero_env import load_task
+    from tests.training.test_learned import _obs
+
+    task = load_task("libero_spatial", 0)[0]  # (the observation stand-in's scene)
+    for args in ({"delay": 0}, {"delay": 2, "mode": "sync"}):
+        plain = make_policy(name, variant="delay", **args)
+        ahead = make_policy(name, variant="delay", lookahead=1, **args)
+        plain.reset(task, 7)
+        ahead.reset(task, 7)
+        for tick in (0, 4, 8):
+            np.testing.assert_array_equal(ahead.infer(_obs(tick=tick)), plain.infer(_obs(tick=tick)), str(args))
