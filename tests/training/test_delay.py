@@ -85,11 +85,11 @@ def _same_outputs(kind, naive, delayed, x, cond):
         )
 
 
-def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks: int = 60, log=None):
+def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks: int = 60, log=None, sized=False):
     """Run the protocol core with a stub chunk source; returns [(request tick, tracker's (d, prefix), the commands
     actually executed at ticks t .. t + d - 1)] and the tracker's chunks. ``log`` (an ExecutedLog) is told every
     chunk as the look-ahead tells it, and the commands it names for the 6 ticks before each request are recorded
-    in ``log.seen`` beside the ones executed."""
+    in ``log.seen`` beside the ones executed. ``sized``: async chunks of d + d rows, as the variant returns them."""
     core = ExecutorCore(ExecutorConfig(mode=mode, latency_ticks=n, replan_steps=replan))
     tracker = DelayTracker(mode, delay, delay_max=8, replan_steps=replan)
     rng = np.random.default_rng(1)
@@ -106,6 +106,8 @@ def _drive(mode: str, n: int, horizon: int, replan: int, delay: int = -1, ticks:
             chunk[:, -1] = rng.choice([-1.0, 1.0])
             if mode == "sync":
                 chunk = chunk[d:]
+            elif sized and d:
+                chunk = chunk[: 2 * d]
             tracker.returned(req.tick, chunk)
             if log is not None:  # (as the policy tells it: lq_ros.policies.learned.chunk_policy)
                 if known:
@@ -149,6 +151,18 @@ def test_tracker_prefix_is_what_the_executor_runs_while_inferring(mode, n, horiz
     _, d, rows, executed = _drive(mode, n, horizon, replan, delay=n)[0]
     assert d == n
     np.testing.assert_array_equal(rows, executed)
+
+
+@pytest.mark.parametrize(("n", "horizon"), [(6, 8), (6, 10), (8, 10), (3, 8)])
+def test_tracker_finds_the_latency_when_its_chunks_are_shorter_than_2n(n, horizon):
+    """Chunks of d + d rows, as the variant returns them, from a first chunk shorter than 2N: that chunk runs out
+    before the next lands, so the rest of it is not the latency; the tracker still finds d = N by the third request
+    and its prefix is then the arm commands the executor really sends (an underrun's holds included)."""
+    requests = _drive("async", n, horizon, horizon, ticks=80, sized=True)
+    assert len(requests) > 6
+    for tick, d, rows, executed in requests[2:]:
+        assert d == n, (tick, d)
+        np.testing.assert_array_equal(rows[:, :6], executed[:, :6])
 
 
 def test_executed_prefixes_stay_in_their_episode(tmp_path):

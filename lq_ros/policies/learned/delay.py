@@ -71,6 +71,9 @@ class DelayTracker:
         self._last: np.ndarray | None = None
         self._last_tick = 0
         self._gripper = float(DUMMY_ACTION[-1])
+        self._chunks = 0  # returned this episode
+        self._d = 0  # the d of the last context, and of the chunk returned after it
+        self._last_d = 0
 
     @property
     def knows_delay(self) -> bool:
@@ -90,9 +93,16 @@ class DelayTracker:
         if last is None:
             d = int(np.clip(max(self.delay, 0), 0, self.delay_max))
             return d, hold_rows(d, self._gripper)
-        rest = last[min(tick - self._last_tick, len(last)) :]
+        gap = tick - self._last_tick
+        rest = last[min(gap, len(last)) :]
         d = len(rest) if self.delay < 0 else self.delay
+        if self.delay < 0 and self._chunks > 1 and len(last) <= 2 * self._last_d:
+            # The last chunk was one this tracker sized (d + s rows, s <= d). Had it been shorter than 2N it ran
+            # out before the next one could land: the executor asked again as it arrived (gap = N) and the rest
+            # (fewer than N rows) runs then holds. Else gap >= N and the rest is N rows. Either way N is the larger.
+            d = max(d, gap)
         d = int(np.clip(d, 0, self.delay_max))
+        self._d = d
         rows = rest[:d]
         held = float(rows[-1, -1]) if len(rows) else float(last[-1, -1])
         return d, np.concatenate([rows, hold_rows(d - len(rows), held)])  # an underrun holds
@@ -100,5 +110,7 @@ class DelayTracker:
     def returned(self, tick: int, chunk: np.ndarray) -> None:
         """Record the chunk returned for the request on ``tick``, as the executor receives it (executed units)."""
         self._last, self._last_tick = np.asarray(chunk, dtype=np.float64), int(tick)
+        self._chunks += 1
+        self._last_d = self._d if self._chunks > 1 else 0  # (the first chunk's d was assumed, not estimated)
         if self.mode == "sync":  # the hold after it repeats the gripper of the last action it runs
             self._gripper = float(self._last[min(self.replan_steps, len(self._last)) - 1, -1])
