@@ -34,7 +34,7 @@ setup(
     packages=[*find_packages(include=["lq_ros", "lq_ros.*"]), "lq_ros_nodes"],
     package_dir={"lq_ros_nodes": "nodes"},
     # Shipped learned-policy weights (LIBERO-Spatial), loaded by default by `oft` and `flow`.
-    package_data={"lq_ros.policies": ["weights/*.pt", "weights/*.json"]},
+    package_data={"lq_ros.policies": ["weights/*.pt", "weights/*.json", "learned/motion_model.json"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

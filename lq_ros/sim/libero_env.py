@@ -100,13 +100,20 @@ def without_image_textures(xml: str) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-def import_simulator_in_background() -> threading.Thread:
-    """Start importing MuJoCo, robosuite and LIBERO on a daemon thread; returns it.
+#: The thread importing the simulator ahead of need (import_simulator_in_background), if one was started.
+_background_imports: threading.Thread | None = None
+
+
+def import_simulator_in_background() -> None:
+    """Start importing MuJoCo, robosuite and LIBERO on a daemon thread.
 
     For a process that will create an env once told to (the sim node before its configure call): the imports
-    (about half of env creation) then overlap with its start-up and discovery instead of following them. An
-    import that fails here is left for the env's own import to raise, where it is reported.
+    (about half of env creation) then overlap with its start-up and discovery instead of following them. Every
+    use of LIBERO here waits for that thread first: importing LIBERO's modules from two threads at once can
+    meet one of its circular imports half done ("partially initialized module"). An import that fails on the
+    thread is left for the env's own import to raise, where it is reported.
     """
+    global _background_imports
 
     def load() -> None:
         with contextlib.suppress(Exception):
@@ -115,13 +122,19 @@ def import_simulator_in_background() -> threading.Thread:
             from libero.libero.envs.bddl_utils import robosuite_parse_problem  # noqa: F401
             from libero.libero.envs.env_wrapper import ControlEnv  # noqa: F401
 
-    thread = threading.Thread(target=load, name="simulator-imports", daemon=True)
-    thread.start()
-    return thread
+    _background_imports = threading.Thread(target=load, name="simulator-imports", daemon=True)
+    _background_imports.start()
+
+
+def _after_background_imports() -> None:
+    thread = _background_imports
+    if thread is not None and thread is not threading.current_thread():
+        thread.join()  # (at once when it is done)
 
 
 def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:
     """TaskInfo, BDDL path and init states of ``suite`` task ``task_id`` (no simulator created)."""
+    _after_background_imports()
     from libero.libero import benchmark, get_libero_path
 
     suites = benchmark.get_benchmark_dict()
@@ -160,6 +173,7 @@ class LiberoEnv:
         camera_size: int = DEFAULT_CAMERA_SIZE_PX,
         record_physics: bool = False,
     ) -> None:
+        _after_background_imports()
         import mujoco
         from libero.libero.envs.env_wrapper import ControlEnv
 

@@ -10,8 +10,8 @@ The model (per d = 1 .. ``delay_max``): displacement along each axis = w_d . [th
 then the ``history`` commands executed before tick t, newest first], in metres per unit of command, the same
 weights for x, y and z. It is fitted by ``python -m lq_ros.policies.learned.lookahead --out FILE`` (seeded random
 commands through the real LIBERO env, least squares; the fit's residual is printed and stored) and shipped as
-``weights/motion_model.json``. Orientation and the fingers are left as observed: over d <= 8 ticks the arm's
-translation is what changes most.
+``motion_model.json`` beside this module. Orientation and the fingers are left as observed: over d <= 8 ticks the
+arm's translation is what changes most.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation
 
-MOTION_MODEL_PATH = Path(__file__).resolve().parent.parent / "weights" / "motion_model.json"
+MOTION_MODEL_PATH = Path(__file__).resolve().parent / "motion_model.json"
 #: An object this close to the EE (m) while the gripper is commanded closed moves with it.
 HELD_RADIUS_M = 0.08
 
