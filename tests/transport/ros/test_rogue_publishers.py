@@ -121,11 +121,16 @@ def rogue_main(report: Path) -> None:
     executor.add_node(rogue)
     executor.add_node(fake_policy)
     deadline = time.monotonic() + 240
-    # Mid-episode, with every stack subscriber of both topics matched (sim, policy, executor, recorder).
+    # Mid-episode, with every stack subscriber of both topics matched (sim, policy, executor, recorder), and the stack's
+    # nodes named in this process's graph: a matched publisher is not yet a named one, and the recorder names the
+    # sender of what it ignores only once its own graph lists the rogue's nodes (on a loaded machine a match came
+    # more than the recorder's 2 s naming window before that).
+    stack_nodes = {"lq_sim", "lq_executor", "lq_metrics"}
     while not (
         latest[0] >= INJECT_AT_NS
         and events.get_subscription_count() >= 4
         and min(chunks.get_subscription_count(), fake_chunks.get_subscription_count()) >= 2
+        and stack_nodes <= set(rogue.get_node_names())
     ):
         if time.monotonic() > deadline:
             raise SystemExit("the episode never reached the injection time")
