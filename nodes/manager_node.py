@@ -100,12 +100,15 @@ class LifecycleManager(Node):
             if time.monotonic() >= deadline:
                 raise TransitionFailed(node, "get_state", f"no answer within {wait_s:.0f} s")
 
+    def _request_transition(self, node: str, label: str, wait_s: float):
+        """Send ``label`` to ``node`` once its change_state service is there (TransitionFailed if not within
+        ``wait_s``); returns the future of its answer."""
+        self._ready(node, self.change[node], label, wait_s)
+        return self.change[node].call_async(ChangeState.Request(transition=Transition(label=label)))
+
     def transition(self, nodes: list[str], label: str, timeout_s: float = CALL_S, wait_s: float = SERVICE_WAIT_S):
         """Transition ``label`` for ``nodes`` at once (they run it concurrently); TransitionFailed if one refuses."""
-        futures = []
-        for node in nodes:
-            self._ready(node, self.change[node], label, wait_s)
-            futures.append(self.change[node].call_async(ChangeState.Request(transition=Transition(label=label))))
+        futures = [self._request_transition(node, label, wait_s) for node in nodes]
         for node, future in zip(nodes, futures, strict=True):
             (resp,) = self._wait(node, label, timeout_s, future)
             if not resp.success:
@@ -195,12 +198,9 @@ class LifecycleManager(Node):
             futures = {}
             for node in group:
                 try:
-                    self._ready(node, self.change[node], "shutdown", 5.0)
+                    futures[node] = self._request_transition(node, "shutdown", 5.0)
                 except TransitionFailed as exc:
                     self.get_logger().error(str(exc))
-                    continue
-                request = ChangeState.Request(transition=Transition(label="shutdown"))
-                futures[node] = self.change[node].call_async(request)
             rclpy.spin_until_future_complete(self, _all(list(futures.values())), timeout_sec=CALL_S)
             for node, future in futures.items():
                 if not future.done():

@@ -169,7 +169,7 @@ class LearnedChunkPolicy(Policy):
         if lookahead and variant != "delay":
             raise ValueError("lookahead=1 needs variant=delay (it looks ahead over the delay the variant tracks)")
         self._motion = MotionModel.load() if lookahead else None
-        self._executed = ExecutedLog()
+        self._executed = ExecutedLog()  # (kept only with the look-ahead, which reads it)
 
     def _use(self, path: Path) -> None:
         if path not in self._cache:
@@ -272,7 +272,7 @@ class LearnedChunkPolicy(Policy):
         torch, dmax = self._torch, self.ckpt.delay_max
         known = prefix is not None or self._tracker.knows_delay
         d, rows = self.delay_context(obs, prefix)
-        if known:
+        if self._motion is not None and known:
             self._executed.place(d)
         norm = ((rows - self.ckpt.a_mean) / self.ckpt.a_std).astype(np.float32)
         if dmax:  # a delay-aware checkpoint is told d and the prefix
@@ -306,7 +306,7 @@ class LearnedChunkPolicy(Policy):
             # without an underrun, so no executed row is older than 2d - 1 ticks) or the given s.
             chunk = chunk[: d + (d if self.execute < 0 else self.execute)]
         self._tracker.returned(obs.tick, chunk)
-        if self._tracker.mode == "async":
+        if self._motion is not None and self._tracker.mode == "async":
             self._executed.chunk(obs.tick, d if known else None, chunk)
         return chunk
 

@@ -71,9 +71,8 @@ class DelayTracker:
         self._last: np.ndarray | None = None
         self._last_tick = 0
         self._gripper = float(DUMMY_ACTION[-1])
-        self._chunks = 0  # returned this episode
         self._d = 0  # the d of the last context, and of the chunk returned after it
-        self._last_d = 0
+        self._last_d = 0  # the d the last chunk was sized for (0: the episode's first, whose d was assumed)
 
     @property
     def knows_delay(self) -> bool:
@@ -96,7 +95,7 @@ class DelayTracker:
         gap = tick - self._last_tick
         rest = last[min(gap, len(last)) :]
         d = len(rest) if self.delay < 0 else self.delay
-        if self.delay < 0 and self._chunks > 1 and len(last) <= 2 * self._last_d:
+        if self.delay < 0 and len(last) <= 2 * self._last_d:
             # The last chunk was one this tracker sized (d + s rows, s <= d). Had it been shorter than 2N it ran
             # out before the next one could land: the executor asked again as it arrived (gap = N) and the rest
             # (fewer than N rows) runs then holds. Else gap >= N and the rest is N rows. Either way N is the larger.
@@ -109,8 +108,7 @@ class DelayTracker:
 
     def returned(self, tick: int, chunk: np.ndarray) -> None:
         """Record the chunk returned for the request on ``tick``, as the executor receives it (executed units)."""
+        self._last_d = self._d if self._last is not None else 0
         self._last, self._last_tick = np.asarray(chunk, dtype=np.float64), int(tick)
-        self._chunks += 1
-        self._last_d = self._d if self._chunks > 1 else 0  # (the first chunk's d was assumed, not estimated)
         if self.mode == "sync":  # the hold after it repeats the gripper of the last action it runs
             self._gripper = float(self._last[min(self.replan_steps, len(self._last)) - 1, -1])
