@@ -50,7 +50,7 @@ setup(
     # Every node program (nodes/*.py) under its module's name, as `ros2 run lq_ros <name>` would start it.
     entry_points={
         "console_scripts": [
-            "lq = lq_ros.cli:main",
+            "lq = lq_ros.cli:entry",
             "sim_node = lq_ros_nodes.sim_node:main",
             "policy_node = lq_ros_nodes.policy_node:main",
             "executor_node = lq_ros_nodes.executor_node:main",

@@ -5,13 +5,17 @@ Each phase is measured as a fresh process that stops after it, so the difference
 
     interpreter   python -c pass (with the ROS wheels' bootstrap, which re-executes Python once)
     imports       + import lq_ros.cli
-    env           + LIBERO's imports and the task env (MuJoCo model compiled, MjSim built)
+    env           + LIBERO's imports and the task env (MuJoCo model compiled or loaded, MjSim built)
     first reset   + the episode's reset to its init state and LIBERO's 10 wait steps
     episode       `lq run --transport inprocess`: + the ticks, the bag and its scoring (the whole command)
     ROS           `lq run --transport ros`: the same episode through the four node processes (the whole command)
 
-Then the env phase's compile alone: the task's scene compiled by MuJoCo with its image textures (what an env with
-cameras does) and without them (1x1 flat textures: an env that renders nothing), in this process, alternated.
+Every phase runs with the compiled-model cache (lq_ros.sim.model_cache) in a fresh folder that one unmeasured
+run filled first (warm: the task has run on this machine before); `episode` and `ROS` are also measured with
+the cache off (cold: the scene compiled, as on a machine's first run of the task).
+
+Then the scene's compile alone: with its image textures (what an env with cameras does), without them (1x1 flat
+textures: an env that renders nothing), and its compiled model loaded from the cache's MJB file, alternated.
 
 Default episode: the scripted expert, async, Δt_sim 0.2 s, LIBERO-Spatial task 0, init state 0 (164 ticks).
 Targets: in process <= 4 s; through ROS <= in process + 1.5 s (2 idle cores).
@@ -43,11 +47,12 @@ PHASES = {
 }
 
 
-def wall_s(argv: list[str], out: Path) -> float:
+def wall_s(argv: list[str], out: Path, cache: str) -> float:
     start = time.perf_counter()
     argv = [*argv, "--out", str(out), "--overwrite"] if "run" in argv else argv
-    proc = subprocess.run(argv, capture_output=True, text=True, env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE":
-                          os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")})  # fmt: skip
+    env = {**os.environ, "LQ_MODEL_CACHE": cache,
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")}  # fmt: skip
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env)
     elapsed = time.perf_counter() - start
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
@@ -60,40 +65,57 @@ def main() -> None:
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     out = Path(tempfile.mkdtemp(prefix="lq_bench_first_"))
-    times: dict[str, list[float]] = {name: [] for name in PHASES}
+    cache = str(out / "models")
+    wall_s(PHASES["env"], out, cache)  # fills the cache (unmeasured)
+    runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
+            **{f"{name} (cold)": (PHASES[name], "off") for name in ("episode", "ROS")}}  # fmt: skip
+    times: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(args.repeats):
-        for name, argv in PHASES.items():
-            times[name].append(wall_s(argv, out / name.replace(" ", "_")))
+        for name, (argv, cache_setting) in runs.items():
+            times[name].append(wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting))
     median = {name: statistics.median(t) for name, t in times.items()}
     previous = 0.0
+    print("warm (the task's compiled model in the cache):")
     for name in ("interpreter", "imports", "env", "first reset", "episode"):
-        print(f"{name:12s} {median[name]:6.2f} s cumulative  (+{median[name] - previous:5.2f} s)")
+        print(f"  {name:12s} {median[name]:6.2f} s cumulative  (+{median[name] - previous:5.2f} s)")
         previous = median[name]
-    print(f"{'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
-    print(f"targets: in process {median['episode']:.2f} s <= 4 s; ROS {median['ROS']:.2f} s <= in process + 1.5 s = "
-          f"{median['episode'] + 1.5:.2f} s  (medians of {args.repeats})")  # fmt: skip
-    textured, light = compile_times(args.repeats)
-    print(f"scene compile (median of {args.repeats}): with image textures {textured:.2f} s, without "
-          f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s)")  # fmt: skip
+    print(f"  {'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
+    for label, suffix in (("warm", ""), ("cold", " (cold)")):
+        episode, ros = median[f"episode{suffix}"], median[f"ROS{suffix}"]
+        print(f"targets, {label}: in process {episode:.2f} s <= 4 s; ROS {ros:.2f} s <= in process + 1.5 s = "
+              f"{episode + 1.5:.2f} s (+{ros - episode:.2f} s)  (medians of {args.repeats})")  # fmt: skip
+    textured, light, cached = compile_times(args.repeats, Path(cache))
+    print(f"scene (median of {args.repeats}): compiled with image textures {textured:.2f} s, without "
+          f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
+          f"{cached:.2f} s")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 
-def compile_times(repeats: int) -> tuple[float, float]:
-    """Median wall seconds of MuJoCo compiling LIBERO-Spatial task 0's scene with and without its image textures."""
+def compile_times(repeats: int, cache: Path) -> tuple[float, float, float]:
+    """Median wall seconds of LIBERO-Spatial task 0's scene compiled with and without its image textures, and of
+    its texture-less model loaded from the cache's MJB file."""
     import mujoco
 
-    from lq_ros.sim import libero_env
+    from lq_ros.sim import libero_env, model_cache
 
+    os.environ["LQ_MODEL_CACHE"] = "off"
     env = libero_env.LiberoEnv("libero_spatial", 0)  # (camera-less: its XML is the key of the kept model)
     ((xml, _),) = libero_env._compiled_models
     env.close()
-    times: dict[bool, list[float]] = {True: [], False: []}
+    light_xml = libero_env.without_image_textures(xml)
+    mjb = cache / f"{model_cache.model_key(light_xml, mujoco.__version__)}{model_cache.SUFFIX}"
+    if not mjb.is_file():
+        raise SystemExit(f"{mjb}: not in the cache the episodes filled")
+    times: dict[str, list[float]] = {"textures": [], "light": [], "cached": []}
     for _ in range(repeats):
-        for textures in (True, False):
+        for kind in times:
             start = time.perf_counter()
-            mujoco.MjModel.from_xml_string(xml if textures else libero_env.without_image_textures(xml))
-            times[textures].append(time.perf_counter() - start)
-    return statistics.median(times[True]), statistics.median(times[False])
+            if kind == "cached":
+                mujoco.MjModel.from_binary_path(str(mjb))
+            else:
+                mujoco.MjModel.from_xml_string(xml if kind == "textures" else light_xml)
+            times[kind].append(time.perf_counter() - start)
+    return tuple(statistics.median(t) for t in times.values())
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import os
@@ -602,6 +603,9 @@ def main() -> int:
         from lq_ros.transport.processes import executor_choice
 
         executor_choice(dict(os.environ))  # the node processes' executor: refused before anything starts
+        from lq_ros.sim import model_cache
+
+        model_cache.settings(os.environ)  # the compiled-model cache's variables
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", soft_wrap=True, highlight=False)
         return 2
@@ -626,5 +630,26 @@ def main() -> int:
         return 1
 
 
+def entry() -> None:
+    """The ``lq`` command: :func:`main`, then leave without tearing the interpreter down when nothing needs it.
+
+    Once every file is closed and everything printed, tearing down the modules of an in-process run (MuJoCo,
+    robosuite, numba and the rest) takes 0.1-0.2 s. The exit handlers still run; the teardown is skipped only
+    when ROS was never loaded in this process (DDS removes its shared-memory files in its destructors) and no
+    non-daemon thread is still running.
+    """
+    import threading
+
+    code = main()
+    run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
+    others = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    if "rclpy" in sys.modules or others or run_exit_handlers is None:
+        sys.exit(code)
+    run_exit_handlers()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

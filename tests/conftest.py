@@ -1,6 +1,7 @@
 """Test setup. DDS discovery must stay on this machine: set before anything imports rclpy."""
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -9,11 +10,19 @@ import pytest
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="lq_test_roslog_"))
 os.environ.setdefault("MUJOCO_GL", "egl")
+# The session's processes share their compiled scenes (lq_ros.sim.model_cache) in a folder of their own, removed
+# at the end, not in the user's cache.
+_MODEL_CACHE = tempfile.mkdtemp(prefix="lq_test_models_")
+os.environ.setdefault("LQ_MODEL_CACHE", _MODEL_CACHE)
 
 import lq_ros  # noqa: E402,F401 - its OpenBLAS kernel pinning must precede numpy, as in every entry point
 
 #: Every test below this folder starts ROS nodes or imports rclpy: marked ``ros`` (pyproject.toml's markers).
 ROS_TESTS = Path(__file__).resolve().parent / "transport" / "ros"
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    shutil.rmtree(_MODEL_CACHE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(items) -> None:

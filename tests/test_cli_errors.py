@@ -77,6 +77,13 @@ def test_an_unknown_node_executor_is_refused_in_one_line(tmp_path, monkeypatch):
     assert not out.exists()
 
 
+def test_a_bad_model_cache_limit_is_refused_in_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("LQ_MODEL_CACHE_MB", "-1")
+    out = tmp_path / "bags"
+    assert_refused(lq("run", "--transport", "inprocess", "--out", str(out)), "LQ_MODEL_CACHE_MB='-1'", "megabytes")
+    assert not out.exists()
+
+
 def test_rerun_into_the_same_out_is_refused_unless_overwrite(tmp_path):
     args = ["run", "--policy", "sine", "--max-steps", "3", "--transport", "inprocess", "--out", str(tmp_path)]
     first = lq(*args)

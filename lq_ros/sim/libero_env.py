@@ -50,9 +50,14 @@ def compiled_once(*, textures: bool = True):
     1x1 flat one (:func:`without_image_textures`): decoding a LIBERO scene's PNGs is most of its compile
     (benchmarks/bench_first_episode.py prints both), and no texture is read by the physics, so the episode is
     bit-identical (tests compare them).
+
+    A process's first compile of a scene is itself read from the disk cache of compiled models when an earlier
+    process compiled the same XML (:mod:`lq_ros.sim.model_cache`).
     """
     import mujoco
     import robosuite.environments.base as robosuite_base
+
+    from lq_ros.sim import model_cache
 
     original = robosuite_base.MjSim
 
@@ -62,7 +67,8 @@ def compiled_once(*, textures: bool = True):
             key = (xml, textures)
             model = _compiled_models.get(key)
             if model is None:
-                model = mujoco.MjModel.from_xml_string(xml if textures else without_image_textures(xml))
+                source = xml if textures else without_image_textures(xml)
+                model = model_cache.load_or_compile(source, mujoco.MjModel.from_xml_string)
                 _compiled_models[key] = model
                 while len(_compiled_models) > COMPILED_MODELS_KEPT:
                     _compiled_models.popitem(last=False)
@@ -126,6 +132,64 @@ def import_simulator_in_background() -> None:
     _background_imports.start()
 
 
+def load_robosuite_jit_functions() -> None:
+    """Load robosuite's numba-compiled controller functions for the argument types an episode passes them.
+
+    robosuite compiles its operational-space controller's maths with numba (``cache=True``): the first call of
+    each argument signature loads it from numba's cache (about 0.35 s for the six, compiled in full on a
+    machine's very first run). Calling them here with arrays of the same types and memory layouts loads the same
+    compiled code ahead; the results are thrown away. ``tests/sim/test_libero_env.py`` checks that an episode
+    then calls no signature left out here.
+    """
+    import robosuite.utils.control_utils as control
+    import robosuite.utils.transform_utils as transform
+
+    eye3, eye7 = np.eye(3), np.eye(7)
+    fortran = np.asfortranarray
+    vec7 = np.zeros(7)
+    transform.mat2quat(eye3)  # C-contiguous
+    transform.mat2quat(np.eye(4)[:3, :3])  # a strided view (numba's layout "A")
+    transform.quat2mat(np.array([0.0, 0.0, 0.0, 1.0]))
+    control.orientation_error(eye3, eye3)
+    control.opspace_matrices(fortran(eye7), fortran(np.eye(6, 7)), fortran(np.eye(3, 7)), fortran(np.eye(3, 7)))
+    control.nullspace_torques(fortran(eye7), eye7, vec7, vec7, vec7)
+
+
+#: Whether this process has started loading robosuite's compiled functions (at its first env).
+_jit_functions_loading = False
+
+
+def _start_loading_jit_functions() -> None:
+    """Load robosuite's compiled functions on a thread, once per process, while MuJoCo compiles the first scene.
+
+    MuJoCo releases the GIL while it compiles (about 0.7 s for a LIBERO scene), so the load runs on the other
+    core. A load that fails leaves each function to load at its first call, as robosuite does.
+    """
+    global _jit_functions_loading
+    if _jit_functions_loading:
+        return
+    _jit_functions_loading = True
+
+    def load() -> None:
+        with contextlib.suppress(Exception):
+            load_robosuite_jit_functions()
+
+    threading.Thread(target=load, name="robosuite-jit-load", daemon=True).start()
+
+
+def _freeze_imported_objects() -> None:
+    """Move every object alive so far (the imports' modules, classes, functions) out of the garbage collector's view.
+
+    robosuite runs a full ``gc.collect()`` at every hard reset and close (about 0.05 s each, most of it walking
+    objects the imports made, which never become garbage); after ``gc.freeze()`` a collection walks only objects
+    made later. Nothing is freed differently: frozen objects are the ones that live as long as the process.
+    """
+    import gc
+
+    if gc.get_freeze_count() == 0:
+        gc.freeze()
+
+
 def _after_background_imports() -> None:
     thread = _background_imports
     if thread is not None and thread is not threading.current_thread():
@@ -178,6 +242,8 @@ class LiberoEnv:
         from libero.libero.envs.env_wrapper import ControlEnv
 
         self.task, bddl, self._init_states = load_task(suite, task_id)
+        _freeze_imported_objects()
+        _start_loading_jit_functions()  # overlaps the scene's compile below
         self.camera_names = tuple(camera_names)
         self.camera_size = camera_size
         self.record_physics = record_physics

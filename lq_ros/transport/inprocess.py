@@ -7,6 +7,7 @@ four-node stack, so one scorer serves both; it is also the performance baseline.
 
 from __future__ import annotations
 
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -85,6 +86,9 @@ def run_inprocess(
     policy.check_merge(cfg.merge)  # e.g. rtc with a policy that cannot take a prefix: refused, no bag
     own_env = env is None
     if env is None:
+        # The message types are built (Python) while MuJoCo compiles or loads the scene (C, the GIL released).
+        types = threading.Thread(target=m.typestore, name="message-types", daemon=True)
+        types.start()
         env = LiberoEnv(
             cfg.suite,
             cfg.task,
@@ -92,6 +96,7 @@ def run_inprocess(
             camera_size=cfg.camera_size_for(policy.render_size),
             record_physics=cfg.physics_rate,
         )
+        types.join()
     bag_path = Path(out_dir) / cfg.episode_name()
     writer = EpisodeBagWriter(bag_path, episode_topics(cfg, policy.camera_names))
     rec = _Recorder(writer)

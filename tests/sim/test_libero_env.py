@@ -1,9 +1,14 @@
-"""lq_ros/sim/libero_env.py: a first (hard) reset reuses the model compiled when the env was made, and a scene
-compiled without its image textures (nothing renders) steps bit-identically to the full scene."""
+"""lq_ros/sim/libero_env.py: a first (hard) reset reuses the model compiled when the env was made, a scene
+compiled without its image textures (nothing renders) steps bit-identically to the full scene, and robosuite's
+compiled functions are loaded ahead with the signatures an episode calls."""
 
 from __future__ import annotations
 
 import contextlib
+import json
+import subprocess
+import sys
+import textwrap
 
 import mujoco
 import numpy as np
@@ -13,6 +18,12 @@ from lq_ros.sim import libero_env
 from lq_ros.sim.libero_env import LiberoEnv
 
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
+
+
+@pytest.fixture(autouse=True)
+def compile_every_scene(monkeypatch):
+    """These tests count and compare compiles: no model read from the disk cache (tests/sim/test_model_cache.py)."""
+    monkeypatch.setenv("LQ_MODEL_CACHE", "off")
 
 
 def _episode(suite: str, task: int, ticks: int = 30) -> list[np.ndarray]:
@@ -87,3 +98,37 @@ def test_an_env_with_cameras_compiles_its_textures():
         assert env.observe(with_images=True).images["agentview"].shape == (32, 32, 3)
     finally:
         env.close()
+
+
+def test_robosuite_functions_loaded_ahead_are_all_an_episode_calls():
+    """In a fresh process (numba keeps what it loaded): the signatures loaded by load_robosuite_jit_functions are
+    those an env's creation, reset and ticks call, none more and none left to load at first call."""
+    script = textwrap.dedent(
+        """
+        import json
+        import numba
+        import numpy as np
+        import robosuite.utils.control_utils as control
+        import robosuite.utils.transform_utils as transform
+        from lq_ros.sim import libero_env
+
+        def signatures():
+            return {f"{module.__name__}.{name}": sorted(map(str, getattr(module, name).signatures))
+                    for module in (control, transform) for name in dir(module)
+                    if isinstance(getattr(module, name), numba.core.registry.CPUDispatcher)}
+
+        libero_env.load_robosuite_jit_functions()
+        ahead = signatures()
+        env = libero_env.LiberoEnv("libero_goal", 1)
+        env.reset(0, 7)
+        rng = np.random.default_rng(0)
+        for _ in range(20):
+            env.step(np.concatenate([rng.uniform(-0.5, 0.5, 6), [rng.choice([-1.0, 1.0])]]))
+        env.close()
+        print(json.dumps([ahead, signatures()]))
+        """
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=True)
+    ahead, after = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert sum(map(len, ahead.values())) == 6
+    assert after == ahead

@@ -251,7 +251,8 @@ class RosStack:
         Every episode calls it; calling it before the first one starts the processes early. A node found dead
         here is replaced (and counted in ``restarts``): its PID is not the one noted before.
         """
-        for name in (*self.roles, MANAGER):
+        # The sim first: its env is the longest to build, and the processes start on the same cores.
+        for name in (*sorted(self.roles, key=lambda role: role != "sim"), MANAGER):
             p = self.procs.get(name)
             if p is not None and p.poll() is None:
                 continue
