@@ -10,9 +10,10 @@ rclpy 7.1's message info carries timestamps and sequence numbers but not the pub
 :class:`SenderSubscription` takes each serialized message with ``rcl_take_serialized_message`` (ctypes, the
 ``librcl`` rclpy itself loaded), whose ``rmw_message_info_t`` does; the GID is matched to a node name through
 the ROS graph (``get_publishers_info_by_topic``). A publisher's node name reaches the graph by its own
-discovery message, which can trail the first data message by a few milliseconds: a message whose GID the
-graph does not know yet waits (in order, with every later message) for up to :data:`RESOLVE_TIMEOUT_S`, then
-counts as from an unknown participant.
+discovery message, which can trail the first data message by a few milliseconds (until then the graph lists
+the endpoint under rmw's placeholder names, :data:`UNNAMED`): a message whose GID the graph does not name yet
+waits (in order, with every later message) for up to :data:`RESOLVE_TIMEOUT_S`, then counts as from an unknown
+participant.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ EXPECTED_SENDERS: dict[str, tuple[str, ...]] = {
 }
 #: Wall seconds a message from a publisher the graph does not name yet waits before it counts as unknown.
 RESOLVE_TIMEOUT_S = 2.0
+#: What the graph (rmw_dds_common) names an endpoint whose participant's node list has not arrived yet: not a node.
+UNNAMED = ("_NODE_NAME_UNKNOWN_", "_NODE_NAMESPACE_UNKNOWN_")
 _RESOLVE_PERIOD_S = 0.01
 _GID_SIZE = 16  # RMW_GID_STORAGE_SIZE (rmw/types.h, Jazzy and later)
 _RCL_RET_OK = 0
@@ -188,11 +191,13 @@ class SenderSubscription(Waitable):
     # -- senders ------------------------------------------------------------------------------------------
     def _resolve(self, gid: bytes) -> str | None:
         """The publisher's fully qualified node name, "" for a publisher the graph lists without a node,
-        None while the graph does not list it."""
+        None while the graph does not list it or not yet with its node (its participant's node list, which ROS
+        sends apart from the endpoint's discovery, still on its way: seen when a node publishes right away)."""
         if gid not in self._names:
             for info in self.node.get_publishers_info_by_topic(self.topic):
-                ns = info.node_namespace.rstrip("/")
-                self._names[bytes(info.endpoint_gid)[:_GID_SIZE]] = f"{ns}/{info.node_name}" if info.node_name else ""
+                name = graph_node_name(info.node_name, info.node_namespace)
+                if name is not None:  # (else asked again until named, or the message counts as unknown)
+                    self._names[bytes(info.endpoint_gid)[:_GID_SIZE]] = name
         return self._names.get(gid)
 
     def _drain(self) -> None:
@@ -227,6 +232,14 @@ class SenderSubscription(Waitable):
             self.node.remove_waitable(self)
         self.handle.destroy_when_not_in_use()
         self._rcutils.rcutils_uint8_array_fini(ctypes.byref(self._buffer))
+
+
+def graph_node_name(node_name: str, node_namespace: str) -> str | None:
+    """The fully qualified name of the node the graph lists an endpoint under: "" for an endpoint without a node,
+    None while its node is not named yet (:data:`UNNAMED`)."""
+    if node_name in UNNAMED or node_namespace in UNNAMED:
+        return None
+    return f"{node_namespace.rstrip('/')}/{node_name}" if node_name else ""
 
 
 def sender_text(sender: str | None) -> str:

@@ -210,6 +210,8 @@ class RosStack:
         self.episodes = 0
         self.restarts: dict[str, int] = {}
         self.closed = False
+        #: The nodes that answered their shutdown transition when the stack was closed (names, e.g. lq_sim).
+        self.finalized: set[str] = set()
 
     def __enter__(self) -> RosStack:
         return self
@@ -498,7 +500,8 @@ class RosStack:
                 # Nodes exit as they are shut down: only the manager's own exit ends the wait early.
                 reply, _ = self._await(("shutdown",), time.monotonic() + 30.0, tolerate=tuple(self.procs))
                 if reply is not None and reply.get("event") == "shutdown":
-                    self._end_finalized(set(reply.get("finalized", ())))
+                    self.finalized = set(reply.get("finalized", ()))
+                    self._end_finalized(self.finalized)
                 for p in self.procs.values():
                     with suppress(subprocess.TimeoutExpired):
                         p.wait(timeout=10.0)
