@@ -17,7 +17,7 @@ leaves no Fast DDS file behind) sends it one JSON object per line on stdin and r
   steps first, the recorder last, which then records a STOPPED event); ``skip`` names dead nodes. Answers
   ``{"event": "stopped"}``.
 - ``{"op": "shutdown", "skip": [...]}``: the shutdown transition for every node (they exit), then this
-  process exits. Answers ``{"event": "shutdown", "finalized": [the nodes that answered]}``.
+  process exits. Answers ``{"event": "shutdown"}``.
 """
 
 from __future__ import annotations
@@ -189,11 +189,10 @@ class LifecycleManager(Node):
             except TransitionFailed as exc:
                 self.get_logger().error(str(exc))
 
-    def shutdown(self, skip: set[str]) -> list[str]:
+    def shutdown(self, skip: set[str]) -> None:
         """The shutdown transition for every node not in ``skip``: the others all at once (they exit concurrently),
         then the recorder, which closes an unfinished bag once nothing else publishes. A node that is not there,
-        refuses or does not answer is logged, and the others still go. Returns the nodes that answered (finalized)."""
-        finalized = []
+        refuses or does not answer is logged, and the others still go."""
         others = [n for n in reversed(self.node_names) if n not in skip and n != RECORDER]
         for group in (others, [RECORDER] if RECORDER not in skip else []):
             futures = {}
@@ -209,10 +208,8 @@ class LifecycleManager(Node):
                 elif not future.result().success:
                     why = "refused (see the node's log)"
                 else:
-                    finalized.append(node)
                     continue
                 self.get_logger().error(str(TransitionFailed(node, "shutdown", why)))
-        return finalized
 
 
 def _all(futures):
@@ -301,7 +298,8 @@ def serve(manager: LifecycleManager, replies) -> None:
                 manager.stop(skip)
                 reply({"event": "stopped"})
             elif op["op"] == "shutdown":
-                reply({"event": "shutdown", "finalized": manager.shutdown(skip)})
+                manager.shutdown(skip)
+                reply({"event": "shutdown"})
                 return
         if not running:
             continue

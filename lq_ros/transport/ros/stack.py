@@ -210,8 +210,6 @@ class RosStack:
         self.episodes = 0
         self.restarts: dict[str, int] = {}
         self.closed = False
-        #: The nodes that answered their shutdown transition when the stack was closed (names, e.g. lq_sim).
-        self.finalized: set[str] = set()
 
     def __enter__(self) -> RosStack:
         return self
@@ -302,22 +300,6 @@ class RosStack:
         if removed:
             with open(self.work / "launcher.log", "a") as f:
                 f.write(f"removed orphaned Fast DDS files from /dev/shm: {removed}\n")
-
-    def _end_finalized(self, finalized: set[str]) -> None:
-        """End the processes of the nodes that answered their shutdown transition, and the manager that said so.
-
-        All that is left of them is tearing down Fast DDS participants nobody talks to again and the interpreter
-        (0.2-0.3 s with every process at once on 2 cores); nothing of the run is in it: a node answers its
-        shutdown only once it has released everything (the recorder has closed its bag). Their shared-memory
-        files are removed as a killed node's are (:meth:`_stop`). A node that did not answer exits its own way.
-        """
-        ending = {
-            name: p for name, p in self.procs.items()
-            if p.poll() is None and (name == MANAGER or NODE_NAMES.get(name) in finalized)
-        }  # fmt: skip
-        self.shm.sample(p.pid for p in ending.values())
-        for p in ending.values():
-            p.kill()
 
     def _send(self, op: dict) -> None:
         manager = self.procs[MANAGER]
@@ -498,10 +480,7 @@ class RosStack:
                 dead = tuple(self._dead())
                 self._send({"op": "shutdown", "skip": [NODE_NAMES[n] for n in dead if n in self.roles]})
                 # Nodes exit as they are shut down: only the manager's own exit ends the wait early.
-                reply, _ = self._await(("shutdown",), time.monotonic() + 30.0, tolerate=tuple(self.procs))
-                if reply is not None and reply.get("event") == "shutdown":
-                    self.finalized = set(reply.get("finalized", ()))
-                    self._end_finalized(self.finalized)
+                self._await(("shutdown",), time.monotonic() + 30.0, tolerate=tuple(self.procs))
                 for p in self.procs.values():
                     with suppress(subprocess.TimeoutExpired):
                         p.wait(timeout=10.0)

@@ -23,7 +23,6 @@ from lq_ros.recording.bag_compare import comparable
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.transport.processes import die_with_parent, fastdds_shm_owned
 from lq_ros.transport.ros.stack import NODE_MODULE, RosStack, child_environment, launch_nodes, reserved_domain
-from lq_ros.wire.node_names import NODE_NAMES
 from tests.transport.ros.test_faults import SHM, ClockProbe, alive, cmdline, orphaned_shm, wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
@@ -137,9 +136,8 @@ def test_long_lived_stack_is_bit_identical_to_in_process_and_to_a_fresh_stack(tm
             bags.append(bag)
             pids.append({n: p.pid for n, p in stack.procs.items()})
             assert pids[k] == pids[0], "no process was restarted"
-    # Shut down through the lifecycle: every node answered its shutdown transition (then its process was ended).
-    assert stack.finalized == {NODE_NAMES[role] for role in stack.roles}
-    assert all(p.returncode in (0, -signal.SIGKILL) for p in stack.procs.values())
+        procs = list(stack.procs.values())
+    assert all(p.returncode == 0 for p in procs), [p.returncode for p in procs]  # shut down through the lifecycle
     for k, (cfg, bag) in enumerate(zip(SEQUENCE, bags, strict=True)):
         local = run_inprocess(cfg, tmp_path / f"local{k}")
         assert comparable(bag) == comparable(local.bag_path), f"episode {k}: {cfg}"
