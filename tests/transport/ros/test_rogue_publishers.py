@@ -46,12 +46,13 @@ def test_rogue_events_and_chunks_change_nothing_and_are_recorded(tmp_path):
         stack.start()
         env = dict(os.environ, ROS_DOMAIN_ID=str(stack.domain.id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         rogue = subprocess.Popen(
-            [sys.executable, "-m", "tests.transport.ros.test_rogue_publishers", str(report)], cwd=REPO, env=env,
-            stdout=subprocess.DEVNULL, stderr=open(tmp_path / "rogue.err", "wb"),  # noqa: SIM115
+            [sys.executable, "-X", "faulthandler", "-m", "tests.transport.ros.test_rogue_publishers", str(report)],
+            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=open(tmp_path / "rogue.err", "wb"),  # noqa: SIM115
         )  # fmt: skip
         try:
             outcome, row = run_episode(CFG, tmp_path / "attacked", "ros", stack=stack)
-            assert rogue.wait(timeout=60) == 0, (tmp_path / "rogue.err").read_text()[-2000:]
+            code = rogue.wait(timeout=60)
+            assert code == 0, (code, (tmp_path / "rogue.err").read_text()[-2000:])
         finally:
             if rogue.poll() is None:
                 rogue.kill()
