@@ -85,9 +85,10 @@ def main() -> None:
         print(f"targets, {label}: in process {episode:.2f} s <= 4 s; ROS {ros:.2f} s <= in process + 1.5 s = "
               f"{episode + 1.5:.2f} s (+{ros - episode:.2f} s)  (medians of {args.repeats})")  # fmt: skip
     textured, light, cached = compile_times(args.repeats, Path(cache))
+    size_mb = sum(f.stat().st_size for f in Path(cache).glob("*.mjb")) / 1e6
     print(f"scene (median of {args.repeats}): compiled with image textures {textured:.2f} s, without "
           f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
-          f"{cached:.2f} s")  # fmt: skip
+          f"{cached:.2f} s (its file: {size_mb:.1f} MB)")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 
