@@ -177,25 +177,6 @@ def _start_loading_jit_functions() -> None:
     threading.Thread(target=load, name="robosuite-jit-load", daemon=True).start()
 
 
-@contextlib.contextmanager
-def _collect_recent_objects_only():
-    """Within this block a full garbage collection walks only objects made since it began.
-
-    robosuite runs ``gc.collect()`` whenever it destroys an MjSim (every hard reset, and close): about 0.05 s, most
-    of it walking the objects the imports made, which live as long as the process. They are frozen (set aside
-    by the collector, ``gc.freeze``) for the block and given back after it, so the collections between blocks are
-    as without it (freezing them for good made later episodes about 3% slower: the oldest generation, now
-    small, was collected more often). Nothing is freed differently; a frozen cycle waits for a later collection.
-    """
-    import gc
-
-    gc.freeze()
-    try:
-        yield
-    finally:
-        gc.unfreeze()
-
-
 def _after_background_imports() -> None:
     thread = _background_imports
     if thread is not None and thread is not threading.current_thread():
@@ -288,7 +269,7 @@ class LiberoEnv:
         self._env.env.hard_reset = hard
         self._env.seed(seed)
         np.random.seed(seed)
-        with compiled_once(textures=bool(self.camera_names)), _collect_recent_objects_only():
+        with compiled_once(textures=bool(self.camera_names)):
             self._reset_robosuite()  # hard: a new MjSim (from the compiled model); soft: mj_resetData
         self._bind_sim()
         if not hard:
@@ -340,8 +321,7 @@ class LiberoEnv:
         return self._init_states
 
     def close(self) -> None:
-        with _collect_recent_objects_only():
-            self._env.close()
+        self._env.close()
 
     # -- observations -----------------------------------------------------------------------
     def observe(self, with_images: bool = True) -> Observation:

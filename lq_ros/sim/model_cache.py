@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import sys
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -63,6 +64,8 @@ def load_or_compile(xml: str, compile_xml: Callable[[str], object]):
     path = folder / f"{model_key(xml, mujoco.__version__)}{SUFFIX}"
     if path.is_file():
         try:
+            if not _has_mjb_header(path):  # (MuJoCo would also log the bad file to MUJOCO_LOG.TXT in the cwd)
+                raise ValueError(f"{path}: not an MJB file")
             model = mujoco.MjModel.from_binary_path(str(path))
         except Exception:  # noqa: BLE001 - unreadable or from another build: compile it again below
             with contextlib.suppress(OSError):
@@ -74,6 +77,16 @@ def load_or_compile(xml: str, compile_xml: Callable[[str], object]):
     model = compile_xml(xml)
     save(model, path, limit_bytes)
     return model
+
+
+#: The first int of every MJB file (MuJoCo's mj_saveModel).
+MJB_ID = 54321
+
+
+def _has_mjb_header(path: Path) -> bool:
+    with open(path, "rb") as f:
+        head = f.read(4)
+    return len(head) == 4 and int.from_bytes(head, sys.byteorder, signed=True) == MJB_ID
 
 
 def save(model, path: Path, limit_bytes: int) -> None:

@@ -74,14 +74,17 @@ def test_another_xml_or_mujoco_version_is_another_file():
     assert key != model_cache.model_key(SCENE, "3.1.0")
 
 
-def test_an_unreadable_file_is_compiled_again_and_replaced(cache):
+@pytest.mark.parametrize("damage", ["not a model", "truncated"])
+def test_an_unreadable_file_is_compiled_again_and_replaced(cache, tmp_path, monkeypatch, damage):
+    monkeypatch.chdir(tmp_path)  # (where MuJoCo would log a bad file)
     compiler = CountingCompiler()
     model_cache.load_or_compile(SCENE, compiler)
     (path,) = cache.glob("*.mjb")
-    path.write_bytes(b"not a model")
+    path.write_bytes(b"not a model" if damage == "not a model" else path.read_bytes()[:1000])
     model = model_cache.load_or_compile(SCENE, compiler)
     assert compiler.calls == 2 and model.nbody == 3
     assert mujoco.MjModel.from_binary_path(str(path)).nbody == 3
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists() or damage == "truncated"
 
 
 def test_a_folder_that_cannot_be_written_only_means_no_cache(tmp_path, monkeypatch):
