@@ -50,6 +50,14 @@ def test_rogue_events_and_chunks_change_nothing_and_are_recorded(tmp_path):
             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=open(tmp_path / "rogue.err", "wb"),  # noqa: SIM115
         )  # fmt: skip
         try:
+            # The episode starts once the rogue knows the stack's nodes: a fast episode may else end before a rogue
+            # slowed by a loaded machine has joined (it then waited for an injection time that never came).
+            ready = report.with_suffix(".ready")
+            deadline = time.monotonic() + 120
+            while not ready.exists():
+                assert rogue.poll() is None, (tmp_path / "rogue.err").read_text()[-2000:]
+                assert time.monotonic() < deadline, "the rogue never saw the stack's nodes"
+                time.sleep(0.05)
             outcome, row = run_episode(CFG, tmp_path / "attacked", "ros", stack=stack)
             code = rogue.wait(timeout=60)
             assert code == 0, (code, (tmp_path / "rogue.err").read_text()[-2000:])
@@ -127,6 +135,7 @@ def rogue_main(report: Path) -> None:
     # sender of what it ignores only once its own graph lists the rogue's nodes (on a loaded machine a match came
     # more than the recorder's 2 s naming window before that).
     stack_nodes = {"lq_sim", "lq_executor", "lq_metrics"}
+    ready = report.with_suffix(".ready")
     while not (
         latest[0] >= INJECT_AT_NS
         and events.get_subscription_count() >= 4
@@ -135,6 +144,8 @@ def rogue_main(report: Path) -> None:
     ):
         if time.monotonic() > deadline:
             raise SystemExit("the episode never reached the injection time")
+        if not ready.exists() and stack_nodes <= set(rogue.get_node_names()):
+            ready.write_text("")  # the test starts the episode now
         executor.spin_once(timeout_sec=0.02)
     t_ns = latest[0]
     tick = round(t_ns / 50_000_000)
