@@ -11,6 +11,7 @@ import copy
 import os
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +107,19 @@ def without_image_textures(xml: str) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+def _in_background(name: str, work: Callable[[], object]) -> threading.Thread:
+    """Run ``work`` on a daemon thread. A failure there is left for the same work's own use to raise (or, for a
+    load done ahead, to redo), where it is reported."""
+
+    def run() -> None:
+        with contextlib.suppress(Exception):
+            work()
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    return thread
+
+
 #: The thread importing the simulator ahead of need (import_simulator_in_background), if one was started.
 _background_imports: threading.Thread | None = None
 
@@ -116,20 +130,17 @@ def import_simulator_in_background() -> None:
     For a process that will create an env once told to (the sim node before its configure call): the imports
     (about half of env creation) then overlap with its start-up and discovery instead of following them. Every
     use of LIBERO here waits for that thread first: importing LIBERO's modules from two threads at once can
-    meet one of its circular imports half done ("partially initialized module"). An import that fails on the
-    thread is left for the env's own import to raise, where it is reported.
+    meet one of its circular imports half done ("partially initialized module").
     """
     global _background_imports
 
     def load() -> None:
-        with contextlib.suppress(Exception):
-            import mujoco  # noqa: F401
-            from libero.libero import benchmark  # noqa: F401
-            from libero.libero.envs.bddl_utils import robosuite_parse_problem  # noqa: F401
-            from libero.libero.envs.env_wrapper import ControlEnv  # noqa: F401
+        import mujoco  # noqa: F401
+        from libero.libero import benchmark  # noqa: F401
+        from libero.libero.envs.bddl_utils import robosuite_parse_problem  # noqa: F401
+        from libero.libero.envs.env_wrapper import ControlEnv  # noqa: F401
 
-    _background_imports = threading.Thread(target=load, name="simulator-imports", daemon=True)
-    _background_imports.start()
+    _background_imports = _in_background("simulator-imports", load)
 
 
 def load_robosuite_jit_functions() -> None:
@@ -155,26 +166,17 @@ def load_robosuite_jit_functions() -> None:
     control.nullspace_torques(fortran(eye7), eye7, vec7, vec7, vec7)
 
 
-#: Whether this process has started loading robosuite's compiled functions (at its first env).
-_jit_functions_loading = False
+#: The thread loading robosuite's compiled functions (at this process's first env), once started.
+_jit_load: threading.Thread | None = None
 
 
 def _start_loading_jit_functions() -> None:
-    """Load robosuite's compiled functions on a thread, once per process, while MuJoCo compiles the first scene.
-
-    MuJoCo releases the GIL while it compiles (about 0.7 s for a LIBERO scene), so the load runs on the other
-    core. A load that fails leaves each function to load at its first call, as robosuite does.
-    """
-    global _jit_functions_loading
-    if _jit_functions_loading:
-        return
-    _jit_functions_loading = True
-
-    def load() -> None:
-        with contextlib.suppress(Exception):
-            load_robosuite_jit_functions()
-
-    threading.Thread(target=load, name="robosuite-jit-load", daemon=True).start()
+    """Load robosuite's compiled functions on a thread, once per process, while MuJoCo loads or compiles the first
+    scene (it releases the GIL meanwhile, so the load runs on the other core). A load that fails leaves each
+    function to load at its first call, as robosuite does."""
+    global _jit_load
+    if _jit_load is None:
+        _jit_load = _in_background("robosuite-jit-load", load_robosuite_jit_functions)
 
 
 def _after_background_imports() -> None:
@@ -229,7 +231,7 @@ class LiberoEnv:
         from libero.libero.envs.env_wrapper import ControlEnv
 
         self.task, bddl, self._init_states = load_task(suite, task_id)
-        _start_loading_jit_functions()  # overlaps the scene's compile below
+        _start_loading_jit_functions()  # overlaps the scene's load or compile below
         self.camera_names = tuple(camera_names)
         self.camera_size = camera_size
         self.record_physics = record_physics

@@ -12,7 +12,7 @@ Settings (environment variables, read when a model is needed):
     (``~/.cache/lq_ros/mujoco_models``).
 ``LQ_MODEL_CACHE_MB``
     the folder's size limit in MB (default 2048; least recently used models are removed beyond it). A LIBERO scene
-    is about 80 MB without image textures and 260 MB with them.
+    is about 80 MB without image textures (benchmarks/bench_first_episode.py prints it), several times that with them.
 
 The cache is best effort: a folder that cannot be written, or a file that does not load, only means the model is
 compiled, as without a cache. Files are written under a temporary name and renamed, so concurrent processes and a
@@ -90,7 +90,8 @@ def _has_mjb_header(path: Path) -> bool:
 
 
 def save(model, path: Path, limit_bytes: int) -> None:
-    """Write ``model`` to ``path`` (atomically) and trim the folder to ``limit_bytes``; any OSError is ignored."""
+    """Write ``model`` to ``path`` (atomically) and trim the folder to ``limit_bytes``; a failure leaves no file and
+    is ignored (the cache is best effort)."""
     import mujoco
 
     temporary = path.with_name(f".{path.stem}.{os.getpid()}.tmp")
