@@ -4,11 +4,15 @@ Each run is a fresh sweep folder (nothing skipped) and includes everything a use
 start-up, env creation (once per worker and task), episodes, scoring and the durable store. Episodes per
 CPU-second (the workers' CPU, their node processes included) is what sizes a cluster: a paper-sized run's
 episodes divided by it is the CPU-seconds it needs. The machine's load average is printed before and after,
-since a shared machine changes the figures. ``--spec FILE`` runs a spec file instead of the generated one
-(e.g. benchmarks/specs/demo_sweep.yaml); ``--transport`` then overrides the spec's.
+since a shared machine changes the figures. The simulation floor puts the wall in the machine's own terms: the
+sweep's ticks (each episode's, plus LIBERO's 10 wait steps per reset) times robosuite's bare ``env.step`` on this
+machine (measured before and after the sweeps in the same run, bench_transport.floor_per_tick), divided by the
+workers: no transport, bag, scoring or start-up can make a sweep faster than that. ``--spec FILE`` runs a spec
+file instead of the generated one (e.g. benchmarks/specs/demo_sweep.yaml); ``--transport`` then overrides the
+spec's.
 
     .venv/bin/python benchmarks/bench_sweep.py [--transport inprocess] [--policy scripted] [--policy-arg K=V]
-        [--tasks 2] [--inits 2] [--latencies 0 0.2] [--max-steps 0] [--workers 1 2] [--spec FILE]
+        [--tasks 2] [--inits 2] [--latencies 0 0.2] [--max-steps 0] [--workers 1 2] [--spec FILE] [--floor-ticks 200]
 """
 
 from __future__ import annotations
@@ -22,6 +26,9 @@ from pathlib import Path
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
+from bench_transport import floor_per_tick  # noqa: E402
+
+from lq_ros.core.suite_constants import NUM_WAIT_STEPS  # noqa: E402
 from lq_ros.run import sweep as sw  # noqa: E402
 
 
@@ -41,12 +48,13 @@ def main() -> None:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--policy-arg", action="append", default=[], help="K=V (a number or text), repeatable")
     parser.add_argument("--spec", type=Path, help="a sweep spec file instead of the generated spec")
+    parser.add_argument("--floor-ticks", type=int, default=200, help="ticks of bare env.step for the floor (0: skip)")
     args = parser.parse_args()
     if args.spec:
         spec = sw.load_spec(args.spec)
         spec = sw.SweepSpec(spec.name, spec.configs, args.transport, spec.timeout_s, spec.raw)
         print(f"spec: {args.spec} ({len(spec.configs)} episodes, {args.transport})")
-        return measure(spec, args.workers, args.transport)
+        return measure(spec, args.workers, args.transport, args.floor_ticks)
     policy_args = {k: _value(v) for k, _, v in (a.partition("=") for a in args.policy_arg)}
     raw = {
         "name": "bench",
@@ -62,7 +70,7 @@ def main() -> None:
     steps = args.max_steps or "suite"
     print(f"spec: {len(spec.configs)} episodes ({args.policy} {policy_args}, {args.transport}, tasks {raw['tasks']}, "
           f"inits {raw['inits']}, latencies {args.latencies} s, sync+async, max_steps {steps})")  # fmt: skip
-    measure(spec, args.workers, args.transport)
+    measure(spec, args.workers, args.transport, args.floor_ticks)
 
 
 def _value(text: str) -> float | str:
@@ -72,8 +80,17 @@ def _value(text: str) -> float | str:
         return text
 
 
-def measure(spec: sw.SweepSpec, workers: list[int], transport: str) -> None:
+def _sweep_ticks(out: Path) -> int:
+    """Every tick the sweep's episodes simulated: their executed ticks plus each reset's wait steps."""
+    rows = [r["row"] for r in sw.ResultStore(out).records()]
+    return sum(int(r.get("action_ticks") or 0) + int(r.get("hold_ticks") or 0) + NUM_WAIT_STEPS for r in rows)
+
+
+def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks: int) -> None:
     rates: dict[int, float] = {}
+    walls: dict[int, float] = {}
+    ticks = 0
+    step_before_s = floor_per_tick(floor_ticks)[0] if floor_ticks else 0.0
     for n in workers:
         out = Path(tempfile.mkdtemp(prefix=f"lq_bench_sweep_{n}w_"))
         load_before = os.getloadavg()[0]
@@ -84,10 +101,23 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str) -> None:
         cpu = _children_cpu_s() - cpu_before
         load_after = os.getloadavg()[0]
         rates[n] = summary.ran / wall
+        walls[n] = wall
+        ticks = _sweep_ticks(out)
         print(f"{n} worker(s), {transport}: {summary.ran} episodes in {wall:.1f} s = {rates[n]:.3f} episodes/s, "
               f"{summary.ran / cpu:.3f} episodes per CPU-second ({dict(summary.counts)}; worker CPU {cpu:.0f} s; "
               f"load avg {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores)")  # fmt: skip
         shutil.rmtree(out, ignore_errors=True)
+    if floor_ticks and ticks:
+        step_after_s = floor_per_tick(floor_ticks)[0]
+        step_s = (step_before_s + step_after_s) / 2  # the machine's speed drifts during a long run
+        floor_cpu_s = ticks * step_s
+        per_workers = "; ".join(
+            f"{n} worker(s): floor {floor_cpu_s / n:.1f} s, wall / floor {walls[n] * n / floor_cpu_s:.2f}"
+            for n in walls
+        )
+        print(f"simulation floor: {ticks} ticks (wait steps included) x bare env.step {1000 * step_s:.2f} ms (mean of "
+              f"{1000 * step_before_s:.2f} ms before the sweeps and {1000 * step_after_s:.2f} ms after) = "
+              f"{floor_cpu_s:.0f} CPU-s; {per_workers}")  # fmt: skip
     if len(rates) >= 2:
         lo, hi = min(rates), max(rates)
         print(f"speed-up {hi} vs {lo} worker(s): {rates[hi] / rates[lo]:.2f}x")
