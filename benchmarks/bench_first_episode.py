@@ -10,6 +10,9 @@ Each phase is measured as a fresh process that stops after it, so the difference
     episode       `lq run --transport inprocess`: + the ticks, the bag and its scoring (the whole command)
     ROS           `lq run --transport ros`: the same episode through the four node processes (the whole command)
 
+and, of the ROS command, its end: from the recorder's score file being written to the command's exit (the
+nodes' shutdown transitions and the processes' exit).
+
 Every phase runs with the compiled-model cache (lq_ros.sim.model_cache) in a fresh folder that one unmeasured
 run filled first (warm: the task has run on this machine before); `episode` and `ROS` are also measured with
 the cache off (cold: the scene compiled, as on a machine's first run of the task).
@@ -47,15 +50,22 @@ PHASES = {
 }
 
 
-def wall_s(argv: list[str], out: Path, cache: str) -> float:
+#: Per phase, wall seconds from the episode's score file being written to the command's exit (its end).
+AFTER_SCORE_S: dict[str, list[float]] = {}
+
+
+def wall_s(argv: list[str], out: Path, cache: str, name: str = "") -> float:
     start = time.perf_counter()
     argv = [*argv, "--out", str(out), "--overwrite"] if "run" in argv else argv
     env = {**os.environ, "LQ_MODEL_CACHE": cache,
            "ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")}  # fmt: skip
     proc = subprocess.run(argv, capture_output=True, text=True, env=env)
     elapsed = time.perf_counter() - start
+    ended = time.time()
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
+    for score in out.glob("*/score.json"):
+        AFTER_SCORE_S.setdefault(name, []).append(ended - score.stat().st_mtime)
     return elapsed
 
 
@@ -72,7 +82,7 @@ def main() -> None:
     times: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(args.repeats):
         for name, (argv, cache_setting) in runs.items():
-            times[name].append(wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting))
+            times[name].append(wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting, name))
     median = {name: statistics.median(t) for name, t in times.items()}
     previous = 0.0
     print("warm (the task's compiled model in the cache):")
@@ -80,6 +90,8 @@ def main() -> None:
         print(f"  {name:12s} {median[name]:6.2f} s cumulative  (+{median[name] - previous:5.2f} s)")
         previous = median[name]
     print(f"  {'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
+    print(f"  of which the end (the recorder's score file written -> the command exited): "
+          f"{statistics.median(AFTER_SCORE_S['ROS']):.2f} s")  # fmt: skip
     for label, suffix in (("warm", ""), ("cold", " (cold)")):
         episode, ros = median[f"episode{suffix}"], median[f"ROS{suffix}"]
         print(f"targets, {label}: in process {episode:.2f} s <= 4 s; ROS {ros:.2f} s <= in process + 1.5 s = "

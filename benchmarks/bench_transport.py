@@ -10,9 +10,10 @@ the MjSim) against soft (LiberoEnv's default after the first reset), both includ
 steps, alternated in the same process.
 
 The floor: the same scene's bare robosuite ``env.step`` per tick (LIBERO's ControlEnv, no wrapper, no energy
-integration, no messages, no bag) and raw ``mj_step`` x 25 (the physics alone), and the in-process tick's ratio to
-both (target: within 1.3x of bare env.step). Where (b)'s time goes: the CPU seconds each of its node processes
-used per episode (episodes 2.., from /proc), against (a)'s wall per episode. A slow policy: with
+integration, no messages, no bag), the MuJoCo calls it makes (per substep two ``mj_forward`` and an ``mj_step``:
+the rest of env.step is robosuite's Python), raw ``mj_step`` x 25 (the physics alone), and the in-process tick's
+ratio to env.step and mj_step (target: within 1.3x of bare env.step). Where (b)'s time goes: the CPU seconds each
+of its node processes used per episode (episodes 2.., from /proc), against (a)'s wall per episode. A slow policy: with
 ``--slow-policy S`` the scripted expert sleeps S wall seconds per inference at Δt_sim 0.2 s, in process and
 through the long-lived stack, where the policy node's inference overlaps the simulation of the ticks that do not
 wait for it.
@@ -102,8 +103,13 @@ def main() -> None:
     if args.floor_ticks:
         # The in-process tick over the episodes after the first (which builds the env): wall per tick.
         tick_s = statistics.median(t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True))
-        step_s, mj_s = floor_per_tick(args.floor_ticks)
-        print(f"floor per tick: bare env.step {1000 * step_s:.2f} ms, raw mj_step x 25 {1000 * mj_s:.2f} ms; "
+        step_s, mj_s, physics_s = floor_per_tick(args.floor_ticks)
+        print(
+            f"floor per tick: bare env.step {1000 * step_s:.2f} ms, of which the MuJoCo calls robosuite makes "
+            f"((2 mj_forward + mj_step) x 25) {1000 * physics_s:.2f} ms and robosuite's Python around them "
+            f"{100 * (1 - physics_s / step_s):.0f} %"
+        )
+        print(f"  raw mj_step x 25 {1000 * mj_s:.2f} ms; "
               f"in-process tick {1000 * tick_s:.2f} ms (median, episodes 2..) = {tick_s / step_s:.2f}x env.step "
               f"(target <= 1.3), {tick_s / mj_s:.2f}x mj_step")  # fmt: skip
     if args.slow_policy:
@@ -121,8 +127,11 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float]:
-    """Wall seconds per tick of robosuite's own env.step and of 25 raw mj_step on the same scene (no cameras)."""
+def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float, float]:
+    """Wall seconds per tick, on the same scene (no cameras), of robosuite's own env.step, of 25 raw mj_step, and of
+    the MuJoCo calls robosuite's step makes (per physics substep its loop's mj_forward, its controller's mj_forward
+    and mj_step: env.step minus this is robosuite's Python around the physics). The raw loops start from the state
+    env.step started from and hold its last controls."""
     import mujoco
     import numpy as np
 
@@ -132,20 +141,28 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
     env = LiberoEnv(suite, task)
     env.reset(0, 7)
     control_env = env._env  # LIBERO's ControlEnv: what a plain LIBERO loop calls
+    sim = control_env.env.sim
+    model, start_data = sim.model._model, mujoco.MjData(sim.model._model)
+    mujoco.mj_copyData(start_data, model, sim.data._data)
     action = np.zeros(7)
     action[-1] = -1.0
     start = time.perf_counter()
     for _ in range(n_ticks):
         control_env.step(action)
     step_s = (time.perf_counter() - start) / n_ticks
-    sim = control_env.env.sim
-    model, data = sim.model._model, sim.data._data
-    start = time.perf_counter()
-    for _ in range(n_ticks * SUBSTEPS_PER_TICK):
-        mujoco.mj_step(model, data)
-    mj_s = (time.perf_counter() - start) / n_ticks
+    per_substep = {"mj_step": (mujoco.mj_step,), "robosuite": (mujoco.mj_forward, mujoco.mj_forward, mujoco.mj_step)}
+    raw_s = {}
+    for name, calls in per_substep.items():
+        data = mujoco.MjData(model)
+        mujoco.mj_copyData(data, model, start_data)
+        data.ctrl[:] = sim.data._data.ctrl
+        start = time.perf_counter()
+        for _ in range(n_ticks * SUBSTEPS_PER_TICK):
+            for call in calls:
+                call(model, data)
+        raw_s[name] = (time.perf_counter() - start) / n_ticks
     env.close()
-    return step_s, mj_s
+    return step_s, raw_s["mj_step"], raw_s["robosuite"]
 
 
 def slow(sleep_s: float, out: Path, episodes: int = 3) -> None:

@@ -6,7 +6,6 @@ import contextlib
 import importlib
 import json
 import os
-import sys
 import traceback
 from collections import Counter
 from collections.abc import Callable
@@ -23,7 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 
 from lq_ros.core.run_config import RunConfig
-from lq_ros.transport.processes import executor_choice
+from lq_ros.transport.processes import executor_choice, exit_uncollected
 from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
 
@@ -398,4 +397,4 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
     # The interpreter's own exit, not os._exit or C's exit: Fast DDS's shared-memory teardown must run after the
     # participant is destroyed, or a peer still running is left deaf to its next service call now and then (seen:
     # a surviving node's shutdown call unanswered for 10 s after the sim node left by C's exit).
-    sys.exit(0)
+    exit_uncollected(0)
