@@ -25,6 +25,7 @@ wait for it.
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import statistics
 import tempfile
@@ -142,8 +143,7 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
     env.reset(0, 7)
     control_env = env._env  # LIBERO's ControlEnv: what a plain LIBERO loop calls
     sim = control_env.env.sim
-    model, start_data = sim.model._model, mujoco.MjData(sim.model._model)
-    mujoco.mj_copyData(start_data, model, sim.data._data)
+    model, start_data = sim.model._model, copy.copy(sim.data._data)
     action = np.zeros(7)
     action[-1] = -1.0
     start = time.perf_counter()
@@ -153,8 +153,7 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
     per_substep = {"mj_step": (mujoco.mj_step,), "robosuite": (mujoco.mj_forward, mujoco.mj_forward, mujoco.mj_step)}
     raw_s = {}
     for name, calls in per_substep.items():
-        data = mujoco.MjData(model)
-        mujoco.mj_copyData(data, model, start_data)
+        data = copy.copy(start_data)
         data.ctrl[:] = sim.data._data.ctrl
         start = time.perf_counter()
         for _ in range(n_ticks * SUBSTEPS_PER_TICK):
