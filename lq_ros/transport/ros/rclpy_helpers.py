@@ -378,9 +378,19 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
     A signal ends an active episode the same way deactivate does (the recorder closes its bag with a
     STOPPED event), then releases the configuration; the exit code is 0 either way.
     """
+    _spin_until_finalized(node_factory)
+    # The interpreter's own exit, not os._exit or C's exit: Fast DDS's shared-memory teardown must run after the
+    # participant is destroyed, or a peer still running is left deaf to its next service call now and then (seen:
+    # a surviving node's shutdown call unanswered for 10 s after the sim node left by C's exit). The node and its
+    # executor are gone by now (this frame never held them), so what the exit skips is only collecting the rest.
+    exit_uncollected(0)
+
+
+def _spin_until_finalized(node_factory: Callable[[], EpisodeNode]) -> None:
     try:
         rclpy.init()
         node = node_factory()
+        executor = None
         try:
             executor = node_executor()
             executor.add_node(node)
@@ -390,11 +400,9 @@ def run_managed(node_factory: Callable[[], EpisodeNode]) -> NoReturn:
         finally:
             node.close()
             node.destroy_node()
+            if executor is not None:
+                executor.shutdown()  # its C++ threads (EventsExecutor) end before the process's static destructors
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         rclpy.try_shutdown()
-    # The interpreter's own exit, not os._exit or C's exit: Fast DDS's shared-memory teardown must run after the
-    # participant is destroyed, or a peer still running is left deaf to its next service call now and then (seen:
-    # a surviving node's shutdown call unanswered for 10 s after the sim node left by C's exit).
-    exit_uncollected(0)
