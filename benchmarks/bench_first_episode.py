@@ -17,7 +17,9 @@ Every phase runs with the compiled-model cache (lq_ros.sim.model_cache) in a fre
 run filled first (warm: the task has run on this machine before); `episode` and `ROS` are also measured with
 the cache off (cold: the scene compiled, as on a machine's first run of the task).
 
-Then the scene's compile alone: with its image textures (what an env with cameras does), without them (1x1 flat
+Then the exit of a process that built and reset the task's env: the interpreter's normal exit against the node
+programs' (lq_ros.transport.processes.exit_uncollected), from the process's last statement to its end. Then the
+scene's compile alone: with its image textures (what an env with cameras does), without them (1x1 flat
 textures: an env that renders nothing), and its compiled model loaded from the cache's MJB file, alternated.
 
 Default episode: the scripted expert, async, Δt_sim 0.2 s, LIBERO-Spatial task 0, init state 0 (164 ticks).
@@ -99,12 +101,34 @@ def main() -> None:
         episode, ros = median[f"episode{suffix}"], median[f"ROS{suffix}"]
         print(f"targets, {label}: in process {episode:.2f} s <= 4 s; ROS {ros:.2f} s <= in process + 1.5 s = "
               f"{episode + 1.5:.2f} s (+{ros - episode:.2f} s)  (medians of {args.repeats})")  # fmt: skip
+    normal, uncollected = exit_times(args.repeats, cache)
+    print(f"exit of a process with the task's env (median of {args.repeats}, from its last statement to its end): "
+          f"the interpreter's normal exit {normal:.2f} s, lq_ros.transport.processes.exit_uncollected "
+          f"{uncollected:.2f} s (the node programs' exit)")  # fmt: skip
     textured, light, cached = compile_times(args.repeats, Path(cache))
     size_mb = sum(f.stat().st_size for f in Path(cache).glob("*.mjb")) / 1e6
     print(f"scene (median of {args.repeats}): compiled with image textures {textured:.2f} s, without "
           f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
           f"{cached:.2f} s (its file: {size_mb:.1f} MB)")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+def exit_times(repeats: int, cache: str) -> tuple[float, float]:
+    """Median wall seconds from a process's last statement to its end, with the task's env built and reset: the
+    interpreter's normal exit against exit_uncollected (alternated)."""
+    env = {**os.environ, "LQ_MODEL_CACHE": cache}
+    script = f"import sys, time; {ENV}; env.reset(0, 7); env.close(); print(time.time(), flush=True); "
+    exits = {"normal": "sys.exit(0)",
+             "uncollected": "from lq_ros.transport.processes import exit_uncollected; exit_uncollected(0)"}  # fmt: skip
+    times: dict[str, list[float]] = {kind: [] for kind in exits}
+    for _ in range(repeats):
+        for kind, leave in exits.items():
+            proc = subprocess.run([sys.executable, "-c", script + leave], capture_output=True, text=True, env=env)
+            ended = time.time()
+            if proc.returncode != 0:
+                raise SystemExit(f"the {kind} exit failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
+            times[kind].append(ended - float(proc.stdout.split()[-1]))
+    return statistics.median(times["normal"]), statistics.median(times["uncollected"])
 
 
 def compile_times(repeats: int, cache: Path) -> tuple[float, float, float]:
