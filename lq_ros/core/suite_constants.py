@@ -31,6 +31,17 @@ STEP_BUDGETS: dict[str, int] = {
     "libero_90": 400,
 }
 
+#: Tasks LIBERO ships per suite (its benchmark registry's n_tasks; tests/sim/test_libero_env.py compares). Known
+#: here so that checking a task id, or expanding a sweep's ``tasks: all``, does not import LIBERO (whose import
+#: reads every installed package's metadata): through ROS the nodes import it, not the launcher.
+NUM_TASKS: dict[str, int] = {
+    "libero_spatial": 10,
+    "libero_object": 10,
+    "libero_goal": 10,
+    "libero_10": 10,
+    "libero_90": 90,
+}
+
 #: Init states shipped per task.
 NUM_INIT_STATES = 50
 

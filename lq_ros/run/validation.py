@@ -8,14 +8,12 @@ from __future__ import annotations
 
 import contextlib
 import inspect
-import io
 import sys
 import types
 import typing
-from functools import cache
 
 from lq_ros.core.redact import redact_args
-from lq_ros.core.suite_constants import NUM_INIT_STATES, STEP_BUDGETS
+from lq_ros.core.suite_constants import NUM_INIT_STATES, NUM_TASKS, STEP_BUDGETS
 
 
 class InputError(ValueError):
@@ -25,14 +23,10 @@ class InputError(ValueError):
 # -- suites, tasks, init states -----------------------------------------------------------------------------
 
 
-@cache
 def num_tasks(suite: str) -> int:
-    """Tasks LIBERO ships for ``suite`` (its benchmark registry, whose info lines are dropped)."""
+    """Tasks LIBERO ships for ``suite`` (lq_ros.core.suite_constants.NUM_TASKS)."""
     check_suite(suite)
-    from libero.libero import benchmark
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        return benchmark.get_benchmark_dict()[suite]().n_tasks
+    return NUM_TASKS[suite]
 
 
 def check_suite(suite: str) -> None:

@@ -132,3 +132,22 @@ def test_robosuite_functions_loaded_ahead_are_all_an_episode_calls():
     ahead, after = json.loads(proc.stdout.strip().splitlines()[-1])
     assert sum(map(len, ahead.values())) == 6
     assert after == ahead
+
+
+def test_the_task_counts_known_without_libero_are_libero_s():
+    from libero.libero import benchmark
+
+    from lq_ros.core.suite_constants import NUM_TASKS, STEP_BUDGETS
+
+    with contextlib.redirect_stdout(sys.stderr):  # LIBERO prints an info line per benchmark it builds
+        registry = {suite: benchmark.get_benchmark_dict()[suite]().n_tasks for suite in STEP_BUDGETS}
+    assert NUM_TASKS == registry
+
+
+def test_checking_a_run_imports_no_libero():
+    script = (
+        "import sys; from lq_ros.run.validation import check_task; check_task('libero_90', 89); "
+        "print('libero' in sys.modules)"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert (proc.returncode, proc.stdout.strip()) == (0, "False"), proc.stderr
