@@ -52,23 +52,25 @@ PHASES = {
 }
 
 
-#: Per phase, wall seconds from the episode's score file being written to the command's exit (its end).
-AFTER_SCORE_S: dict[str, list[float]] = {}
+def run_checked(argv: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
+    """Run ``argv``; a failed command stops the benchmark with the end of its stderr."""
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
+    return proc
 
 
-def wall_s(argv: list[str], out: Path, cache: str, name: str = "") -> float:
+def wall_s(argv: list[str], out: Path, cache: str) -> tuple[float, float | None]:
+    """Wall seconds of the command, and of its end: from the episode's score file being written (the recorder
+    writes one through ROS) to the command's exit; None without a score file."""
     start = time.perf_counter()
     argv = [*argv, "--out", str(out), "--overwrite"] if "run" in argv else argv
     env = {**os.environ, "LQ_MODEL_CACHE": cache,
            "ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")}  # fmt: skip
-    proc = subprocess.run(argv, capture_output=True, text=True, env=env)
-    elapsed = time.perf_counter() - start
-    ended = time.time()
-    if proc.returncode != 0:
-        raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
-    for score in out.glob("*/score.json"):
-        AFTER_SCORE_S.setdefault(name, []).append(ended - score.stat().st_mtime)
-    return elapsed
+    run_checked(argv, env)
+    elapsed, ended = time.perf_counter() - start, time.time()
+    scores = list(out.glob("*/score.json"))
+    return elapsed, (ended - scores[0].stat().st_mtime if scores else None)
 
 
 def main() -> None:
@@ -82,9 +84,13 @@ def main() -> None:
     runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
             **{f"{name} (cold)": (PHASES[name], "off") for name in ("episode", "ROS")}}  # fmt: skip
     times: dict[str, list[float]] = {name: [] for name in runs}
+    ends: list[float] = []  # the ROS commands' ends (score file written -> exit), warm and cold
     for _ in range(args.repeats):
         for name, (argv, cache_setting) in runs.items():
-            times[name].append(wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting, name))
+            elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting)
+            times[name].append(elapsed)
+            if name.startswith("ROS") and end is not None:
+                ends.append(end)
     median = {name: statistics.median(t) for name, t in times.items()}
     previous = 0.0
     print("warm (the task's compiled model in the cache):")
@@ -92,7 +98,6 @@ def main() -> None:
         print(f"  {name:12s} {median[name]:6.2f} s cumulative  (+{median[name] - previous:5.2f} s)")
         previous = median[name]
     print(f"  {'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
-    ends = AFTER_SCORE_S["ROS"] + AFTER_SCORE_S["ROS (cold)"]
     print(
         f"  of which the end (the recorder's score file written -> the command exited): median "
         f"{statistics.median(ends):.2f} s, longest {max(ends):.2f} s over {len(ends)} fresh stacks (warm and cold)"
@@ -123,10 +128,8 @@ def exit_times(repeats: int, cache: str) -> tuple[float, float]:
     times: dict[str, list[float]] = {kind: [] for kind in exits}
     for _ in range(repeats):
         for kind, leave in exits.items():
-            proc = subprocess.run([sys.executable, "-c", script + leave], capture_output=True, text=True, env=env)
+            proc = run_checked([sys.executable, "-c", script + leave], env)
             ended = time.time()
-            if proc.returncode != 0:
-                raise SystemExit(f"the {kind} exit failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
             times[kind].append(ended - float(proc.stdout.split()[-1]))
     return statistics.median(times["normal"]), statistics.median(times["uncollected"])
 

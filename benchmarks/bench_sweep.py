@@ -89,7 +89,7 @@ def _sweep_ticks(out: Path) -> int:
 def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks: int) -> None:
     rates: dict[int, float] = {}
     walls: dict[int, float] = {}
-    ticks = 0
+    ticks: dict[int, int] = {}  # per worker count: episodes may end differently from run to run
     step_before_s = floor_per_tick(floor_ticks)[0] if floor_ticks else 0.0
     for n in workers:
         out = Path(tempfile.mkdtemp(prefix=f"lq_bench_sweep_{n}w_"))
@@ -102,7 +102,7 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks:
         load_after = os.getloadavg()[0]
         rates[n] = summary.ran / wall
         walls[n] = wall
-        ticks = _sweep_ticks(out)
+        ticks[n] = _sweep_ticks(out)
         print(f"{n} worker(s), {transport}: {summary.ran} episodes in {wall:.1f} s = {rates[n]:.3f} episodes/s, "
               f"{summary.ran / cpu:.3f} episodes per CPU-second ({dict(summary.counts)}; worker CPU {cpu:.0f} s; "
               f"load avg {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores)")  # fmt: skip
@@ -110,14 +110,14 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks:
     if floor_ticks and ticks:
         step_after_s = floor_per_tick(floor_ticks)[0]
         step_s = (step_before_s + step_after_s) / 2  # the machine's speed drifts during a long run
-        floor_cpu_s = ticks * step_s
         per_workers = "; ".join(
-            f"{n} worker(s): floor {floor_cpu_s / n:.1f} s, wall / floor {walls[n] * n / floor_cpu_s:.2f}"
+            f"{n} worker(s): {ticks[n]} ticks, floor {ticks[n] * step_s / n:.1f} s, "
+            f"wall / floor {walls[n] * n / (ticks[n] * step_s):.2f}"
             for n in walls
         )
-        print(f"simulation floor: {ticks} ticks (wait steps included) x bare env.step {1000 * step_s:.2f} ms (mean of "
-              f"{1000 * step_before_s:.2f} ms before the sweeps and {1000 * step_after_s:.2f} ms after) = "
-              f"{floor_cpu_s:.0f} CPU-s; {per_workers}")  # fmt: skip
+        print(f"simulation floor (ticks, wait steps included, x bare env.step {1000 * step_s:.2f} ms: the mean of "
+              f"{1000 * step_before_s:.2f} ms before the sweeps and {1000 * step_after_s:.2f} ms after / workers): "
+              f"{per_workers}")  # fmt: skip
     if len(rates) >= 2:
         lo, hi = min(rates), max(rates)
         print(f"speed-up {hi} vs {lo} worker(s): {rates[hi] / rates[lo]:.2f}x")

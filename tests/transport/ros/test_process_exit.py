@@ -29,7 +29,7 @@ NODE_THEN_EXIT = textwrap.dedent(
     cycle.append(cycle)
     with open(owned_file, "w") as f:
         json.dump(sorted(fastdds_shm_owned(os.getpid())), f)
-    # ROS is not shut down here: the exit must do it (os._exit would leave the files: a test of that failed).
+    # ROS is not shut down here: the exit must do it (with os._exit instead, the files stay and this test fails).
     atexit.register(lambda: open(marker, "w").write("ran"))
     print("row", flush=False)  # buffered: must still reach the pipe
     exit_uncollected(4)
