@@ -282,7 +282,8 @@ class LiberoEnv:
         self._reset_before = True
         self._env.set_init_state(self._init_states[init_index])
         for _ in range(NUM_WAIT_STEPS):
-            self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
+            with self._stages.tick():
+                self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
         self._substeps.clear()  # the wait steps are not part of the episode
         self._energy[:] = 0.0
         self._tick = 0
@@ -309,7 +310,8 @@ class LiberoEnv:
         """Apply ``action`` for one control tick; returns the state at the next tick."""
         self._substeps.clear()
         self._energy[:] = 0.0
-        self._obs, _, done, _ = self._env.step(np.asarray(action, dtype=np.float64))
+        with self._stages.tick():
+            self._obs, _, done, _ = self._env.step(np.asarray(action, dtype=np.float64))
         self._tick += 1
         self._success = bool(done)
         return self._tick_state()
@@ -414,8 +416,9 @@ class LiberoEnv:
         self._qvel_idx = np.asarray(self._robot._ref_joint_vel_indexes)
         if self._model.opt.timestep != PHYSICS_DT_S:
             raise RuntimeError(f"MuJoCo timestep {self._model.opt.timestep} s, expected {PHYSICS_DT_S} s")
-        if not getattr(self._sim, "_lq_recording", False):
+        if not hasattr(self._sim, "_lq_stages"):
             self._wrap_sim_step()
+        self._stages = self._sim._lq_stages
 
     def _wrap_observables(self) -> None:
         """Keep a copy of the simulator's data whenever robosuite samples its observables.
@@ -441,13 +444,16 @@ class LiberoEnv:
         """Integrate joint power after every physics substep (and record the substep when asked).
 
         robosuite calls ``sim.step`` SUBSTEPS_PER_TICK times per ``env.step``; reading the state after
-        each one changes nothing in the simulation.
+        each one changes nothing in the simulation. Its forward passes and steps go through
+        :class:`StageReuse` (bit-identical, without MuJoCo's repeated stages inside a tick).
         """
-        sim_step = self._sim.step
+        from lq_ros.sim.stage_reuse import StageReuse  # imports MuJoCo: loaded in the background
+
+        stages = StageReuse(self._model, self._data)
         energy = self._energy
 
         def step_and_record() -> None:
-            sim_step()
+            stages.step()
             vel = self._data.qvel[self._qvel_idx]
             tau = self._data.actuator_force[self._torque_idx]
             energy[0] += 1.0
@@ -457,8 +463,9 @@ class LiberoEnv:
                 pos, quat = self._eef_pose()
                 self._substeps.append((pos, quat, vel.copy(), tau.copy()))
 
+        self._sim.forward = stages.forward
         self._sim.step = step_and_record
-        self._sim._lq_recording = True
+        self._sim._lq_stages = stages
 
 
 assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12
