@@ -5,11 +5,12 @@ start-up, env creation (once per worker and task), episodes, scoring and the dur
 CPU-second (the workers' CPU, their node processes included) is what sizes a cluster: a paper-sized run's
 episodes divided by it is the CPU-seconds it needs. The machine's load average is printed before and after,
 since a shared machine changes the figures. The simulation floor puts the wall in the machine's own terms: the
-sweep's ticks (each episode's, plus LIBERO's 10 wait steps per reset) times robosuite's bare ``env.step`` on this
-machine (measured before and after the sweeps in the same run, bench_transport.floor_per_tick), divided by the
-workers: no transport, bag, scoring or start-up can make a sweep faster than that. ``--spec FILE`` runs a spec
-file instead of the generated one (e.g. benchmarks/specs/demo_sweep.yaml); ``--transport`` then overrides the
-spec's.
+sweep's ticks (each episode's, plus LIBERO's 10 wait steps per reset) times ``LiberoEnv.step`` on this machine
+(robosuite's step with MuJoCo's repeated stages skipped; measured before and after the sweeps in the same run,
+bench_transport.floor_per_tick), divided by the workers: no transport, bag, scoring or start-up can make a sweep
+faster than that. The same ticks through robosuite's stock ``env.step`` are printed beside it. ``--spec FILE``
+runs a spec file instead of the generated one (e.g. benchmarks/specs/demo_sweep.yaml); ``--transport`` then
+overrides the spec's.
 
     .venv/bin/python benchmarks/bench_sweep.py [--transport inprocess] [--policy scripted] [--policy-arg K=V]
         [--tasks 2] [--inits 2] [--latencies 0 0.2] [--max-steps 0] [--workers 1 2] [--spec FILE] [--floor-ticks 200]
@@ -90,7 +91,7 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks:
     rates: dict[int, float] = {}
     walls: dict[int, float] = {}
     ticks: dict[int, int] = {}  # per worker count: episodes may end differently from run to run
-    step_before_s = floor_per_tick(floor_ticks)[0] if floor_ticks else 0.0
+    floor_before = floor_per_tick(floor_ticks) if floor_ticks else None
     for n in workers:
         out = Path(tempfile.mkdtemp(prefix=f"lq_bench_sweep_{n}w_"))
         load_before = os.getloadavg()[0]
@@ -107,17 +108,20 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks:
               f"{summary.ran / cpu:.3f} episodes per CPU-second ({dict(summary.counts)}; worker CPU {cpu:.0f} s; "
               f"load avg {load_before:.1f} -> {load_after:.1f} on {os.cpu_count()} cores)")  # fmt: skip
         shutil.rmtree(out, ignore_errors=True)
-    if floor_ticks and ticks:
-        step_after_s = floor_per_tick(floor_ticks)[0]
-        step_s = (step_before_s + step_after_s) / 2  # the machine's speed drifts during a long run
+    if floor_before and ticks:
+        floor_after = floor_per_tick(floor_ticks)
+        # the mean of before and after: the machine's speed drifts during a long run
+        step_s = (floor_before.env_step_s + floor_after.env_step_s) / 2
+        stock_s = (floor_before.robosuite_step_s + floor_after.robosuite_step_s) / 2
         per_workers = "; ".join(
             f"{n} worker(s): {ticks[n]} ticks, floor {ticks[n] * step_s / n:.1f} s, "
-            f"wall / floor {walls[n] * n / (ticks[n] * step_s):.2f}"
+            f"wall / floor {walls[n] * n / (ticks[n] * step_s):.2f}, through robosuite's stock step "
+            f"{ticks[n] * stock_s / n:.1f} s"
             for n in walls
         )
-        print(f"simulation floor (ticks, wait steps included, x bare env.step {1000 * step_s:.2f} ms: the mean of "
-              f"{1000 * step_before_s:.2f} ms before the sweeps and {1000 * step_after_s:.2f} ms after / workers): "
-              f"{per_workers}")  # fmt: skip
+        print(f"simulation floor (ticks, wait steps included, x LiberoEnv.step {1000 * step_s:.2f} ms: the mean of "
+              f"{1000 * floor_before.env_step_s:.2f} ms before the sweeps and {1000 * floor_after.env_step_s:.2f} ms "
+              f"after / workers; robosuite's stock env.step {1000 * stock_s:.2f} ms): {per_workers}")  # fmt: skip
     if len(rates) >= 2:
         lo, hi = min(rates), max(rates)
         print(f"speed-up {hi} vs {lo} worker(s): {rates[hi] / rates[lo]:.2f}x")

@@ -9,10 +9,12 @@ state cycles over 0..9 so consecutive episodes differ. Then the reset of one env
 the MjSim) against soft (LiberoEnv's default after the first reset), both including LIBERO's 10 wait
 steps, alternated in the same process.
 
-The floor: the same scene's bare robosuite ``env.step`` per tick (LIBERO's ControlEnv, no wrapper, no energy
-integration, no messages, no bag), the MuJoCo calls it makes (per substep two ``mj_forward`` and an ``mj_step``:
-the rest of env.step is robosuite's Python), raw ``mj_step`` x 25 (the physics alone), and the in-process tick's
-ratio to env.step and mj_step (target: within 1.3x of bare env.step). Where (b)'s time goes: the CPU seconds each
+The floor: the same scene's stock robosuite ``env.step`` per tick (LIBERO's ControlEnv with MjSim's own forward
+and step: no wrapper, no energy integration, no messages, no bag) and the MuJoCo calls it makes (per substep two
+``mj_forward`` and an ``mj_step``: the rest of env.step is robosuite's Python); the same calls with their repeated
+position and velocity stages skipped (lq_ros.sim.stage_reuse, bit-identical) and ``LiberoEnv.step``, which uses
+them; raw ``mj_step`` x 25 (the physics alone); and the in-process tick's ratio to each (target: within 1.3x of
+robosuite's env.step). Where (b)'s time goes: the CPU seconds each
 of its node processes used per episode (episodes 2.., from /proc), against (a)'s wall per episode. A slow policy: with
 ``--slow-policy S`` the scripted expert sleeps S wall seconds per inference at Δt_sim 0.2 s, in process and
 through the long-lived stack, where the policy node's inference overlaps the simulation of the ticks that do not
@@ -30,6 +32,8 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -104,15 +108,19 @@ def main() -> None:
     if args.floor_ticks:
         # The in-process tick over the episodes after the first (which builds the env): wall per tick.
         tick_s = statistics.median(t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True))
-        step_s, mj_s, physics_s = floor_per_tick(args.floor_ticks)
-        print(
-            f"floor per tick: bare env.step {1000 * step_s:.2f} ms, of which the MuJoCo calls robosuite makes "
-            f"((2 mj_forward + mj_step) x 25) {1000 * physics_s:.2f} ms and robosuite's Python around them "
-            f"{100 * (1 - physics_s / step_s):.0f} %"
-        )
-        print(f"  raw mj_step x 25 {1000 * mj_s:.2f} ms; "
-              f"in-process tick {1000 * tick_s:.2f} ms (median, episodes 2..) = {tick_s / step_s:.2f}x env.step "
-              f"(target <= 1.3), {tick_s / mj_s:.2f}x mj_step")  # fmt: skip
+        floor = floor_per_tick(args.floor_ticks)
+        step_s = floor.robosuite_step_s
+        print(f"floor per tick: robosuite's env.step {1000 * step_s:.2f} ms, of which its MuJoCo calls "
+              f"((2 mj_forward + mj_step) x 25) {1000 * floor.robosuite_mujoco_s:.2f} ms and its Python around them "
+              f"{100 * (1 - floor.robosuite_mujoco_s / step_s):.0f} %")  # fmt: skip
+        print(f"  the same calls with repeated stages skipped (StageReuse) {1000 * floor.reused_mujoco_s:.2f} ms "
+              f"({floor.reused_mujoco_s / floor.robosuite_mujoco_s:.2f}x); "
+              f"LiberoEnv.step {1000 * floor.env_step_s:.2f} ms ({floor.env_step_s / step_s:.2f}x robosuite's "
+              f"env.step); raw mj_step x 25 "
+              f"{1000 * floor.mj_step_s:.2f} ms")  # fmt: skip
+        print(f"  in-process tick {1000 * tick_s:.2f} ms (median, episodes 2..) = {tick_s / step_s:.2f}x robosuite's "
+              f"env.step (target <= 1.3), {tick_s / floor.env_step_s:.2f}x LiberoEnv.step, "
+              f"{tick_s / floor.mj_step_s:.2f}x mj_step")  # fmt: skip
     if args.slow_policy:
         slow(args.slow_policy, out)
     print(f"load average after: {os.getloadavg()[0]:.2f}")
@@ -128,16 +136,25 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> tuple[float, float, float]:
-    """Wall seconds per tick, on the same scene (no cameras), of robosuite's own env.step, of 25 raw mj_step, and of
-    the MuJoCo calls robosuite's step makes (per physics substep its loop's mj_forward, its controller's mj_forward
-    and mj_step: env.step minus this is robosuite's Python around the physics). The raw loops start from the state
-    env.step started from and hold its last controls."""
+@dataclass(frozen=True)
+class Floor:
+    """Wall seconds per tick on one scene (no cameras), all from the same start state with the same action."""
+
+    robosuite_step_s: float  #: robosuite's own env.step (LIBERO's ControlEnv, MjSim's own forward and step)
+    env_step_s: float  #: LiberoEnv.step: the same physics through StageReuse, energy integrated, tick state built
+    robosuite_mujoco_s: float  #: the MuJoCo calls of robosuite's step: (mj_forward x 2 + mj_step) x 25
+    reused_mujoco_s: float  #: the same three passes through StageReuse (repeated stages skipped) x 25
+    mj_step_s: float  #: raw mj_step x 25: the physics alone
+
+
+def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> Floor:
+    """The simulation floor of a tick (:class:`Floor`), each loop timed for ``n_ticks`` ticks."""
     import mujoco
     import numpy as np
 
     from lq_ros.core.suite_constants import SUBSTEPS_PER_TICK
     from lq_ros.sim.libero_env import LiberoEnv
+    from lq_ros.sim.stage_reuse import StageReuse
 
     env = LiberoEnv(suite, task)
     env.reset(0, 7)
@@ -146,22 +163,53 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
     model, start_data = sim.model._model, copy.copy(sim.data._data)
     action = np.zeros(7)
     action[-1] = -1.0
-    start = time.perf_counter()
-    for _ in range(n_ticks):
-        control_env.step(action)
-    step_s = (time.perf_counter() - start) / n_ticks
-    per_substep = {"mj_step": (mujoco.mj_step,), "robosuite": (mujoco.mj_forward, mujoco.mj_forward, mujoco.mj_step)}
-    raw_s = {}
-    for name, calls in per_substep.items():
-        data = copy.copy(start_data)
-        data.ctrl[:] = sim.data._data.ctrl
+
+    def per_tick(step: Callable[[], object]) -> float:
         start = time.perf_counter()
-        for _ in range(n_ticks * SUBSTEPS_PER_TICK):
-            for call in calls:
-                call(model, data)
-        raw_s[name] = (time.perf_counter() - start) / n_ticks
+        for _ in range(n_ticks):
+            step()
+        return (time.perf_counter() - start) / n_ticks
+
+    wrapped = sim.forward, sim.step
+    del sim.forward, sim.step  # robosuite's own MjSim methods for the stock loop
+    try:
+        robosuite_s = per_tick(lambda: control_env.step(action))
+    finally:
+        sim.forward, sim.step = wrapped
+    ctrl = sim.data._data.ctrl.copy()  # the raw loops below hold these controls
+    env.reset(0, 7)  # soft: the same start state again (tests/sim/test_libero_env.py)
+    env_step_s = per_tick(lambda: env.step(action))
+
+    def raw(calls_per_substep: Callable[[mujoco.MjData], None]) -> float:
+        data = copy.copy(start_data)
+        data.ctrl[:] = ctrl
+        return per_tick(lambda: [calls_per_substep(data) for _ in range(SUBSTEPS_PER_TICK)])
+
+    def robosuite_calls(data: mujoco.MjData) -> None:
+        mujoco.mj_forward(model, data)
+        mujoco.mj_forward(model, data)
+        mujoco.mj_step(model, data)
+
+    reuse_data = copy.copy(start_data)
+    reuse_data.ctrl[:] = ctrl
+    stages = StageReuse(model, reuse_data)
+
+    def reused_tick() -> None:
+        with stages.tick():
+            for _ in range(SUBSTEPS_PER_TICK):
+                stages.forward()
+                stages.forward()
+                stages.step()
+
+    floor = Floor(
+        robosuite_step_s=robosuite_s,
+        env_step_s=env_step_s,
+        robosuite_mujoco_s=raw(robosuite_calls),
+        reused_mujoco_s=per_tick(reused_tick),
+        mj_step_s=raw(lambda data: mujoco.mj_step(model, data)),
+    )
     env.close()
-    return step_s, raw_s["mj_step"], raw_s["robosuite"]
+    return floor
 
 
 def slow(sleep_s: float, out: Path, episodes: int = 3) -> None:
