@@ -70,14 +70,14 @@ class StageReuse:
         qpos = self._qpos_normalized
         qpos[:] = data.qpos
         mujoco.mj_normalizeQuat(self._model, qpos)
-        if not np.array_equal(qpos, data.qpos):
+        if qpos.tobytes() != data.qpos.tobytes():  # bits, not values: -0.0 and 0.0 differ, so may a NaN
             return False
         if self._model.nmocap:
             quats = self._mocap_quat_normalized
             quats[:] = data.mocap_quat
             for quat in quats:
                 mujoco.mju_normalize4(quat)
-            return bool(np.array_equal(quats, data.mocap_quat))
+            return quats.tobytes() == data.mocap_quat.tobytes()
         return True
 
     def forward(self) -> None:
