@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -79,13 +80,21 @@ def main() -> None:
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     out = Path(tempfile.mkdtemp(prefix="lq_bench_first_"))
+    try:
+        measure(args.repeats, out)
+    finally:
+        shutil.rmtree(out, ignore_errors=True)  # its bags and compiled models (about 80 MB)
+
+
+def measure(repeats: int, out: Path) -> None:
+    """Run and print every figure; ``out`` holds the commands' bags and the model cache."""
     cache = str(out / "models")
     wall_s(PHASES["env"], out, cache)  # fills the cache (unmeasured)
     runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
             **{f"{name} (cold)": (PHASES[name], "off") for name in ("episode", "ROS")}}  # fmt: skip
     times: dict[str, list[float]] = {name: [] for name in runs}
     ends: list[float] = []  # the ROS commands' ends (score file written -> exit), warm and cold
-    for _ in range(args.repeats):
+    for _ in range(repeats):
         for name, (argv, cache_setting) in runs.items():
             elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting)
             times[name].append(elapsed)
@@ -105,14 +114,14 @@ def main() -> None:
     for label, suffix in (("warm", ""), ("cold", " (cold)")):
         episode, ros = median[f"episode{suffix}"], median[f"ROS{suffix}"]
         print(f"targets, {label}: in process {episode:.2f} s <= 4 s; ROS {ros:.2f} s <= in process + 1.5 s = "
-              f"{episode + 1.5:.2f} s (+{ros - episode:.2f} s)  (medians of {args.repeats})")  # fmt: skip
-    normal, uncollected = exit_times(args.repeats, cache)
-    print(f"exit of a process with the task's env (median of {args.repeats}, from its last statement to its end): "
+              f"{episode + 1.5:.2f} s (+{ros - episode:.2f} s)  (medians of {repeats})")  # fmt: skip
+    normal, uncollected = exit_times(repeats, cache)
+    print(f"exit of a process with the task's env (median of {repeats}, from its last statement to its end): "
           f"the interpreter's normal exit {normal:.2f} s, lq_ros.transport.processes.exit_uncollected "
           f"{uncollected:.2f} s (the node programs' exit)")  # fmt: skip
-    textured, light, cached = compile_times(args.repeats, Path(cache))
+    textured, light, cached = compile_times(repeats, Path(cache))
     size_mb = sum(f.stat().st_size for f in Path(cache).glob("*.mjb")) / 1e6
-    print(f"scene (median of {args.repeats}): compiled with image textures {textured:.2f} s, without "
+    print(f"scene (median of {repeats}): compiled with image textures {textured:.2f} s, without "
           f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
           f"{cached:.2f} s (its file: {size_mb:.1f} MB)")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")

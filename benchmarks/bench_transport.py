@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import copy
 import os
+import shutil
 import statistics
 import tempfile
 import time
@@ -55,12 +56,20 @@ def main() -> None:
     parser.add_argument("--floor-ticks", type=int, default=200, help="ticks of bare env.step and mj_step (0: skip)")
     parser.add_argument("--slow-policy", type=float, default=0.15, help="sleep per inference, s (0: skip)")
     args = parser.parse_args()
+    out = Path(tempfile.mkdtemp(prefix="lq_bench_"))
+    try:
+        measure(args, out)
+    finally:
+        shutil.rmtree(out, ignore_errors=True)  # the episodes' bags
+
+
+def measure(args: argparse.Namespace, out: Path) -> None:
+    """Run and print every figure; ``out`` holds the episodes' bags."""
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     cfgs = [
         RunConfig(policy=args.policy, mode=args.mode, latency_s=args.latency, max_steps=args.max_steps, init=i % 10)
         for i in range(args.episodes)
     ]
-    out = Path(tempfile.mkdtemp(prefix="lq_bench_"))
     names = ("inprocess", "ros_stack", "ros_fresh")
     times: dict[str, list[float]] = {n: [] for n in names}
     ticks: dict[str, list[int]] = {n: [] for n in names}

@@ -8,7 +8,10 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-os.environ.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="lq_test_roslog_"))
+# The nodes' ROS logs go to a folder of the session's own, removed at the end (a user's ROS_LOG_DIR is kept).
+_ROS_LOG_DIR = None if "ROS_LOG_DIR" in os.environ else tempfile.mkdtemp(prefix="lq_test_roslog_")
+if _ROS_LOG_DIR:
+    os.environ["ROS_LOG_DIR"] = _ROS_LOG_DIR
 os.environ.setdefault("MUJOCO_GL", "egl")
 # The session's processes share their compiled scenes (lq_ros.sim.model_cache) in a folder of their own, removed
 # at the end, not in the user's cache.
@@ -22,7 +25,9 @@ ROS_TESTS = Path(__file__).resolve().parent / "transport" / "ros"
 
 
 def pytest_sessionfinish(session, exitstatus) -> None:
-    shutil.rmtree(_MODEL_CACHE, ignore_errors=True)
+    for folder in (_MODEL_CACHE, _ROS_LOG_DIR):
+        if folder:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(items) -> None:
