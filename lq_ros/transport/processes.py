@@ -11,9 +11,11 @@ import ctypes
 import fcntl
 import gc
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -191,6 +193,50 @@ class ShmTracker:
             finally:
                 os.close(fd)
         return removed
+
+
+#: The lock file in a folder made by :func:`owned_temp_folder`: locked for as long as the folder's owner lives.
+OWNER_LOCK = ".owner.lock"
+
+
+def owned_temp_folder(prefix: str, parent: Path | None = None) -> tuple[Path, int]:
+    """A new temporary folder, and the descriptor of the lock that marks it in use.
+
+    The lock (``flock``) lasts until the descriptor is closed or the process dies, kill -9 included; the owner
+    removes the folder itself when done, and :func:`remove_orphaned_folders` removes those of owners that died.
+    """
+    folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    fd = os.open(folder / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # (a new file: nobody else has it)
+    return folder, fd
+
+
+def remove_orphaned_folders(prefix: str, parent: Path | None = None, min_age_s: float = 60.0) -> list[Path]:
+    """Remove the folders :func:`owned_temp_folder` made with ``prefix`` whose owner died without removing them
+    (a launcher killed with SIGKILL leaves its node logs); returns them.
+
+    A folder counts once its lock file is older than ``min_age_s`` and nobody holds the lock; folders without a
+    lock file (not made by :func:`owned_temp_folder`) are left alone.
+    """
+    removed = []
+    now = time.time()
+    for lock_path in Path(parent or tempfile.gettempdir()).glob(f"{prefix}*/{OWNER_LOCK}"):
+        try:
+            if now - lock_path.stat().st_mtime < min_age_s:
+                continue
+            fd = os.open(lock_path, os.O_RDWR)
+        except OSError:
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                continue  # its owner lives
+            shutil.rmtree(lock_path.parent, ignore_errors=True)
+            removed.append(lock_path.parent)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def process_group_members(pgid: int) -> list[int]:

@@ -17,13 +17,13 @@ import os
 import shutil
 import socket
 import tarfile
-import tempfile
 import time
 from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import episode_folders
 from lq_ros.run.sweep.worker import EpisodeWorker, default_workers
+from lq_ros.transport.processes import owned_temp_folder, remove_orphaned_folders
 
 
 def _pack_dir(path: Path) -> bytes:
@@ -38,12 +38,17 @@ def _unpack_dir(data: bytes, dest_parent: Path) -> None:
         tar.extractall(dest_parent, filter="data")
 
 
+#: A Ray worker's folder (its bags before they travel, its logs) in the temp folder: lq_ray_worker_<random>.
+WORKER_PREFIX = "lq_ray_worker_"
+
+
 class _RayEpisodeActor:
     """One Ray worker: runs episodes into its own bag folder and ships each bag back with the result."""
 
     def __init__(self, transport: str, timeout_s: float | None) -> None:
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-        self.root = Path(tempfile.mkdtemp(prefix="lq_ray_worker_"))
+        remove_orphaned_folders(WORKER_PREFIX)  # those of workers that were killed (a Ray cluster's shutdown)
+        self.root, self._root_lock = owned_temp_folder(WORKER_PREFIX)
         self.worker = EpisodeWorker(transport, self.root / "bags", timeout_s)
 
     def run(self, cfg_dict: dict) -> dict:
@@ -67,6 +72,7 @@ class _RayEpisodeActor:
     def close(self) -> None:
         self.worker.close()
         shutil.rmtree(self.root, ignore_errors=True)
+        os.close(self._root_lock)
 
 
 class RayConnectError(RuntimeError):

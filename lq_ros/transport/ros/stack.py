@@ -47,7 +47,14 @@ from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import logs_dir
 from lq_ros.robot.observation_builder import Requirements, check_robot
 from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS, RobotConfig
-from lq_ros.transport.processes import ShmTracker, die_with_parent, executor_choice, stop_processes
+from lq_ros.transport.processes import (
+    ShmTracker,
+    die_with_parent,
+    executor_choice,
+    owned_temp_folder,
+    remove_orphaned_folders,
+    stop_processes,
+)
 from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
 
 #: The managed nodes of a simulated run (against a robot the bridge replaces the sim: stack_roles).
@@ -64,6 +71,8 @@ DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7
 DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
 #: Wall seconds between two looks at which /dev/shm files the nodes own.
 SHM_SAMPLE_PERIOD_S = 0.25
+#: A stack's work folder (node logs, the params file) in the temp folder: lq_run_<random>.
+WORK_PREFIX = "lq_run_"
 
 
 @dataclass(frozen=True)
@@ -193,7 +202,8 @@ class RosStack:
     def __init__(self, domain_id: int | None = None) -> None:
         self._exit = contextlib.ExitStack()
         self.domain = self._exit.enter_context(reserved_domain(domain_id))
-        self.work = Path(tempfile.mkdtemp(prefix="lq_run_"))
+        remove_orphaned_folders(WORK_PREFIX)  # those of launchers killed with SIGKILL (their nodes' logs)
+        self.work, self._work_lock = owned_temp_folder(WORK_PREFIX)
         self.params_file = self.work / "params.yaml"
         # A node (re)started reads this file in rclpy.init and dies without it ("Couldn't parse params file"):
         # processes started before the first episode (start()) get the defaults, which that episode's
@@ -491,6 +501,7 @@ class RosStack:
                     self._collect_logs(*logs_to)
             self._exit.close()
             shutil.rmtree(self.work, ignore_errors=True)
+            os.close(self._work_lock)
 
 
 def _label(name: str) -> str:
