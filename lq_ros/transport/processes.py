@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import FrameType
 from typing import NoReturn
@@ -177,22 +177,34 @@ class ShmTracker:
             lock_path = SHM_DIR / f"{name}_el"
             if not lock_path.exists() and not any(f.exists() for f in files):
                 continue  # Fast DDS removed them itself (a clean exit)
-            try:
-                fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
-            except OSError:
-                continue
-            try:
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except OSError:
+            with ownerless(lock_path, create=True) as free:
+                if not free:
                     continue  # a live participant owns it
                 for path in (*files, lock_path):
                     with contextlib.suppress(FileNotFoundError):
                         path.unlink()
                         removed.append(path.name)
-            finally:
-                os.close(fd)
         return removed
+
+
+@contextlib.contextmanager
+def ownerless(lock_path: Path, create: bool = False) -> Iterator[bool]:
+    """True, holding the lock of ``lock_path``, when nobody else holds it (its owner is gone); False when a live
+    process holds it or the file cannot be opened (``create``: make it if missing)."""
+    try:
+        fd = os.open(lock_path, os.O_RDWR | (os.O_CREAT if create else 0), 0o644)
+    except OSError:
+        yield False
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)
 
 
 #: The lock file in a folder made by :func:`owned_temp_folder`: locked for as long as the folder's owner lives.
@@ -221,21 +233,13 @@ def remove_orphaned_folders(prefix: str, parent: Path | None = None, min_age_s: 
     removed = []
     now = time.time()
     for lock_path in Path(parent or tempfile.gettempdir()).glob(f"{prefix}*/{OWNER_LOCK}"):
-        try:
+        with contextlib.suppress(OSError):
             if now - lock_path.stat().st_mtime < min_age_s:
                 continue
-            fd = os.open(lock_path, os.O_RDWR)
-        except OSError:
-            continue
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                continue  # its owner lives
-            shutil.rmtree(lock_path.parent, ignore_errors=True)
-            removed.append(lock_path.parent)
-        finally:
-            os.close(fd)
+        with ownerless(lock_path) as free:
+            if free:  # (else its owner lives)
+                shutil.rmtree(lock_path.parent, ignore_errors=True)
+                removed.append(lock_path.parent)
     return removed
 
 
