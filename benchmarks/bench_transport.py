@@ -193,9 +193,14 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
     env.reset(0, 7)  # soft: the same start state again (tests/sim/test_libero_env.py)
     env_step_s = per_tick(lambda: env.step(action))
 
-    def raw(calls_per_substep: Callable[[mujoco.MjData], None]) -> float:
+    def start() -> mujoco.MjData:
+        """A copy of the start state holding those controls."""
         data = copy.copy(start_data)
         data.ctrl[:] = ctrl
+        return data
+
+    def raw(calls_per_substep: Callable[[mujoco.MjData], None]) -> float:
+        data = start()
         return per_tick(lambda: [calls_per_substep(data) for _ in range(SUBSTEPS_PER_TICK)])
 
     def robosuite_calls(data: mujoco.MjData) -> None:
@@ -203,9 +208,7 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
         mujoco.mj_forward(model, data)
         mujoco.mj_step(model, data)
 
-    reuse_data = copy.copy(start_data)
-    reuse_data.ctrl[:] = ctrl
-    stages = StageReuse(model, reuse_data)
+    stages = StageReuse(model, start())
 
     def reused_tick() -> None:
         with stages.tick():

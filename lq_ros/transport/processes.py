@@ -233,9 +233,12 @@ def remove_orphaned_folders(prefix: str, parent: Path | None = None, min_age_s: 
     removed = []
     now = time.time()
     for lock_path in Path(parent or tempfile.gettempdir()).glob(f"{prefix}*/{OWNER_LOCK}"):
-        with contextlib.suppress(OSError):
-            if now - lock_path.stat().st_mtime < min_age_s:
-                continue
+        try:
+            age_s = now - lock_path.stat().st_mtime
+        except OSError:  # removed meanwhile
+            continue
+        if age_s < min_age_s:
+            continue
         with ownerless(lock_path) as free:
             if free:  # (else its owner lives)
                 shutil.rmtree(lock_path.parent, ignore_errors=True)
