@@ -6,7 +6,7 @@ from setuptools.command.build_py import build_py
 
 package_name = "lq_ros"
 HERE = Path(__file__).resolve().parent
-# msg_schemas/ and config/robots/ keep their one copy at the top of the source tree; lq_ros.core.shipped names them.
+# The shipped top-level folders (msg_schemas/, config/robots/, config/dds/): lq_ros.core.shipped names them.
 _shipped = runpy.run_path(str(HERE / "lq_ros" / "core" / "shipped.py"))
 SHIPPED, SHIPPED_DIR_NAME = _shipped["SHIPPED"], _shipped["SHIPPED_DIR"].name
 

@@ -19,6 +19,10 @@ _MODEL_CACHE = tempfile.mkdtemp(prefix="lq_test_models_")
 os.environ.setdefault("LQ_MODEL_CACHE", _MODEL_CACHE)
 
 import lq_ros  # noqa: E402,F401 - its OpenBLAS kernel pinning must precede numpy, as in every entry point
+from lq_ros.transport.ros.stack import FASTDDS_PROFILE, FASTDDS_PROFILES_ENV  # noqa: E402 - (imports no rclpy)
+
+# The test's own rclpy participants discover the nodes as fast as the nodes discover each other.
+os.environ.setdefault(FASTDDS_PROFILES_ENV, str(FASTDDS_PROFILE))
 
 #: Every test below this folder starts ROS nodes or imports rclpy: marked ``ros`` (pyproject.toml's markers).
 ROS_TESTS = Path(__file__).resolve().parent / "transport" / "ros"
