@@ -103,6 +103,7 @@ def measure(args: argparse.Namespace, out: Path) -> None:
         steps = statistics.mean(ticks[name])
         print(f"{labels[name]:22s} wall per episode {t:6.2f} s  ({steps:.0f} ticks, {1000 * t / steps:.1f} ms per tick;"
               f" first {times[name][0]:.2f} s, median {statistics.median(times[name]):.2f} s)")  # fmt: skip
+        print(f"{'':22s} each: {' '.join(f'{t:.2f}' for t in times[name])} s")
     base, base_median = statistics.mean(times["inprocess"]), statistics.median(times["inprocess"])
     print(f"(b)/(a): {statistics.mean(times['ros_stack']) / base:.2f} on means, "
           f"{statistics.median(times['ros_stack']) / base_median:.2f} on medians  (target <= 1.1)")  # fmt: skip

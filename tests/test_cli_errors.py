@@ -77,6 +77,13 @@ def test_an_unknown_node_executor_is_refused_in_one_line(tmp_path, monkeypatch):
     assert not out.exists()
 
 
+def test_an_unknown_sim_cpu_choice_is_refused_in_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("LQ_SIM_CPU", "3")
+    out = tmp_path / "bags"
+    assert_refused(lq("run", "--out", str(out)), "LQ_SIM_CPU must be auto or off, got '3'")
+    assert not out.exists()
+
+
 def test_a_bad_model_cache_limit_is_refused_in_one_line(tmp_path, monkeypatch):
     monkeypatch.setenv("LQ_MODEL_CACHE_MB", "-1")
     out = tmp_path / "bags"

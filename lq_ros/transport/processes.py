@@ -28,6 +28,9 @@ from typing import NoReturn
 #: tick that waits for a message chain through three nodes (the chunk due, the request, the observation) waits
 #: about a third less (benchmarks/bench_transport.py).
 EXECUTOR_ENV, EXECUTORS = "LQ_RCLPY_EXECUTOR", ("events", "single_threaded")
+#: Lockstep episodes run the sim node's stepping thread on a CPU of its own (lq_ros.transport.ros.stack): ``auto``
+#: picks one that no other stack's sim holds, ``off`` leaves the choice to the OS scheduler.
+SIM_CPU_ENV, SIM_CPU_CHOICES = "LQ_SIM_CPU", ("auto", "off")
 
 
 def executor_choice(environ: dict[str, str]) -> str:
@@ -36,6 +39,14 @@ def executor_choice(environ: dict[str, str]) -> str:
     if name not in EXECUTORS:
         raise ValueError(f"{EXECUTOR_ENV} must be {' or '.join(EXECUTORS)}, got {name!r}")
     return name
+
+
+def sim_cpu_choice(environ: dict[str, str]) -> str:
+    """What :data:`SIM_CPU_ENV` says (ValueError naming the valid values)."""
+    choice = environ.get(SIM_CPU_ENV) or SIM_CPU_CHOICES[0]
+    if choice not in SIM_CPU_CHOICES:
+        raise ValueError(f"{SIM_CPU_ENV} must be {' or '.join(SIM_CPU_CHOICES)}, got {choice!r}")
+    return choice
 
 
 #: prctl option from <linux/prctl.h>.

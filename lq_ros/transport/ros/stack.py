@@ -55,6 +55,7 @@ from lq_ros.transport.processes import (
     executor_choice,
     owned_temp_folder,
     remove_orphaned_folders,
+    sim_cpu_choice,
     stop_processes,
 )
 from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
@@ -71,6 +72,8 @@ STANDIN_MODULE = "lq_ros_nodes.robot_standin"
 #: ROS_DOMAIN_IDs handed to concurrent runs (0, the default, is left to other ROS software).
 DOMAIN_IDS = range(20, 100)  # below the ephemeral port range (Fast DDS port = 7400 + 250 * id)
 DOMAIN_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_domains"
+#: The CPUs held by stacks' sims (reserved_sim_cpu), one lock file per CPU.
+CPU_LOCK_DIR = Path(tempfile.gettempdir()) / "lq_ros_cpus"
 #: Wall seconds between two looks at which /dev/shm files the nodes own.
 SHM_SAMPLE_PERIOD_S = 0.25
 #: A stack's work folder (node logs, the params file) in the temp folder: lq_run_<random>.
@@ -90,20 +93,19 @@ class DomainReservation:
 
 
 @contextmanager
-def reserved_domain(domain_id: int | None = None):
-    """Hold an exclusive lock on a ROS domain id for the duration of a run.
+def _first_free_lock(lock_dir: Path, candidates: Sequence[int], unusable: list[str]):
+    """Hold an exclusive ``flock`` on the lock file of the first candidate nobody holds; yields (candidate, lock
+    descriptor), or None when every candidate is held. A lock file this user cannot open is noted in ``unusable``.
 
-    The lock (``flock``) belongs to the open lock file, so it lasts while any process holding that file
-    lives: the nodes inherit it, and a domain whose nodes outlive a killed launcher is not handed out again.
+    The lock belongs to the open lock file, so it lasts while any process holding that file lives (a child started
+    with the descriptor in ``pass_fds`` keeps it until it exits).
     """
-    DOMAIN_LOCK_DIR.mkdir(exist_ok=True)
-    candidates = [domain_id] if domain_id is not None else list(DOMAIN_IDS)
-    unusable: list[str] = []  # lock files this user cannot open (another user's, a directory): those ids are skipped
-    for did in candidates:
+    lock_dir.mkdir(exist_ok=True)
+    for candidate in candidates:
         try:
-            handle = open(DOMAIN_LOCK_DIR / f"{did}.lock", "w")  # noqa: SIM115 - held while the run lasts
+            handle = open(lock_dir / f"{candidate}.lock", "w")  # noqa: SIM115 - held while the run lasts
         except OSError as exc:
-            unusable.append(f"{did} ({exc.strerror or exc})")
+            unusable.append(f"{candidate} ({exc.strerror or exc})")
             continue
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -111,17 +113,46 @@ def reserved_domain(domain_id: int | None = None):
             handle.close()
             continue
         try:
-            yield DomainReservation(did, handle.fileno())
+            yield candidate, handle.fileno()
         finally:
-            handle.close()  # no LOCK_UN: that would release the lock for the nodes that still hold it too
+            handle.close()  # no LOCK_UN: that would release the lock for the children that still hold it too
         return
+    yield None
+
+
+@contextmanager
+def reserved_domain(domain_id: int | None = None):
+    """Hold an exclusive lock on a ROS domain id for the duration of a run.
+
+    The nodes inherit the lock, so a domain whose nodes outlive a killed launcher is not handed out again.
+    """
+    candidates = [domain_id] if domain_id is not None else list(DOMAIN_IDS)
+    unusable: list[str] = []  # lock files this user cannot open (another user's, a directory): those ids are skipped
+    with _first_free_lock(DOMAIN_LOCK_DIR, candidates, unusable) as held:
+        if held is not None:
+            yield DomainReservation(*held)
+            return
     skipped = f"; lock files not usable by this user: {', '.join(unusable)} in {DOMAIN_LOCK_DIR}" if unusable else ""
     raise RuntimeError(f"no free ROS domain id among {candidates} (another run holds each){skipped}")
+
+
+@contextmanager
+def reserved_sim_cpu():
+    """A CPU this process may run on that no other stack's sim holds (an ``flock``, as for domain ids), or None:
+    with fewer than two such CPUs (a sim alone on the only one gains nothing), when every one is held (more
+    stacks than CPUs) or when LQ_SIM_CPU (processes.SIM_CPU_ENV) is ``off``. Yields (cpu, lock descriptor) or None."""
+    allowed = sorted(os.sched_getaffinity(0))
+    if sim_cpu_choice(dict(os.environ)) == "off" or len(allowed) < 2:
+        yield None
+        return
+    with _first_free_lock(CPU_LOCK_DIR, allowed, []) as held:
+        yield held
 
 
 def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
     env = dict(os.environ)
     executor_choice(env)  # a wrong value is refused here, in one line, not by five node processes
+    sim_cpu_choice(env)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env.setdefault(FASTDDS_PROFILES_ENV, str(FASTDDS_PROFILE))
     env["ROS_DOMAIN_ID"] = str(domain_id)
@@ -218,6 +249,11 @@ class RosStack:
         # set_parameters calls then override, as they override every later episode's file.
         self._write_params({"/**": RunConfig().ros_parameters()})
         self.env = child_environment(self.domain.id, self.work / "ros_logs")
+        # The CPU this stack's sim steps on in lockstep episodes (None: the OS scheduler's choice); see _pin_sim.
+        self.cpus = os.sched_getaffinity(0)
+        held = self._exit.enter_context(reserved_sim_cpu())
+        self.sim_cpu, cpu_lock = held if held is not None else (None, None)
+        self._lock_fds = (self.domain.lock_fd,) + ((cpu_lock,) if cpu_lock is not None else ())
         self.procs: dict[str, subprocess.Popen] = {}
         self.shm = ShmTracker()
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
@@ -251,7 +287,7 @@ class RosStack:
             stderr=log if manager else subprocess.STDOUT,
             stdin=subprocess.PIPE if manager else subprocess.DEVNULL,
             preexec_fn=die_with_parent,
-            pass_fds=(self.domain.lock_fd,),
+            pass_fds=self._lock_fds,
         )
         log.close()
         if manager:
@@ -282,6 +318,21 @@ class RosStack:
                     # stale configuration must never be activated.
                     self._keys = None
             self._spawn(name)
+
+    def _pin_sim(self, pin: bool) -> None:
+        """Run the sim node's main thread (its stepping) on the stack's own CPU (``pin``), or on any CPU again.
+
+        A lockstep episode's wall time is the sim's stepping plus the waits for the other nodes, which wake on
+        every tick's messages: left to the scheduler, the sim is moved between the CPUs they wake on and steps
+        through cold caches (measured: about a tenth more CPU time per tick, benchmarks/bench_transport.py). Only
+        the main thread is pinned, and only while a lockstep episode is active: threads it starts meanwhile inherit
+        the CPU, so configure (the env, the renderer) runs unpinned; a real-time episode is left to the scheduler.
+        """
+        sim = self.procs.get("sim")
+        if self.sim_cpu is None or sim is None or sim.poll() is not None:
+            return
+        with suppress(OSError):  # (it may be exiting)
+            os.sched_setaffinity(sim.pid, {self.sim_cpu} if pin else self.cpus)
 
     def _dead(self) -> list[str]:
         return [n for n, p in self.procs.items() if p.poll() is not None]
@@ -409,6 +460,7 @@ class RosStack:
             # All after a refused transition or a restarted node (None): configure everything again (cleanup of
             # an unconfigured node is skipped, so a fresh stack just configures).
             reconfigure = [NODE_NAMES[n] for n in self.roles if self._keys is None or keys[n] != self._keys[n]]
+            self._pin_sim(False)  # whatever configure starts (the renderer's threads) may use every CPU
             self._send({"op": "episode", "params": per_node, "reconfigure": reconfigure})
             deadline = time.monotonic() + timeout_s
             reply, reason = self._await(("active",), deadline)
@@ -417,6 +469,7 @@ class RosStack:
                 self._keys = None  # configure everything again next time
             elif reply is not None:
                 self._keys = keys
+                self._pin_sim(cfg.clock == "lockstep")
                 reply, reason = self._await(("done",), deadline)
             if reason == "timeout":
                 reason = f"episode did not end within {timeout_s:.0f} s (wall clock)"

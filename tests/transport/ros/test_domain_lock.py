@@ -1,4 +1,5 @@
-"""The free ROS_DOMAIN_ID search: a lock file this user cannot open costs that id only, never the search."""
+"""The lock-file reservations of a stack: the free ROS_DOMAIN_ID search (a lock file this user cannot open costs that
+id only, never the search) and the CPU a stack's sim steps on (one per stack while CPUs last)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import fcntl
 
 import pytest
 
+from lq_ros.transport.processes import SIM_CPU_ENV
 from lq_ros.transport.ros import stack
 
 
@@ -40,3 +42,33 @@ def test_a_requested_id_with_an_unopenable_lock_is_refused_with_the_reason(lock_
         pass
     with stack.reserved_domain(22) as domain:
         assert domain.id == 22
+
+
+@pytest.fixture
+def three_cpus(tmp_path, monkeypatch):
+    """A private CPU lock folder and a process allowed on CPUs 0, 2 and 5."""
+    monkeypatch.setattr(stack, "CPU_LOCK_DIR", tmp_path / "cpus")
+    monkeypatch.setattr(stack.os, "sched_getaffinity", lambda pid: {5, 0, 2})
+    monkeypatch.delenv(SIM_CPU_ENV, raising=False)
+
+
+def test_each_stacks_sim_gets_a_cpu_of_its_own_while_they_last(three_cpus):
+    with stack.reserved_sim_cpu() as a, stack.reserved_sim_cpu() as b, stack.reserved_sim_cpu() as c:
+        assert [a[0], b[0], c[0]] == [0, 2, 5]
+        with stack.reserved_sim_cpu() as d:
+            assert d is None  # more stacks than CPUs: the fourth sim is left to the scheduler
+    with stack.reserved_sim_cpu() as again:
+        assert again[0] == 0  # released with the stacks
+
+
+def test_no_cpu_is_reserved_when_switched_off_or_alone(three_cpus, monkeypatch):
+    monkeypatch.setenv(SIM_CPU_ENV, "off")
+    with stack.reserved_sim_cpu() as held:
+        assert held is None
+    monkeypatch.setenv(SIM_CPU_ENV, "auto")
+    monkeypatch.setattr(stack.os, "sched_getaffinity", lambda pid: {3})
+    with stack.reserved_sim_cpu() as held:
+        assert held is None  # one CPU: nothing to keep the sim apart from
+    monkeypatch.setenv(SIM_CPU_ENV, "pinned")
+    with pytest.raises(ValueError, match="LQ_SIM_CPU must be auto or off, got 'pinned'"), stack.reserved_sim_cpu():
+        pass

@@ -1,10 +1,12 @@
 """End to end: the four nodes as real OS processes (rclpy, Fast DDS on loopback, MuJoCo, MCAP)."""
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -17,6 +19,7 @@ from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.run.episode import run_episode
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.transport.processes import EXECUTOR_ENV, fastdds_shm_owned
+from lq_ros.transport.ros.stack import RosStack
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_lifecycle import wait_until_recording
 
@@ -103,6 +106,39 @@ def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
     """Bit-identical trajectories, commands and chunks for both transports (wall-clock fields aside)."""
     cfg = RunConfig(policy="sine", mode=mode, latency_s=latency, max_steps=30, replan_steps=3)
     ros, _ = run_episode(cfg, tmp_path / "ros", "ros")
+    local = run_inprocess(cfg, tmp_path / "local")
+    assert ros.status == local.status == "failure"
+    assert comparable(ros.bag_path) == comparable(local.bag_path)
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the sim is pinned only with two CPUs or more")
+def test_the_sim_steps_a_lockstep_episode_on_its_own_cpu_and_any_cpu_between_episodes(tmp_path):
+    """RosStack pins the sim's main thread to its reserved CPU while a lockstep episode is active (LQ_SIM_CPU),
+    and lets it run anywhere again for the next configure; the episode is the in-process one, bit for bit."""
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
+    seen: set[frozenset[int]] = set()
+    with RosStack() as stack:
+        assert stack.sim_cpu in stack.cpus
+        stack.start()
+        sim_pid = stack.procs["sim"].pid
+        done = threading.Event()
+
+        def sample() -> None:
+            while not done.is_set():
+                with contextlib.suppress(OSError):
+                    seen.add(frozenset(os.sched_getaffinity(sim_pid)))
+                time.sleep(0.002)
+
+        sampler = threading.Thread(target=sample)
+        sampler.start()
+        try:
+            ros, _ = run_episode(cfg, tmp_path / "ros", "ros", stack=stack)
+        finally:
+            done.set()
+            sampler.join()
+        stack._pin_sim(False)  # what the next episode does before its configure
+        assert os.sched_getaffinity(sim_pid) == stack.cpus
+    assert frozenset({stack.sim_cpu}) in seen, seen
     local = run_inprocess(cfg, tmp_path / "local")
     assert ros.status == local.status == "failure"
     assert comparable(ros.bag_path) == comparable(local.bag_path)
