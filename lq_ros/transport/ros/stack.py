@@ -324,7 +324,7 @@ class RosStack:
 
         A lockstep episode's wall time is the sim's stepping plus the waits for the other nodes, which wake on
         every tick's messages: left to the scheduler, the sim is moved between the CPUs they wake on and steps
-        through cold caches (measured: about a tenth more CPU time per tick, benchmarks/bench_transport.py). Only
+        through cold caches (benchmarks/bench_stack_options.py measures the difference). Only
         the main thread is pinned, and only while a lockstep episode is active: threads it starts meanwhile inherit
         the CPU, so configure (the env, the renderer) runs unpinned; a real-time episode is left to the scheduler.
         """
