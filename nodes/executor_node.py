@@ -4,9 +4,10 @@ Per tick (see lq_ros.core.executor_protocol): apply the chunk due now, maybe req
 publish the one command for the tick. The loop is lq_ros.core.executor_protocol.TickDriver (every transport's);
 what waiting means is the run's ``clock`` (read at every activation), one handler class each:
 
-- ``lockstep`` (:class:`LockstepTicks`): a due chunk is waited for; an observation is requested once /clock says
-  the sim is at that tick, and the tick's command waits until the sim has captured it, so the observation is of
-  this tick. Ticks that need neither are commanded ahead, without waiting for the sim.
+- ``lockstep`` (:class:`LockstepTicks`): a due chunk is waited for; an observation is requested as soon as the
+  tick that needs it is known (the sim answers on reaching that tick), and the tick's command waits until the sim
+  has captured it, so the observation is of this tick. Ticks that need neither are commanded ahead, without
+  waiting for the sim.
 - ``realtime`` (:class:`WallClockTicks`, lq_ros/transport/ros/wall_clock.py): tick m starts at ``tick0 + m *
   50 ms`` (``tick0_wall_ns`` from the STARTED event) and waits for nothing: an observation request goes out
   without waiting for the observation, a due chunk that is already here is applied, and one that has not arrived
@@ -34,7 +35,7 @@ from std_msgs.msg import String
 
 from lq_ros.core.executor_protocol import ExecutorCore, TickDriver
 from lq_ros.core.run_config import RunConfig
-from lq_ros.core.suite_constants import sim_time_of_tick, tick_of_sim_time
+from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.transport.ros.endpoints import ExecutorLink
 from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.transport.ros.wall_clock import COMMAND_DEADLINE_S, OverrunCounter, TickClock, stats_json
@@ -116,21 +117,23 @@ class _Ticks:
 
 
 class LockstepTicks(_Ticks):
-    """TickDriver's handlers on sim time: /clock says where the sim is; a due chunk and a requested observation
-    are waited for (lq_ros.core.executor_protocol.TickHandlers).
+    """TickDriver's handlers on sim time: a due chunk and a requested observation are waited for, nothing else
+    (lq_ros.core.executor_protocol.TickHandlers). The sim's STARTED event starts the ticks.
 
     A tick's command depends on a new observation only at a request tick and on a new chunk only at its due
     tick; every other command (buffered actions, holds) is known already. So the commands run ahead of the sim
     up to the next tick that needs either, and the sim steps through them without a round trip per tick. A
-    request is sent once the sim has reached its tick (/clock), and the tick's command only once the sim has
-    captured that observation, so the observation is of that tick, exactly as in process.
+    request goes out as soon as the driver reaches its tick (the sim holds it until it gets there), and the
+    tick's command only once the sim has captured that observation, so the observation is of that tick, exactly
+    as in process. The policy publishes a chunk as soon as it is inferred (lq_ros.transport.ros.endpoints.
+    ChunkServer) and it is held here until its due tick, so at a tick that is due and requests, the sim waits
+    only for the observation's way here and the command's way back.
     """
 
     def __init__(self, node: ExecutorNode, cfg: RunConfig) -> None:
         self.node = node
         self.tick_limit = cfg.tick_limit  # no command is sent for a tick the episode cannot reach
-        self.sim_tick = -1  # the last tick the sim announced on /clock (its state is of that tick)
-        self.pending_request = None  # a Request of driver.tick, sent once the sim has reached that tick
+        self.started = False  # the sim has started the episode (STARTED)
         self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
         self.outstanding: int | None = None  # the request id whose chunk is awaited (one inference in flight)
         self.chunk = None  # its ActionChunk, once arrived: the only chunk ever held
@@ -138,7 +141,6 @@ class LockstepTicks(_Ticks):
 
     def subscribe(self) -> None:
         node = self.node
-        node.episode_subscription(m.CLOCK, self.on_clock)
         node.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
         node.episode_subscription(m.OBSERVATION, self.on_observation)
         node.episode_subscription(m.EPISODE_EVENTS, node.on_event)
@@ -156,13 +158,6 @@ class LockstepTicks(_Ticks):
         self.waiting_since = None
 
     # -- callbacks --------------------------------------------------------------------------------------
-    def on_clock(self, msg) -> None:
-        if self.node.finished:
-            return
-        self.sim_tick = tick_of_sim_time(m.stamp_ns(msg) / 1e9)
-        self.send_pending_request()
-        self.node.driver.drive()
-
     def on_chunk(self, msg) -> None:
         """Hold the chunk of the outstanding request; any other (a stale, duplicate or foreign request id) is
         dropped with a WARNING event, so nothing accumulates and no later chunk replaces the policy's."""
@@ -187,32 +182,24 @@ class LockstepTicks(_Ticks):
             self.node.driver.drive()
 
     def on_event(self, event) -> None:
-        pass
+        if event.kind == m.EventKind.STARTED and not self.node.finished:
+            self.started = True
+            self.node.driver.drive()
 
     # -- TickHandlers -------------------------------------------------------------------------------------
     def ready(self) -> bool:
         return (
             not self.node.finished
-            and self.sim_tick >= 0
+            and self.started
             and self.awaiting_observation is None
-            and self.pending_request is None
             and self.node.driver.tick < self.tick_limit  # the episode ends there at the latest (the sim's budget rule)
         )
 
     def request(self, request) -> bool:
-        self.pending_request = request
-        self.send_pending_request()
-        return False  # until the sim has captured the observation (on_observation drives on)
-
-    def send_pending_request(self) -> None:
-        """Send the pending request once the sim is at its tick (else on_clock calls again)."""
-        request = self.pending_request
-        if request is None or self.node.finished or self.sim_tick < self.node.driver.tick:
-            return
-        self.pending_request = None
         self.awaiting_observation = self.outstanding = request.request_id
         self.chunk = None
         self.node.link.request_observation(self.tick_ns, request)
+        return False  # until the sim has captured the observation (on_observation drives on)
 
     def chunk_due(self, due) -> bool:
         """Apply the chunk due at this tick; False while it has not arrived (on_chunk drives on)."""

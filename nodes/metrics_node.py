@@ -63,6 +63,9 @@ from lq_ros.wire.node_names import NODE_NAMES
 MAX_WARNING_EVENTS = 100
 #: Topics whose messages the recorder reads (episode events: outcome; commands: the last tick; real-time counts).
 _DECODED = (m.EPISODE_EVENTS.name, m.COMMAND.name, m.REALTIME_STATS.name)
+#: Lockstep: topics sent ahead of the sim, each message recorded once the sim has stepped its tick (a chunk's: the
+#: tick it is due).
+_SENT_AHEAD = (m.COMMAND.name, m.OBSERVATION_REQUEST.name, m.ACTION_CHUNK.name)
 #: A robot's own topics: what a robot driver typically offers (reliable, volatile), deep enough for 500 Hz.
 ROBOT_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=10000, reliability=ReliabilityPolicy.RELIABLE,
@@ -123,7 +126,8 @@ class MetricsNode(EpisodeNode):
         self.last_tick = 0  # the last tick whose command was recorded
         self.sim_tick = 0  # the last tick whose state the sim published
         self.end_tick: int | None = None  # commands of this tick and later were never applied (terminal event)
-        self.held_commands: list[tuple[int, int, bytes]] = []  # (tick, log ns, bytes) not yet known applied
+        # (tick, topic, log ns, bytes) of commands, requests and chunks sent ahead, not yet known to take effect
+        self.held: list[tuple[int, m.Topic, int, bytes]] = []
         self.warnings_written = 0
         self.warnings_suppressed = 0
         self.writer = EpisodeBagWriter(self.bag_path, self.topics + robot_topics)
@@ -189,8 +193,8 @@ class MetricsNode(EpisodeNode):
                 return
             try:
                 self.last_message = time.monotonic()
-                if topic.name == m.COMMAND.name and not self.realtime:
-                    self.hold_command(message.tick, log_ns, data)
+                if topic.name in _SENT_AHEAD and not self.realtime:
+                    self.hold_until_applied(topic, tick_of_sim_time(log_ns / 1e9), log_ns, data)
                     return
                 self.writer.write(topic, log_ns, data)
                 if topic.name == m.EPISODE_EVENTS.name:
@@ -268,38 +272,40 @@ class MetricsNode(EpisodeNode):
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f"cannot record the warning {reason!r}: {exc}")
 
-    # -- commands: recorded once applied --------------------------------------------------------------------
-    def hold_command(self, tick: int, log_ns: int, data: bytes) -> None:
-        """Record the command of ``tick`` once the sim has stepped it (its state of tick + 1 arrived).
+    # -- lockstep: what was sent ahead is recorded once its tick is stepped -----------------------------------
+    def hold_until_applied(self, topic: m.Topic, tick: int, log_ns: int, data: bytes) -> None:
+        """Record a command, observation request or chunk of ``tick`` (a chunk's: its due tick) once the sim has
+        stepped that tick (its state of tick + 1 arrived).
 
-        The executor sends the commands of ticks that need no new observation or chunk ahead of the sim; the
-        episode may end (success, budget) before the sim reaches them. Those were never applied, and the bag
-        records what the robot did, as the in-process transport does."""
+        The executor sends commands and requests, and the policy its chunks, ahead of the sim; the episode may end
+        (success, budget) before the sim reaches their tick. Those never took effect, and the bag records what
+        happened, as the in-process transport does."""
         if self.end_tick is not None and tick >= self.end_tick:
             return
         if tick < self.sim_tick:
-            self.write_command(tick, log_ns, data)
+            self.write_held(tick, topic, log_ns, data)
         else:
-            self.held_commands.append((tick, log_ns, data))
+            self.held.append((tick, topic, log_ns, data))
 
     def sim_reached(self, tick: int) -> None:
-        """The sim's state of ``tick`` arrived: every command before it was applied."""
+        """The sim's state of ``tick`` arrived: every tick before it was stepped."""
         self.sim_tick = max(self.sim_tick, tick)
-        self.flush_commands(self.sim_tick)
+        self.flush_held(self.sim_tick)
 
-    def flush_commands(self, before_tick: int) -> None:
-        """Write the held commands of ticks before ``before_tick``; keep the rest."""
+    def flush_held(self, before_tick: int) -> None:
+        """Write what is held for ticks before ``before_tick`` (in the order it arrived); keep the rest."""
         keep = []
-        for tick, log_ns, data in self.held_commands:
-            if tick < before_tick:
-                self.write_command(tick, log_ns, data)
+        for item in self.held:
+            if item[0] < before_tick:
+                self.write_held(*item)
             else:
-                keep.append((tick, log_ns, data))
-        self.held_commands = keep
+                keep.append(item)
+        self.held = keep
 
-    def write_command(self, tick: int, log_ns: int, data: bytes) -> None:
-        self.writer.write(m.COMMAND, log_ns, data)
-        self.last_tick = max(self.last_tick, tick)
+    def write_held(self, tick: int, topic: m.Topic, log_ns: int, data: bytes) -> None:
+        self.writer.write(topic, log_ns, data)
+        if topic.name == m.COMMAND.name:
+            self.last_tick = max(self.last_tick, tick)
 
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED:
@@ -310,12 +316,12 @@ class MetricsNode(EpisodeNode):
             self.terminal_at = self.terminal_at or time.monotonic()
             if self.realtime:
                 return
-            # SUCCESS and TIMEOUT at tick T come after the sim stepped T - 1: commands of T on were never applied.
-            # An ERROR at T (e.g. the step of T failed) keeps the command of T, as the in-process runner does.
+            # SUCCESS and TIMEOUT at tick T come after the sim stepped T - 1: what was sent for T on never took
+            # effect. An ERROR at T (e.g. the step of T failed) keeps that of T, as the in-process runner does.
             stepped = event.kind in (m.EventKind.SUCCESS, m.EventKind.TIMEOUT)
             self.end_tick = event.tick if stepped else event.tick + 1
-            self.flush_commands(self.end_tick)
-            self.held_commands = []
+            self.flush_held(self.end_tick)
+            self.held = []
 
     # -- closing the bag -----------------------------------------------------------------------------------
     def on_counts(self, msg) -> None:
@@ -397,8 +403,8 @@ class MetricsNode(EpisodeNode):
         if self.warnings_suppressed:
             self.warnings_written = 0
             self.record_warning(f"recorder: {self.warnings_suppressed} more warnings of this episode not recorded")
-        if self.end_tick is not None:  # applied commands that arrived after the sim's last state
-            self.flush_commands(self.end_tick)
+        if self.end_tick is not None:  # what took effect but arrived after the sim's last state
+            self.flush_held(self.end_tick)
         self.finished = True
         self.writer.set_run_metadata(self._run_metadata(self._env_versions()))
         self.writer.close()

@@ -5,9 +5,12 @@ the measured wall-clock inference latency dt_real. N is the request's own draw, 
 the executor core uses (lq_ros.core.latency.request_latency of the run's distribution, seed and request id).
 When it is published depends on the run's ``clock`` (read at every activation):
 
-- ``lockstep``: once /clock reaches t + N * dt_c, so the measured inference time never matters;
+- ``lockstep``: as soon as it is inferred; the executor applies it at tick t + N (it draws N alike) and the
+  recorder logs it there, so the measured inference time never matters;
 - ``realtime``: N * dt_c of wall time after its inference finished, so the executor sees it dt_real + dt_sim
-  after it asked; no /clock is used.
+  after it asked.
+
+No /clock is used either way.
 
 With merge rtc/rtc_hard the policy also gets the executing prefix (/lq/action_prefix) of the request.
 A policy that raises publishes a chunk carrying the error, which ends the episode as an error. The
@@ -115,27 +118,19 @@ class PolicyNode(EpisodeNode):
 
     def activate(self, cfg: RunConfig) -> None:
         self.policy.check_merge(cfg.merge)  # refused before the episode starts
-        self.now_ns = 0  # sim time of the last /clock
         realtime = cfg.clock == "realtime"
         self.server = ChunkServer(
             self.policy, cfg, self.episode_publisher(m.ACTION_CHUNK).publish, self.get_logger(),
-            now_ns=time.time_ns if realtime else lambda: self.now_ns,
-            hold_from="inference_end" if realtime else "observation", on_end=self.seal_episode,
+            now_ns=time.time_ns, hold_from="inference_end" if realtime else None, on_end=self.seal_episode,
         )  # fmt: skip
         self.server.subscribe(self.episode_subscription)
         if realtime:
             self.episode_timer(0.002, self.server.flush)  # due chunks go out within ~2 ms of their wall time
-        else:
-            self.episode_subscription(m.CLOCK, self.on_clock)
 
     def cleanup(self) -> None:
         if self.policy is not None:
             self.policy.close()
             self.policy = None
-
-    def on_clock(self, msg) -> None:
-        self.now_ns = m.stamp_ns(msg)
-        self.server.flush()
 
 
 def main() -> None:

@@ -6,7 +6,9 @@ camera images only when asked (/lq/observation_request), and episode events. The
 
 - ``lockstep``: tick m is stepped only once the command for tick m has arrived, so sim time never depends on
   wall-clock timing; /clock is published every tick (and per physics substep /joint_states_physics,
-  /ee_pose_physics when enabled); an observation request must be of the current tick.
+  /ee_pose_physics when enabled). An observation request is of the current tick or a later one: the executor
+  sends it as soon as it knows the tick needs one, and the sim answers it on reaching that tick, before the
+  tick's command can arrive (the executor sends that only once it has the observation).
 - ``realtime``: tick m is stepped at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` of wall time whatever has
   arrived: the command for tick m if the executor delivered it in time, else the stop hold (zero arm delta,
   the last applied gripper command), and that tick is counted as a missed command. State is stamped with the
@@ -59,11 +61,11 @@ class SimNode(EpisodeNode):
         # What the policy needs rendered (the launcher asks the policy).
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
-        # Subscribers each topic needs before the episode starts (so no node misses tick 0): any, and on /clock
-        # (lockstep) and the episode events (real time: every node must hear STARTED and its tick0) the peers
-        # the launcher started (policy, executor, recorder; + this node for the events).
+        # Subscribers each topic needs before the episode starts (so no node misses tick 0): any, and on the
+        # episode events (every node must hear STARTED; real time: its tick0) and on /clock (lockstep) the peers
+        # the launcher started (events: policy, executor, recorder + this node; /clock: the recorder).
         self.declare_parameter("min_subscribers", 1)
-        self.declare_parameter("min_clock_subscribers", 3)
+        self.declare_parameter("min_clock_subscribers", 1)
         self.declare_parameter("min_event_subscribers", 4)
         # Real time: extra wall seconds per step, standing in for a slower machine (tests of the overrun counting).
         self.declare_parameter("step_delay_s", 0.0)
@@ -89,6 +91,7 @@ class SimNode(EpisodeNode):
         self.realtime = cfg.clock == "realtime"
         self.action_ticks = 0  # ticks whose command came from a chunk (budget_counts action)
         self.queued: dict = {}  # tick -> ActionCommand received ahead of its tick
+        self.requests: dict = {}  # lockstep: tick -> ObservationRequest received ahead of its tick
         self.min_subscribers = self.get_parameter("min_subscribers").value
         self.min_clock_subscribers = self.get_parameter("min_clock_subscribers").value
         self.min_event_subscribers = self.get_parameter("min_event_subscribers").value
@@ -132,10 +135,8 @@ class SimNode(EpisodeNode):
         """Publish STARTED and tick 0 once every peer is connected (real time: tick 0 START_DELAY_S later)."""
         subs_ok = all(pub.get_subscription_count() >= self.min_subscribers for pub in self.pubs.values())
         peers_ok = self.command_sub.get_publisher_count() > 0 and self.request_sub.get_publisher_count() > 0
-        if self.realtime:
-            events = self.pubs[m.EPISODE_EVENTS.name].get_subscription_count()
-            peers_ok = peers_ok and events >= self.min_event_subscribers
-        else:  # (a node's use_sim_time time source subscribes best effort: not a peer of the episode)
+        peers_ok = peers_ok and self.pubs[m.EPISODE_EVENTS.name].get_subscription_count() >= self.min_event_subscribers
+        if not self.realtime:  # (a node's use_sim_time time source subscribes best effort: not a peer of the episode)
             peers_ok = peers_ok and reliable_subscribers(self, m.CLOCK) >= self.min_clock_subscribers
         if not (subs_ok and peers_ok):
             return
@@ -150,8 +151,20 @@ class SimNode(EpisodeNode):
 
     # -- callbacks --------------------------------------------------------------------------
     def on_request(self, req) -> None:
-        if self.finished or not (self.realtime and self.started or self._expect_tick(req.tick, "observation request")):
+        if self.finished:
             return
+        if not self.realtime and self.started and self.state.tick < req.tick < self.run_cfg.tick_limit:
+            if req.tick in self.requests:
+                self.get_logger().error(f"a second observation request for tick {req.tick} ignored")
+            else:
+                self.requests[req.tick] = req  # answered on reaching that tick (step)
+            return
+        if not (self.realtime and self.started or self._expect_tick(req.tick, "observation request")):
+            return
+        self.observe(req)
+
+    def observe(self, req) -> None:
+        """Publish the observation of the current tick for ``req``."""
         try:
             obs = self.env.observe(with_images=True)
         except Exception as exc:  # noqa: BLE001 - any env failure ends the episode as an error
@@ -231,6 +244,8 @@ class SimNode(EpisodeNode):
             self.end(m.EventKind.SUCCESS, "")
         elif spent:
             self.end(m.EventKind.TIMEOUT, spent)
+        elif self.state.tick in self.requests:  # (lockstep) asked ahead for this tick's observation
+            self.observe(self.requests.pop(self.state.tick))
 
     def on_event(self, event) -> None:
         # Another node (executor, policy) ended the episode: stop stepping.

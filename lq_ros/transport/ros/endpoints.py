@@ -34,12 +34,13 @@ class ChunkServer:
 
     An observation waits until the policy has been reset for the episode (STARTED carries task and seed),
     its camera images (matched by stamp) and, with merge rtc/rtc_hard, its executing prefix have arrived.
-    The policy then infers; the chunk (stamped with the observation's time, the request id, the injected
-    Δt_sim = N ticks of lq_ros.core.latency.request_latency and the measured Δt_real) is held until it is due:
+    The policy then infers; the chunk is stamped with the observation's time, the request id, the injected
+    Δt_sim = N ticks of lq_ros.core.latency.request_latency and the measured Δt_real. When it goes out:
 
-    - lockstep (``hold_from="observation"``): the observation's sim time + N ticks, published once /clock
-      reaches it (``now_ns`` returns the last /clock), so Δt_real never matters;
-    - real time (``hold_from="inference_end"``): the wall time inference ended + N ticks (``now_ns`` is the
+    - lockstep (``hold_from=None``): at once. The executor knows its due tick (observation tick + N, from the
+      same latency draw) and applies it there, and the recorder logs it at that tick; publishing it early only
+      lets it arrive while the sim steps the ticks before, so the sim does not wait for it at its due tick;
+    - real time (``hold_from="inference_end"``): N ticks of wall time after inference ended (``now_ns`` is the
       wall clock), so the executor sees it Δt_real + Δt_sim after it asked.
 
     A policy that raises (or whose reset failed) is answered with a chunk carrying the error, which ends the
@@ -54,14 +55,14 @@ class ChunkServer:
         logger,
         *,
         now_ns: Callable[[], int],
-        hold_from: str,
+        hold_from: str | None,
         on_end: Callable[[], None] = lambda: None,
     ) -> None:
-        if hold_from not in ("observation", "inference_end"):
-            raise ValueError(f"hold_from must be observation or inference_end, got {hold_from!r}")
+        if hold_from not in (None, "inference_end"):
+            raise ValueError(f"hold_from must be None or inference_end, got {hold_from!r}")
         self.policy, self.publish, self.logger, self.now_ns = policy, publish, logger, now_ns
         self.on_end = on_end  # called at the episode's terminal event (a chunk still held is not published)
-        self.hold_from_observation = hold_from == "observation"
+        self.held = hold_from is not None
         self.latency = cfg.latency_model()
         self.latency_stream = cfg.latency_stream()
         self.wants_prefix = Merge(cfg.merge) in PREFIX_STRATEGIES
@@ -138,8 +139,10 @@ class ChunkServer:
             stamp, msg.request_id, msg.tick, latency_s, inference_s, actions, self.policy.name, error,
             timing=None if error else self.policy.last_timing,
         )  # fmt: skip
-        held_from = stamp if self.hold_from_observation else self.now_ns()
-        self.outbox.append((held_from + m.to_ns(n_ticks * CONTROL_DT_S), data))
+        if not self.held:
+            self.publish(data)
+            return
+        self.outbox.append((self.now_ns() + m.to_ns(n_ticks * CONTROL_DT_S), data))
         self.flush()
 
     def flush(self) -> None:
