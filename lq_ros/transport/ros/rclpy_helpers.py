@@ -289,6 +289,9 @@ class EpisodeNode(LifecycleNode):
         try:
             self.cfg = read_run_config(self)
             self.configure(self.cfg)
+            # The message types (rosbags' typestore, ~0.1 s to build): built here, while the sim builds its env,
+            # rather than by the episode's first message, which the other nodes would wait for.
+            m.typestore()
         except Exception as exc:  # noqa: BLE001 - refused with its reason (the launcher reports this line)
             self.get_logger().error(f"configure failed: {type(exc).__name__}: {exc}\n{traceback.format_exc()}")
             with contextlib.suppress(Exception):
