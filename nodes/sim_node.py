@@ -295,7 +295,7 @@ class SimNode(EpisodeNode):
 
 
 def main() -> None:
-    import_simulator_in_background()  # while rclpy starts and the launcher discovers this node
+    import_simulator_in_background(then=m.typestore)  # while rclpy starts and the launcher discovers this node
     run_managed(SimNode)
 
 

@@ -124,13 +124,14 @@ def _in_background(name: str, work: Callable[[], object]) -> threading.Thread:
 _background_imports: threading.Thread | None = None
 
 
-def import_simulator_in_background() -> None:
-    """Start importing MuJoCo, robosuite and LIBERO on a daemon thread.
+def import_simulator_in_background(then: Callable[[], object] | None = None) -> None:
+    """Start importing MuJoCo, robosuite and LIBERO on a daemon thread, then run ``then`` there, if given.
 
     For a process that will create an env once told to (the sim node before its configure call): the imports
     (about half of env creation) then overlap with its start-up and discovery instead of following them. Every
     use of LIBERO here waits for that thread first: importing LIBERO's modules from two threads at once can
-    meet one of its circular imports half done ("partially initialized module").
+    meet one of its circular imports half done ("partially initialized module"). ``then``: more start-up work
+    the process would otherwise do later on its main thread (the sim node: its message types).
     """
     global _background_imports
 
@@ -139,6 +140,9 @@ def import_simulator_in_background() -> None:
         from libero.libero import benchmark  # noqa: F401
         from libero.libero.envs.bddl_utils import robosuite_parse_problem  # noqa: F401
         from libero.libero.envs.env_wrapper import ControlEnv  # noqa: F401
+
+        if then is not None:
+            then()
 
     _background_imports = _in_background("simulator-imports", load)
 

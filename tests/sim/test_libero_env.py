@@ -151,3 +151,21 @@ def test_checking_a_run_imports_no_libero():
     )
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert (proc.returncode, proc.stdout.strip()) == (0, "False"), proc.stderr
+
+
+def test_the_background_imports_run_then_on_their_thread_and_libero_waits_for_both(monkeypatch):
+    """The sim node's start-up work given as ``then`` runs after the simulator's imports, on their thread, and
+    load_task (every use of LIBERO) waits until it is done."""
+    import threading
+    import time
+
+    seen = []
+
+    def then() -> None:
+        time.sleep(0.2)  # long enough that load_task would run before it if it did not wait
+        seen.append((threading.current_thread().name, "libero.libero.envs.env_wrapper" in sys.modules))
+
+    monkeypatch.setattr(libero_env, "_background_imports", None)
+    libero_env.import_simulator_in_background(then=then)
+    libero_env.load_task("libero_spatial", 0)
+    assert seen == [("simulator-imports", True)]
