@@ -11,7 +11,7 @@ export MUJOCO_GL ?= egl
 
 LEROBOT_VENV := .venv-lerobot
 
-.PHONY: setup setup-lerobot test test-fast demo lint clean
+.PHONY: setup setup-lerobot test test-fast demo lint clean bytecode
 
 setup: $(STAMP)/package
 
@@ -43,13 +43,19 @@ $(STAMP)/package: $(STAMP)/msgs setup.py package.xml
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	@touch $@
 
-test: setup setup-lerobot
+# The package's bytecode, as pip writes it for an installed wheel (this is an editable install): every node
+# process imports these modules, and a Python that writes no caches (PYTHONDONTWRITEBYTECODE=1, common in
+# containers) would otherwise compile them again in each. Up-to-date files are skipped.
+bytecode: setup
+	$(PY) -m compileall -q lq_ros nodes
+
+test: setup setup-lerobot bytecode
 	$(PY) -m pytest -q
 
-test-fast: setup setup-lerobot
+test-fast: setup setup-lerobot bytecode
 	$(PY) -m pytest -q -m "not slow"
 
-demo: setup
+demo: setup bytecode
 	$(VENV)/bin/lq demo --out bags/demo
 
 lint: setup
