@@ -6,8 +6,8 @@ what waiting means is the run's ``clock`` (read at every activation), one handle
 
 - ``lockstep`` (:class:`LockstepTicks`): a due chunk is waited for; an observation is requested as soon as the
   tick that needs it is known (the sim answers on reaching that tick), and the tick's command waits until the sim
-  has captured it, so the observation is of this tick. Ticks that need neither are commanded ahead, without
-  waiting for the sim.
+  has queued the request (its echo) or captured the observation, so the observation is of this tick. Every other
+  command is sent ahead, without waiting for the sim.
 - ``realtime`` (:class:`WallClockTicks`, lq_ros/transport/ros/wall_clock.py): tick m starts at ``tick0 + m *
   50 ms`` (``tick0_wall_ns`` from the STARTED event) and waits for nothing: an observation request goes out
   without waiting for the observation, a due chunk that is already here is applied, and one that has not arrived
@@ -123,18 +123,19 @@ class LockstepTicks(_Ticks):
     A tick's command depends on a new observation only at a request tick and on a new chunk only at its due
     tick; every other command (buffered actions, holds) is known already. So the commands run ahead of the sim
     up to the next tick that needs either, and the sim steps through them without a round trip per tick. A
-    request goes out as soon as the driver reaches its tick (the sim holds it until it gets there), and the
-    tick's command only once the sim has captured that observation, so the observation is of that tick, exactly
-    as in process. The policy publishes a chunk as soon as it is inferred (lq_ros.transport.ros.endpoints.
-    ChunkServer) and it is held here until its due tick, so at a tick that is due and requests, the sim waits
-    only for the observation's way here and the command's way back.
+    request goes out as soon as the driver reaches its tick, and the tick's command once the sim has either
+    queued the request (it echoes it on /lq/observation_request_queued and answers it on reaching the tick,
+    before stepping it) or captured the observation: the observation is of that tick, exactly as in process,
+    whatever order DDS delivers the two topics in. The echo usually comes back while the sim still steps the
+    ticks before, so a request tick waits for nothing. The policy publishes a chunk as soon as it is inferred
+    (lq_ros.transport.ros.endpoints.ChunkServer) and it is held here until its due tick.
     """
 
     def __init__(self, node: ExecutorNode, cfg: RunConfig) -> None:
         self.node = node
         self.tick_limit = cfg.tick_limit  # no command is sent for a tick the episode cannot reach
         self.started = False  # the sim has started the episode (STARTED)
-        self.awaiting_observation: int | None = None  # request id whose observation is not yet captured
+        self.awaiting_observation: int | None = None  # request id the sim has neither queued nor answered yet
         self.outstanding: int | None = None  # the request id whose chunk is awaited (one inference in flight)
         self.chunk = None  # its ActionChunk, once arrived: the only chunk ever held
         self.waiting_since: float | None = None
@@ -143,6 +144,7 @@ class LockstepTicks(_Ticks):
         node = self.node
         node.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
         node.episode_subscription(m.OBSERVATION, self.on_observation)
+        node.episode_subscription(m.OBSERVATION_REQUEST_QUEUED, self.on_request_queued)
         node.episode_subscription(m.EPISODE_EVENTS, node.on_event)
         node.episode_timer(1.0, self.check_chunk_timeout)
 
@@ -181,6 +183,12 @@ class LockstepTicks(_Ticks):
             self.awaiting_observation = None
             self.node.driver.drive()
 
+    def on_request_queued(self, msg) -> None:
+        """The sim holds the awaited request: it will capture the observation before it steps that tick."""
+        if msg.request_id == self.awaiting_observation and msg.tick == self.node.driver.tick:
+            self.awaiting_observation = None
+            self.node.driver.drive()
+
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED and not self.node.finished:
             self.started = True
@@ -199,7 +207,7 @@ class LockstepTicks(_Ticks):
         self.awaiting_observation = self.outstanding = request.request_id
         self.chunk = None
         self.node.link.request_observation(self.tick_ns, request)
-        return False  # until the sim has captured the observation (on_observation drives on)
+        return False  # until the sim has queued the request or captured the observation (their callbacks drive on)
 
     def chunk_due(self, due) -> bool:
         """Apply the chunk due at this tick; False while it has not arrived (on_chunk drives on)."""

@@ -7,8 +7,11 @@ camera images only when asked (/lq/observation_request), and episode events. The
 - ``lockstep``: tick m is stepped only once the command for tick m has arrived, so sim time never depends on
   wall-clock timing; /clock is published every tick (and per physics substep /joint_states_physics,
   /ee_pose_physics when enabled). An observation request is of the current tick or a later one: the executor
-  sends it as soon as it knows the tick needs one, and the sim answers it on reaching that tick, before the
-  tick's command can arrive (the executor sends that only once it has the observation).
+  sends it as soon as it knows the tick needs one. One for the current tick is answered at once; one for a later
+  tick is queued, echoed on /lq/observation_request_queued, and answered on reaching that tick, before it is
+  stepped. The executor sends that tick's command only once it has the echo or the observation, so the sim
+  never steps a requested tick before it has the request. Requests that arrived meanwhile are taken before every
+  step, so the echo goes out while the sim steps the ticks before, not once it has stopped at the requested one.
 - ``realtime``: tick m is stepped at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` of wall time whatever has
   arrived: the command for tick m if the executor delivered it in time, else the stop hold (zero arm delta,
   the last applied gripper command), and that tick is counted as a missed command. State is stamped with the
@@ -102,7 +105,7 @@ class SimNode(EpisodeNode):
         self.reset_for = None
         state_topics = (m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
         if not self.realtime:
-            state_topics = (m.CLOCK, *state_topics) + (
+            state_topics = (m.CLOCK, *state_topics, m.OBSERVATION_REQUEST_QUEUED) + (
                 (m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ()
             )
         self.pubs = {
@@ -158,6 +161,7 @@ class SimNode(EpisodeNode):
                 self.get_logger().error(f"a second observation request for tick {req.tick} ignored")
             else:
                 self.requests[req.tick] = req  # answered on reaching that tick (step)
+                self.pubs[m.OBSERVATION_REQUEST_QUEUED.name].publish(m.serialize(req, m.OBSERVATION_REQUEST.msgtype))
             return
         if not (self.realtime and self.started or self._expect_tick(req.tick, "observation request")):
             return
@@ -192,8 +196,16 @@ class SimNode(EpisodeNode):
             return
         self.queued[cmd.tick] = cmd
         while not self.finished and self.state.tick in self.queued:
+            self.take_requests()
             cmd = self.queued.pop(self.state.tick)
             self.step(cmd.tick, cmd.action, cmd.source)
+
+    def take_requests(self) -> None:
+        """Lockstep: queue (and echo) the observation requests that arrived while the sim stepped, before the
+        next step. Left to the executor's turn, a request sent with the commands of the ticks before its own
+        would be taken only once those are stepped, and its tick would wait for the echo's round trip."""
+        for data in take_pending(self.request_sub):
+            self.on_request(m.deserialize(data, m.OBSERVATION_REQUEST.msgtype))
 
     def step_on_time(self) -> None:
         """Real time: step the current tick once its wall time (+ SIM_STEP_OFFSET_S) has come, with its command

@@ -43,6 +43,9 @@ EE_POSE_PHYSICS = Topic("/ee_pose_physics", "geometry_msgs/msg/PoseStamped")
 COMMAND = Topic("/lq/command", "lq_msgs/msg/ActionCommand")
 OBSERVATION_REQUEST = Topic("/lq/observation_request", "lq_msgs/msg/ObservationRequest")
 OBSERVATION = Topic("/lq/observation", "lq_msgs/msg/Observation")
+#: Sim -> executor, lockstep only: a request for a later tick, echoed once the sim has queued it (it answers it on
+#: reaching that tick, before stepping it), so the executor may send that tick's command (not recorded).
+OBSERVATION_REQUEST_QUEUED = Topic("/lq/observation_request_queued", "lq_msgs/msg/ObservationRequest")
 ACTION_CHUNK = Topic("/lq/action_chunk", "lq_msgs/msg/ActionChunk")
 EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
 ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
