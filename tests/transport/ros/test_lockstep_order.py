@@ -91,8 +91,9 @@ def test_a_requested_tick_is_commanded_only_once_the_sim_holds_the_request(tmp_p
             for name, value in PARAMS.items():
                 assert client.set_param(name, value) == (True, "")
             assert client.set_state("configure") and client.set_state("activate")
-            executor_listens = (m.EPISODE_EVENTS, m.OBSERVATION, m.OBSERVATION_REQUEST_QUEUED, m.ACTION_CHUNK)
-            assert peers.spin_until(lambda: all(peers.pubs[t.name].get_subscription_count() for t in executor_listens), 30)
+            listened = [peers.pubs[t.name] for t in (m.EPISODE_EVENTS, m.OBSERVATION, m.OBSERVATION_REQUEST_QUEUED)]
+            listened.append(peers.pubs[m.ACTION_CHUNK.name])
+            assert peers.spin_until(lambda: all(pub.get_subscription_count() for pub in listened), 30)
 
             peers.publish(m.EPISODE_EVENTS, m.event_msg(0, m.EventKind.STARTED, 0))
             assert peers.spin_until(lambda: peers.requests, 10), "no request for tick 0"
