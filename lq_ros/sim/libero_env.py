@@ -13,6 +13,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -328,8 +329,22 @@ class LiberoEnv:
     def init_states(self) -> np.ndarray:
         return self._init_states
 
-    def close(self) -> None:
-        self._env.close()
+    def close(self, *, collect: bool = True) -> None:
+        """Free the simulator (and its renderer). robosuite then runs a full garbage collection (``MjSim.free``);
+        ``collect=False`` skips it, for a process that collects once more on its way out anyway
+        (lq_ros.transport.processes.exit_uncollected): with a simulator loaded, one full collection takes about
+        as long as the rest of the process's exit."""
+        if collect:
+            self._env.close()
+            return
+        from robosuite.utils import binding_utils
+
+        saved = binding_utils.gc
+        binding_utils.gc = SimpleNamespace(collect=lambda generation=2: 0)
+        try:
+            self._env.close()
+        finally:
+            binding_utils.gc = saved
 
     # -- observations -----------------------------------------------------------------------
     def observe(self, with_images: bool = True) -> Observation:

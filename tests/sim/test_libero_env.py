@@ -169,3 +169,28 @@ def test_the_background_imports_run_then_on_their_thread_and_libero_waits_for_bo
     libero_env.import_simulator_in_background(then=then)
     libero_env.load_task("libero_spatial", 0)
     assert seen == [("simulator-imports", True)]
+
+
+def test_close_without_collecting_frees_the_simulator_and_runs_no_full_collection():
+    """A node on its way out closes its env without robosuite's full collection (its exit collects next)."""
+    import gc
+
+    from robosuite.utils import binding_utils
+
+    full_collections = []
+
+    def count(phase: str, info: dict) -> None:
+        if phase == "start" and info["generation"] == 2:
+            full_collections.append(info)
+
+    for collect, expected in ((True, 1), (False, 0)):
+        env = LiberoEnv("libero_spatial", 0)
+        robosuite_env = env._env.env
+        full_collections.clear()
+        gc.callbacks.append(count)
+        try:
+            env.close(collect=collect)
+        finally:
+            gc.callbacks.remove(count)
+        assert (robosuite_env.sim, len(full_collections)) == (None, expected)
+        assert binding_utils.gc is gc
