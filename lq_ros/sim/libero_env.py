@@ -84,6 +84,28 @@ def compiled_once(*, textures: bool = True):
         robosuite_base.MjSim = original
 
 
+@contextlib.contextmanager
+def robosuite_collection_skipped():
+    """Within this block robosuite's ``MjSim.free`` (a hard reset's old simulator, ``close``) runs no full garbage
+    collection.
+
+    ``free`` drops the simulator's render context, data and model and then calls ``gc.collect()``. Reference
+    counting alone frees all of them as they are dropped (``tests/sim/test_libero_env.py`` checks it with the
+    collector disabled, render context included), so what the collection adds is a pass over every live object:
+    with the simulator's imports loaded, about 0.06 s of a first reset and as much of a node's exit (whose own
+    last collection follows). What is left in a reference cycle (the closed env itself, which robosuite drops
+    only after that collection anyway) goes with Python's automatic collections.
+    """
+    from robosuite.utils import binding_utils
+
+    saved = binding_utils.gc
+    binding_utils.gc = SimpleNamespace(collect=lambda generation=2: 0)
+    try:
+        yield
+    finally:
+        binding_utils.gc = saved
+
+
 #: MJCF texture attributes that name image files (a 2D texture's ``file``; a cube's six faces).
 TEXTURE_FILE_ATTRIBUTES = ("file", "fileright", "fileleft", "fileup", "filedown", "filefront", "fileback")
 
@@ -276,8 +298,9 @@ class LiberoEnv:
         self._env.env.hard_reset = hard
         self._env.seed(seed)
         np.random.seed(seed)
-        with compiled_once(textures=bool(self.camera_names)):
-            self._reset_robosuite()  # hard: a new MjSim (from the compiled model); soft: mj_resetData
+        # hard: a new MjSim (from the compiled model); soft: mj_resetData
+        with compiled_once(textures=bool(self.camera_names)), robosuite_collection_skipped():
+            self._reset_robosuite()
         self._bind_sim()
         if not hard:
             for robot in self._env.env.robots:
@@ -329,22 +352,11 @@ class LiberoEnv:
     def init_states(self) -> np.ndarray:
         return self._init_states
 
-    def close(self, *, collect: bool = True) -> None:
-        """Free the simulator (and its renderer). robosuite then runs a full garbage collection (``MjSim.free``);
-        ``collect=False`` skips it, for a process that collects once more on its way out anyway
-        (lq_ros.transport.processes.exit_uncollected): with a simulator loaded, one full collection takes about
-        as long as the rest of the process's exit."""
-        if collect:
+    def close(self) -> None:
+        """Free the simulator and its renderer (without robosuite's full collection:
+        :func:`robosuite_collection_skipped`)."""
+        with robosuite_collection_skipped():
             self._env.close()
-            return
-        from robosuite.utils import binding_utils
-
-        saved = binding_utils.gc
-        binding_utils.gc = SimpleNamespace(collect=lambda generation=2: 0)
-        try:
-            self._env.close()
-        finally:
-            binding_utils.gc = saved
 
     # -- observations -----------------------------------------------------------------------
     def observe(self, with_images: bool = True) -> Observation:

@@ -171,9 +171,12 @@ def test_the_background_imports_run_then_on_their_thread_and_libero_waits_for_bo
     assert seen == [("simulator-imports", True)]
 
 
-def test_close_without_collecting_frees_the_simulator_and_runs_no_full_collection():
-    """A node on its way out closes its env without robosuite's full collection (its exit collects next)."""
+@pytest.mark.parametrize("cameras", [(), ("agentview",)])
+def test_reference_counting_frees_a_dropped_simulator_so_robosuite_s_collections_are_skipped(cameras):
+    """A hard reset frees the old simulator's model, data and render context with the collector off; neither it nor
+    close runs a full collection."""
     import gc
+    import weakref
 
     from robosuite.utils import binding_utils
 
@@ -183,14 +186,23 @@ def test_close_without_collecting_frees_the_simulator_and_runs_no_full_collectio
         if phase == "start" and info["generation"] == 2:
             full_collections.append(info)
 
-    for collect, expected in ((True, 1), (False, 0)):
-        env = LiberoEnv("libero_spatial", 0)
+    def parts(sim) -> list[weakref.ref]:
+        """The simulator's MuJoCo model and data, their wrappers and its render context."""
+        objects = [sim.model, sim.data, sim.model._model, sim.data._data, sim._render_context_offscreen]
+        return [weakref.ref(o) for o in objects if o is not None]
+
+    env = LiberoEnv("libero_spatial", 0, camera_names=cameras, camera_size=32)
+    gc.callbacks.append(count)
+    gc.disable()
+    try:
+        made = parts(env._env.env.sim)
+        env.reset(0, 7)  # the first reset is hard: a new MjSim
+        assert [ref() for ref in made] == [None] * len(made)
         robosuite_env = env._env.env
-        full_collections.clear()
-        gc.callbacks.append(count)
-        try:
-            env.close(collect=collect)
-        finally:
-            gc.callbacks.remove(count)
-        assert (robosuite_env.sim, len(full_collections)) == (None, expected)
-        assert binding_utils.gc is gc
+        env.close()  # (robosuite drops the env only after its collection: that one never freed the env's cycles)
+        assert robosuite_env.sim is None
+    finally:
+        gc.enable()
+        gc.callbacks.remove(count)
+    assert full_collections == []
+    assert binding_utils.gc is gc
