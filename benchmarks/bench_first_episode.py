@@ -15,7 +15,8 @@ nodes' shutdown transitions and the processes' exit).
 
 Every phase runs with the compiled-model cache (lq_ros.sim.model_cache) in a fresh folder that one unmeasured
 run filled first (warm: the task has run on this machine before); `episode` and `ROS` are also measured with
-the cache off (cold: the scene compiled, as on a machine's first run of the task).
+an empty cache folder of their own (cold: the scene compiled and written to the cache, as on a machine's first
+run of the task).
 
 Then the exit of a process that built and reset the task's env: the interpreter's normal exit against the node
 programs' (lq_ros.transport.processes.exit_uncollected), from the process's last statement to its end. Then the
@@ -51,6 +52,10 @@ PHASES = {
     "episode": [sys.executable, "-m", "lq_ros.cli", "run", *RUN_ARGS, "--transport", "inprocess"],
     "ROS": [sys.executable, "-m", "lq_ros.cli", "run", *RUN_ARGS, "--transport", "ros"],
 }
+
+
+#: The cache setting of a cold run: an empty folder of its own.
+COLD = "empty"
 
 
 def run_checked(argv: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
@@ -91,12 +96,15 @@ def measure(repeats: int, out: Path) -> None:
     cache = str(out / "models")
     wall_s(PHASES["env"], out, cache)  # fills the cache (unmeasured)
     runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
-            **{f"{name} (cold)": (PHASES[name], "off") for name in ("episode", "ROS")}}  # fmt: skip
+            **{f"{name} (cold)": (PHASES[name], COLD) for name in ("episode", "ROS")}}  # fmt: skip
     times: dict[str, list[float]] = {name: [] for name in runs}
     ends: list[float] = []  # the ROS commands' ends (score file written -> exit), warm and cold
     for _ in range(repeats):
         for name, (argv, cache_setting) in runs.items():
-            elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), cache_setting)
+            empty = Path(tempfile.mkdtemp(prefix="models_", dir=out)) if cache_setting == COLD else None
+            elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), str(empty or cache_setting))
+            if empty is not None:
+                shutil.rmtree(empty)
             times[name].append(elapsed)
             if name.startswith("ROS") and end is not None:
                 ends.append(end)

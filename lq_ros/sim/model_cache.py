@@ -15,8 +15,9 @@ Settings (environment variables, read when a model is needed):
     is about 80 MB without image textures (benchmarks/bench_first_episode.py prints it), several times that with them.
 
 The cache is best effort: a folder that cannot be written, or a file that does not load, only means the model is
-compiled, as without a cache. Files are written under a temporary name and renamed, so concurrent processes and a
-killed one never leave a partial model under a cache name.
+compiled, as without a cache. A compiled model is written on a thread while its process goes on (a later lookup of
+the same scene waits for it), under a temporary name then renamed, so concurrent processes and a killed one never
+leave a partial model under a cache name.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import contextlib
 import hashlib
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -62,6 +64,9 @@ def load_or_compile(xml: str, compile_xml: Callable[[str], object]):
     if folder is None:
         return compile_xml(xml)
     path = folder / f"{model_key(xml, mujoco.__version__)}{SUFFIX}"
+    pending = _saving.pop(path, None)
+    if pending is not None:
+        pending.join()
     if path.is_file():
         try:
             if not _has_mjb_header(path):  # (MuJoCo would also log the bad file to MUJOCO_LOG.TXT in the cwd)
@@ -75,8 +80,23 @@ def load_or_compile(xml: str, compile_xml: Callable[[str], object]):
                 os.utime(path)  # most recently used
             return model
     model = compile_xml(xml)
-    save(model, path, limit_bytes)
+    # Written while the episode starts (MuJoCo releases the GIL; about 0.14 s for a LIBERO scene): the caller only
+    # reads the model, and robosuite builds its simulators from copies of it. Not a daemon thread, so the
+    # interpreter's exit waits for it.
+    saving = threading.Thread(target=save, args=(model, path, limit_bytes), name="model-cache-save")
+    _saving[path] = saving
+    saving.start()
     return model
+
+
+#: Saves still being written, by cache file (a later lookup of the same file waits for its save).
+_saving: dict[Path, threading.Thread] = {}
+
+
+def wait_for_saves() -> None:
+    """Return once every model this process compiled is written to the cache."""
+    while _saving:
+        _saving.popitem()[1].join()
 
 
 #: The first int of every MJB file (MuJoCo's mj_saveModel).

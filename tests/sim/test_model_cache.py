@@ -55,6 +55,7 @@ class CountingCompiler:
 def test_a_model_is_compiled_once_then_read_back_identical(cache):
     compiler = CountingCompiler()
     compiled = model_cache.load_or_compile(SCENE, compiler)
+    model_cache.wait_for_saves()
     files = list(cache.glob("*.mjb"))
     assert compiler.calls == 1 and len(files) == 1
     loaded = model_cache.load_or_compile(SCENE, compiler)
@@ -68,6 +69,28 @@ def test_a_model_is_compiled_once_then_read_back_identical(cache):
     assert np.array_equal(data[0].qpos, data[1].qpos) and np.array_equal(data[0].qvel, data[1].qvel)
 
 
+def test_the_file_is_written_in_the_background_and_a_second_lookup_waits_for_it(cache, monkeypatch):
+    """The compiled model is returned before its file is written; a lookup of the same scene meanwhile reads the
+    file once written instead of compiling again."""
+    import threading
+
+    writing, finished = threading.Event(), threading.Event()
+    save = model_cache.save
+
+    def slow_save(*args) -> None:
+        writing.set()
+        assert finished.wait(30)
+        save(*args)
+
+    monkeypatch.setattr(model_cache, "save", slow_save)
+    compiler = CountingCompiler()
+    model_cache.load_or_compile(SCENE, compiler)  # returns while the save waits
+    assert writing.wait(30) and not list(cache.glob("*.mjb"))
+    threading.Timer(0.2, finished.set).start()
+    assert model_cache.load_or_compile(SCENE, compiler).nbody == 3
+    assert compiler.calls == 1 and len(list(cache.glob("*.mjb"))) == 1
+
+
 def test_another_xml_or_mujoco_version_is_another_file():
     key = model_cache.model_key(SCENE, "2.3.7")
     assert key != model_cache.model_key(SCENE + " ", "2.3.7")
@@ -79,10 +102,12 @@ def test_an_unreadable_file_is_compiled_again_and_replaced(cache, tmp_path, monk
     monkeypatch.chdir(tmp_path)  # (where MuJoCo would log a bad file)
     compiler = CountingCompiler()
     model_cache.load_or_compile(SCENE, compiler)
+    model_cache.wait_for_saves()
     (path,) = cache.glob("*.mjb")
     path.write_bytes(b"not a model" if damage == "not a model" else path.read_bytes()[:1000])
     model = model_cache.load_or_compile(SCENE, compiler)
     assert compiler.calls == 2 and model.nbody == 3
+    model_cache.wait_for_saves()
     assert mujoco.MjModel.from_binary_path(str(path)).nbody == 3
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists() or damage == "truncated"
 
@@ -94,6 +119,7 @@ def test_a_folder_that_cannot_be_written_only_means_no_cache(tmp_path, monkeypat
     compiler = CountingCompiler()
     assert model_cache.load_or_compile(SCENE, compiler).nbody == 3
     assert model_cache.load_or_compile(SCENE, compiler).nbody == 3
+    model_cache.wait_for_saves()
     assert compiler.calls == 2
     assert [p.name for p in tmp_path.iterdir()] == ["file"], "no temporary file left"
 
@@ -158,6 +184,7 @@ def test_a_libero_scene_read_from_the_cache_runs_the_compiled_episode(cache, mon
     original = model_cache.load_or_compile
     monkeypatch.setattr(model_cache, "load_or_compile", lambda xml, compile_xml: original(xml, compiles))
     compiled_model, compiled = episode()
+    model_cache.wait_for_saves()
     assert compiles.calls == 1 and len(list(cache.glob("*.mjb"))) == 1
     loaded_model, loaded = episode()
     assert compiles.calls == 1, "the second env read its scene from the cache"
