@@ -76,16 +76,21 @@ class LifecycleClient:
         self.rclpy.try_shutdown(context=self.context)
 
 
+def start_node(role: str, domain_id: int, lock_fd: int, tmp_path: Path) -> subprocess.Popen:
+    """One node program on its own in the domain (its output in ``tmp_path/<role>.log``), as a user starts it."""
+    env = child_environment(domain_id, tmp_path / "ros_logs")
+    with open(tmp_path / f"{role}.log", "wb") as log:
+        return subprocess.Popen(
+            [sys.executable, "-m", NODE_MODULE.format(role)], env=env, stdout=log, stderr=subprocess.STDOUT,
+            preexec_fn=die_with_parent, pass_fds=(lock_fd,),
+        )  # fmt: skip
+
+
 def test_lifecycle_transitions_through_the_standard_services(tmp_path):
     """configure, activate, parameters refused while active, deactivate, cleanup, shutdown: the process exits."""
     before_shm = set(os.listdir(SHM))
     with reserved_domain() as domain:
-        env = child_environment(domain.id, tmp_path / "ros_logs")
-        with open(tmp_path / "executor.log", "wb") as log:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", NODE_MODULE.format("executor")], env=env, stdout=log,
-                stderr=subprocess.STDOUT, preexec_fn=die_with_parent, pass_fds=(domain.lock_fd,),
-            )  # fmt: skip
+        proc = start_node("executor", domain.id, domain.lock_fd, tmp_path)
         client = LifecycleClient(domain.id, "lq_executor")
         try:
             assert client.state() == "unconfigured"

@@ -10,20 +10,17 @@ names, which the executor checks) and holds the echo back.
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lq_ros.transport.processes import die_with_parent
-from lq_ros.transport.ros.stack import NODE_MODULE, child_environment, reserved_domain
+from lq_ros.transport.ros.stack import reserved_domain
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
 from tests.transport.ros.test_endpoints import observation
-from tests.transport.ros.test_lifecycle import LifecycleClient
+from tests.transport.ros.test_lifecycle import LifecycleClient, start_node
 
 pytestmark = [pytest.mark.slow]
 
@@ -79,12 +76,7 @@ class SimAndPolicy:
 
 def test_a_requested_tick_is_commanded_only_once_the_sim_holds_the_request(tmp_path: Path):
     with reserved_domain() as domain:
-        env = child_environment(domain.id, tmp_path / "ros_logs")
-        with open(tmp_path / "executor.log", "wb") as log:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", NODE_MODULE.format("executor")], env=env, stdout=log,
-                stderr=subprocess.STDOUT, preexec_fn=die_with_parent, pass_fds=(domain.lock_fd,),
-            )  # fmt: skip
+        proc = start_node("executor", domain.id, domain.lock_fd, tmp_path)
         client = LifecycleClient(domain.id, NODE_NAMES["executor"])
         peers = SimAndPolicy(domain.id)
         try:
