@@ -130,7 +130,7 @@ class SimNode(EpisodeNode):
 
     def cleanup(self) -> None:
         if self.env is not None:
-            self.env.close()
+            self.env.close(collect=not self.exiting)  # (exiting: the process's last collection comes next)
             self.env = None
 
     # -- episode start ----------------------------------------------------------------------

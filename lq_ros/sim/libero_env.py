@@ -86,15 +86,15 @@ def compiled_once(*, textures: bool = True):
 
 @contextlib.contextmanager
 def robosuite_collection_skipped():
-    """Within this block robosuite's ``MjSim.free`` (a hard reset's old simulator, ``close``) runs no full garbage
-    collection.
+    """Within this block robosuite's ``MjSim.free`` runs no full garbage collection: at a hard reset (the old
+    simulator), and at :meth:`LiberoEnv.close` in a process about to exit.
 
-    ``free`` drops the simulator's render context, data and model and then calls ``gc.collect()``. Reference
-    counting alone frees all of them as they are dropped (``tests/sim/test_libero_env.py`` checks it with the
-    collector disabled, render context included), so what the collection adds is a pass over every live object:
-    with the simulator's imports loaded, about 0.06 s of a first reset and as much of a node's exit (whose own
-    last collection follows). What is left in a reference cycle (the closed env itself, which robosuite drops
-    only after that collection anyway) goes with Python's automatic collections.
+    ``free`` drops the simulator's render context, data and model and then calls ``gc.collect()``. At a hard reset
+    reference counting alone frees all of them as they are dropped (``tests/sim/test_libero_env.py`` checks it
+    with the collector disabled, render context included), so the collection there is a pass over every live
+    object for nothing freed (about 0.06 s with the simulator's imports loaded). At close it is kept: it is what
+    frees the reference cycles of the envs closed before (without it, a process making env after env grew by
+    most of an env each time until Python's own rare full collection).
     """
     from robosuite.utils import binding_utils
 
@@ -352,10 +352,12 @@ class LiberoEnv:
     def init_states(self) -> np.ndarray:
         return self._init_states
 
-    def close(self) -> None:
-        """Free the simulator and its renderer (without robosuite's full collection:
-        :func:`robosuite_collection_skipped`)."""
-        with robosuite_collection_skipped():
+    def close(self, *, collect: bool = True) -> None:
+        """Free the simulator and its renderer. robosuite then runs a full garbage collection, which also frees
+        the envs dropped before this one (their reference cycles); a process that makes env after env keeps its
+        memory flat thanks to it. ``collect=False`` skips it (:func:`robosuite_collection_skipped`), for a process
+        that collects once more on its way out anyway (lq_ros.transport.processes.exit_uncollected)."""
+        with robosuite_collection_skipped() if not collect else contextlib.nullcontext():
             self._env.close()
 
     # -- observations -----------------------------------------------------------------------

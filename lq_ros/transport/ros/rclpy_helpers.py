@@ -182,6 +182,9 @@ class EpisodeNode(LifecycleNode):
         self.active = False
         self.published: Counter[str] = Counter()  # topic -> messages published this episode
         self.episode_sealed = False
+        #: The process ends once this node is released (shutdown, a signal): cleanup may leave to the exit what
+        #: it frees (run_managed).
+        self.exiting = False
         self.add_on_set_parameters_callback(self._refuse_while_active)
 
     # -- what each node implements ---------------------------------------------------------------------
@@ -330,6 +333,7 @@ class EpisodeNode(LifecycleNode):
         return _OK
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.exiting = True
         self.close()
         return _OK
 
@@ -401,6 +405,7 @@ def _spin_until_finalized(node_factory: Callable[[], EpisodeNode]) -> None:
             while rclpy.ok() and node.lifecycle_state != "finalized":
                 executor.spin_once(timeout_sec=0.1)
         finally:
+            node.exiting = True
             node.close()
             node.destroy_node()
             if executor is not None:
