@@ -54,10 +54,6 @@ PHASES = {
 }
 
 
-#: The cache setting of a cold run: an empty folder of its own.
-COLD = "empty"
-
-
 def run_checked(argv: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
     """Run ``argv``; a failed command stops the benchmark with the end of its stderr."""
     proc = subprocess.run(argv, capture_output=True, text=True, env=env)
@@ -96,15 +92,15 @@ def measure(repeats: int, out: Path) -> None:
     cache = str(out / "models")
     wall_s(PHASES["env"], out, cache)  # fills the cache (unmeasured)
     runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
-            **{f"{name} (cold)": (PHASES[name], COLD) for name in ("episode", "ROS")}}  # fmt: skip
+            **{f"{name} (cold)": (PHASES[name], None) for name in ("episode", "ROS")}}  # fmt: skip
     times: dict[str, list[float]] = {name: [] for name in runs}
     ends: list[float] = []  # the ROS commands' ends (score file written -> exit), warm and cold
     for _ in range(repeats):
-        for name, (argv, cache_setting) in runs.items():
-            empty = Path(tempfile.mkdtemp(prefix="models_", dir=out)) if cache_setting == COLD else None
-            elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), str(empty or cache_setting))
-            if empty is not None:
-                shutil.rmtree(empty)
+        for name, (argv, warm_cache) in runs.items():  # (a cold run: an empty cache folder of its own)
+            run_cache = warm_cache or tempfile.mkdtemp(prefix="models_", dir=out)
+            elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), run_cache)
+            if warm_cache is None:
+                shutil.rmtree(run_cache)
             times[name].append(elapsed)
             if name.startswith("ROS") and end is not None:
                 ends.append(end)

@@ -204,8 +204,8 @@ class SimNode(EpisodeNode):
         """Lockstep: queue (and echo) the observation requests that arrived while the sim stepped, before the
         next step. Left to the executor's turn, a request sent with the commands of the ticks before its own
         would be taken only once those are stepped, and its tick would wait for the echo's round trip."""
-        for data in take_pending(self.request_sub):
-            self.on_request(m.deserialize(data, m.OBSERVATION_REQUEST.msgtype))
+        for req in take_pending(self.request_sub, m.OBSERVATION_REQUEST):
+            self.on_request(req)
 
     def step_on_time(self) -> None:
         """Real time: step the current tick once its wall time (+ SIM_STEP_OFFSET_S) has come, with its command
@@ -234,8 +234,8 @@ class SimNode(EpisodeNode):
         wait. A sim that has fallen behind has its step timer always ready, so it would step each tick just
         before the tick's command is taken, and miss every command (seen: 220 of 220).
         """
-        for data in take_pending(self.command_sub):
-            self.on_command(m.deserialize(data, m.COMMAND.msgtype))
+        for cmd in take_pending(self.command_sub, m.COMMAND):
+            self.on_command(cmd)
 
     def step(self, tick: int, action, source: int, started_ns: tuple[int, int] | None = None) -> None:
         """Step ``tick``; end the episode on success or a spent budget. Real time: ``started_ns`` is (when the step

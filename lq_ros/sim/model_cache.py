@@ -56,6 +56,10 @@ def model_key(xml: str, mujoco_version: str) -> str:
     return hashlib.sha256(f"mujoco {mujoco_version}\n{xml}".encode()).hexdigest()
 
 
+#: Saves still being written, by cache file (a later lookup of the same file waits for its save).
+_saving: dict[Path, threading.Thread] = {}
+
+
 def load_or_compile(xml: str, compile_xml: Callable[[str], object]):
     """The model of ``xml``: loaded from the cache, else compiled by ``compile_xml`` and saved there."""
     import mujoco
@@ -87,10 +91,6 @@ def load_or_compile(xml: str, compile_xml: Callable[[str], object]):
     _saving[path] = saving
     saving.start()
     return model
-
-
-#: Saves still being written, by cache file (a later lookup of the same file waits for its save).
-_saving: dict[Path, threading.Thread] = {}
 
 
 def wait_for_saves() -> None:

@@ -89,15 +89,15 @@ def reliable_subscribers(node: Node, topic: m.Topic) -> int:
     return sum(1 for info in infos if info.qos_profile.reliability == ReliabilityPolicy.RELIABLE)
 
 
-def take_pending(subscription) -> list[bytes]:
-    """Every serialized message waiting on a raw subscription, taken now (before the executor would)."""
+def take_pending(subscription, topic: m.Topic) -> list:
+    """Every message waiting on a raw subscription of ``topic``, taken now (before the executor would), decoded."""
     out = []
     while True:
         with subscription.handle:
             taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
         if taken is None:
             return out
-        out.append(taken[0])
+        out.append(m.deserialize(taken[0], topic.msgtype))
 
 
 def declare_run_config(node: Node) -> RunConfig:
