@@ -6,7 +6,7 @@ consume them, and a robot bridge builds them from a real robot's topics.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -23,6 +23,12 @@ class TaskInfo:
     goal: list[list[str]]
     step_budget: int
     num_init_states: int
+    #: The episode's init-state index (-1: not an episode's, e.g. before a reset or on a real robot).
+    init_state: int = -1
+
+    def for_init(self, init_state: int) -> TaskInfo:
+        """This task as one episode's: the same task with its init-state index."""
+        return replace(self, init_state=int(init_state))
 
     def to_dict(self) -> dict:
         return {
@@ -33,11 +39,13 @@ class TaskInfo:
             "goal": self.goal,
             "step_budget": self.step_budget,
             "num_init_states": self.num_init_states,
+            "init_state": self.init_state,
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> TaskInfo:
-        return cls(**{k: d[k] for k in cls.__dataclass_fields__})
+        """The inverse of ``to_dict``; ``init_state`` may be absent (bags written before it was recorded)."""
+        return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d or k != "init_state"})
 
 
 @dataclass

@@ -2,18 +2,31 @@
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
 from lq_ros.core import rtc_guidance as rtc
 from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.suite_constants import ACTION_DIM
-from lq_ros.core.types import Observation
+from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.learned.chunk_policy import LearnedChunkPolicy, check_variant
 from lq_ros.policies.learned.networks import FlowHook
 
+#: Mixed into every noise seed so flow's noise never coincides with another seeded stream (latency draws).
+NOISE_TAG = 0x666C6F77  # "flow"
+
+
+def noise_seed(seed: int, task: TaskInfo | None, tick: int) -> int:
+    """64-bit torch seed of one chunk's noise: a SeedSequence over (seed, suite, task, init state, tick, tag)."""
+    suite, task_id, init = (task.suite, task.task_id, task.init_state) if task else ("", -1, -1)
+    words = [int(seed) & 0xFFFFFFFF, zlib.crc32(suite.encode()), task_id & 0xFFFFFFFF, init & 0xFFFFFFFF]
+    words += [int(tick) & 0xFFFFFFFF, NOISE_TAG]
+    return int(np.random.SeedSequence(words).generate_state(1, np.uint64)[0])
+
 
 class FlowPolicy(LearnedChunkPolicy):
-    """Integrates the learned velocity field from seeded noise; the noise depends only on (seed, tick).
+    """Integrates the learned velocity field from seeded noise, drawn per (episode, tick): ``noise_seed``.
 
     Real-time chunking (merge ``rtc`` / ``rtc_hard``): ``infer(obs, prefix)`` samples the same noise with
     guidance towards the actions still in flight (``rtc.inpaint_chunk``, in the policy's normalised units);
@@ -46,9 +59,13 @@ class FlowPolicy(LearnedChunkPolicy):
         return {**super().params(), "flow_steps": self.steps}
 
     def noise(self, obs: Observation):
-        """Initial noise (1, H, 7) of the chunk for ``obs``: deterministic per (episode seed, tick)."""
+        """Initial noise (1, H, 7) of the chunk for ``obs``: deterministic per episode and tick.
+
+        The episode is (seed, suite, task, init state), so the episodes of one sweep cell draw independent noise
+        (a cell's tasks and init states are replications, not one noise table shared by all of them).
+        """
         torch = self._torch
-        gen = torch.Generator().manual_seed(self._seed * 1_000_003 + obs.tick)
+        gen = torch.Generator().manual_seed(noise_seed(self._seed, self._task, obs.tick))
         return torch.randn((1, self.horizon, ACTION_DIM), generator=gen)
 
     def sample(self, x, noise, hook: FlowHook | None = None):

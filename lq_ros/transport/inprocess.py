@@ -40,7 +40,7 @@ def run_conventional(
     The reference the lockstep transports must equal at dt_sim = 0 (sync), and a fast evaluator.
     """
     state = env.reset(init_index, seed)
-    policy.reset(env.task, seed)
+    policy.reset(env.task.for_init(init_index), seed)
     budget = max_steps or env.task.step_budget
     positions, tick = [state.eef_pos], 0
     while tick < budget and not state.success:
@@ -106,7 +106,7 @@ def run_inprocess(
     driver: TickDriver | None = None
     try:
         state = env.reset(cfg.init, cfg.seed)
-        policy.reset(env.task, cfg.seed)
+        policy.reset(env.task.for_init(cfg.init), cfg.seed)
         rec.event(m.EventKind.STARTED, 0, "", m.started_detail(env.task, cfg.init, cfg.seed, env_versions))
         for topic, t_ns, data in m.tick_state_msgs(state, cfg.physics_rate):
             rec.put_at(topic, t_ns, data)

@@ -346,7 +346,7 @@ def event_msg(t_ns: int, kind: int, tick: int, reason: str = "", detail: dict | 
 
 
 def started_detail(task: TaskInfo, init_index: int, seed: int, versions: dict) -> dict:
-    return {"task": task.to_dict(), "init_index": init_index, "seed": seed, "versions": versions}
+    return {"task": task.for_init(init_index).to_dict(), "init_index": init_index, "seed": seed, "versions": versions}
 
 
 def observation_from_msg(msg, images: dict[str, np.ndarray] | None = None) -> Observation:

@@ -82,7 +82,8 @@ def test_motion_model_rebuilds_from_its_recorded_fit():
     """``python -m lq_ros.policies.learned.lookahead`` with the recorded settings gives the shipped weights."""
     shipped = json.loads(MOTION_MODEL_PATH.read_text())
     settings = shipped["meta"]["fit"]
-    rebuilt = fit(episodes=settings["episodes"], ticks=settings["ticks"], seed=settings["seed"])
+    scenes = tuple(tuple(sc) for sc in settings["scenes"])
+    rebuilt = fit(scenes, ticks=settings["ticks"], seed=settings["seed"], suite=settings["suite"])
     assert rebuilt["history"] == shipped["history"]
     np.testing.assert_allclose(np.concatenate(rebuilt["weights"]), np.concatenate(shipped["weights"]), atol=1e-6)
 

@@ -87,7 +87,8 @@ class ChunkServer:
         if event.kind == m.EventKind.STARTED:
             detail = json.loads(event.detail_json)
             try:
-                self.policy.reset(TaskInfo.from_dict(detail["task"]), int(detail["seed"]))
+                task = TaskInfo.from_dict(detail["task"]).for_init(int(detail.get("init_index", -1)))
+                self.policy.reset(task, int(detail["seed"]))
             except Exception as exc:  # noqa: BLE001 - e.g. a task the policy does not cover: answered as an error
                 self.reset_error = f"reset failed: {type(exc).__name__}: {exc}"
                 self.logger.error(f"{self.reset_error}\n{traceback.format_exc()}")
