@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/validate_realtime.py [--latencies 0.1 0.2] [--modes sync async] [--inits 20]
                                                [--task 0] [--out bags/validate_realtime] [--table-only]
+                                               [--fit-from OTHER_OUT]
 For each L, protocol and init state of LIBERO-Spatial task ``--task`` (seed 7):
 
 - real time (``--clock realtime``, four processes on the wall clock): the scripted expert whose inference
@@ -18,6 +19,9 @@ For each L, protocol and init state of LIBERO-Spatial task ``--task`` (seed 7):
   request-to-effect delays of the real-time episodes of the *first* half (same L and protocol), pooled into an
   ``empirical:`` latency (each request draws one of them at random; ``OUT/fits/``), at the real-time request
   threshold. A second table compares the arms on the held-out init states alone.
+  With ``--fit-from OTHER_OUT`` the delays come instead from every real-time episode of a *separate* run of this
+  script (another folder, run at another time: other load, other scheduling), and the fitted arm runs on every
+  init state of this run: a prediction of one run from another, not of one half of a run from its other half.
 
 Episodes are stored under their configuration, so a rerun resumes. Prints success (Wilson 95% CI) and,
 over successes, completion time, jerk (20 Hz) and energy (bootstrap 95% CIs) side by side, plus the
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections import Counter
 from functools import cache
@@ -39,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pandas as pd  # noqa: E402
 
 from lq_ros.core.latency import LatencyDist  # noqa: E402
-from lq_ros.core.run_config import RunConfig  # noqa: E402
+from lq_ros.core.run_config import RunConfig, versions  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.recording.episode_bag import read_run_metadata, scan_mcap  # noqa: E402
 from lq_ros.recording.episode_folder import SCORE_FILE  # noqa: E402
@@ -53,7 +58,7 @@ METRICS = (("completion s (succ.)", "completion_time_s", 2), ("jerk m/s³ (succ.
            ("energy J (succ.)", "energy_total_j", 0))  # fmt: skip
 
 
-def configs(latencies: list[float], modes: list[str], inits: int, task: int, out: Path):
+def configs(latencies: list[float], modes: list[str], inits: int, task: int, out: Path, fit_from: Path | None = None):
     """(L, arm, config) in run order; lazily: a replay config exists once its real-time bag does."""
     for lat in latencies:
         for mode in modes:
@@ -66,7 +71,10 @@ def configs(latencies: list[float], modes: list[str], inits: int, task: int, out
                 yield lat, "realtime", realtime
                 yield lat, "lockstep", RunConfig(**common, latency_s=lat)
                 trace = replay_trace(out / realtime.episode_name(), out / "traces", lat, RunConfig(**common))
-                fitted = fitted_delays(out, lat, mode, inits, task) if init >= inits // 2 else None
+                if fit_from is not None:
+                    fitted = fitted_delays(fit_from, lat, mode, range(inits), task, out / "fits")
+                else:
+                    fitted = fitted_delays(out, lat, mode, range(inits // 2), task) if init >= inits // 2 else None
                 if fitted is not None:
                     yield (
                         lat,
@@ -87,13 +95,17 @@ def realtime_config(lat: float, mode: str, init: int, task: int) -> RunConfig:
                      policy=SLEEPY, policy_args={"sleep_s": lat}, request_threshold=threshold)  # fmt: skip
 
 
-def fitted_delays(out: Path, lat: float, mode: str, inits: int, task: int) -> Path | None:
-    """The pooled request-to-effect delays (s) of the real-time episodes of init states 0 .. inits // 2 - 1, as an
-    ``empirical:`` latency file; None until all of them have run."""
-    bags = [out / realtime_config(lat, mode, i, task).episode_name() for i in range(inits // 2)]
+def fitted_delays(
+    source: Path, lat: float, mode: str, inits: range, task: int, fits: Path | None = None
+) -> Path | None:
+    """The pooled request-to-effect delays (s) of the real-time episodes of ``inits`` stored in ``source``, as an
+    ``empirical:`` latency file (in ``fits``, default ``source/fits``); None until all of them have run."""
+    bags = [source / realtime_config(lat, mode, i, task).episode_name() for i in inits]
     if not bags or not all((bag / "metadata.yaml").exists() for bag in bags):
         return None
-    path = out / "fits" / f"task{task}_{mode}_{round(lat * 1000)}ms_inits0-{inits // 2 - 1}.txt"
+    origin = "" if fits is None else f"_from_{source.name}"
+    name = f"task{task}_{mode}_{round(lat * 1000)}ms_inits{inits[0]}-{inits[-1]}{origin}.txt"
+    path = (fits or source / "fits") / name
     if not path.exists():
         delays = [d for bag in bags for d in applied_delays_ticks(bag).values()]
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -173,10 +185,19 @@ def main() -> None:
     ap.add_argument("--task", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bags/validate_realtime"))
     ap.add_argument("--table-only", action="store_true", help="only tabulate the episodes already stored")
+    ap.add_argument(
+        "--fit-from",
+        type=Path,
+        default=None,
+        help="fit the delays on every real-time episode of this other run's folder (a separate run)",
+    )
     args = ap.parse_args()
+    if args.fit_from is not None and args.fit_from.resolve() == args.out.resolve():
+        raise SystemExit("--fit-from must name another run's folder than --out")
 
+    load_start = os.getloadavg()[0]
     rows = []
-    for lat, arm, cfg in configs(args.latencies, args.modes, args.inits, args.task, args.out):
+    for lat, arm, cfg in configs(args.latencies, args.modes, args.inits, args.task, args.out, args.fit_from):
         bag = args.out / cfg.episode_name()
         if not (bag / SCORE_FILE).exists() and not (bag / "metadata.yaml").exists():
             if args.table_only:
@@ -196,11 +217,16 @@ def main() -> None:
     episodes = pd.DataFrame(rows)
     if episodes.empty:
         raise SystemExit(f"{args.out}: no episodes stored (run without --table-only)")
+    env_versions = versions()
+    print(
+        f"commit {env_versions.get('git_commit')}; CPU class {env_versions['cpu']['class']}; 1-min load average "
+        f"{load_start:.2f} at start, {os.getloadavg()[0]:.2f} at end ({len(os.sched_getaffinity(0))} CPUs)"
+    )
     print(cell_table(episodes))
     print("\nReal-time chunks by request-to-effect delay:\n" + delay_counts(episodes))
     print("\nPaired episodes (same L, protocol, init state):\n" + paired_agreement(episodes))
     held_out = episodes[episodes.init >= args.inits // 2]
-    if (held_out.clock == FITTED).any():
+    if args.fit_from is None and (held_out.clock == FITTED).any():
         print(f"\nHeld-out init states {args.inits // 2}-{args.inits - 1} only (the fitted arm's delays come from "
               f"init states 0-{args.inits // 2 - 1}):\n" + cell_table(held_out))  # fmt: skip
 
