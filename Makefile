@@ -15,7 +15,7 @@ LEROBOT_VENV := .venv-lerobot
 
 setup: $(STAMP)/package
 
-# LeRobot's own venv: LeRobot checkpoints are served from it (--policy lerobot; docs/lerobot.md).
+# LeRobot's own venv: LeRobot checkpoints are served from it (--policy lerobot; docs/guide/lerobot.md).
 setup-lerobot: $(LEROBOT_VENV)/.stamps/wheels
 
 $(LEROBOT_VENV)/.stamps/wheels: requirements-lerobot.lock

@@ -1,4 +1,5 @@
-"""The merge-strategy table of docs/async.md, printed from a sweep folder (of config/sweeps/async_slice.yaml there).
+"""The merge-strategy table of docs/design/async.md, printed from a sweep folder
+(of config/sweeps/async_slice.yaml there).
 
 Usage: python benchmarks/async_table.py bags/sweeps/async_slice   (or a sweep of async_quick.yaml, async.yaml)
        python benchmarks/async_table.py bags/sweeps/slack --by request_slack   (config/sweeps/slack.yaml)

@@ -129,7 +129,8 @@ def run(
         str,
         typer.Option(
             help="Injected inference latency Δt_sim: seconds (a whole number of 0.05 s ticks), or a distribution "
-            "drawn per inference: uniform:LO:HI, normal:MEAN:STD, lognormal:MEDIAN:SIGMA, trace:FILE (docs/async.md)."
+            "drawn per inference: uniform:LO:HI, normal:MEAN:STD, lognormal:MEDIAN:SIGMA, trace:FILE "
+            "(docs/design/async.md)."
         ),
     ] = f"{_RUN.latency_s:g}",
     latency_rounding: Annotated[
@@ -144,14 +145,14 @@ def run(
         int,
         typer.Option(
             help="async: request K actions earlier than the threshold (replace: at N + K). 0, the default, is the "
-            "lockstep best case: a chunk lands exactly as the buffer empties (docs/async.md)."
+            "lockstep best case: a chunk lands exactly as the buffer empties (docs/design/async.md)."
         ),
     ] = _RUN.request_slack,
     merge: Annotated[
         str,
         typer.Option(
             help="async merge: replace, latest_only, weighted_average, average, conservative, temporal_ensemble, "
-            "rtc, rtc_hard (docs/async.md)."
+            "rtc, rtc_hard (docs/design/async.md)."
         ),
     ] = _RUN.merge,
     policy: str = _RUN.policy,
@@ -166,14 +167,14 @@ def run(
         BudgetCounts,
         typer.Option(
             help="What the tick budget counts: all ticks (the paper's: holds count) or action ticks only (those "
-            "whose command came from a chunk; the episode still stops at 4x the budget; docs/scoring.md)."
+            "whose command came from a chunk; the episode still stops at 4x the budget; docs/guide/scoring.md)."
         ),
     ] = BudgetCounts(_RUN.budget_counts),
     clock: Annotated[
         str,
         typer.Option(
             help="lockstep (deterministic) or realtime (wall-clock ticks, real inference time + Δt_sim; "
-            "not bit-reproducible; docs/real_robot.md)."
+            "not bit-reproducible; docs/guide/real_robot.md)."
         ),
     ] = _RUN.clock,
     robot: Annotated[
@@ -200,7 +201,7 @@ def run(
         try:
             seconds = float(latency)
         except ValueError:
-            _refuse(f"--latency {latency!r}: expected seconds or a distribution (docs/async.md)")
+            _refuse(f"--latency {latency!r}: expected seconds or a distribution (docs/design/async.md)")
         if latency_rounding is LatencyRounding.nearest and seconds >= 0 and round_latency(seconds) != seconds:
             console.print(f"latency {seconds:g} s rounded to {round_latency(seconds):g} s (--latency-rounding nearest)")
             seconds = round_latency(seconds)
@@ -279,7 +280,7 @@ def demo(
         _refuse(str(exc))
     rows = []
     with contextlib.ExitStack() as keep:
-        # One long-lived node stack for the four episodes (docs/lifecycle.md), as a sweep worker keeps one.
+        # One long-lived node stack for the four episodes (docs/design/lifecycle.md), as a sweep worker keeps one.
         stack = None
         if transport is Transport.ros:
             from lq_ros.transport.ros.stack import RosStack
@@ -415,7 +416,7 @@ def sweep(
     out: Annotated[Path | None, typer.Option(help="Sweep folder; default: bags/sweeps/<spec name>.")] = None,
     retry_errors: Annotated[bool, typer.Option(help="Run episodes recorded as error again.")] = False,
 ) -> None:
-    """Run a latency sweep (docs/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
+    """Run a latency sweep (docs/guide/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
     from lq_ros.run import sweep as sw
 
     if backend not in sw.BACKENDS:

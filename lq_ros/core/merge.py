@@ -21,7 +21,7 @@ dropped (as LeRobot's ``_aggregate_action_queues`` does).
 ``temporal_ensemble`` weighs chunk i (i = 0 the oldest covering the step) w_i = exp(-m i), and requests
 whenever no inference is in flight. "Half a chunk" is LeRobot's ``chunk_size_threshold = 0.5``: request
 when at most max(ceil(H / 2), N + 1) actions remain, so the old plan still covers ticks after the new
-chunk lands (H: the length of the last chunk applied). docs/async.md: semantics, defaults, refusals.
+chunk lands (H: the length of the last chunk applied). docs/design/async.md: semantics, defaults, refusals.
 
 The pairwise rules (``weighted_average``, ``average``, ``conservative``) combine the buffered value with
 the new one, as LeRobot's aggregate functions do: a step covered by three chunks weighs them 0.09/0.21/0.7

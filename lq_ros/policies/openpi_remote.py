@@ -3,7 +3,7 @@
 Wire protocol (openpi ``serving/websocket_policy_server.py``): the server's first frame is a
 msgpack metadata dict; then strictly one observation dict in, one action dict out. A text frame
 instead of a binary one carries the server's traceback, after which it closes the socket.
-Observation keys are those of openpi's ``examples/libero/main.py``; see docs/remote_policies.md.
+Observation keys are those of openpi's ``examples/libero/main.py``; see docs/guide/remote_policies.md.
 
 Every way the server can fail us (down, slower than ``timeout_s``, an error frame, a closed socket,
 a response that is not an (H, 7) finite numeric chunk) raises PolicyError, so the episode ends as

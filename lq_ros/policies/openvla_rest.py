@@ -5,7 +5,7 @@ arrays are json-numpy encoded (``{"__numpy__": base64, "dtype", "shape"}``): ``i
 H x W x 3), ``instruction``, optional ``unnorm_key``. The response is one json-numpy 7-D action
 (OpenVLA) or a list of them (OpenVLA-OFT, a chunk); on any exception the server answers HTTP 200
 with the JSON string ``"error"``. OFT servers take ``full_image``, ``wrist_image`` and ``state``
-instead of ``image`` (``style="oft"``). See docs/remote_policies.md.
+instead of ``image`` (``style="oft"``). See docs/guide/remote_policies.md.
 
 Images are preprocessed exactly as OpenVLA's and OpenVLA-OFT's LIBERO evaluations do before
 querying the model (``experiments/robot/libero/``): 180-degree rotation, a JPEG encode/decode round

@@ -3,7 +3,7 @@
 ``--policy lq_ros.policies.sleepy:SleepyPolicy --policy-arg sleep_s=0.1`` runs the scripted expert (or
 ``inner``) and then sleeps until ``sleep_s`` wall seconds have passed since ``infer`` was called, so a
 real-time run's inference takes L = sleep_s (plus the transport), to be compared with a lockstep run of
-``inner`` at Δt_sim = L (benchmarks/validate_realtime.py, docs/real_robot.md).
+``inner`` at Δt_sim = L (benchmarks/validate_realtime.py, docs/guide/real_robot.md).
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ PANELS = (
     # Before merging: how far the new chunk's rows are from the old plan where they overlap (null: no overlap).
     ("chunk_disagreement_mean", "chunk disagreement on overlap (action units) [95% CI]", 1.0),
     ("chunk_switch_jerk_ratio", "jerk near switches / elsewhere [95% CI]", 1.0),
-    # Null when switches come every 5 ticks or less (docs/async.md); the episode's mean jerk always exists.
+    # Null when switches come every 5 ticks or less (docs/design/async.md); the episode's mean jerk always exists.
     ("jerk_mean", "mean jerk, 20 Hz (m/s³) [95% CI]", 1.0),
 )
 POPULATION = "_all"

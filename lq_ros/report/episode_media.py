@@ -206,7 +206,7 @@ def videos_html(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> str:
     e = html.escape
     parts = ["<h2>Replay videos</h2><p>Re-simulated from each bag's recorded commands; the strip shows the tick, "
              "the command's source (colours as in the timeline: chunk, hold, underrun, rejected), chunk switches "
-             "and the outcome. docs/visualize.md explains them.</p>"]  # fmt: skip
+             "and the outcome. docs/guide/visualize.md explains them.</p>"]  # fmt: skip
     with_video = episodes[episodes["video"].map(_present)]
     for cell, rows in with_video.groupby(list(cell_keys), sort=True):
         parts.append(f"<h3>{e(_cell_title(cell_keys, cell))}</h3><div style='display:flex;flex-wrap:wrap;gap:12px'>")

@@ -690,7 +690,7 @@ INTRO = (
     "their replan horizon, not only in blocking: sync executes replan_steps actions of each chunk, async the H - N "
     "fresh ones (actions/chunk: measured). ⚠ / red rings: degenerate cells, where async chunks were no longer than N "
     "and no fresh action ran. Sampling: the rate of the trajectory metrics and how energy was integrated "
-    "(docs/scoring.md)."
+    "(docs/guide/scoring.md)."
 )
 #: The report's reading notes (after INTRO): how to read what the figures and tables attribute.
 NOTES = (

@@ -14,7 +14,7 @@ A Cartesian impedance controller taking an absolute target (franka_ros2's ``equi
 same goal from :meth:`DeltaToTarget.target`, and the gripper a width (``std_msgs/Float64MultiArray``,
 ``data = [width_m]``, forward_command_controller style): open width for a < 0, closed for a > 0, linear
 in between. The controller then tracks the goal for the tick, as OSC does for its 25 substeps; with
-OSC's gains a unit action moves the hand ~12.5 mm per 50 ms tick, not the full 50 mm (docs/real_robot.md).
+OSC's gains a unit action moves the hand ~12.5 mm per 50 ms tick, not the full 50 mm (docs/guide/real_robot.md).
 """
 
 from __future__ import annotations

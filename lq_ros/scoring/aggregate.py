@@ -15,7 +15,7 @@ Success uses the Wilson score interval; continuous metrics a seeded percentile b
 on few values: below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
 (``<metric>_values``, :func:`ci_text`).
 
-Attribution of latency effects (docs/scoring.md, "Attributing latency effects"):
+Attribution of latency effects (docs/guide/scoring.md, "Attributing latency effects"):
 - :func:`paired_differences`: each latency > 0 cell against the zero-latency cell of the same variant and
   protocol, over the (suite, task, init, seed) pairs that succeed in both, so a change is not a change of
   the task mix that succeeds.
@@ -774,5 +774,5 @@ def markdown_table(aggregates: pd.DataFrame) -> str:
     if any(agg.get("n_degenerate") for _, agg in aggregates.iterrows()):
         note += "; ⚠: degenerate protocol (async chunks with no fresh action)"
     if any(agg.get("budget_decided") for _, agg in aggregates.iterrows()):
-        note += f"; {BUDGET_MARK}: budget-decided (at least half the timeouts budget-limited, docs/scoring.md)"
+        note += f"; {BUDGET_MARK}: budget-decided (at least half the timeouts budget-limited, docs/guide/scoring.md)"
     return pd.DataFrame(rows).to_markdown(index=False) + note

@@ -12,7 +12,7 @@ stopped when run again.
     .venv/bin/python -m lq_ros.training.pipeline --out rebuild --only oft_c8_delay_libero_object   # a candidate
 
 The YAML's ``candidates`` are weight files that were built and evaluated but are not shipped (the delay-aware
-variants, docs/learned_policies.md): built only when named with ``--only``, after the weights they start from.
+variants, docs/design/learned_policies.md): built only when named with ``--only``, after the weights they start from.
 
 ``--plan`` prints each stage's command and the wall time the shipped files record for it (collection: the
 sum over tasks of each task's time, with ``workers`` tasks at a time; training: ``train_wall_s``).

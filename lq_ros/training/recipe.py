@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 KINDS = ("oft", "flow")
-#: Per kind: chunk length H, optimiser steps and EMA decay of the shipped recipe (docs/learned_policies.md,
+#: Per kind: chunk length H, optimiser steps and EMA decay of the shipped recipe (docs/design/learned_policies.md,
 #: "The shipped recipe"). ``replan_steps`` (actions run per chunk) defaults to H for ``oft`` (open loop, the
 #: whole chunk) and H // 2 for ``flow`` (see :func:`default_replan_steps`).
 KIND_RECIPE: dict[str, dict[str, float]] = {

@@ -297,7 +297,7 @@ def test_dagger_under_latency_collects_executor_driven_episodes(tmp_path):
 @pytest.mark.sim
 def test_real_delay_aware_episode_succeeds_async_at_0_1_s(tmp_path, name):
     """LIBERO-Object task 7 init 0, async at 0.1 s, variant=delay on the shipped weights: a success (the latency
-    study, docs/learned_policies.md, recorded 114 ticks for flow and 108 for oft on its machine)."""
+    study, docs/design/learned_policies.md, recorded 114 ticks for flow and 108 for oft on its machine)."""
     from lq_ros.core.run_config import RunConfig
     from lq_ros.transport.inprocess import run_inprocess
 

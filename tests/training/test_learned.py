@@ -31,7 +31,7 @@ SPATIAL = layout_for("libero_spatial")
 OBJECT = layout_for("libero_object")
 #: The policies with shipped weights: (policy name, policy args, checkpoint base name, chunk length).
 POLICIES = [("oft", {}, "oft_c8", 8), ("oft", {"chunk_size": 1}, "oft_c1", 1), ("flow", {}, "flow_c10", 10)]
-#: Suites each checkpoint base name is shipped for (docs/learned_policies.md: what is not shipped yet).
+#: Suites each checkpoint base name is shipped for (docs/design/learned_policies.md: what is not shipped yet).
 SHIPPED_SUITES: dict[str, tuple[str, ...]] = {
     "oft_c8": ("libero_spatial", "libero_object"),
     "oft_c1": ("libero_spatial", "libero_object"),
@@ -305,7 +305,7 @@ def test_policy_weights_errors(task0):
 
 # --- real episodes -------------------------------------------------------------------------------------
 #: One short in-process episode per shipped checkpoint that its weights solve (checked when chosen; the
-#: evaluation in docs/learned_policies.md has the rates): LIBERO-Spatial task 0 init 0 (~115 ticks),
+#: evaluation in docs/design/learned_policies.md has the rates): LIBERO-Spatial task 0 init 0 (~115 ticks),
 #: LIBERO-Object task 7 init 0 (milk, the shortest).
 EPISODE = {"libero_spatial": {"task": 0, "init": 0}, "libero_object": {"task": 7, "init": 0}}
 

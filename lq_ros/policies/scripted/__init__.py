@@ -1,4 +1,4 @@
-"""Scripted privileged-state experts behind the one policy name ``scripted`` (docs/scripted_experts.md).
+"""Scripted privileged-state experts behind the one policy name ``scripted`` (docs/design/scripted_experts.md).
 
 ``machine``      the shared machinery: state machine, chunk rollout on an arm model, parameters
 ``scene``        object collision boxes and the fixed LIBERO-Goal fixtures

@@ -89,7 +89,10 @@ def expert_for(task: TaskInfo, params: ExpertParams | None = None) -> Expert:
 
 
 class ScriptedExpert(Policy):
-    """``--policy scripted``: LIBERO-Spatial, LIBERO-Object and 7 of 10 LIBERO-Goal tasks (docs/scripted_experts.md)."""
+    """``--policy scripted``: LIBERO-Spatial, LIBERO-Object and 7 of 10 LIBERO-Goal tasks.
+
+    Details: docs/design/scripted_experts.md.
+    """
 
     name = "scripted"
     needs_object_poses = True  # privileged state: plans on the objects' poses

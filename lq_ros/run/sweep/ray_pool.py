@@ -1,7 +1,7 @@
 """Ray actors as sweep workers: episodes run on any node of a Ray cluster, bags come back to the driver's store.
 
 Without an address, a private single-node Ray on loopback (``ray_init_local``). With ``--address HOST:PORT``,
-the cluster started with ``ray start`` (docs/sweeps.md): the actors are spread over its nodes, each episode's
+the cluster started with ``ray start`` (docs/guide/sweeps.md): the actors are spread over its nodes, each episode's
 bag and logs travel back to the driver, and every attempt records the node that ran it. Token
 authentication (Ray's default for a new cluster) needs the head's token in the driver's environment
 (``RAY_AUTH_MODE=token`` and ``RAY_AUTH_TOKEN_PATH`` or ``RAY_AUTH_TOKEN``); a driver that cannot connect

@@ -1,4 +1,4 @@
-"""Sweep specs: a YAML mapping validated and expanded to one RunConfig per episode (docs/sweeps.md)."""
+"""Sweep specs: a YAML mapping validated and expanded to one RunConfig per episode (docs/guide/sweeps.md)."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ No ros2 launch exists for the PyPI wheels, so this is ours. A :class:`RosStack` 
 nodes (sim, policy, executor, metrics) and a lifecycle manager (nodes/manager_node.py) once, then runs any
 number of episodes on them: per episode it hands the manager the episode's parameters, and the manager
 moves the nodes through the standard lifecycle (configure, activate, deactivate, cleanup, shutdown;
-docs/lifecycle.md). ``lq run`` uses a stack for one episode; a sweep worker keeps one for all its episodes.
+docs/design/lifecycle.md). ``lq run`` uses a stack for one episode; a sweep worker keeps one for all its episodes.
 This process never initialises rclpy: a launcher killed with SIGKILL leaves no Fast DDS file behind.
 
 The same nodes run both clocks (the run's ``clock``: lockstep on /clock, with ``use_sim_time``, or real time on
