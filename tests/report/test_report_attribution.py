@@ -9,6 +9,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
+from lq_ros.report import figures as fg
+from lq_ros.report import prose, tables
 from lq_ros.report import sweep_report as rp
 from lq_ros.scoring import aggregate as agg
 
@@ -40,7 +42,7 @@ def _episodes():
 def synthetic():
     episodes = _episodes()
     pooled = rp.figure_aggregates(episodes, n_boot=100)
-    figures = rp.make_figures(pooled, episodes)
+    figures = fg.make_figures(pooled, episodes)
     yield episodes, pooled, figures
     for fig in figures.values():
         plt.close(fig)
@@ -104,13 +106,13 @@ def test_fig5_draws_the_detrended_ee_osc_beside_the_papers(synthetic):
 
 def test_tables_and_sentences(synthetic):
     episodes, pooled, _ = synthetic
-    summary = rp.summary_table(pooled).set_index(["policy", "mode", "latency"])
+    summary = tables.summary_table(pooled).set_index(["policy", "mode", "latency"])
     row = summary.loc[("scripted", "sync", "0.2 s (N=4)")]
     assert row["budget"] == "◇ budget-decided: 3/3 timeouts budget-limited; action budget: 100 % of 3"
     zero = summary.loc[("scripted", "sync", "0 s (N=0)")]
     assert zero["time s (succ.)"] == "5.05 (n=3: 5.00, 5.05, 5.10)"  # three values: listed, no interval
     paired = rp.paired_aggregates(episodes, pooled, n_boot=100)
-    sentences = rp.paired_sentences(paired)
+    sentences = prose.paired_sentences(paired)
     failed = [s for s in sentences if s.startswith("**scripted · sync, 0.2 s")][0]
     assert "success 0/3 against 3/3 (◇ budget-decided" in failed and "no (task, init) pair succeeds" in failed
     slower = [s for s in sentences if s.startswith("**scripted [budget_counts=action] · sync, 0.2 s")][0]

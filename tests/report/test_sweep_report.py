@@ -10,6 +10,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
+from lq_ros.report import figures as fg
 from lq_ros.report import sweep_report as rp
 from lq_ros.run import sweep as sw
 
@@ -75,7 +76,7 @@ def test_figures_have_the_papers_panels_and_series(report):
     assert np.all(totals > 85.0 * 50 * 0.05)  # at least the 85 W overhead over 50 ticks
 
 
-@pytest.mark.parametrize("name", list(rp.FIGURES))
+@pytest.mark.parametrize("name", list(fg.FIGURES))
 def test_png_is_not_blank(report, name):
     image = mpimg.imread(report.files[f"{name}.png"])[..., :3]
     assert image.shape[0] > 300 and image.shape[1] > 500
@@ -87,7 +88,7 @@ def test_png_is_not_blank(report, name):
 def test_pages_tables_provenance_and_links(report, sweep_dir):
     html = report.files["report.html"].read_text()
     md = report.files["report.md"].read_text()
-    for name in rp.FIGURES:
+    for name in fg.FIGURES:
         assert f"{name}.png" in html and f"({name}.png)" in md
     links = re.findall(r"href='([^']+)'", html)
     assert len(links) == 8

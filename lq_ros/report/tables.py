@@ -1,0 +1,102 @@
+"""The report's tables: the pooled summary, the paired changes against 0 s, the per-task view and the episode
+list, with their cell formatting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from lq_ros.report import episode_media as media
+from lq_ros.report.figures import FIGURE_KEYS
+from lq_ros.scoring import aggregate as agg
+
+#: (header, metric, decimals, scale) of the pooled summary table.
+SUMMARY_COLUMNS = (
+    ("success %", "success", 0, 100.0),
+    ("time s (succ.)", "completion_time_s", 2, 1.0),
+    ("time s (KM)", "completion_time_rmst", 2, 1.0),
+    ("jerk m/s³ (succ.)", "jerk_mean", 2, 1.0),
+    ("jerk P90 (succ.)", "jerk_p90", 2, 1.0),
+    ("EE-Osc mm (succ.)", "ee_osc", 2, 1000.0),
+    ("EE-Osc detrended mm (succ.)", "ee_osc_detrended", 2, 1000.0),
+    ("J/step (succ.)", "energy_per_step_j", 2, 1.0),
+    ("energy J (succ.)", "energy_total_j", 0, 1.0),
+    ("actions/chunk", "actions_per_chunk_mean", 1, 1.0),
+)
+
+
+def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
+    rows = []
+    for _, r in pooled.sort_values(list(FIGURE_KEYS)).iterrows():
+        row = {"policy": r["policy"], "mode": r["mode"], "latency": agg.cell_latency_label(r),
+               "sampling": agg.sampling_label(r), "n": int(r["n"]), "errors": int(r["n_error"])}  # fmt: skip
+        for header, metric, decimals, scale in SUMMARY_COLUMNS:
+            row[header] = agg.ci_text(r, metric, decimals, scale)
+        row["budget"] = agg.budget_note(r)
+        row["note"] = f"⚠ degenerate in {int(r['n_degenerate'])} episodes" if r.get("n_degenerate") else ""
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+#: (header, metric, decimals, scale) of the paired table: cell minus zero latency over pairs succeeding in both.
+PAIRED_COLUMNS = (
+    ("Δ time s", "completion_time_s", 2, 1.0),
+    ("Δ action ticks", "action_ticks", 0, 1.0),
+    ("Δ jerk m/s³", "jerk_mean", 2, 1.0),
+    ("Δ EE-Osc mm", "ee_osc", 1, 1000.0),
+    ("Δ EE-Osc detrended mm", "ee_osc_detrended", 1, 1000.0),
+    ("Δ energy J", "energy_total_j", 0, 1.0),
+    ("Δ J/step", "energy_per_step_j", 2, 1.0),
+)
+
+
+def paired_table(paired: pd.DataFrame) -> pd.DataFrame:
+    """One row per latency > 0 cell: its successes against the zero-latency cell's and the paired changes."""
+    rows = []
+    for _, r in paired.iterrows():
+        zero = f"{r['zero_n_success']}/{r['zero_n']}"
+        row = {"policy": r["policy"], "mode": r["mode"], "latency": r.get("latency_label") or agg.cell_latency_label(r),
+               "sampling": agg.sampling_label(r),
+               "success vs 0 s": f"{count_text(r, 'cell_n_success')}/{outcomes_text(r)} vs {zero}",
+               "pairs": int(r["n_pairs"])}  # fmt: skip
+        for header, metric, decimals, scale in PAIRED_COLUMNS:
+            row[header] = agg.ci_text(r, f"{metric}_diff", decimals, scale, signed=True)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def count_text(r, key: str) -> str:
+    value = r.get(key)
+    return "?" if value is None or pd.isna(value) else str(int(value))
+
+
+def outcomes_text(r) -> str:
+    n = [r.get("cell_n_success"), r.get("n_failure")]
+    return "?" if any(v is None or pd.isna(v) for v in n) else str(int(n[0] + n[1]))
+
+
+EPISODE_COLUMNS = ("policy", "mode", "latency_s", "suite", "task", "init", "seed", "status", "completion_steps",
+                   "action_ticks", "hold_ticks", "budget_limited", "jerk_mean", "ee_osc", "ee_osc_detrended",
+                   "energy_total_j", "error_reason")  # fmt: skip
+
+
+def episode_table(episodes: pd.DataFrame) -> pd.DataFrame:
+    cols = [c for c in EPISODE_COLUMNS if c in episodes]
+    return episodes.sort_values([c for c in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")
+                                 if c in episodes])[[*cols, "bag", *media.table_columns(episodes)]]  # fmt: skip
+
+
+def fmt_cell(v) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def per_task_view(per_task: pd.DataFrame) -> pd.DataFrame:
+    cols = [*agg.GROUP_KEYS, "n", "n_error"]
+    view = per_task[cols].copy()
+    for header, metric, decimals, scale in SUMMARY_COLUMNS:
+        view[header] = [agg.ci_text(r, metric, decimals, scale) for _, r in per_task.iterrows()]
+    return view
