@@ -14,6 +14,7 @@ import pandas as pd  # noqa: E402
 
 from lq_ros.core.merge import Merge  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
+from lq_ros.report import plot_rules as pr  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
 
 NAME = "fig8_chunk_boundary"
@@ -34,76 +35,132 @@ PANELS = (
     ("jerk_mean", "mean jerk, 20 Hz (m/s³) [95% CI]", 1.0),
 )
 POPULATION = "_all"
-#: Panels per row of the figure.
+#: Panels per row of the figure (at most; fewer when panels are left out).
 COLUMNS = 3
 #: Line style per latency kind (constant and the distributions).
 KIND_STYLE = {"constant": "-", "uniform": "--", "normal": "-.", "lognormal": ":", "trace": (0, (1, 1))}
-SERIES = ("base", "merge", "latency_kind")
+#: One line: a suite never pools with another.
+SERIES = ("suite", "base", "merge", "latency_kind")
+#: Why a boundary panel can have nothing to draw (the footnote names the panel and this).
+EMPTY_REASON = {
+    "chunk_disagreement_mean": "no chunk overlapped the old plan (no overlapping merge ran, or N > H/2)",
+    "chunk_switch_jerk_ratio": "switches every 5 ticks or less leave no jerk away from them",
+}
 
 
 def boundary_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
-    """aggregate() of the async episodes per (policy variant without its merge, merge, latency kind, Δt_sim)."""
+    """aggregate() of the async episodes per (suite, policy variant without its merge, merge, latency kind,
+    Δt_sim). Success is over every episode with an outcome; the boundary metrics over the episodes whose arm moved
+    (an episode that held throughout has no boundary and a jerk of 0): ``n_idle`` counts the others."""
     eps = episodes[episodes.get("mode", pd.Series(dtype=object)) == "async"].copy()
     if eps.empty:
         return pd.DataFrame()
     eps["merge"] = eps["merge"].fillna(Merge.REPLACE.value) if "merge" in eps else Merge.REPLACE.value
     dist = eps["latency_dist"] if "latency_dist" in eps else pd.Series("constant", index=eps.index)
     eps["latency_kind"] = dist.fillna("constant").astype(str).str.split(":").str[0]
+    eps["suite"] = eps["suite"].fillna("").astype(str) if "suite" in eps else ""
     unlabelled = eps.copy()
     if "policy_name" in unlabelled:
         unlabelled["policy"] = unlabelled["policy_name"]
     eps["base"] = unlabelled.apply(lambda r: agg._variant_label(r, ("merge", "latency_dist")), axis=1)
-    return agg.aggregate(eps, by=[*SERIES, "latency_s"], n_boot=n_boot, seed=seed)
+    by = [*SERIES, "latency_s"]
+    cells = agg.aggregate(eps, by=by, n_boot=n_boot, seed=seed)
+    idle = pr.never_moved(eps) & eps["status"].isin(["success", "failure"])
+    counts = eps.assign(_idle=idle).groupby(by, sort=True)["_idle"].sum().rename("n_idle").reset_index()
+    cells = cells.merge(counts, on=by, how="left")
+    if idle.any():  # the boundary metrics again, without the episodes that never moved
+        moving = agg.aggregate(eps[~idle], by=by, n_boot=n_boot, seed=seed) if (~idle).any() else pd.DataFrame()
+        metric_cols = [c for c in cells.columns if c.startswith(tuple(m for m, _, _ in PANELS[1:]))]
+        cells = cells.drop(columns=metric_cols)
+        if moving.empty:
+            cells = cells.assign(**{c: np.nan for c in metric_cols})
+        else:
+            cells = cells.merge(moving[[*by, *[c for c in metric_cols if c in moving]]], on=by, how="left")
+    return cells
+
+
+def _panel_values(rows: pd.DataFrame, metric: str, scale: float):
+    """(mean, lo, hi, n) of a panel's metric in ``rows`` (n None for the success rate: always joined)."""
+    if metric == "success_rate":
+        return rows["success_rate"], rows["success_ci_lo"], rows["success_ci_hi"], None
+    col = f"{metric}{POPULATION}"
+    return rows[f"{col}_mean"], rows[f"{col}_ci_lo"], rows[f"{col}_ci_hi"], rows[f"{col}_n"]
+
+
+def _drawable(pooled: pd.DataFrame, metric: str) -> bool:
+    """A panel has something to draw: a finite value in a cell that is not masked."""
+    if metric == "success_rate":
+        return pr.has_data(pooled["success_rate"])
+    col = f"{metric}{POPULATION}_mean"
+    return col in pooled and pr.has_data(pooled[col].to_numpy(dtype=np.float64)[~pr.idle_cells(pooled)])
 
 
 def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> plt.Figure:
+    """Fig. 8: success and the boundary metrics vs latency, one line per (suite, variant, merge, latency kind).
+    Panels with nothing to draw are left out and named in the footnote; masked and small-n cells follow
+    lq_ros/report/plot_rules.py."""
     pooled = boundary_aggregates(episodes, n_boot=n_boot, seed=seed)
-    n_cols = COLUMNS
-    n_rows = -(-len(PANELS) // n_cols)
-    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.6 * n_cols, 4.3 * n_rows), squeeze=False)
-    axes = list(grid.flat)
-    for ax in axes[len(PANELS) :]:
-        ax.set_visible(False)
-    axes = axes[: len(PANELS)]
     if pooled.empty:
-        for ax in axes:
-            ax.text(0.5, 0.5, "no async episodes", ha="center", va="center", transform=ax.transAxes)
-        fig.suptitle(TITLE)
+        fig, ax = plt.subplots(figsize=(6.0, 2.5))
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no async episodes: nothing to draw", ha="center", va="center", transform=ax.transAxes)
+        pr.layout(fig, title=TITLE)
         return fig
+    panels = [p for p in PANELS if _drawable(pooled, p[0])]
+    left_out = [p for p in PANELS if p not in panels]
+    n_cols = min(COLUMNS, len(panels))
+    n_rows = -(-len(panels) // n_cols)
+    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.6 * n_cols, 4.0 * n_rows), squeeze=False)
+    axes = list(grid.flat)
+    for ax in axes[len(panels) :]:
+        ax.set_visible(False)
+    axes = axes[: len(panels)]
     order = {m.value: i for i, m in enumerate(Merge)}
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     colour = {m: cycle[order.get(m, len(order)) % len(cycle)] for m in pooled["merge"].unique()}
-    bases = sorted(pooled["base"].astype(str).unique())
-    markers = dict(zip(bases, "osD^v<>p*h", strict=False))
+    lines = sorted({(str(s), str(b)) for s, b in zip(pooled["suite"], pooled["base"], strict=True)})
+    markers = dict(zip(lines, "osD^v<>p*h", strict=False))
+    several_bases = pooled["base"].nunique() > 1
+    several_suites = pooled["suite"].nunique() > 1
     latencies = sorted(pooled["latency_s"].astype(float).unique())
-    for ax, (metric, label, scale) in zip(axes, PANELS, strict=True):
-        keys = sorted(pooled.groupby(list(SERIES)).groups, key=lambda k: (str(k[0]), order.get(k[1], 99), str(k[2])))
-        for base, merge, kind in keys:
-            rows = pooled[(pooled["base"] == base) & (pooled["merge"] == merge) & (pooled["latency_kind"] == kind)]
-            rows = rows.sort_values("latency_s")
-            if metric == "success_rate":
-                mean, lo, hi = rows["success_rate"], rows["success_ci_lo"], rows["success_ci_hi"]
-            else:
-                col = f"{metric}{POPULATION}"
-                mean, lo, hi = rows[f"{col}_mean"], rows[f"{col}_ci_lo"], rows[f"{col}_ci_hi"]
-            mean, lo, hi = (np.asarray(v, dtype=np.float64) * scale for v in (mean, lo, hi))
-            name = merge if len(bases) == 1 else f"{base} · {merge}"
-            name += "" if kind == "constant" else f" ({kind} latency)"
+    found: set[str] = set()
+    keys = sorted(pooled.groupby(list(SERIES)).groups, key=lambda k: (k[0], str(k[1]), order.get(k[2], 99), k[3]))
+    for ax, (metric, label, scale) in zip(axes, panels, strict=True):
+        for suite, base, merge, kind in keys:
+            rows = pooled[(pooled["suite"] == suite) & (pooled["base"] == base) & (pooled["merge"] == merge)
+                          & (pooled["latency_kind"] == kind)].sort_values("latency_s")  # fmt: skip
+            mean, lo, hi, n = _panel_values(rows, metric, scale)
             x = rows["latency_s"].astype(float).to_numpy()
-            style = KIND_STYLE.get(kind, "--")
-            ax.plot(x, mean, linestyle=style, marker=markers.get(str(base), "o"), color=colour[merge], label=name)
-            ax.fill_between(x, lo, hi, color=colour[merge], alpha=0.12, linewidth=0)
+            masked = None if metric == "success_rate" else pr.idle_cells(rows)
+            name = f"{base} · {merge}" if several_bases else merge
+            name += f" · {suite}" if several_suites else ""
+            name += "" if kind == "constant" else f" ({kind} latency)"
+            pr.mean_line(ax, x, mean, lo, hi, n, colour=colour[merge], linestyle=KIND_STYLE.get(kind, "--"),
+                         marker=markers.get((str(suite), str(base)), "o"), label=name, masked=masked,
+                         scale=scale)  # fmt: skip
+            shown = np.asarray(mean, dtype=np.float64)
+            if masked is not None and masked.any():
+                pr.mark_masked(ax, x[masked], colour[merge])
+                shown = np.where(masked, np.nan, shown)
+                found.add(pr.IDLE_NOTE)
+            if n is not None and (np.isfinite(shown) & (np.nan_to_num(n.to_numpy(dtype=float)) < pr.MIN_JOIN_N)).any():
+                found.add(pr.SMALL_N_NOTE)
+            if pr.ring_degenerate(ax, rows, shown, scale):
+                found.add(pr.DEGENERATE_NOTE)
         if metric == "chunk_switch_jerk_ratio":
             ax.axhline(1.0, color="grey", linewidth=0.8, linestyle=":")
         if metric == "success_rate":
             ax.set_ylim(-2, 102)
-        ax.set_ylabel(label)
-        ax.set_xlabel(f"applied latency Δt_sim (mean of a distribution) = N × {CONTROL_DT_S:g} s")
+        ax.set_ylabel(label, fontsize=9)
+        ax.set_xlabel(f"applied latency Δt_sim (mean of a distribution) = N × {CONTROL_DT_S:g} s", fontsize=8)
         ax.set_xticks(latencies, [f"{v:g}\nN={v / CONTROL_DT_S:.3g}" for v in latencies])
         ax.grid(alpha=0.3)
-    axes[0].legend(title="merge strategy", fontsize=7)
-    fig.suptitle(f"{TITLE}; boundary metrics over all episodes with an outcome")
-    fig.tight_layout()
+    notes = [f"not drawn: {label.split(' [')[0]} ({EMPTY_REASON.get(metric, 'no episode has a value')})"
+             for metric, label, _ in left_out]  # fmt: skip
+    notes.append("boundary metrics: means over every episode with an outcome whose arm moved; success over all")
+    notes += [n for n in (pr.SMALL_N_NOTE, pr.IDLE_NOTE, pr.DEGENERATE_NOTE) if n in found]
+    pr.layout(fig, axes[:1], title=TITLE, legend_title="merge strategy", ncol=min(3, len(keys)),
+              note=pr.footnote(*notes))  # fmt: skip
     return fig
 
 

@@ -4,7 +4,6 @@ of lq_ros/report/sweep_report.py, with 95 % CIs."""
 from __future__ import annotations
 
 import json
-import math
 
 import matplotlib
 
@@ -16,13 +15,15 @@ import pandas as pd  # noqa: E402
 
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
+from lq_ros.report import plot_rules as pr  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
+from lq_ros.scoring.survival import kaplan_meier_band as survival_band  # noqa: E402
 
-#: Figures pool tasks and init states: one point per (policy, protocol, latency) at one sampling of the
-#: trajectory and energy metrics (rates never pool: jerk at 20 Hz and at 500 Hz differ ~4x).
-FIGURE_KEYS = ("policy", "mode", "latency_s", "latency_dist", "trajectory_rate_hz", "energy_sampling")
+#: Figures pool tasks and init states, never suites: one point per (policy, protocol, suite, latency) at one
+#: sampling of the trajectory and energy metrics (rates never pool: jerk at 20 Hz and at 500 Hz differ ~4x).
+FIGURE_KEYS = ("policy", "mode", "latency_s", "latency_dist", "suite", "trajectory_rate_hz", "energy_sampling")
 #: One line of a figure.
-SERIES_KEYS = ("policy", "mode", "trajectory_rate_hz", "energy_sampling")
+SERIES_KEYS = ("policy", "mode", "suite", "trajectory_rate_hz", "energy_sampling")
 MODE_STYLE = {"sync": "--", "async": "-"}
 MODE_MARKER = {"sync": "s", "async": "o"}
 #: Stacked segments of Fig. 6: (per-episode column, label, colour).
@@ -43,35 +44,44 @@ FIGURES = {
 #: budget keeps its protocol's style).
 BUDGET_LABEL = {"all": "paper budget (holds count)", "action": "action budget"}
 ACTION_BUDGET_STYLE = ":"
-#: Footnote of a figure that marks budget-decided cells.
-BUDGET_FOOTNOTE = (
-    "hollow marker: budget-decided cell, at least half of its timeouts budget-limited (holds spent the paper budget "
-    "before the policy had the action ticks it needs; see the report's notes)"
-)
+#: Footnotes of the budget marks of Fig. 4, per ``budget_mark`` (the pooled cells' column).
+BUDGET_FOOTNOTE = {
+    "decided": "hollow marker: budget-decided cell, its action-budget twin succeeded where the paper budget timed out "
+    "(holds spent the paper budget; see the report's notes)",
+    "proxy": "dotted ring: budget-limited by the action-tick proxy only (no action-budget twin was run): weaker "
+    "evidence",
+}
+#: How a figure says which points have no interval (and are not joined).
+SMALL_N_NOTE = pr.SMALL_N_NOTE
 
 
 def _series(pooled: pd.DataFrame) -> list[tuple[str, str, pd.DataFrame]]:
-    """(policy label, mode, rows sorted by latency) for every series present. The policy label names
-    the sampling too when the report mixes samplings (the axis labels name it otherwise)."""
+    """(policy label, mode, rows sorted by latency) for every series present: one per suite (the label names it
+    when the figure holds several) and sampling (named too when the report mixes samplings)."""
     mixed = len(_samplings(pooled)) > 1
+    suites = _suites(pooled)
     out = []
     for key, rows in pooled.groupby(list(SERIES_KEYS), sort=True, dropna=False):
-        policy, mode = str(key[0]), str(key[1])
-        label = f"{policy} ({agg.sampling_label(rows.iloc[0])})" if mixed else policy
+        policy, mode, suite = str(key[0]), str(key[1]), key[2]
+        label = _with_suite(policy, suite, suites)
+        label = f"{label} ({agg.sampling_label(rows.iloc[0])})" if mixed else label
         out.append((label, mode, rows.sort_values("latency_s")))
     return out
 
 
+def _suites(frame: pd.DataFrame) -> set[str]:
+    return {str(s) for s in frame["suite"].dropna()} if "suite" in frame else set()
+
+
+def _with_suite(label: str, suite, suites: set[str]) -> str:
+    """``label`` naming ``suite`` when the figure holds several suites (variant labels may name it already)."""
+    if len(suites) < 2 or not isinstance(suite, str) or label.endswith(f" · {suite}"):
+        return label
+    return f"{label} · {suite}"
+
+
 def _samplings(pooled: pd.DataFrame) -> list[str]:
     return sorted({agg.sampling_label(r) for _, r in pooled.iterrows()})
-
-
-def _degenerate_points(ax, rows: pd.DataFrame, y, scale: float = 1.0) -> None:
-    """Ring the points of cells where async chunks executed nothing fresh (see the summary's note)."""
-    bad = rows["n_degenerate"].fillna(0).to_numpy() > 0
-    if bad.any():
-        y = np.asarray(y, dtype=np.float64)[bad] * scale
-        ax.scatter(rows["latency_s"].to_numpy()[bad], y, s=160, facecolors="none", edgecolors="red", zorder=5)
 
 
 def _colours(pooled: pd.DataFrame) -> dict[str, str]:
@@ -82,32 +92,47 @@ def _colours(pooled: pd.DataFrame) -> dict[str, str]:
 
 def _ci_line(ax, x, mean, lo, hi, *, colour: str, mode: str, label: str, scale: float = 1.0,
              style: str | None = None) -> None:  # fmt: skip
-    mean, lo, hi = (np.asarray(v, dtype=np.float64) * scale for v in (mean, lo, hi))
-    line = style or MODE_STYLE.get(mode, "-")
-    ax.plot(x, mean, line, marker=MODE_MARKER.get(mode, "o"), color=colour, label=label)
-    ax.fill_between(x, lo, hi, color=colour, alpha=0.15, linewidth=0)
+    """A rate's line (success: Wilson intervals hold at any n, so every point is joined)."""
+    pr.mean_line(ax, x, mean, lo, hi, colour=colour, linestyle=style or MODE_STYLE.get(mode, "-"),
+                 marker=MODE_MARKER.get(mode, "o"), label=label, scale=scale)  # fmt: skip
 
 
-def _metric_line(ax, rows: pd.DataFrame, metric: str, *, colour: str, mode: str, label: str, scale: float = 1.0):
-    """A metric's mean vs latency with its 95 % band; a point with fewer than agg.MIN_N_INTERVAL values has no
-    band (aggregate gives it no interval): its values are drawn as dots and its n written beside it."""
+def _metric_line(ax, rows: pd.DataFrame, metric: str, *, colour: str, mode: str, label: str,
+                 scale: float = 1.0) -> set[str]:  # fmt: skip
+    """A metric's mean vs latency with its 95 % band, by the rules of lq_ros/report/plot_rules.py: a point with
+    fewer than MIN_JOIN_N values is hollow, unjoined and bandless, its values drawn as dots and its n beside it;
+    a cell whose arm never moved is masked. Returns the notes that apply (plot_rules' *_NOTE)."""
     x = rows["latency_s"].to_numpy(dtype=np.float64)
-    _ci_line(ax, x, rows[f"{metric}_mean"], rows[f"{metric}_ci_lo"], rows[f"{metric}_ci_hi"],
-             colour=colour, mode=mode, label=label, scale=scale)  # fmt: skip
+    idle = pr.idle_cells(rows)
+    n = rows.get(f"{metric}_n")
+    pr.mean_line(ax, x, rows[f"{metric}_mean"], rows[f"{metric}_ci_lo"], rows[f"{metric}_ci_hi"], n, colour=colour,
+                 linestyle=MODE_STYLE.get(mode, "-"), marker=MODE_MARKER.get(mode, "o"), label=label, masked=idle,
+                 scale=scale)  # fmt: skip
+    pr.mark_masked(ax, x[idle], colour)
+    mean = np.where(idle, np.nan, rows[f"{metric}_mean"].to_numpy(dtype=np.float64))
+    notes = {pr.IDLE_NOTE} if idle.any() else set()
+    if pr.ring_degenerate(ax, rows, mean, scale):
+        notes.add(pr.DEGENERATE_NOTE)
+    if n is None:
+        return notes
+    few = np.isfinite(mean) & (np.nan_to_num(n.to_numpy(dtype=np.float64)) < pr.MIN_JOIN_N)
+    if few.any():
+        notes.add(pr.SMALL_N_NOTE)
     if f"{metric}_values" not in rows:
-        return
-    for xi, n, values, mean in zip(x, rows[f"{metric}_n"], rows[f"{metric}_values"], rows[f"{metric}_mean"],
-                                   strict=True):  # fmt: skip
-        if not isinstance(values, str) or not values or not 0 < n < agg.MIN_N_INTERVAL:
+        return notes
+    for xi, ni, values, m in zip(x, n, rows[f"{metric}_values"], mean, strict=True):
+        if not isinstance(values, str) or not values or not 0 < ni < agg.MIN_N_INTERVAL or not np.isfinite(m):
             continue
         ys = np.asarray(json.loads(values), dtype=np.float64) * scale
         ax.scatter(np.full(len(ys), xi), ys, s=10, color=colour, alpha=0.6, zorder=4, linewidths=0)
-        ax.annotate(f"n={int(n)}", (xi, mean * scale), xytext=(4, 4), textcoords="offset points", fontsize=6,
+        ax.annotate(f"n={int(ni)}", (xi, m * scale), xytext=(4, 4), textcoords="offset points", fontsize=6,
                     color=colour)  # fmt: skip
+    return notes
 
 
-#: How a figure says which points have no interval.
-SMALL_N_NOTE = f"no band below n={agg.MIN_N_INTERVAL}: dots are the values"
+def _notes(found: set[str]) -> str:
+    """The footnote of the notes found, in a fixed order."""
+    return pr.footnote(*(n for n in (pr.SMALL_N_NOTE, pr.IDLE_NOTE, pr.DEGENERATE_NOTE) if n in found))
 
 
 def _latency_ticks(pooled: pd.DataFrame) -> tuple[list[float], list[str]]:
@@ -141,67 +166,75 @@ def _latency_axis(ax, pooled: pd.DataFrame) -> None:
     ax.grid(alpha=0.3)
 
 
-def _legends_below(fig, legend_axes, *, ncol: int = 1, title: str = "policy", footnote: str = "") -> None:
-    """Lay ``fig`` out with each of ``legend_axes``' legends under it (the figure grows to make room) and an
-    optional footnote at the bottom: a legend inside a panel hides its data."""
-    rows = max(math.ceil(len(ax.get_legend_handles_labels()[1]) / ncol) for ax in legend_axes)
-    legend_in, footnote_in = 0.35 + 0.16 * rows, 0.25 if footnote else 0.0
-    width_in, height_in = fig.get_size_inches()
-    fig.set_size_inches(width_in, height_in + legend_in + footnote_in)
-    bottom = (legend_in + footnote_in) / (height_in + legend_in + footnote_in)
-    fig.tight_layout(rect=(0, bottom, 1, 1))
-    for ax in legend_axes:  # one legend: centred under the figure; one per panel: under its panel
-        pos = ax.get_position()
-        x = 0.5 if len(legend_axes) == 1 else pos.x0 + pos.width / 2
-        fig.legend(*ax.get_legend_handles_labels(), title=title, fontsize=7, title_fontsize=8, ncol=ncol,
-                   loc="upper center", bbox_to_anchor=(x, bottom))  # fmt: skip
-    if footnote:
-        fig.text(0.01, 0.01, footnote, fontsize=7, ha="left", va="bottom")
-
-
 def _rate_note(pooled: pd.DataFrame) -> str:
     return "; ".join(_samplings(pooled))
 
 
+def _budget_marks(rows: pd.DataFrame) -> np.ndarray:
+    """Each cell's budget mark: ``budget_mark`` ("decided", "proxy" or "") where the pooled cells carry it, else
+    "decided" from ``budget_decided``. Never on a cell with degenerate episodes (its timeouts say nothing of the
+    budget: the arm barely ran)."""
+    if "budget_mark" in rows:
+        marks = rows["budget_mark"].fillna("").astype(str).to_numpy()
+    else:
+        decided = rows.get("budget_decided", pd.Series(False, index=rows.index)).fillna(False).astype(bool)
+        marks = np.where(decided.to_numpy(), "decided", "")
+    degenerate = rows.get("n_degenerate", pd.Series(0, index=rows.index)).fillna(0).to_numpy() > 0
+    return np.where(degenerate, "", marks)
+
+
 def fig_success(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 4: one panel per protocol, one line per policy, shaded 95 % Wilson interval."""
+    """Fig. 4: one panel per protocol, one line per policy (and suite), shaded 95 % Wilson interval; budget marks
+    (hollow: decided by the action-budget twin; dotted ring: the proxy alone) and red rings on degenerate cells."""
     modes = [m for m in ("sync", "async") if m in set(pooled["mode"])] + sorted(set(pooled["mode"]) - {"sync", "async"})
     colours = _colours(pooled)
-    decided = pooled.get("budget_decided", pd.Series(dtype=bool)).fillna(False).astype(bool).any()
+    suites = _suites(pooled)
     fig, axes = plt.subplots(1, len(modes), figsize=(5.5 * len(modes), 4.4), squeeze=False, sharey=True)
     budgets = set(pooled.get("budget_counts", pd.Series(dtype=object)).dropna())
     both = {"all", "action"} <= budgets
+    found: set[str] = set()
     for ax, mode in zip(axes[0], modes, strict=True):
         for policy, m, rows in _series(pooled):
             if m != mode:
                 continue
             budget = rows["budget_counts"].iloc[0] if "budget_counts" in rows else "all"
             base = rows["series_policy"].iloc[0] if "series_policy" in rows else policy
+            base = _with_suite(str(base), rows["suite"].iloc[0] if "suite" in rows else None, suites)
             colour = colours.get(base, colours[policy])
             label = f"{base} · {BUDGET_LABEL.get(budget, budget)}" if both else policy
             style = ACTION_BUDGET_STYLE if budget == "action" else None
             _ci_line(ax, rows["latency_s"], rows["success_rate"], rows["success_ci_lo"], rows["success_ci_hi"],
                      colour=colour, mode=mode, label=label, scale=100.0, style=style)  # fmt: skip
-            _degenerate_points(ax, rows, rows["success_rate"], 100.0)
-            _budget_decided_points(ax, rows, colour, mode)
+            if pr.ring_degenerate(ax, rows, rows["success_rate"], 100.0):
+                found.add(pr.DEGENERATE_NOTE)
+            found |= _budget_mark_points(ax, rows, colour, mode)
             _distribution_labels(ax, rows, colour)
         ax.set_title(f"{mode} execution")
         ax.set_ylim(-2, 102)
         ax.margins(x=0.12)
         _latency_axis(ax, pooled)
     axes[0][0].set_ylabel("success rate (%) [95% CI]")
-    fig.suptitle(FIGURES["fig4_success"])
-    _legends_below(fig, axes[0], footnote=BUDGET_FOOTNOTE if decided else "")
+    notes = [BUDGET_FOOTNOTE[k] for k in ("decided", "proxy") if BUDGET_FOOTNOTE[k] in found]
+    pr.layout(fig, axes[0], title=FIGURES["fig4_success"], note=pr.footnote(*notes, _notes(found)))
     return fig
 
 
-def _budget_decided_points(ax, rows: pd.DataFrame, colour: str, mode: str) -> None:
-    """Hollow markers on the cells where the budget, not the policy, decided the timeouts."""
-    decided = rows.get("budget_decided", pd.Series(False, index=rows.index)).fillna(False).astype(bool).to_numpy()
+def _budget_mark_points(ax, rows: pd.DataFrame, colour: str, mode: str) -> set[str]:
+    """Budget marks on the cells where the budget, not the policy, decided the timeouts: a hollow marker when the
+    action-budget twin shows it, a dotted ring when only the proxy does. Returns the footnotes that apply."""
+    marks = _budget_marks(rows)
+    x, y = rows["latency_s"].to_numpy(dtype=np.float64), 100.0 * rows["success_rate"].to_numpy(dtype=np.float64)
+    notes = set()
+    decided, proxy = marks == "decided", marks == "proxy"
     if decided.any():
-        ax.scatter(rows["latency_s"].to_numpy()[decided], 100.0 * rows["success_rate"].to_numpy()[decided],
-                   s=90, marker=MODE_MARKER.get(mode, "o"), facecolors="white", edgecolors=colour, linewidths=1.8,
-                   zorder=6)  # fmt: skip
+        ax.scatter(x[decided], y[decided], s=90, marker=MODE_MARKER.get(mode, "o"), facecolors="white",
+                   edgecolors=colour, linewidths=1.8, zorder=6)  # fmt: skip
+        notes.add(BUDGET_FOOTNOTE["decided"])
+    if proxy.any():
+        ax.scatter(x[proxy], y[proxy], s=260, marker="o", facecolors="none", edgecolors=colour, linewidths=1.0,
+                   linestyles=":", zorder=6)  # fmt: skip
+        notes.add(BUDGET_FOOTNOTE["proxy"])
+    return notes
 
 
 def _distribution_labels(ax, rows: pd.DataFrame, colour: str) -> None:
@@ -217,8 +250,8 @@ def _distribution_labels(ax, rows: pd.DataFrame, colour: str) -> None:
 
 def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
     """Fig. 5: mean jerk, P90 jerk, the paper's EE-Osc and the detrended EE-Osc vs latency, one line per (policy,
-    protocol), over successful episodes at the sampling named in the title. The two EE-Osc panels share their
-    y axis: the paper's spreads the window's positions about their mean, so travel in the last 0.5 s counts;
+    protocol, suite), over successful episodes at the sampling named in the title. The two EE-Osc panels share
+    their y axis: the paper's spreads the window's positions about their mean, so travel in the last 0.5 s counts;
     the detrended one about the window's straight line, so only back-and-forth does."""
     panels = (
         ("jerk_mean", "mean jerk (m/s³)", None),
@@ -228,10 +261,12 @@ def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
     )
     colours = _colours(pooled)
     fig, axes = plt.subplots(1, len(panels), figsize=(5.0 * len(panels), 4.3), squeeze=False)
+    found: set[str] = set()
     for ax, (metric, label, title) in zip(axes[0], panels, strict=True):
         scale = 1000.0 if metric.startswith("ee_osc") else 1.0
         for policy, mode, rows in _series(pooled):
-            _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}", scale=scale)
+            found |= _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}",
+                                  scale=scale)  # fmt: skip
         ax.set_ylabel(f"{label} [95% CI]")
         if title:
             ax.set_title(title, fontsize=9)
@@ -240,30 +275,38 @@ def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
     high = max(ax.get_ylim()[1] for ax in axes[0][2:])
     for ax in axes[0][2:]:
         ax.set_ylim(low, high)  # the same scale: the detrended value is the part of the paper's that is not travel
-    fig.suptitle(f"{FIGURES['fig5_trajectory']} (successful episodes; {_rate_note(pooled)}; {SMALL_N_NOTE})")
-    _legends_below(fig, axes[0][:1], ncol=2, title="policy · protocol")
+    pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig5_trajectory']} (successful episodes; {_rate_note(pooled)})",
+              legend_title="policy · protocol", ncol=2, note=_notes(found))  # fmt: skip
     return fig
 
 
-def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> None:
-    """Per latency, one stacked bar per (policy, protocol); whisker: 95 % CI of ``total_metric``."""
+def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> bool:
+    """Per latency, one stacked bar per (policy, protocol, suite); whisker: 95 % CI of ``total_metric``. A cell
+    whose arm never moved gets no bar but a red × (plot_rules); returns whether any did."""
     series = _series(pooled)
     latencies = sorted(pooled["latency_s"].astype(float).unique())
     width = 0.8 / max(1, len(series))
+    any_idle = False
     for i, (policy, mode, rows) in enumerate(series):
         by_lat = rows.set_index(rows["latency_s"].astype(float))
+        idle_at = dict(zip(by_lat.index, pr.idle_cells(rows), strict=True))
+        idle = np.array([bool(idle_at.get(lat, False)) for lat in latencies])
+        any_idle |= bool(idle.any())
         x = np.arange(len(latencies)) - 0.4 + width * (i + 0.5)
         bottom = np.zeros(len(latencies))
         for col, label, colour in parts:
             name = col.replace("_j", "_per_step_j") + "_mean"
-            h = np.nan_to_num(np.array([by_lat[name].get(lat, np.nan) for lat in latencies], dtype=np.float64))
+            h = np.array([by_lat[name].get(lat, np.nan) for lat in latencies], dtype=np.float64)
+            h = np.nan_to_num(np.where(idle, np.nan, h))
             ax.bar(x, h, width * 0.92, bottom=bottom, color=colour, edgecolor="white",
                    hatch="//" if mode == "sync" else None, label=label if i == 0 else None)  # fmt: skip
             bottom += h
         lo = np.array([by_lat[f"{total_metric}_ci_lo"].get(lat, np.nan) for lat in latencies])
         hi = np.array([by_lat[f"{total_metric}_ci_hi"].get(lat, np.nan) for lat in latencies])
+        lo, hi = np.where(idle, np.nan, lo), np.where(idle, np.nan, hi)
         ax.errorbar(x, bottom, yerr=[np.clip(bottom - lo, 0, None), np.clip(hi - bottom, 0, None)], fmt="none",
                     ecolor="black", capsize=3)  # fmt: skip
+        pr.mark_masked(ax, x[idle], "black")
         for xi in x:
             ax.annotate(f"{policy}\n{mode}", (xi, 0), xytext=(0, -26), textcoords="offset points", ha="center",
                         fontsize=6, annotation_clip=False)  # fmt: skip
@@ -273,21 +316,22 @@ def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> None:
     ax.set_ylim(0, ax.get_ylim()[1] * 1.18)  # room for the legend above the bars
     ax.legend(loc="upper center", ncol=len(parts), fontsize=8)
     ax.grid(axis="y", alpha=0.3)
+    return any_idle
 
 
 def fig_energy_decomposition(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 6: per-step energy as stacked bars per latency and (policy, protocol): (a) mechanical +
+    """Fig. 6: per-step energy as stacked bars per latency and (policy, protocol, suite): (a) mechanical +
     electrical loss + overhead, (b) the actuator part alone (the constant overhead hides it in (a))."""
     n_bars = len(_series(pooled)) * pooled["latency_s"].nunique()
     fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 1.1 * n_bars), 4.8), squeeze=False)
-    _stacked_bars(axes[0][0], pooled, ENERGY_PARTS, "energy_per_step_j")
+    idle = _stacked_bars(axes[0][0], pooled, ENERGY_PARTS, "energy_per_step_j")
     axes[0][0].set_ylabel("energy per control step (J) [95% CI of total]")
     axes[0][0].set_title("(a) mechanical + electrical loss + overhead")
     _stacked_bars(axes[0][1], pooled, ENERGY_PARTS[:2], "energy_actuator_per_step_j")
     axes[0][1].set_ylabel("energy per control step (J) [95% CI of sum]")
     axes[0][1].set_title("(b) actuators: mechanical + electrical loss")
-    fig.suptitle(f"{FIGURES['fig6_energy_decomposition']} (successful episodes; {_rate_note(pooled)})")
-    fig.tight_layout()
+    title = f"{FIGURES['fig6_energy_decomposition']} (successful episodes; {_rate_note(pooled)})"
+    pr.layout(fig, title=title, note=pr.IDLE_NOTE if idle else "")
     return fig
 
 
@@ -296,13 +340,14 @@ def fig_energy(pooled: pd.DataFrame) -> plt.Figure:
     panels = (("energy_per_step_j", "(a) energy per control step (J)"), ("energy_total_j", "(b) total energy (J)"))
     colours = _colours(pooled)
     fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.0), squeeze=False)
+    found: set[str] = set()
     for ax, (metric, label) in zip(axes[0], panels, strict=True):
         for policy, mode, rows in _series(pooled):
-            _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}")
+            found |= _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}")
         ax.set_ylabel(f"{label} [95% CI]")
         _latency_axis(ax, pooled)
-    fig.suptitle(f"{FIGURES['fig7_energy']} (successful episodes; {_rate_note(pooled)}; {SMALL_N_NOTE})")
-    _legends_below(fig, axes[0][:1], ncol=2, title="policy · protocol")
+    pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig7_energy']} (successful episodes; {_rate_note(pooled)})",
+              legend_title="policy · protocol", ncol=2, note=_notes(found))  # fmt: skip
     return fig
 
 
@@ -311,15 +356,25 @@ TIME_TO_SUCCESS_PANELS = (
     ("sim_s", "sim time (s)"),
     ("action_ticks", "action ticks (ticks whose command came from a chunk)"),
 )
+#: Footnote of Fig. 9.
+KM_NOTE = (
+    "bands: pointwise 95% log-log Greenwood intervals of the fraction succeeded (none where every episode at risk "
+    "succeeded); ⚠ in a label: every episode of the cell held throughout (no fresh action ran)"
+)
 
 
 def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 9: Kaplan-Meier fraction succeeded by t, one row per (policy variant, protocol), one curve per latency
-    cell (and budget), in sim seconds and in action ticks; a failure is censored at its end (tick marks). A
-    slower cell's curve rises later, a failing cell's stops lower: the two are different things."""
+    """Fig. 9: Kaplan-Meier fraction succeeded by t with its Greenwood band (lq_ros/scoring/survival.py), one row
+    per (policy variant, protocol, suite), one curve per latency cell (and budget), in sim seconds and in action
+    ticks; a failure is censored at its end (tick marks). A slower cell's curve rises later, a failing cell's stops
+    lower: the two are different things."""
     eps = episodes.copy()
-    # One row per variant and protocol: its constant latencies, distributions and both budgets together.
+    # One row per variant, protocol and suite: its constant latencies, distributions and both budgets together.
     eps["series_policy"] = agg.base_labels(eps, ("budget_counts", "latency_dist"))
+    suites = _suites(eps)
+    if "suite" in eps:
+        eps["series_policy"] = [_with_suite(str(p), s, suites) for p, s in zip(eps["series_policy"], eps["suite"],
+                                                                               strict=True)]  # fmt: skip
     # One sampling per episode: a bag scored at two rates is one episode here (its outcome does not depend on it).
     samplings = [agg.sampling_label(r) for _, r in eps.iterrows()]
     eps = eps[[label == min(samplings) for label in samplings]] if samplings else eps
@@ -329,6 +384,7 @@ def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Fig
         (r["policy"], r["mode"], r["latency_s"], r["latency_dist"]): r.get("latency_label") or agg.cell_latency_label(r)
         for _, r in pooled.iterrows()
     }
+    idle = pr.never_moved(eps)
     fig, axes = plt.subplots(max(1, len(groups)), 2, figsize=(15.0, 3.6 * max(1, len(groups))), squeeze=False)
     for (policy, mode), row_axes in zip(groups, axes, strict=False):
         rows = eps[(eps["series_policy"] == policy) & (eps["mode"] == mode)]
@@ -342,27 +398,32 @@ def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Fig
                 times, events = agg.time_to_success(cell_rows, axis)
                 if not len(times):
                     continue
-                t, survival = agg.kaplan_meier(times, events)
+                t, survival, s_lo, s_hi = survival_band(times, events)
                 xs, ys = np.append(t, times.max()), 100.0 * (1.0 - np.append(survival, survival[-1]))
                 colour = colours[(float(latency), str(dist))]
                 label = labels.get((variant, mode, latency, dist)) or f"{latency:g} s"
                 if both:
                     label += f" · {'paper' if budget == 'all' else budget} budget"
+                outcomes = cell_rows["status"].isin(["success", "failure"])
+                if outcomes.any() and idle[cell_rows.index][outcomes].all():
+                    label += " ⚠"
                 style = ACTION_BUDGET_STYLE if budget == "action" else "-"
                 ax.step(xs, ys, where="post", color=colour, linestyle=style, label=f"{label} (n={len(times)})")
+                # 1 - S: the upper bound of the fraction succeeded is 1 - the lower bound of S.
+                band_lo, band_hi = (100.0 * (1.0 - np.append(b, b[-1])) for b in (s_hi, s_lo))
+                ax.fill_between(xs, band_lo, band_hi, step="post", color=colour, alpha=0.12, linewidth=0)
                 censored = times[~events]
                 at = survival[np.searchsorted(t, censored, side="right") - 1]
                 ax.plot(censored, 100.0 * (1.0 - at), "|", color=colour, markersize=9, markeredgewidth=1.5)
             ax.set_xlabel(xlabel)
             ax.set_ylim(-2, 102)
             ax.grid(alpha=0.3)
-        row_axes[0].set_ylabel("succeeded by t (%)")
+        row_axes[0].set_ylabel("succeeded by t (%) [95% band]")
         row_axes[0].set_title(f"{policy} · {mode}", loc="left", fontsize=9)
         title = "latency" + (" · budget (paper: holds count; dotted: action)" if both else "")
         row_axes[1].legend(fontsize=7, title=f"{title}\nfailures: | at their end", title_fontsize=7, loc="upper left",
                            bbox_to_anchor=(1.02, 1.0))  # fmt: skip
-    fig.suptitle(FIGURES["fig9_time_to_success"])
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.4 / fig.get_figheight()))  # the title keeps 0.4 in above the panels
+    pr.layout(fig, title=FIGURES["fig9_time_to_success"], note=KM_NOTE)
     return fig
 
 

@@ -28,6 +28,7 @@ import pandas as pd  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
 from lq_ros.report.figures import ENERGY_PARTS, FIGURE_KEYS, FIGURES, make_figures  # noqa: E402
+from lq_ros.report.plot_rules import never_moved  # noqa: E402
 from lq_ros.report.prose import INTRO, NOTES, paired_sentences  # noqa: E402
 from lq_ros.report.tables import episode_table, fmt_cell, paired_table, per_task_view, summary_table  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
@@ -97,12 +98,14 @@ def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int =
     episodes, like every energy and trajectory mean; see lq_ros/scoring/aggregate.py)."""
     pooled = agg.aggregate(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
     with_outcome = episodes["status"] == "success"
+    cells = [_in_cell(episodes, row) for _, row in pooled.iterrows()]
+    # Episodes whose arm never moved (every tick held): figures mask a cell made only of them (plot_rules).
+    idle = never_moved(episodes) & episodes["status"].isin(["success", "failure"])
+    pooled["n_idle"] = [int((idle & cell).sum()) for cell in cells]
     for name in [c.replace("_j", "_per_step_j") for c, _, _ in ENERGY_PARTS] + ["energy_actuator_per_step_j"]:
         means, lows, highs = [], [], []
-        for _, row in pooled.iterrows():
-            mask = with_outcome.copy()
-            for k in FIGURE_KEYS:
-                mask &= episodes[k] == row[k]
+        for cell in cells:
+            mask = with_outcome & cell
             values = pd.to_numeric(episodes.loc[mask, name], errors="coerce").to_numpy(dtype=np.float64)
             values = values[np.isfinite(values)]
             if len(values):
@@ -120,6 +123,14 @@ def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int =
     pooled["series_policy"] = pooled["policy"].map(series)
     pooled["latency_label"] = [agg.cell_latency_label(r) for _, r in pooled.iterrows()]
     return pooled
+
+
+def _in_cell(episodes: pd.DataFrame, row: pd.Series) -> pd.Series:
+    """The episodes of the pooled cell ``row`` (FIGURE_KEYS equal; a missing value matches a missing value)."""
+    mask = pd.Series(True, index=episodes.index)
+    for k in FIGURE_KEYS:
+        mask &= (episodes[k] == row[k]) | (episodes[k].isna() & pd.isna(row[k]))
+    return mask
 
 
 def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0):

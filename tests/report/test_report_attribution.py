@@ -99,7 +99,9 @@ def test_fig5_draws_the_detrended_ee_osc_beside_the_papers(synthetic):
     axes = figures["fig5_trajectory"].axes
     assert "paper A.3" in axes[2].get_ylabel() and "detrended" in axes[3].get_ylabel()
     assert "travel counts" in axes[2].get_title() and "back-and-forth only" in axes[3].get_title()
-    paper, detrended = (np.concatenate([line.get_ydata() for line in ax.get_lines()]) for ax in axes[2:])
+    # Three values a cell: hollow, unjoined means (lq_ros/report/plot_rules.py).
+    paper, detrended = (np.array([xy[1] for c in ax.collections if c.get_sizes().size and c.get_sizes()[0] == 40
+                                  for xy in c.get_offsets()]) for ax in axes[2:])  # fmt: skip
     assert set(np.round(paper[np.isfinite(paper)], 6)) == {20.0}  # mm; no successes at 0.2 s: no point
     assert set(np.round(detrended[np.isfinite(detrended)], 6)) == {5.0}
 

@@ -50,6 +50,12 @@ def _lines_with_data(ax) -> list:
     return [line for line in ax.get_lines() if len(line.get_xdata()) and np.isfinite(line.get_ydata()).any()]
 
 
+def _hollow_means(ax) -> list[tuple[float, float]]:
+    """The means drawn hollow and unjoined (fewer than 5 values: lq_ros/report/plot_rules.py)."""
+    return [tuple(xy) for c in ax.collections if len(c.get_offsets()) and not len(c.get_facecolors())
+            and c.get_sizes()[0] == 40 for xy in c.get_offsets()]  # fmt: skip
+
+
 def test_figures_have_the_papers_panels_and_series(report):
     figs = report.figures
     fig4 = figs["fig4_success"].axes
@@ -60,7 +66,9 @@ def test_figures_have_the_papers_panels_and_series(report):
         assert ax.collections, "no CI band"
         assert [t.get_text() for t in ax.get_xticklabels()] == ["0\nN=0", "0.1\nN=2"]  # applied latency and N
     fig5 = figs["fig5_trajectory"].axes
-    assert len(fig5) == 4 and [len(_lines_with_data(ax)) for ax in fig5] == [2, 2, 2, 2]  # scripted x {sync, async}
+    # scripted x {sync, async} x {0, 0.1 s}: two values a cell, so every mean is a hollow point and none is joined
+    assert len(fig5) == 4 and [len(_hollow_means(ax)) for ax in fig5] == [4, 4, 4, 4]
+    assert not any(_lines_with_data(ax) for ax in fig5)
     assert "successful episodes; traj 20 Hz, energy substep" in figs["fig5_trajectory"].texts[0].get_text()
     assert "jerk" in fig5[0].get_ylabel() and "EE-Osc, paper A.3" in fig5[2].get_ylabel()
     assert "EE-Osc detrended" in fig5[3].get_ylabel() and fig5[2].get_ylim() == fig5[3].get_ylim()  # one scale
@@ -71,8 +79,8 @@ def test_figures_have_the_papers_panels_and_series(report):
     assert [len(ax.patches) for ax in fig6] == [2 * 2 * 3, 2 * 2 * 2]
     assert all(p.get_height() > 0 for p in fig6[0].patches)
     fig7 = figs["fig7_energy"].axes
-    assert len(fig7) == 2 and [len(_lines_with_data(ax)) for ax in fig7] == [2, 2]
-    totals = np.concatenate([line.get_ydata() for line in _lines_with_data(fig7[1])])
+    assert len(fig7) == 2 and [len(_hollow_means(ax)) for ax in fig7] == [4, 4]
+    totals = np.array([y for _, y in _hollow_means(fig7[1])])
     assert np.all(totals > 85.0 * 50 * 0.05)  # at least the 85 W overhead over 50 ticks
 
 
