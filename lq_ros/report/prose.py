@@ -48,20 +48,24 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
 
 
 INTRO = (
-    "Pooled over tasks and init states per (policy, protocol, applied Δt_sim = N × 0.05 s, sampling); mean [95% CI]. "
+    "Pooled over tasks and init states per (policy, protocol, suite, applied Δt_sim = N × 0.05 s, sampling), never "
+    "over suites; mean [95% CI]. "
     "Success: Wilson interval over episodes with an outcome (errors counted apart). Completion time, trajectory "
     "quality and energy: over successful episodes (succ.), seeded bootstrap of the mean; time (KM) is the "
     "Kaplan-Meier restricted mean up to the step budget over every episode with an outcome. The protocols differ in "
     "their replan horizon, not only in blocking: sync executes replan_steps actions of each chunk, async the H - N "
-    "fresh ones (actions/chunk: measured). ⚠ / red rings: degenerate cells, where async chunks were no longer than N "
-    "and no fresh action ran. Sampling: the rate of the trajectory metrics and how energy was integrated "
+    "fresh ones (actions/chunk: measured). ⚠ / red rings: cells with degenerate-protocol episodes (async chunks no "
+    "longer than N, or no chunk could overlap the old plan); × at a panel's foot: a cell whose arm never moved (no "
+    "fresh action ran), its quality and energy values not drawn. Sampling: the rate of the trajectory metrics and how "
+    "energy was integrated "
     "(docs/guide/scoring.md)."
 )
 #: The report's reading notes (after INTRO): how to read what the figures and tables attribute.
 NOTES = (
     f"Few values: a metric over fewer than {agg.MIN_N_INTERVAL} episodes (or pairs) gets no bootstrap interval, "
     "which would undercover there (one value gives [v, v]); tables print the mean, n and the values, "
-    "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw the values as dots without a band.",
+    "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw such a mean hollow, joined to no other, with its "
+    "values as dots and no band.",
     "Paired changes: success-only means of two latencies average different task mixes whenever their success "
     "differs, so the findings compare each latency > 0 cell with the zero-latency cell of the same variant and "
     "protocol over the (task, init state, seed) pairs that succeed in both: the change per pair, its mean and its "
@@ -73,7 +77,8 @@ NOTES = (
     "state needed to succeed at 0 s; a cell is budget-decided (◇, hollow marker) when at least half of its timeouts "
     "are budget-limited: there latency made the policy slower, the budget turned slower into failed.",
     "Fig. 9 separates slower from failing: the fraction succeeded by t, in sim seconds and in action ticks, with "
-    "failures censored at their end; a slower cell rises later, a failing cell levels off lower.",
+    "failures censored at their end and a pointwise 95% Greenwood band (log-log); a slower cell rises later, a "
+    "failing cell levels off lower.",
     "Latency labels: a distribution cell is named by its distribution and the mean Δt_sim its chunks actually got "
     "(realised mean, pooled over the cell's chunks); a constant cell by Δt_sim and N.",
     "EE-Osc: the paper's (A.3) is the spread of the last 10 positions (0.5 s) about their mean, so an arm still "
