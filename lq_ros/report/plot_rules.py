@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import math
+import textwrap
 
 import matplotlib
 
@@ -101,11 +102,14 @@ def layout(fig, legend_axes=(), *, title: str, legend_title: str = "policy", nco
     """Lay ``fig`` out: ``title`` in a band of its own above the panels (never over a panel's title or label),
     each of ``legend_axes``' legends under it (the figure grows to make room: a legend inside a panel hides its
     data) and ``note`` (one line per note) at the bottom."""
+    width_in = fig.get_size_inches()[0]
+    # Wrapped to the figure's width (about 15 characters an inch at 7 pt), so no note runs off the image.
+    note = "\n".join(textwrap.fill(line, max(40, int(15 * width_in))) for line in note.split("\n")) if note else ""
     counts = [len(ax.get_legend_handles_labels()[1]) for ax in legend_axes]
     rows = max((math.ceil(c / ncol) for c in counts if c), default=0)
     legend_in = 0.35 + 0.16 * rows if rows else 0.0
     note_in = 0.08 + 0.13 * (note.count("\n") + 1) if note else 0.0
-    title_in = 0.2 + 0.22 * (title.count("\n") + 1)
+    title_in = 0.12 + 0.22 * (title.count("\n") + 1)
     width_in, height_in = fig.get_size_inches()
     total = height_in + legend_in + note_in + title_in
     fig.set_size_inches(width_in, total)

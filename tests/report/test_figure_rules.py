@@ -44,6 +44,11 @@ def close_all():
     plt.close("all")
 
 
+def _note(fig) -> str:
+    """The figure's footnote as one line (the layout wraps it to the figure's width)."""
+    return " ".join(fig.texts[-1].get_text().split())
+
+
 def _legend_labels(fig) -> list[str]:
     return [t.get_text() for legend in fig.legends for t in legend.get_texts()] + [
         t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()
@@ -116,7 +121,7 @@ def test_a_cell_that_never_moved_is_masked_not_drawn_smooth(close_all):
         foot = [c for c in _scatters(ax) if c.get_offset_transform() != ax.transData]
         assert [tuple(np.round(c.get_offsets()[0], 3)) for c in foot] == [(0.4, pr.MASK_Y)], ax.get_ylabel()
     for name in ("fig5_trajectory", "fig7_energy", af.NAME):
-        assert pr.IDLE_NOTE in figures[name].texts[-1].get_text(), name
+        assert pr.IDLE_NOTE in _note(figures[name]), name
     # Its success is a real outcome (the arm did not move, so it failed): drawn, and ringed.
     success = figures["fig4_success"].axes[0]
     assert (0.4, pytest.approx(100 / 3)) in [tuple(p) for p in _points(success)]
@@ -130,7 +135,7 @@ def test_no_empty_panel_and_the_footnote_says_why(close_all):
     for ax in fig.axes:
         if ax.get_visible():
             assert len(_points(ax)), ax.get_ylabel()
-    assert "not drawn: chunk disagreement on overlap (action units) (no chunk overlapped" in fig.texts[-1].get_text()
+    assert "not drawn: chunk disagreement on overlap (action units) (no chunk overlapped" in _note(fig)
     # With the metric present, the panel is back.
     with_overlap = episodes.assign(chunk_disagreement_mean=0.3)
     fig = af.fig_chunk_boundary(with_overlap, n_boot=50)
@@ -149,7 +154,7 @@ def test_no_line_joins_means_of_fewer_than_five_values(close_all):
         assert _joined_segments(ax) == 1  # 0 -> 0.1 only: 0.1 -> 0.2 -> 0.3 would pass through n = 3
         hollow = [c for c in _scatters(ax) if len(c.get_facecolors()) == 0 and c.get_offset_transform() == ax.transData]
         assert [tuple(np.round(c.get_offsets()[0], 6)) for c in hollow if c.get_sizes()[0] == 40][0][0] == 0.2
-    assert pr.SMALL_N_NOTE in figures["fig5_trajectory"].texts[-1].get_text()
+    assert pr.SMALL_N_NOTE in _note(figures["fig5_trajectory"])
     jerk_8 = [ax for ax in figures[af.NAME].axes if "mean jerk" in ax.get_ylabel()][0]
     assert _joined_segments(jerk_8) == 1
 
@@ -170,7 +175,7 @@ def test_fig9_draws_greenwood_bands(close_all):
     assert s[1] == pytest.approx(5 / 6)
     for bound in (100 * (1 - hi[1]), 100 * (1 - lo[1])):
         assert np.isclose(ys, bound).any(), bound
-    assert "Greenwood" in fig.texts[-1].get_text()
+    assert "Greenwood" in _note(fig)
 
 
 def _budget_pooled(mark: str, degenerate: int = 0) -> pd.DataFrame:
@@ -193,14 +198,14 @@ def test_budget_marks_by_kind(close_all, mark):
         assert [tuple(c.get_offsets()[0]) for c in white] == [(0.2, 0.0)] and not dotted
     else:  # weaker and drawn differently: a dotted ring, no filled marker
         assert [tuple(c.get_offsets()[0]) for c in dotted] == [(0.2, 0.0)] and not white
-    assert fg.BUDGET_FOOTNOTE[mark] in fig.texts[-1].get_text()
+    assert fg.BUDGET_FOOTNOTE[mark] in _note(fig)
 
 
 def test_no_budget_mark_on_a_degenerate_cell(close_all):
     fig = fg.fig_success(_budget_pooled("decided", degenerate=3))
     ax = fig.axes[0]
     assert not [c for c in _scatters(ax) if len(c.get_facecolors()) and np.allclose(c.get_facecolors()[:, :3], 1.0)]
-    assert fg.BUDGET_FOOTNOTE["decided"] not in fig.texts[-1].get_text()
+    assert fg.BUDGET_FOOTNOTE["decided"] not in _note(fig)
 
 
 def test_titles_clear_the_panels(close_all):
