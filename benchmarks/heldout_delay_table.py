@@ -1,0 +1,135 @@
+"""The held-out delay study's tables (docs/design/heldout_delay_study.md): every arm's success, and the comparisons
+its plan fixed before the episodes ran, paired on (task, init state, seed), with exact McNemar p-values adjusted by
+Holm over the whole family.
+
+Usage: python benchmarks/heldout_delay_table.py [SWEEP_DIR]        (default: bags/sweeps/heldout_delay)
+
+The sweep is ``lq sweep config/sweeps/heldout_delay.yaml`` (run in two phases, see the yaml). An arm whose episodes
+are not all in yet is printed with the n it has; a comparison uses only the pairs both arms have. Errors are listed
+and left out of every comparison they are in (an error is not a failure).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from lq_ros.report.sweep_report import load_episodes  # noqa: E402
+from lq_ros.scoring.intervals import cluster_bootstrap_ci, wilson_interval  # noqa: E402
+from lq_ros.scoring.paired_tests import compare_pairs, holm  # noqa: E402
+
+#: Request slack K = H - 2N of the "naive + slack" arm per (family, latency label) (heldout_delay_study.md).
+SLACK = {("flow", "0.2 s"): 2, ("oft", "0.2 s"): 0, ("flow", "0.1 s"): 6, ("oft", "0.1 s"): 4}
+JITTER = "uniform:0.125:0.225"
+ARMS = ("naive", "naive + slack", "delay", "delay + lookahead")
+#: The plan's comparisons: (latency label of A, arm A, latency label of B, arm B); A - B is reported.
+COMPARISONS = [
+    (lat, a, lat, b)
+    for lat in ("0.2 s", "0.1 s")
+    for a, b in (("delay", "naive"), ("delay", "naive + slack"), ("delay + lookahead", "delay"),
+                 ("delay + lookahead", "naive"))
+] + [(JITTER, "delay + lookahead", JITTER, "naive"),
+     (JITTER, "delay + lookahead", "0.2 s", "delay + lookahead")]  # fmt: skip
+PAIR = ["task", "init", "seed"]
+N_BOOT = 4000
+
+
+def arm_of(row: pd.Series) -> tuple[str, str, str]:
+    """(family, latency label, arm) of an episode row, from its variant label (``oft [lookahead=1, variant=delay]``)."""
+    label = str(row["policy"])
+    family = label.split(" ")[0]
+    dist = row.get("latency_dist") or ""
+    lat = JITTER if str(dist).startswith("uniform") else f"{float(row['latency_s']):g} s"
+    if "variant=delay" in label:
+        return family, lat, "delay + lookahead" if "lookahead=1" in label else "delay"
+    return family, lat, "naive + slack" if "request_slack=" in label else "naive"
+
+
+def arm_rows(episodes: pd.DataFrame, family: str, lat: str, arm: str) -> pd.DataFrame:
+    """The episodes of one arm; the naive + slack arm at K = 0 is the naive arm itself."""
+    if arm == "naive + slack" and SLACK.get((family, lat)) == 0:
+        arm = "naive"
+    sel = episodes[(episodes.family == family) & (episodes.lat == lat) & (episodes.arm == arm)]
+    return sel.set_index(PAIR)
+
+
+def success_line(rows: pd.DataFrame) -> dict:
+    ok = rows[rows.status.isin(["success", "failure"])]
+    k, n = int((ok.status == "success").sum()), len(ok)
+    lo, hi = wilson_interval(k, n) if n else (np.nan, np.nan)
+    per_task = ok.groupby(level="task").status.apply(lambda s: (s == "success").to_numpy(float))
+    clo, chi = cluster_bootstrap_ci(list(per_task), n_boot=N_BOOT, seed=0) if n else (np.nan, np.nan)
+    return {"n": n, "errors": int((rows.status == "error").sum()), "success": k,
+            "success %": f"{100 * k / n:.0f}" if n else "-", "Wilson 95%": f"[{100 * lo:.0f}, {100 * hi:.0f}]",
+            "task-clustered 95%": f"[{100 * clo:.0f}, {100 * chi:.0f}]"}  # fmt: skip
+
+
+def compare(a: pd.DataFrame, b: pd.DataFrame) -> dict:
+    """Paired comparison of two arms' successes (lq_ros.scoring.paired_tests.compare_pairs), as table text."""
+    out = compare_pairs(a.reset_index(), b.reset_index(), n_boot=N_BOOT, seed=0)
+    pct = (lambda v: f"{100 * v:.0f}") if out["n_pairs"] else (lambda v: "-")
+    return {"pairs": out["n_pairs"], "A only": out["a_only"], "B only": out["b_only"], "A %": pct(out["success_a"]),
+            "B %": pct(out["success_b"]), "A - B (points)": pct(out["diff"]),
+            "95% (task-clustered)": f"[{100 * out['diff_ci_lo']:+.0f}, {100 * out['diff_ci_hi']:+.0f}]",
+            "mcnemar_p": out["mcnemar_p"]}  # fmt: skip
+
+
+def main() -> None:
+    folder = Path(sys.argv[1]) if len(sys.argv) > 1 else Path("bags/sweeps/heldout_delay")
+    episodes = load_episodes(folder)
+    episodes = episodes[episodes.suite == "libero_object"].copy()
+    labels = [arm_of(r) for _, r in episodes.iterrows()]
+    episodes["family"], episodes["lat"], episodes["arm"] = (list(column) for column in zip(*labels, strict=True))
+    tasks, inits = sorted(episodes.task.unique()), sorted(episodes.init.unique())
+    print(
+        f"held-out delay study: libero_object tasks {tasks[0]}-{tasks[-1]}, init states {inits[0]}-{inits[-1]},"
+        f" seeds {sorted(episodes.seed.unique())}; async, merge replace, paper budget, lockstep in process"
+    )
+    lines = []
+    for family in ("oft", "flow"):
+        for lat in ("0.2 s", JITTER, "0.1 s"):
+            for arm in ARMS:
+                rows = arm_rows(episodes, family, lat, arm)
+                if rows.empty:
+                    continue
+                name = arm if arm != "naive + slack" else f"naive + slack K={SLACK[(family, lat)]}"
+                if arm == "naive + slack" and SLACK[(family, lat)] == 0:
+                    name += " (= naive)"
+                lines.append({"family": family, "latency": lat, "arm": name, **success_line(rows)})
+    print("\nSuccess per arm (Wilson: episodes independent; task-clustered: bootstrap over the 10 tasks)")
+    print(pd.DataFrame(lines).to_markdown(index=False))
+    errors = episodes[episodes.status == "error"]
+    for _, r in errors.iterrows():
+        print(f"error: {r.family} {r.lat} {r.arm} task {r.task} init {r.init}: {r.get('error_reason')}")
+
+    comps = []
+    for family in ("oft", "flow"):
+        for lat_a, arm_a, lat_b, arm_b in COMPARISONS:
+            a, b = arm_rows(episodes, family, lat_a, arm_a), arm_rows(episodes, family, lat_b, arm_b)
+            if a.empty or b.empty:
+                continue
+            same = arm_b == "naive + slack" and SLACK.get((family, lat_b)) == 0
+            name_b = f"{arm_b} @ {lat_b}" + (" (= naive)" if same else "")
+            comps.append({"family": family, "A": f"{arm_a} @ {lat_a}", "B": name_b, **compare(a, b)})
+    table = pd.DataFrame(comps)
+    table["p_adjusted"] = holm(table["mcnemar_p"].to_numpy())
+    table["called"] = np.where(table["p_adjusted"] < 0.05, "yes", "no")
+    for col in ("mcnemar_p", "p_adjusted"):
+        table[col] = table[col].map(lambda v: f"{v:.2g}")
+    print(f"\nPlanned comparisons, paired on (task, init, seed); exact McNemar p, Holm over all {len(table)}")
+    print(table.to_markdown(index=False))
+    commits = sorted(set(episodes.git_commit.dropna()))
+    cpus = sorted(set(episodes.cpu_class.dropna()))
+    versions = json.loads(episodes.versions.dropna().iloc[0]) if episodes.versions.notna().any() else {}
+    libs = ", ".join(f"{k} {versions[k]}" for k in ("mujoco", "torch", "numpy") if k in versions)
+    print(f"\nepisodes {len(episodes)}; commit {', '.join(commits)}; CPU class {', '.join(cpus)}; {libs}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,179 @@
+"""Paired comparisons of arms that ran the same episodes, and the corrections for running many of them.
+
+Two arms of a sweep (two policies, or sync and async of one policy) at one suite, latency and budget share their
+(task, init state, seed) episodes: the same scene and the same latency draws. Comparing them pair by pair removes
+the task and scene variation that separate intervals carry, so the report never argues from overlapping
+intervals. For success (the primary endpoint):
+
+- the discordant pairs (A succeeded where B failed, and the reverse) and the **exact McNemar test** (a two-sided
+  binomial test of the discordant pairs at 1/2);
+- the **paired difference** of success rates with a 95% task-cluster bootstrap interval (pairs of one task
+  resampled together: intervals.cluster_bootstrap_ci);
+- the **paired restricted-mean time to success** difference over all pairs (a failure counts as the horizon, the
+  episode's tick limit: every episode counts, not only those that succeed in both arms), with the same interval.
+
+``p_adjusted`` is Holm's step-down adjustment over every comparison of the table (family-wise error 5%); a
+difference is called only when its adjusted p is below 0.05. Secondary tables (many metrics against 0 s latency)
+use Benjamini-Hochberg (false discovery rate 5%).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike
+from scipy import stats
+
+from lq_ros.core.suite_constants import CONTROL_DT_S
+from lq_ros.scoring.intervals import cluster_bootstrap_ci
+
+#: The episodes two arms share: a pair is one (task, init state, seed); the cluster is the task.
+PAIR_KEYS = ("task", "init", "seed")
+#: What makes two arms comparable: the same suite, latency and budget.
+CELL_KEYS = ("suite", "latency_s", "latency_dist", "budget_counts")
+ALPHA = 0.05
+
+
+def mcnemar_exact_p(a_only: int, b_only: int) -> float:
+    """Two-sided exact McNemar p: the binomial test of ``a_only`` among the ``a_only + b_only`` discordant pairs at
+    1/2 (1.0 without discordant pairs)."""
+    a_only, b_only = int(a_only), int(b_only)
+    if a_only < 0 or b_only < 0:
+        raise ValueError(f"discordant counts must be >= 0, got {a_only} and {b_only}")
+    if a_only + b_only == 0:
+        return 1.0
+    return float(stats.binomtest(a_only, a_only + b_only, 0.5).pvalue)
+
+
+def holm(p: ArrayLike) -> np.ndarray:
+    """Holm's step-down adjusted p-values (family-wise error), monotone in the raw order, capped at 1; NaN stays."""
+    raw = np.asarray(p, dtype=np.float64).reshape(-1)
+    out = np.full(raw.shape, math.nan)
+    ok = np.flatnonzero(np.isfinite(raw))
+    m = ok.size
+    running = 0.0
+    for rank, i in enumerate(ok[np.argsort(raw[ok], kind="stable")]):
+        running = max(running, min(1.0, (m - rank) * raw[i]))
+        out[i] = running
+    return out
+
+
+def benjamini_hochberg(p: ArrayLike) -> np.ndarray:
+    """Benjamini-Hochberg adjusted p-values (false discovery rate), monotone, capped at 1; NaN stays."""
+    raw = np.asarray(p, dtype=np.float64).reshape(-1)
+    out = np.full(raw.shape, math.nan)
+    ok = np.flatnonzero(np.isfinite(raw))
+    m = ok.size
+    order = ok[np.argsort(raw[ok], kind="stable")]
+    running = 1.0
+    for rank in range(m - 1, -1, -1):
+        i = order[rank]
+        running = min(running, m * raw[i] / (rank + 1))
+        out[i] = min(1.0, running)
+    return out
+
+
+def _clusters(values: np.ndarray, tasks: np.ndarray) -> list[np.ndarray]:
+    return [values[tasks == t] for t in np.unique(tasks)]
+
+
+def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> dict:
+    """Paired comparison of arm A with arm B over the (task, init, seed) pairs both finished (errors left out).
+
+    ``a``/``b``: episode rows with PAIR_KEYS, ``status`` and, for the time comparison, ``completion_time_s`` and
+    ``tick_limit`` (or ``step_budget``). Returns n_pairs, the four outcome counts, success rates, the difference
+    A - B with its task-cluster interval, ``mcnemar_p``, and the restricted-mean time-to-success difference.
+    """
+    keys = list(PAIR_KEYS)
+    cols = [*keys, "status", "completion_time_s", "horizon_s"]
+
+    def prepared(frame: pd.DataFrame) -> pd.DataFrame:
+        frame = frame[frame["status"].isin(["success", "failure"])].copy()
+        limit = frame["tick_limit"] if "tick_limit" in frame else frame.get("step_budget")
+        if limit is None:
+            limit = pd.Series(math.nan, index=frame.index)
+        elif "step_budget" in frame:
+            limit = limit.fillna(frame["step_budget"])
+        frame["horizon_s"] = pd.to_numeric(limit, errors="coerce") * CONTROL_DT_S
+        frame["completion_time_s"] = pd.to_numeric(frame.get("completion_time_s"), errors="coerce")
+        return frame[cols].drop_duplicates(keys)
+
+    both = prepared(a).merge(prepared(b), on=keys, suffixes=("_a", "_b"))
+    sa = (both["status_a"] == "success").to_numpy()
+    sb = (both["status_b"] == "success").to_numpy()
+    tasks = both["task"].to_numpy()
+    out = {
+        "n_pairs": len(both),
+        "n_tasks": int(np.unique(tasks).size),
+        "both": int((sa & sb).sum()),
+        "a_only": int((sa & ~sb).sum()),
+        "b_only": int((~sa & sb).sum()),
+        "neither": int((~sa & ~sb).sum()),
+    }
+    nan4 = dict.fromkeys(("success_a", "success_b", "diff", "diff_ci_lo", "diff_ci_hi"), math.nan)
+    out.update(nan4)
+    out["mcnemar_p"] = mcnemar_exact_p(out["a_only"], out["b_only"])
+    rmst = dict.fromkeys(("rmst_a_s", "rmst_b_s", "rmst_diff_s", "rmst_ci_lo", "rmst_ci_hi"), math.nan)
+    out.update(rmst)
+    if not len(both):
+        return out
+    diff = sa.astype(float) - sb.astype(float)
+    lo, hi = cluster_bootstrap_ci(_clusters(diff, tasks), n_boot=n_boot, seed=seed)
+    out.update(success_a=float(sa.mean()), success_b=float(sb.mean()), diff=float(diff.mean()), diff_ci_lo=lo,
+               diff_ci_hi=hi)  # fmt: skip
+    horizon = np.fmin(both["horizon_s_a"].to_numpy(), both["horizon_s_b"].to_numpy())
+    if np.all(np.isfinite(horizon)):
+        # Time to success restricted to the pair's horizon: a failure did not succeed by it (censored there).
+        ta = np.where(sa, np.fmin(both["completion_time_s_a"].to_numpy(), horizon), horizon)
+        tb = np.where(sb, np.fmin(both["completion_time_s_b"].to_numpy(), horizon), horizon)
+        if np.all(np.isfinite(ta)) and np.all(np.isfinite(tb)):
+            d = ta - tb
+            lo, hi = cluster_bootstrap_ci(_clusters(d, tasks), n_boot=n_boot, seed=seed)
+            out.update(rmst_a_s=float(ta.mean()), rmst_b_s=float(tb.mean()), rmst_diff_s=float(d.mean()),
+                       rmst_ci_lo=lo, rmst_ci_hi=hi)  # fmt: skip
+    return out
+
+
+def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+    """Every pair of policies (same protocol) and sync against async (same policy), per suite, latency and budget.
+
+    ``arm``: the column naming a policy variant (the report's label, without budget and protocol). One row per
+    comparison with ``comparison`` ("policy" or "protocol"), ``arm_a``/``arm_b`` and ``mode_a``/``mode_b``, the
+    columns of :func:`compare_pairs`, ``p_adjusted`` (Holm over the whole table) and ``called`` (adjusted p
+    below 0.05). Comparisons without a shared pair are left out.
+    """
+    if episodes.empty:
+        return pd.DataFrame()
+    eps = episodes.copy()
+    for key in CELL_KEYS:
+        if key not in eps:
+            eps[key] = ""
+    eps["latency_dist"] = eps["latency_dist"].fillna("").astype(str)
+    eps["budget_counts"] = eps["budget_counts"].fillna("all").astype(str)
+    rows = []
+    for cell, group in eps.groupby(list(CELL_KEYS), dropna=False, sort=True):
+        arms = group.groupby([arm, "mode"], sort=True)
+        names = list(arms.groups)
+        for (pa, ma), (pb, mb) in itertools.combinations(names, 2):
+            if ma == mb and pa != pb:
+                kind = "policy"
+            elif pa == pb and {ma, mb} == {"sync", "async"}:
+                kind = "protocol"
+                if ma == "async":  # always sync as A: the difference reads "sync - async"
+                    (pa, ma), (pb, mb) = (pb, mb), (pa, ma)
+            else:
+                continue
+            stats_ = compare_pairs(arms.get_group((pa, ma)), arms.get_group((pb, mb)), n_boot=n_boot, seed=seed)
+            if not stats_["n_pairs"]:
+                continue
+            rows.append({**dict(zip(CELL_KEYS, cell, strict=True)), "comparison": kind, "arm_a": pa, "mode_a": ma,
+                         "arm_b": pb, "mode_b": mb, **stats_})  # fmt: skip
+    table = pd.DataFrame(rows)
+    if table.empty:
+        return table
+    table["p_adjusted"] = holm(table["mcnemar_p"].to_numpy())
+    table["called"] = table["p_adjusted"] < ALPHA
+    return table
