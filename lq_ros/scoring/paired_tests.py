@@ -148,9 +148,9 @@ def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int 
     if episodes.empty:
         return pd.DataFrame()
     eps = episodes.copy()
-    for key in CELL_KEYS:
+    for key, default in zip(CELL_KEYS, ("", math.nan, "", "all"), strict=True):
         if key not in eps:
-            eps[key] = ""
+            eps[key] = default
     eps["latency_dist"] = eps["latency_dist"].fillna("").astype(str)
     eps["budget_counts"] = eps["budget_counts"].fillna("all").astype(str)
     rows = []
