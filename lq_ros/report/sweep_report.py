@@ -138,7 +138,8 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
     paired = agg.paired_differences(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
     if paired.empty:
         return paired
-    extra = ["latency_label", "series_policy", "budget_counts", "budget_decided", "n_success", "n_failure",
+    extra = ["latency_label", "series_policy", "budget_counts", "budget_decided", "budget_mark", "budget_decided_n",
+             "budget_proxy_n", "n_timeouts", "n_success", "n_failure",
              "n_budget_limited", "n_policy_limited", "n_budget_unattributed", "action_budget_n",
              "action_budget_success_rate"]  # fmt: skip
     cells = pooled[[*FIGURE_KEYS, *extra]].rename(columns={"n_success": "cell_n_success"})

@@ -11,8 +11,11 @@ Which episodes a metric is averaged over (one table, the single source of truth)
   episode often ends motionless and would make a policy that fails more look smoother; the same over
   failures (``<metric>_failure_mean``) and over all outcomes (``<metric>_all_mean``) beside them.
 - trajectory length / efficiency: successes (paper A.4); latency and protocol counts: all outcomes.
-Success uses the Wilson score interval; continuous metrics a seeded percentile bootstrap, which undercovers
-on few values: below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
+Success uses the Wilson score interval over episodes and, beside it, the task-cluster bootstrap interval
+(``success_cluster_ci_lo``/``_hi``: whole tasks resampled; the estimand is the cell's mean success over its
+episodes, and episodes of one task are not independent draws of it); continuous metrics the Student t interval
+(lq_ros/scoring/intervals.py: it holds its 95% coverage at the small n of a cell, where the percentile bootstrap
+does not). Below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
 (``<metric>_values``, :func:`ci_text`).
 
 Attribution of latency effects (docs/guide/scoring.md, "Attributing latency effects"):
@@ -35,12 +38,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
+from scipy import stats
 
 from lq_ros.core.redact import redact_args
 from lq_ros.core.run_config import GROUP_KEYS, VARIANT_FIELDS, RunConfig
 from lq_ros.core.suite_constants import CONTROL_DT_S
 from lq_ros.scoring import metrics
 from lq_ros.scoring.bag_scorer import BagError, find_bags, score_bag
+from lq_ros.scoring.intervals import cluster_bootstrap_ci, design_effect, t_interval
 
 #: RunConfig's defaults: a parameter at its default is not spelled out in a variant label.
 _DEFAULTS = {f: getattr(RunConfig(), f) for f in VARIANT_FIELDS}
@@ -100,8 +105,7 @@ PROVENANCE_COLUMNS = {
 POPULATIONS = {"": "success", "_failure": "failure", "_all": "outcome"}
 #: Per-episode columns stored as JSON text (nested values do not fit CSV/Parquet columns uniformly).
 _JSON_COLUMNS = ("versions", "null_reasons", "warnings", "policy_args")
-#: Fewest values a bootstrap interval is given for. Below it the percentile bootstrap of a mean undercovers
-#: (one value gives the interval [v, v]): tables and figures show the values and their count instead.
+#: Fewest values an interval of a mean is given for: tables and figures show the values and their count instead.
 MIN_N_INTERVAL = 5
 #: What a paired comparison pairs: the same task, init state and seed of one suite.
 PAIR_KEYS = ("suite", "task", "init", "seed")
@@ -263,9 +267,12 @@ def add_budget_attribution(episodes: pd.DataFrame) -> pd.DataFrame:
       1. latency 0: False (no inference holds the arm, so the budget was all action ticks);
       2. the action-budget twin exists: its outcome (in lockstep it is this episode continued past the
          budget: a success there means more ticks would have sufficed);
-      3. the same variant, protocol and pair succeeded at latency 0: True when this episode executed fewer
-         action ticks (``action_ticks``) than that success needed (holds spent the budget before the policy
-         had the actions it needs unimpeded), else False;
+      3. the proxy: the same variant, protocol and pair succeeded at latency 0, and this episode executed fewer
+         action ticks (``action_ticks``) than that success needed: True (holds spent the budget before the policy
+         had the actions it needs unimpeded). The proxy is necessary, not sufficient (in sync a timeout has about
+         B r / (r + N) action ticks by arithmetic, so at large N nearly every timeout passes it): it is never
+         applied to an episode whose arm received no fresh action (degenerate protocol) or that had underruns,
+         and it never makes a cell "budget-decided" (:func:`_add_budget_counts`); otherwise False;
       4. otherwise None.
     - ``budget_basis``: which of the rules gave ``budget_limited`` (``latency 0``, ``action-budget run``,
       ``zero-latency action ticks``).
@@ -279,6 +286,12 @@ def add_budget_attribution(episodes: pd.DataFrame) -> pd.DataFrame:
         pairs = _pair_keys(out)
         latency = pd.to_numeric(out["latency_s"], errors="coerce").round(9).to_numpy()
         action = pd.to_numeric(out.get("action_ticks"), errors="coerce").to_numpy(dtype=np.float64)
+        # Episodes the proxy cannot speak for: no fresh action ran, or the buffer ran dry (underrun holds).
+        missing = pd.Series(np.nan, index=out.index)
+        fresh = pd.to_numeric(out.get("fresh_actions_executed", missing), errors="coerce").to_numpy(dtype=np.float64)
+        underruns = pd.to_numeric(out.get("underrun_ticks", missing), errors="coerce").fillna(0).to_numpy(np.float64)
+        degenerate = out.get("degenerate_protocol", pd.Series(False, index=out.index)).fillna(False).astype(bool)
+        no_proxy = degenerate.to_numpy() | (fresh == 0) | (underruns > 0)
         status, budget = out["status"].to_numpy(), out["budget_counts"].to_numpy()
         mode, dist = out["mode"].astype(str).to_numpy(), out["latency_dist"].astype(str).to_numpy()
         twin_keys = list(zip(base_labels(out, ("budget_counts",)), mode, latency, dist, pairs, strict=True))
@@ -304,7 +317,7 @@ def add_budget_attribution(episodes: pd.DataFrame) -> pd.DataFrame:
                 continue  # unknown latency: nothing to compare with
             elif twin_success[i] is not None:
                 limited[i], basis[i] = twin_success[i], "action-budget run"
-            elif zero_keys[i] in needed and np.isfinite(action[i]):
+            elif zero_keys[i] in needed and np.isfinite(action[i]) and not no_proxy[i]:
                 limited[i], basis[i] = bool(action[i] < needed[zero_keys[i]]), "zero-latency action ticks"
     out["budget_twin_success"] = pd.Series(twin_success, index=out.index, dtype=object)
     out["budget_limited"] = pd.Series(limited, index=out.index, dtype=object)
@@ -385,12 +398,13 @@ def aggregate(
         n_success, n_failure = int((status == "success").sum()), int((status == "failure").sum())
         n_outcome = n_success + n_failure
         row.update(n=len(group), n_success=n_success, n_failure=n_failure, n_error=len(group) - n_outcome)
+        outcome_mask = status.isin(["success", "failure"])
         if n_outcome:
             low, high = metrics.wilson_interval(n_success, n_outcome, confidence)
             row.update(success_rate=n_success / n_outcome, success_ci_lo=low, success_ci_hi=high)
         else:
             row.update(success_rate=math.nan, success_ci_lo=math.nan, success_ci_hi=math.nan)
-        outcome_mask = status.isin(["success", "failure"])
+        row.update(task_clustered_success(group[outcome_mask], confidence, n_boot, seed))
         masks = {"success": status == "success", "failure": status == "failure", "outcome": outcome_mask}
         for metric, over in CONTINUOUS_METRICS.items():
             populations = (
@@ -410,6 +424,18 @@ def aggregate(
     return pd.DataFrame(rows)
 
 
+def task_clustered_success(outcomes: pd.DataFrame, confidence: float, n_boot: int, seed: int) -> dict:
+    """``n_tasks``, ``success_cluster_ci_lo``/``_hi`` (task-cluster bootstrap) and ``success_design_effect`` of a
+    group's episodes with an outcome (NaN within one task: one task says nothing about the others)."""
+    if outcomes.empty or "task" not in outcomes:
+        return {"n_tasks": 0, "success_cluster_ci_lo": math.nan, "success_cluster_ci_hi": math.nan,
+                "success_design_effect": math.nan}  # fmt: skip
+    clusters = [(g["status"] == "success").to_numpy(float) for _, g in outcomes.groupby("task", sort=True)]
+    low, high = cluster_bootstrap_ci(clusters, n_boot=n_boot, seed=seed, confidence=confidence)
+    return {"n_tasks": len(clusters), "success_cluster_ci_lo": low, "success_cluster_ci_hi": high,
+            "success_design_effect": design_effect(clusters)}  # fmt: skip
+
+
 def _add_mean(
     row: dict, group: pd.DataFrame, mask: pd.Series, metric: str, name: str, confidence: float, n_boot: int, seed: int
 ) -> None:
@@ -418,23 +444,39 @@ def _add_mean(
 
 
 def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: int = 2000, seed: int = 0) -> dict:
-    """``<name>_n``, ``_mean``, ``_ci_lo``, ``_ci_hi`` and ``_values`` of the finite ``values``: the bootstrap
-    interval from MIN_N_INTERVAL values on; below that the interval is NaN and ``_values`` lists them (JSON)."""
+    """``<name>_n``, ``_mean``, ``_ci_lo``, ``_ci_hi``, ``_p`` and ``_values`` of the finite ``values``: the Student t
+    interval (and the one-sample t test's two-sided p against 0, for a change) from MIN_N_INTERVAL values on;
+    below that the interval is NaN and ``_values`` lists them (JSON). ``n_boot`` and ``seed`` are unused (kept for
+    callers)."""
     values = values[np.isfinite(values)]
-    out = {f"{name}_n": len(values), f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan}
+    out = {f"{name}_n": len(values), f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan,
+           f"{name}_p": math.nan}  # fmt: skip
     out[f"{name}_values"] = json.dumps([float(v) for v in values]) if 0 < len(values) < MIN_N_INTERVAL else ""
     if len(values):
         out[f"{name}_mean"] = float(values.mean())
     if len(values) >= MIN_N_INTERVAL:
-        out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = metrics.bootstrap_ci(values, confidence, n_boot, seed)
+        out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = t_interval(values, confidence)
+        spread = float(values.std(ddof=1))
+        if spread > 0:
+            t = float(values.mean()) / (spread / math.sqrt(len(values)))
+            out[f"{name}_p"] = float(2 * stats.t.sf(abs(t), len(values) - 1))
+        else:
+            out[f"{name}_p"] = 1.0 if float(values.mean()) == 0 else 0.0
     return out
 
 
 def _add_budget_counts(row: dict, group: pd.DataFrame) -> None:
     """Budget attribution of a group (see :func:`add_budget_attribution`): ``n_budget_limited``,
-    ``n_policy_limited`` and ``n_budget_unattributed`` timeouts under budget ``all``; ``budget_decided`` when at
-    least half of those timeouts are budget-limited; the success of the group's action-budget twins
-    (``action_budget_success_rate`` over ``action_budget_n``)."""
+    ``n_policy_limited`` and ``n_budget_unattributed`` timeouts under budget ``all``; the success of the group's
+    action-budget twins (``action_budget_success_rate`` over ``action_budget_n``); and the cell's mark:
+
+    - ``budget_mark`` "decided" (``budget_decided``): every timeout has its action-budget twin and at least half
+      of them succeeded there (``budget_decided_n`` of ``n_timeouts``): the same episodes, given the ticks the
+      holds took, succeed;
+    - "proxy": no twin ran, and at least half the timeouts pass the zero-latency action-ticks proxy
+      (``budget_proxy_n``), in a cell without degenerate episodes or underruns: a hint, not a finding;
+    - "" otherwise.
+    """
     budget = group.get("budget_counts", pd.Series(DEFAULT_BUDGET_COUNTS, index=group.index))
     paper = budget.fillna(DEFAULT_BUDGET_COUNTS) == DEFAULT_BUDGET_COUNTS
     failures = paper & (group["status"] == "failure")
@@ -442,12 +484,31 @@ def _add_budget_counts(row: dict, group: pd.DataFrame) -> None:
     n_limited = sum(1 for v in limited[failures] if v is True or v is np.True_)
     n_policy = sum(1 for v in limited[failures] if v is False or v is np.False_)
     n_failures = int(failures.sum())
+    basis = group.get("budget_basis", pd.Series(None, index=group.index, dtype=object))
+    twin_of_failure = group.get("budget_twin_success", pd.Series(None, index=group.index, dtype=object))[failures]
+    n_twin_decided = sum(1 for v in twin_of_failure if v is True or v is np.True_)
+    n_twinned = sum(1 for v in twin_of_failure if _is_flag(v))
+    n_proxy = sum(1 for v, b in zip(limited[failures], basis[failures], strict=True)
+                  if (v is True or v is np.True_) and b == "zero-latency action ticks")  # fmt: skip
+    degenerate = group.get("degenerate_protocol", pd.Series(False, index=group.index)).fillna(False).astype(bool)
+    underruns = pd.to_numeric(group.get("underrun_ticks", pd.Series(0, index=group.index)), errors="coerce").fillna(0)
+    proxy_allowed = not degenerate.any() and not (underruns > 0).any()
+    if n_failures and n_twinned == n_failures and 2 * n_twin_decided >= n_failures:
+        mark = "decided"
+    elif n_failures and n_twinned == 0 and proxy_allowed and 2 * n_proxy >= n_failures:
+        mark = "proxy"
+    else:
+        mark = ""
     row.update(
         budget_counts=_distinct(budget),
         n_budget_limited=n_limited,
         n_policy_limited=n_policy,
         n_budget_unattributed=n_failures - n_limited - n_policy,
-        budget_decided=bool(n_failures and 2 * n_limited >= n_failures),
+        n_timeouts=n_failures,
+        budget_decided_n=n_twin_decided,
+        budget_proxy_n=n_proxy,
+        budget_mark=mark,
+        budget_decided=mark == "decided",
     )
     twins = [bool(v) for v in group.get("budget_twin_success", pd.Series(dtype=object))[paper] if _is_flag(v)]
     row["action_budget_n"] = len(twins)
@@ -715,23 +776,31 @@ def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.
     return _with_ci(mean, row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi"), decimals, scale, sign)
 
 
-#: Marks a budget-decided cell in tables (figures: a hollow marker).
+#: Marks a budget-decided cell in tables (figures: a hollow marker); a proxy-only cell (figures: a dotted ring).
 BUDGET_MARK = "◇"
+PROXY_MARK = "◌"
 
 
 def budget_note(agg: pd.Series | dict) -> str:
-    """What decided an aggregate row's timeouts: e.g. ``◇ budget-decided: 3/3 timeouts budget-limited; action
-    budget: 100 % of 3`` (empty without timeouts under the paper budget; ``action budget`` for such a cell)."""
+    """What decided an aggregate row's timeouts: e.g. ``◇ budget-decided by the action-budget twins: 3/3 timeouts
+    succeed there`` or ``◌ budget proxy only, no twin run: 3/4 timeouts executed fewer action ticks than the 0 s
+    success`` (empty without timeouts under the paper budget; ``action budget`` for such a cell)."""
     if agg.get("budget_counts") == "action":
         return "action budget"
     counts = [agg.get(k) for k in ("n_budget_limited", "n_policy_limited", "n_budget_unattributed")]
     if any(c is None or pd.isna(c) for c in counts) or not sum(counts):
         return ""
-    text = f"{int(counts[0])}/{int(sum(counts))} timeouts budget-limited"
-    if counts[2]:
-        text += f" ({int(counts[2])} unattributed)"
-    if agg.get("budget_decided"):
-        text = f"{BUDGET_MARK} budget-decided: {text}"
+    mark, timeouts = agg.get("budget_mark"), int(sum(counts))
+    if mark == "decided":
+        text = f"{BUDGET_MARK} budget-decided by the action-budget twins: {int(agg['budget_decided_n'])}/{timeouts}"
+        text += " timeouts succeed there"
+    elif mark == "proxy":
+        text = (f"{PROXY_MARK} budget proxy only, no twin run: {int(agg['budget_proxy_n'])}/{timeouts} timeouts ran"
+                " fewer action ticks than the 0 s success")  # fmt: skip
+    else:
+        text = f"{int(counts[0])}/{timeouts} timeouts budget-limited"
+        if counts[2]:
+            text += f" ({int(counts[2])} unattributed)"
     n_twins = agg.get("action_budget_n")
     if n_twins and not pd.isna(n_twins):
         text += f"; action budget: {100 * agg['action_budget_success_rate']:.0f} % of {int(n_twins)}"
@@ -774,5 +843,7 @@ def markdown_table(aggregates: pd.DataFrame) -> str:
     if any(agg.get("n_degenerate") for _, agg in aggregates.iterrows()):
         note += "; ⚠: degenerate protocol (async chunks with no fresh action)"
     if any(agg.get("budget_decided") for _, agg in aggregates.iterrows()):
-        note += f"; {BUDGET_MARK}: budget-decided (at least half the timeouts budget-limited, docs/guide/scoring.md)"
+        note += f"; {BUDGET_MARK}: budget-decided (at least half the timeouts succeed under the action budget)"
+    if any(agg.get("budget_mark") == "proxy" for _, agg in aggregates.iterrows()):
+        note += f"; {PROXY_MARK}: budget proxy only (no action-budget twin was run; a hint, not a finding)"
     return pd.DataFrame(rows).to_markdown(index=False) + note

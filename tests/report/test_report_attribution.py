@@ -110,7 +110,10 @@ def test_tables_and_sentences(synthetic):
     episodes, pooled, _ = synthetic
     summary = tables.summary_table(pooled).set_index(["policy", "mode", "latency"])
     row = summary.loc[("scripted", "sync", "0.2 s (N=4)")]
-    assert row["budget"] == "◇ budget-decided: 3/3 timeouts budget-limited; action budget: 100 % of 3"
+    assert (
+        row["budget"]
+        == "◇ budget-decided by the action-budget twins: 3/3 timeouts succeed there; action budget: 100 % of 3"
+    )
     zero = summary.loc[("scripted", "sync", "0 s (N=0)")]
     assert zero["time s (succ.)"] == "5.05 (n=3: 5.00, 5.05, 5.10)"  # three values: listed, no interval
     paired = rp.paired_aggregates(episodes, pooled, n_boot=100)
@@ -167,7 +170,7 @@ def test_real_bags_attribute_the_sync_timeout_to_the_budget_and_the_async_one_to
     sync_ax, async_ax = report.figures["fig4_success"].axes[:2]
     assert _hollow_points(sync_ax) == [(0.2, 0.0)] and _hollow_points(async_ax) == []
     md = Path(report.files["report.md"]).read_text()
-    assert "◇ budget-decided: 1/1 timeouts budget-limited; action budget: 100 % of 1" in md
+    assert "◇ budget-decided by the action-budget twins: 1/1 timeouts succeed there; action budget: 100 % of 1" in md
     # The action budget has no 0 s cell of its own: the paper budget's stands in (no tick holds at 0 s).
     slower = eps.loc[("sync", 0.2, "action"), "completion_time_s"] - eps.loc[("sync", 0.0, "all"), "completion_time_s"]
     assert slower > 0

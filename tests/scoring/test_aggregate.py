@@ -23,6 +23,7 @@ from lq_ros.scoring.aggregate import (
     time_to_success,
     write_tables,
 )
+from lq_ros.scoring.intervals import t_interval
 
 
 def _episode(status: str, *, latency: float = 0.0, steps: int = 100, length: float = 1.0, jerk: float = 10.0, **kw):
@@ -105,13 +106,21 @@ def test_degenerate_episodes_are_counted_and_marked():
     assert "⚠" in markdown_table(agg)
 
 
-def test_bootstrap_is_seeded():
+def test_mean_interval_is_the_t_interval_whatever_the_seed():
     rows = [_episode("success", jerk=float(j), init=i) for i, j in enumerate(np.linspace(5, 50, 12))]
     frame = episodes_frame(rows)
-    a, b = aggregate(frame, seed=3), aggregate(frame, seed=3)
-    c = aggregate(frame, seed=4)
-    assert a["jerk_mean_ci_lo"][0] == b["jerk_mean_ci_lo"][0]
-    assert a["jerk_mean_ci_lo"][0] != c["jerk_mean_ci_lo"][0]
+    a, c = aggregate(frame, seed=3), aggregate(frame, seed=4)
+    assert (a["jerk_mean_ci_lo"][0], a["jerk_mean_ci_hi"][0]) == t_interval(np.linspace(5, 50, 12))
+    assert a["jerk_mean_ci_lo"][0] == c["jerk_mean_ci_lo"][0]
+
+
+def test_success_gets_a_task_clustered_interval():
+    # Task 0 succeeds 5/5, task 1 0/5, task 2 5/5, task 3 0/5: the clustering widens the interval.
+    rows = [_episode("success" if t % 2 == 0 else "failure", task=t, init=i) for t in range(4) for i in range(5)]
+    row = aggregate(episodes_frame(rows), by=("policy", "mode", "latency_s", "suite")).iloc[0]
+    assert row["n_tasks"] == 4 and row["success_rate"] == 0.5
+    assert row["success_cluster_ci_lo"] < row["success_ci_lo"] and row["success_cluster_ci_hi"] > row["success_ci_hi"]
+    assert row["success_design_effect"] > 2
 
 
 def test_relative_efficiency_within_task_and_init_among_successes():
@@ -309,21 +318,41 @@ def test_budget_decided_cell_is_marked_and_a_policy_failure_cell_is_not():
     agg = aggregate(frame).set_index(["policy", "mode", "latency_s"])
     sync = agg.loc[("p", "sync", 0.2)]
     assert (sync["n_budget_limited"], sync["n_policy_limited"], sync["n_budget_unattributed"]) == (3, 0, 0)
-    assert sync["budget_decided"] and budget_note(sync) == "◇ budget-decided: 3/3 timeouts budget-limited"
+    # The proxy alone never makes a cell budget-decided: without a twin it is the weaker "proxy" mark.
+    assert sync["budget_mark"] == "proxy" and not sync["budget_decided"]
+    assert budget_note(sync) == (
+        "◌ budget proxy only, no twin run: 3/3 timeouts ran fewer action ticks than the 0 s success"
+    )
     policy = agg.loc[("p", "async", 0.2)]
     assert (policy["n_budget_limited"], policy["n_policy_limited"]) == (0, 4) and not policy["budget_decided"]
-    assert budget_note(policy) == "0/4 timeouts budget-limited"
+    assert policy["budget_mark"] == "" and budget_note(policy) == "0/4 timeouts budget-limited"
     direct = agg.loc[("p", "async", 0.4)]
-    assert direct["budget_decided"] and direct["n_budget_limited"] == 2
+    assert direct["budget_mark"] == "decided" and direct["budget_decided"] and direct["n_budget_limited"] == 2
     assert direct["action_budget_n"] == 2 and direct["action_budget_success_rate"] == 1.0
-    assert budget_note(direct).endswith("; action budget: 100 % of 2")
+    assert budget_note(direct) == (
+        "◇ budget-decided by the action-budget twins: 2/2 timeouts succeed there; action budget: 100 % of 2"
+    )
     assert agg.loc[("p [budget_counts=action]", "async", 0.4), "budget_counts"] == "action"
     assert budget_note(agg.loc[("p [budget_counts=action]", "async", 0.4)]) == "action budget"
     bases = frame.dropna(subset=["budget_basis"]).groupby(["mode", "latency_s"])["budget_basis"].unique()
     assert bases[("sync", 0.2)].tolist() == ["zero-latency action ticks"]
     assert bases[("async", 0.4)].tolist() == ["action-budget run"]
     table = markdown_table(aggregate(frame))
-    assert table.count("◇ budget-decided") == 2 and "◇: budget-decided" in table
+    assert table.count("◇ budget-decided") == 1 and "◇: budget-decided" in table
+
+
+def test_the_proxy_never_speaks_for_a_degenerate_episode_or_one_with_underruns():
+    """A degenerate async cell has no action ticks at all, so it always passed the old proxy ("budget-decided:
+    9/10" for an arm that never moved); an episode with underruns held for lack of actions, not for the budget."""
+    rows = [_episode("success", mode="async", steps=100, action_ticks=100, init=i) for i in range(4)]
+    rows += [_episode("failure", mode="async", latency=0.4, steps=140, action_ticks=0, init=i,
+                      degenerate_protocol=True, fresh_actions_executed=0) for i in range(2)]  # fmt: skip
+    rows += [_episode("failure", mode="async", latency=0.2, steps=140, action_ticks=60, init=i,
+                      underrun_ticks=80) for i in range(2, 4)]  # fmt: skip
+    frame = episodes_frame(rows)
+    assert frame.loc[frame.latency_s > 0, "budget_limited"].tolist() == [None] * 4
+    agg = aggregate(frame).set_index(["latency_s"])
+    assert agg.loc[0.4, "budget_mark"] == "" and agg.loc[0.2, "budget_mark"] == ""
 
 
 def test_budget_attribution_needs_a_basis_and_never_blames_zero_latency():
