@@ -6,6 +6,7 @@ import pandas as pd
 
 from lq_ros.report.tables import count_text, outcomes_text
 from lq_ros.scoring import aggregate as agg
+from lq_ros.scoring.paired_tests import ALPHA
 
 #: (metric, sentence name, decimals, scale, unit) of the paired changes the report's sentences name.
 PAIRED_SENTENCE = (
@@ -36,14 +37,48 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
         if not r["n_pairs"]:
             lines.append(text + "; no (task, init) pair succeeds in both, so there is no paired change.")
             continue
-        changes = [
-            f"{name}{f' ({unit})' if unit else ''} {agg.ci_text(r, f'{metric}_diff', decimals, scale, signed=True)}"
-            for metric, name, decimals, scale, unit in PAIRED_SENTENCE
-            if r.get(f"{metric}_diff_n")
-        ]
+        shown, not_shown = [], []
+        for metric, name, decimals, scale, unit in PAIRED_SENTENCE:
+            if not r.get(f"{metric}_diff_n"):
+                continue
+            change = (
+                f"{name}{f' ({unit})' if unit else ''} {agg.ci_text(r, f'{metric}_diff', decimals, scale, signed=True)}"
+            )
+            adjusted = r.get(f"{metric}_diff_p_adjusted")
+            (shown if adjusted is not None and not pd.isna(adjusted) and adjusted < ALPHA else not_shown).append(change)
         one = r["n_pairs"] == 1
         pairs = f"{int(r['n_pairs'])} pair{'' if one else 's'} that succeed{'s' if one else ''}"
-        lines.append(f"{text}; over the {pairs} in both: {', '.join(changes)}.")
+        found = f"changed: {', '.join(shown)}" if shown else "no change shown"
+        rest = f"; not shown to change: {', '.join(not_shown)}" if not_shown else ""
+        lines.append(f"{text}; over the {pairs} in both, {found}{rest}.")
+    return lines
+
+
+def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
+    """One sentence per comparison whose Holm-adjusted McNemar p is below 0.05 (paired_policies.csv), then how many
+    show no difference: the report never compares two arms by their separate intervals."""
+    lines = []
+    called = comparisons[comparisons["called"].astype(bool)]
+    for _, r in called.iterrows():
+        where = f"{r['suite']}, {agg.cell_latency_label(r)}" + (
+            "" if r["budget_counts"] == "all" else f", {r['budget_counts']} budget"
+        )
+        better = r["diff"] > 0
+        lines.append(
+            f"**{r['arm_a']} · {r['mode_a']}** succeeds {'more' if better else 'less'} often than **{r['arm_b']} · "
+            f"{r['mode_b']}** ({where}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
+            f"{int(r['n_pairs'])} shared episodes of {int(r['n_tasks'])} tasks; {int(r['a_only'])} succeed only with "
+            f"A and {int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points "
+            f"[{100 * r['diff_ci_lo']:+.0f}, {100 * r['diff_ci_hi']:+.0f}] (task-clustered), "
+            f"McNemar p = {r['mcnemar_p']:.2g}, Holm-adjusted p = {r['p_adjusted']:.2g}."
+        )
+    rest = len(comparisons) - len(called)
+    if rest:
+        lines.append(
+            f"The other {rest} of {len(comparisons)} paired comparisons show no difference at a family-wise 5% level "
+            "(Holm-adjusted McNemar p >= 0.05): their arms are not shown to differ, which is not the same as equal "
+            "(paired_policies.csv has each one's interval)."
+        )
     return lines
 
 
@@ -62,20 +97,28 @@ INTRO = (
 )
 #: The report's reading notes (after INTRO): how to read what the figures and tables attribute.
 NOTES = (
-    f"Few values: a metric over fewer than {agg.MIN_N_INTERVAL} episodes (or pairs) gets no bootstrap interval, "
-    "which would undercover there (one value gives [v, v]); tables print the mean, n and the values, "
+    f"Intervals: success carries the Wilson interval over episodes and, for a cell of several tasks, the "
+    "task-clustered interval (whole tasks resampled; success clusters by task, so this is the one that speaks for "
+    "other tasks); the mean of a metric carries the Student t interval. Few values: a metric over fewer than "
+    f"{agg.MIN_N_INTERVAL} episodes (or pairs) gets no interval; tables print the mean, n and the values, "
     "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw such a mean hollow, joined to no other, with its "
     "values as dots and no band.",
+    "Comparisons: two policies (one protocol) or two protocols (one policy) are compared only on the episodes both "
+    "ran (same task, init state and seed): the discordant pairs, an exact McNemar test and the paired difference "
+    "with a task-clustered interval. Success is the primary endpoint; its p-values are Holm-adjusted over every "
+    "comparison of the report (paired_policies.csv). The many changes against 0 s are adjusted by "
+    "Benjamini-Hochberg, and a sentence calls a change only when its adjusted p is below 0.05.",
     "Paired changes: success-only means of two latencies average different task mixes whenever their success "
     "differs, so the findings compare each latency > 0 cell with the zero-latency cell of the same variant and "
     "protocol over the (task, init state, seed) pairs that succeed in both: the change per pair, its mean and its "
     "bootstrap interval over pairs.",
     "Budgets: under the paper budget (holds count) every tick, held or not, counts against the suite's step budget; "
     "under the action budget only ticks whose command came from a chunk do (hard stop at 4x the budget). Fig. 4 draws "
-    "both when a sweep ran both. A timeout under the paper budget is budget-limited when the same episode under the "
-    "action budget succeeded or, without that run, when it executed fewer action ticks than the same task and init "
-    "state needed to succeed at 0 s; a cell is budget-decided (◇, hollow marker) when at least half of its timeouts "
-    "are budget-limited: there latency made the policy slower, the budget turned slower into failed.",
+    "both when a sweep ran both. A cell is budget-decided (◇, hollow marker) only from its action-budget twin: every "
+    "timeout was run again under the action budget and at least half of them succeed there, so latency made the "
+    "policy slower and the budget turned slower into failed. Without a twin, a cell whose timeouts executed fewer "
+    "action ticks than the same episodes needed at 0 s gets the weaker proxy mark (◌, dotted ring): a hint, not a "
+    "finding. The proxy is never applied to an arm that received no fresh action or whose buffer ran dry.",
     "Fig. 9 separates slower from failing: the fraction succeeded by t, in sim seconds and in action ticks, with "
     "failures censored at their end and a pointwise 95% Greenwood band (log-log); a slower cell rises later, a "
     "failing cell levels off lower.",

@@ -29,10 +29,17 @@ from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
 from lq_ros.report.figures import ENERGY_PARTS, FIGURE_KEYS, FIGURES, make_figures  # noqa: E402
 from lq_ros.report.plot_rules import never_moved  # noqa: E402
-from lq_ros.report.prose import INTRO, NOTES, paired_sentences  # noqa: E402
-from lq_ros.report.tables import episode_table, fmt_cell, paired_table, per_task_view, summary_table  # noqa: E402
+from lq_ros.report.prose import INTRO, NOTES, comparison_sentences, paired_sentences  # noqa: E402
+from lq_ros.report.tables import (  # noqa: E402
+    comparison_table,
+    episode_table,
+    fmt_cell,
+    paired_table,
+    per_task_view,
+    summary_table,
+)
 from lq_ros.scoring import aggregate as agg  # noqa: E402
-from lq_ros.scoring import metrics  # noqa: E402
+from lq_ros.scoring import metrics, paired_tests  # noqa: E402
 
 # -- data ------------------------------------------------------------------------------------
 
@@ -133,6 +140,14 @@ def _in_cell(episodes: pd.DataFrame, row: pd.Series) -> pd.Series:
     return mask
 
 
+def policy_comparisons(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+    """paired_policies.csv: every pair of policy variants (one protocol) and sync against async (one variant), per
+    suite, latency and budget, over their shared (task, init, seed) episodes (lq_ros/scoring/paired_tests.py)."""
+    eps = episodes.copy()
+    eps["variant"] = agg.base_labels(eps, ("budget_counts", "latency_dist"))
+    return paired_tests.paired_policies(eps, arm="variant", n_boot=n_boot, seed=seed)
+
+
 def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0):
     """agg.paired_differences per figure cell, with each cell's latency label and budget attribution."""
     paired = agg.paired_differences(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
@@ -149,6 +164,13 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
     paired["_variant"] = paired["series_policy"].astype(str).str.replace(r"(, )?latency=\w+", "", regex=True)
     order = ["_variant", "mode", "_budget_order", "latency_s", "latency_dist"]
     paired = paired.sort_values(order, kind="stable").drop(columns=["_budget_order", "_variant"])
+    # Many changes against 0 s (every metric of every cell): Benjamini-Hochberg over all of them; a sentence calls
+    # a change only when its adjusted p is below 0.05 (lq_ros/scoring/paired_tests.py).
+    p_columns = [f"{m}_diff_p" for m in agg.PAIRED_METRICS if f"{m}_diff_p" in paired]
+    if p_columns:
+        adjusted = paired_tests.benjamini_hochberg(paired[p_columns].to_numpy(dtype=np.float64).reshape(-1))
+        for k, column in enumerate(p_columns):
+            paired[column.replace("_p", "_p_adjusted")] = adjusted.reshape(len(paired), len(p_columns))[:, k]
     return paired.reset_index(drop=True)
 
 
@@ -189,9 +211,13 @@ def _link(bag, prefix: str) -> str:
 
 
 def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: dict, episodes: pd.DataFrame,
-                   prefix: str, paired: pd.DataFrame | None = None) -> None:  # fmt: skip
+                   prefix: str, paired: pd.DataFrame | None = None,
+                   comparisons: pd.DataFrame | None = None) -> None:  # fmt: skip
     lines = ["# LIBERO-LQ sweep report", ""]
     lines += [INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
+    if comparisons is not None and not comparisons.empty:
+        lines += ["## Policies and protocols compared (paired)", ""]
+        lines += [f"- {s}" for s in comparison_sentences(comparisons)] + [""]
     if paired is not None and not paired.empty:
         lines += ["## Latency effects (paired against 0 s)", ""] + [f"- {s}" for s in paired_sentences(paired)] + [""]
     for name, title in FIGURES.items():
@@ -199,6 +225,9 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     lines += ["## Summary", "", summary.to_markdown(index=False), ""]
     if paired is not None and not paired.empty:
         lines += ["## Paired changes against 0 s", "", paired_table(paired).to_markdown(index=False), ""]
+    if comparisons is not None and not comparisons.empty:
+        lines += ["## Paired comparisons of policies and protocols", "",
+                  comparison_table(comparisons).to_markdown(index=False), ""]  # fmt: skip
     lines += ["## Per task", "", per_task_md, ""]
     lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
     lines += media.videos_md(episodes, FIGURE_KEYS)
@@ -226,12 +255,18 @@ def _bold_html(markdown: str) -> str:
 
 
 def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: dict, episodes: pd.DataFrame,
-               prefix: str, paired: pd.DataFrame | None = None) -> None:  # fmt: skip
+               prefix: str, paired: pd.DataFrame | None = None,
+               comparisons: pd.DataFrame | None = None) -> None:  # fmt: skip
     e = html.escape
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>LIBERO-LQ sweep report</title>",
              f"<style>{_CSS}</style></head><body><h1>LIBERO-LQ sweep report</h1>",
              f"<p>{html.escape(INTRO)}</p>", "<ul>", *(f"<li>{e(n)}</li>" for n in NOTES), "</ul>"]  # fmt: skip
     has_paired = paired is not None and not paired.empty
+    has_comparisons = comparisons is not None and not comparisons.empty
+    if has_comparisons:
+        parts.append("<h2>Policies and protocols compared (paired)</h2><ul>")
+        parts += [f"<li>{_bold_html(sentence)}</li>" for sentence in comparison_sentences(comparisons)]
+        parts.append("</ul>")
     if has_paired:
         parts.append("<h2>Latency effects (paired against 0 s)</h2><ul>")
         parts += [f"<li>{_bold_html(sentence)}</li>" for sentence in paired_sentences(paired)]
@@ -241,6 +276,9 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
     parts.append("<h2>Summary</h2>" + summary.to_html(index=False, na_rep="–"))
     if has_paired:
         parts.append("<h2>Paired changes against 0 s</h2>" + paired_table(paired).to_html(index=False, na_rep="–"))
+    if has_comparisons:
+        table = comparison_table(comparisons).to_html(index=False, na_rep="–")
+        parts.append("<h2>Paired comparisons of policies and protocols</h2>" + table)
     parts.append("<h2>Per task</h2>" + per_task.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.4g}"))
     parts.append("<h2>Provenance</h2><table>")
     parts += [f"<tr><th>{e(k)}</th><td style='text-align:left'>{e(v)}</td></tr>" for k, v in prov.items()]
@@ -295,6 +333,10 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     paired_csv = out_dir / "paired_vs_zero_latency.csv"
     paired.to_csv(paired_csv, index=False)
     files[paired_csv.name] = paired_csv
+    comparisons = policy_comparisons(episodes, n_boot=n_boot, seed=seed)
+    comparisons_csv = out_dir / "paired_policies.csv"
+    comparisons.to_csv(comparisons_csv, index=False)
+    files[comparisons_csv.name] = comparisons_csv
     figures = make_figures(pooled, episodes) | report_async.make_boundary_figures(episodes, n_boot=n_boot, seed=seed)
     for name, fig in figures.items():
         path = out_dir / f"{name}.png"
@@ -308,7 +350,8 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     prefix = os.path.relpath(results_dir, out_dir).rstrip("/") + "/"
     summary = summary_table(pooled)
     files["report.md"] = out_dir / "report.md"
-    write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix, paired)
+    write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix, paired,
+                   comparisons)  # fmt: skip
     files["report.html"] = out_dir / "report.html"
-    write_html(files["report.html"], summary, per_task_view(per_task), prov, episodes, prefix, paired)
+    write_html(files["report.html"], summary, per_task_view(per_task), prov, episodes, prefix, paired, comparisons)
     return Report(out_dir, files, episodes, pooled, figures if keep_figures else {}, media_warnings, paired)

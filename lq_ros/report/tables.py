@@ -32,6 +32,8 @@ def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
                "sampling": agg.sampling_label(r), "n": int(r["n"]), "errors": int(r["n_error"])}  # fmt: skip
         for header, metric, decimals, scale in SUMMARY_COLUMNS:
             row[header] = agg.ci_text(r, metric, decimals, scale)
+            if metric == "success":
+                row["success 95% (tasks)"] = cluster_text(r)
         row["budget"] = agg.budget_note(r)
         row["note"] = f"⚠ degenerate in {int(r['n_degenerate'])} episodes" if r.get("n_degenerate") else ""
         rows.append(row)
@@ -63,6 +65,43 @@ def paired_table(paired: pd.DataFrame) -> pd.DataFrame:
             row[header] = agg.ci_text(r, f"{metric}_diff", decimals, scale, signed=True)
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def cluster_text(r) -> str:
+    """The task-clustered success interval in %, or – within one task."""
+    lo, hi = r.get("success_cluster_ci_lo"), r.get("success_cluster_ci_hi")
+    if lo is None or hi is None or pd.isna(lo) or pd.isna(hi):
+        return "–"
+    return f"[{100 * lo:.0f}, {100 * hi:.0f}]"
+
+
+def comparison_table(comparisons: pd.DataFrame) -> pd.DataFrame:
+    """paired_policies.csv as a table: A against B over shared episodes, McNemar p and its Holm adjustment."""
+    rows = []
+    for _, r in comparisons.iterrows():
+        latency = agg.cell_latency_label(r)
+        rows.append({
+            "suite": r["suite"], "latency": latency, "budget": r["budget_counts"], "A": f"{r['arm_a']} · {r['mode_a']}",
+            "B": f"{r['arm_b']} · {r['mode_b']}", "pairs": int(r["n_pairs"]), "tasks": int(r["n_tasks"]),
+            "A only / B only": f"{int(r['a_only'])} / {int(r['b_only'])}",
+            "success A − B (points)": _points(r["diff"], r["diff_ci_lo"], r["diff_ci_hi"]),
+            "McNemar p": f"{r['mcnemar_p']:.2g}", "Holm p": f"{r['p_adjusted']:.2g}",
+            "time to success A − B s (RMST)": _seconds(r["rmst_diff_s"], r["rmst_ci_lo"], r["rmst_ci_hi"]),
+        })  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def _points(diff: float, lo: float, hi: float) -> str:
+    if pd.isna(diff):
+        return "–"
+    text = f"{100 * diff:+.0f}"
+    return text + (f" [{100 * lo:+.0f}, {100 * hi:+.0f}]" if not pd.isna(lo) else " (one task: no interval)")
+
+
+def _seconds(diff: float, lo: float, hi: float) -> str:
+    if pd.isna(diff):
+        return "–"
+    return f"{diff:+.2f}" + (f" [{lo:+.2f}, {hi:+.2f}]" if not pd.isna(lo) else "")
 
 
 def count_text(r, key: str) -> str:
