@@ -1,25 +1,30 @@
-"""Where a policy's success drop under latency comes from: the step budget, the hold semantics, or the rest.
+"""Where a policy's success drop under latency comes from: the step budget, or the policy acting on stale input.
 
 A sync episode at N latency ticks holds N ticks per chunk; under the paper's budget those holds count, so part
 of the drop from Δt_sim = 0 is the budget running out while the robot waits, not the policy acting worse. Run
-the same cells under three settings (a sweep with ``budget_counts: [all, action]`` and ``hold: [stop, repeat]``,
-e.g. config/sweeps/attribution.yaml) and the drop splits, removing one protocol effect at a time:
+the same cells under both budgets (a sweep with ``budget_counts: [all, action]``, e.g.
+config/sweeps/attribution.yaml) and the drop splits in two, with the paper's hold (stop) throughout:
 
-    total  = S(0) - S_paper(L)                      the drop the paper's Fig. 4 shows
-    budget = S_action(L) - S_paper(L)               gained when holds stop counting against the budget
-    hold   = S_action,repeat(L) - S_action(L)       gained when a hold repeats the last action instead of stopping
-    rest   = S(0) - S_action,repeat(L)              what is left: the policy acting on stale observations
+    total  = S(0) - S_paper(L)                   the drop the paper's Fig. 4 shows
+    budget = S_action(L) - S_paper(L)            gained when holds stop counting against the budget
+    rest   = S(0) - S_action(L)                  what is left: the policy acting on stale observations
 
-so ``total = budget + hold + rest`` (a sequential decomposition in this order; another order can split the
-same total differently when the effects interact). S is the success rate over the (task, init) pairs present
-in every compared cell; S(0) is the zero-latency cell under the paper's settings (at N = 0 nothing holds, so
-budget and hold settings cannot change it). Async cells have holds only before the first chunk and on
-underruns: their rows give ``total`` and ``budget`` (hold and rest are computed the same way when both hold
-settings ran).
+so ``total = budget + rest``. Holding by repeating the last action (``hold: repeat``) is a different protocol,
+not a confound removed: it is reported beside the sum as a sensitivity row, ``hold_repeat = S_action,repeat(L) -
+S_action(L)`` (what changing the hold would change), never subtracted from the rest.
+
+S is the success rate over the (task, init, seed) pairs present in every compared cell; S(0) is the zero-latency
+cell under the paper's settings (at N = 0 nothing holds, so neither budget nor hold can change it). Every component
+is a mean of per-pair differences of 0/1 outcomes, and carries a 95% percentile-bootstrap interval over those pairs
+(seeded). Async cells hold only before the first chunk and on underruns: their rows give ``total``, ``budget`` and
+``rest`` the same way.
 """
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pandas as pd
 
 from lq_ros.scoring.metrics import wilson_interval
@@ -38,10 +43,30 @@ def _key(value: object) -> object:
     return repr(value) if isinstance(value, dict | list) else value
 
 
-def decompose(episodes: pd.DataFrame) -> pd.DataFrame:
+def _paired_interval(diffs: np.ndarray, n_boot: int, seed: int) -> tuple[float, float]:
+    """95% percentile bootstrap of the mean of per-pair differences (NaN below two pairs)."""
+    if len(diffs) < 2:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    means = diffs[rng.integers(0, len(diffs), size=(n_boot, len(diffs)))].mean(axis=1)
+    low, high = np.quantile(means, [0.025, 0.975])
+    return float(low), float(high)
+
+
+#: component -> (the cell it gains, the cell it is measured from): component = S(first) - S(second) per pair.
+COMPONENTS = {
+    "total": ("zero", "paper"),
+    "budget": ("action", "paper"),
+    "rest": ("zero", "action"),
+    "hold_repeat": ("action_repeat", "action"),
+}
+
+
+def decompose(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
     """One row per (policy variant, protocol, latency > 0): success under each setting with Wilson 95% intervals
-    and the drop's shares (fractions of episodes; see the module docstring). Episodes without an outcome
-    (errors) are left out of every cell they would belong to, with their pairs."""
+    over the shared pairs, and each component of the module docstring as ``drop_<name>`` with its paired interval
+    ``drop_<name>_ci`` (fractions of episodes). Episodes without an outcome (errors) are left out of every cell
+    they would belong to, with their pairs."""
     df = episodes[episodes["status"].isin(["success", "failure"])].copy()
     if df.empty:
         return pd.DataFrame()
@@ -64,29 +89,27 @@ def decompose(episodes: pd.DataFrame) -> pd.DataFrame:
                 sel = at[(at["budget_counts"] == budget_counts) & (at["hold"] == hold)]
                 if not sel.empty:
                     cells[name] = sel
+            if "paper" not in cells:
+                continue
             pairs = None
             for sel in cells.values():
                 keys = set(map(tuple, sel[list(PAIR_KEYS)].to_numpy().tolist()))
                 pairs = keys if pairs is None else pairs & keys
             if not pairs:
                 continue
-            row = dict(zip(CELL_KEYS, cell, strict=True), latency_s=latency, n_pairs=len(pairs))
-            rates = {}
+            order = sorted(pairs)
+            row = dict(zip(CELL_KEYS, cell, strict=True), latency_s=latency, n_pairs=len(order))
+            outcome = {}
             for name, sel in cells.items():
-                mask = [tuple(k) in pairs for k in sel[list(PAIR_KEYS)].to_numpy().tolist()]
-                chosen = sel[mask].drop_duplicates(list(PAIR_KEYS))
-                k = int(chosen["success"].astype(bool).sum())
-                rates[name] = k / len(chosen)
-                row.update({f"success_{name}": rates[name], f"success_{name}_ci": wilson_interval(k, len(chosen))})
-            if "paper" not in rates:
-                continue
-            row["drop_total"] = rates["zero"] - rates["paper"]
-            if "action" in rates:
-                row["drop_budget"] = rates["action"] - rates["paper"]
-                if "action_repeat" in rates:
-                    row["drop_hold"] = rates["action_repeat"] - rates["action"]
-                    row["drop_rest"] = rates["zero"] - rates["action_repeat"]
-                else:
-                    row["drop_rest"] = rates["zero"] - rates["action"]
+                chosen = sel.drop_duplicates(list(PAIR_KEYS)).set_index(list(PAIR_KEYS))
+                wins = chosen["success"].astype(bool)
+                outcome[name] = np.array([float(wins.loc[k]) for k in order])
+                k = int(outcome[name].sum())
+                row.update({f"success_{name}": k / len(order), f"success_{name}_ci": wilson_interval(k, len(order))})
+            for component, (gain, base) in COMPONENTS.items():
+                if gain in outcome and base in outcome:
+                    diffs = outcome[gain] - outcome[base]
+                    row[f"drop_{component}"] = float(diffs.mean())
+                    row[f"drop_{component}_ci"] = _paired_interval(diffs, n_boot, seed)
             out.append(row)
     return pd.DataFrame(out)
