@@ -22,8 +22,8 @@ Attribution of latency effects (docs/guide/scoring.md, "Attributing latency effe
 - :func:`paired_differences`: each latency > 0 cell against the zero-latency cell of the same variant and
   protocol, over the (suite, task, init, seed) pairs that succeed in both, so a change is not a change of
   the task mix that succeeds.
-- :func:`add_budget_attribution`: whether a timeout under ``budget_counts`` ``all`` was decided by the
-  budget (hold ticks spent it) or by the policy; :func:`aggregate` marks ``budget_decided`` cells.
+- lq_ros/scoring/budget.py: whether a timeout under ``budget_counts`` ``all`` was decided by the budget (hold
+  ticks spent it) or by the policy; :func:`aggregate` adds each cell's ``budget_mark``.
 - :func:`kaplan_meier`: time-to-success curves with failures censored at their end.
 """
 
@@ -40,15 +40,28 @@ import pandas as pd
 from numpy.typing import ArrayLike
 from scipy import stats
 
-from lq_ros.core.redact import redact_args
-from lq_ros.core.run_config import GROUP_KEYS, VARIANT_FIELDS, RunConfig
+from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
 from lq_ros.scoring import metrics
 from lq_ros.scoring.bag_scorer import BagError, find_bags, score_bag
+from lq_ros.scoring.budget import (  # noqa: F401 (add_budget_attribution, budget_note: re-exported)
+    BUDGET_MARK,
+    DEFAULT_BUDGET_COUNTS,
+    PROXY_MARK,
+    add_budget_attribution,
+    add_budget_counts,
+    budget_note,
+)
 from lq_ros.scoring.intervals import cluster_bootstrap_ci, design_effect, t_interval
-
-#: RunConfig's defaults: a parameter at its default is not spelled out in a variant label.
-_DEFAULTS = {f: getattr(RunConfig(), f) for f in VARIANT_FIELDS}
+from lq_ros.scoring.labels import (  # noqa: F401 (labels of report and benchmarks: re-exported)
+    PAIR_KEYS,
+    _distinct,
+    _pair_keys,
+    _text,
+    _variant_label,
+    base_labels,
+    label_variants,
+)
 
 SUCCESS_ONLY, WITH_OUTCOME, BY_OUTCOME = "success", "outcome", "by_outcome"
 #: metric -> the episodes its ``_mean`` is over (see the module docstring). BY_OUTCOME metrics are
@@ -107,10 +120,6 @@ POPULATIONS = {"": "success", "_failure": "failure", "_all": "outcome"}
 _JSON_COLUMNS = ("versions", "null_reasons", "warnings", "policy_args")
 #: Fewest values an interval of a mean is given for: tables and figures show the values and their count instead.
 MIN_N_INTERVAL = 5
-#: What a paired comparison pairs: the same task, init state and seed of one suite.
-PAIR_KEYS = ("suite", "task", "init", "seed")
-#: ``budget_counts`` of rows scored before the choice existed: every tick counted (the paper's budget).
-DEFAULT_BUDGET_COUNTS = "all"
 #: Metrics of the paired view (:func:`paired_differences`): cell minus zero-latency cell, per pair.
 PAIRED_METRICS = (
     "completion_time_s",
@@ -181,150 +190,6 @@ def episodes_frame(rows: Iterable[dict], references: pd.DataFrame | None = None)
     return add_budget_attribution(add_relative_efficiency(label_variants(frame), references))
 
 
-def _variant_label(row: pd.Series, without: tuple[str, ...] = ()) -> str | None:
-    """``name`` for a policy run with default settings, else ``name [k=v, ...]`` with what differs
-    (fields in ``without`` left out, e.g. ``merge`` for a figure with one line per merge strategy)."""
-    name = row.get("policy")
-    if name is None or (isinstance(name, float) and math.isnan(name)):
-        return None
-    parts = []
-    args = row.get("policy_args")
-    if isinstance(args, str) and args:
-        args = json.loads(args)
-    if isinstance(args, dict):
-        args = redact_args(args)  # no secrets in labels (lq_ros/core/redact.py)
-        parts += [f"{k}={json.dumps(v) if not isinstance(v, str) else v}" for k, v in sorted(args.items())]
-    for key in VARIANT_FIELDS[1:]:
-        if key in without:
-            continue
-        value = row.get(key)
-        if value is not None and not (isinstance(value, float) and math.isnan(value)) and value != _DEFAULTS[key]:
-            parts.append(f"{key}={int(value) if isinstance(value, float) else value}")
-    # A latency distribution is a condition of its own: its kind keeps the series apart from the constant one
-    # (the full distribution is the group key latency_dist, its applied mean latency_s).
-    dist = row.get("latency_dist")
-    if isinstance(dist, str) and dist and dist != "constant" and "latency_dist" not in without:
-        parts.append(f"latency={dist.split(':')[0]}")
-    return f"{name} [{', '.join(parts)}]" if parts else str(name)
-
-
-def label_variants(episodes: pd.DataFrame) -> pd.DataFrame:
-    """Group variants apart: ``policy`` becomes a label carrying the policy arguments and any protocol
-    parameter that differs from RunConfig's default (the bare name stays in ``policy_name``).
-
-    Without this, ``oft`` at chunk 1 and at chunk 8, or sync at replan 5 and 8, would pool into one row. With
-    episodes of several suites the label ends with the suite (``flow · libero_object``): a figure pools the
-    tasks of a line, never two suites.
-    """
-    out = episodes.copy()
-    if "policy_name" in out:  # already labelled
-        return out
-    out["policy_name"] = out["policy"]
-    if len(out):
-        out["policy"] = _with_suite(out, out.apply(_variant_label, axis=1))
-    return out
-
-
-def _with_suite(episodes: pd.DataFrame, labels: pd.Series) -> pd.Series:
-    """``labels`` with `` · <suite>`` appended when ``episodes`` hold more than one suite."""
-    if "suite" not in episodes or episodes["suite"].nunique() < 2:
-        return labels
-    return labels.astype(str) + " · " + episodes["suite"].astype(str)
-
-
-def base_labels(episodes: pd.DataFrame, without: tuple[str, ...]) -> pd.Series:
-    """Each row's variant label with the fields in ``without`` left out (``latency_dist``: the label the
-    constant-latency cells of the same variant carry; ``budget_counts``: the same cell under either budget)."""
-    unlabelled = episodes.copy()
-    if "policy_name" in unlabelled:
-        unlabelled["policy"] = unlabelled["policy_name"]
-    if unlabelled.empty:
-        return pd.Series([], index=episodes.index, dtype=object)
-    return _with_suite(episodes, unlabelled.apply(lambda r: _variant_label(r, without), axis=1))
-
-
-def _pair_keys(episodes: pd.DataFrame) -> list[tuple[str, ...]]:
-    """(suite, task, init, seed) of each row as text (a missing column: one shared value)."""
-    columns = [episodes[k] if k in episodes else pd.Series("", index=episodes.index) for k in PAIR_KEYS]
-    return [tuple(_text(v) for v in values) for values in zip(*columns, strict=True)]
-
-
-def _text(value) -> str:
-    """A key value as text: integers stay integers when a missing value made the column float."""
-    if isinstance(value, float) and value.is_integer():
-        return str(int(value))
-    return str(value)
-
-
-def add_budget_attribution(episodes: pd.DataFrame) -> pd.DataFrame:
-    """Attribute every timeout under ``budget_counts`` ``all`` to the budget or to the policy.
-
-    Adds per episode:
-    - ``budget_twin_success``: for a row under budget ``all``, whether the same episode (variant, protocol,
-      latency, suite, task, init, seed) under budget ``action`` succeeded; None without such a row.
-    - ``budget_limited``: for a failure under budget ``all``, True when the budget and not the policy decided
-      it, False when the policy did, None when the rows cannot tell. The rule, first that applies:
-      1. latency 0: False (no inference holds the arm, so the budget was all action ticks);
-      2. the action-budget twin exists: its outcome (in lockstep it is this episode continued past the
-         budget: a success there means more ticks would have sufficed);
-      3. the proxy: the same variant, protocol and pair succeeded at latency 0, and this episode executed fewer
-         action ticks (``action_ticks``) than that success needed: True (holds spent the budget before the policy
-         had the actions it needs unimpeded). The proxy is necessary, not sufficient (in sync a timeout has about
-         B r / (r + N) action ticks by arithmetic, so at large N nearly every timeout passes it): it is never
-         applied to an episode whose arm received no fresh action (degenerate protocol) or that had underruns,
-         and it never makes a cell "budget-decided" (:func:`_add_budget_counts`); otherwise False;
-      4. otherwise None.
-    - ``budget_basis``: which of the rules gave ``budget_limited`` (``latency 0``, ``action-budget run``,
-      ``zero-latency action ticks``).
-    """
-    out = episodes.copy()
-    n = len(out)
-    twin_success: list[bool | None] = [None] * n
-    limited: list[bool | None] = [None] * n
-    basis: list[str | None] = [None] * n
-    if n:
-        pairs = _pair_keys(out)
-        latency = pd.to_numeric(out["latency_s"], errors="coerce").round(9).to_numpy()
-        action = pd.to_numeric(out.get("action_ticks"), errors="coerce").to_numpy(dtype=np.float64)
-        # Episodes the proxy cannot speak for: no fresh action ran, or the buffer ran dry (underrun holds).
-        missing = pd.Series(np.nan, index=out.index)
-        fresh = pd.to_numeric(out.get("fresh_actions_executed", missing), errors="coerce").to_numpy(dtype=np.float64)
-        underruns = pd.to_numeric(out.get("underrun_ticks", missing), errors="coerce").fillna(0).to_numpy(np.float64)
-        degenerate = out.get("degenerate_protocol", pd.Series(False, index=out.index)).fillna(False).astype(bool)
-        no_proxy = degenerate.to_numpy() | (fresh == 0) | (underruns > 0)
-        status, budget = out["status"].to_numpy(), out["budget_counts"].to_numpy()
-        mode, dist = out["mode"].astype(str).to_numpy(), out["latency_dist"].astype(str).to_numpy()
-        twin_keys = list(zip(base_labels(out, ("budget_counts",)), mode, latency, dist, pairs, strict=True))
-        zero_keys = list(zip(base_labels(out, ("budget_counts", "latency_dist")), mode, pairs, strict=True))
-        twins = {
-            key: s == "success"
-            for key, b, s in zip(twin_keys, budget, status, strict=True)
-            if b == "action" and s in ("success", "failure")
-        }
-        needed: dict[tuple, float] = {}  # zero-latency successes: the fewest action ticks the pair needed
-        for key, lat, s, a in zip(zero_keys, latency, status, action, strict=True):
-            if lat == 0 and s == "success" and np.isfinite(a):
-                needed[key] = min(needed.get(key, math.inf), float(a))
-        for i in range(n):
-            if budget[i] != DEFAULT_BUDGET_COUNTS:
-                continue
-            twin_success[i] = twins.get(twin_keys[i])
-            if status[i] != "failure":
-                continue
-            if latency[i] == 0:
-                limited[i], basis[i] = False, "latency 0"
-            elif not latency[i] > 0:
-                continue  # unknown latency: nothing to compare with
-            elif twin_success[i] is not None:
-                limited[i], basis[i] = twin_success[i], "action-budget run"
-            elif zero_keys[i] in needed and np.isfinite(action[i]) and not no_proxy[i]:
-                limited[i], basis[i] = bool(action[i] < needed[zero_keys[i]]), "zero-latency action ticks"
-    out["budget_twin_success"] = pd.Series(twin_success, index=out.index, dtype=object)
-    out["budget_limited"] = pd.Series(limited, index=out.index, dtype=object)
-    out["budget_basis"] = pd.Series(basis, index=out.index, dtype=object)
-    return out
-
-
 #: Where the relative efficiency's reference path comes from (one row per suite, task and init state).
 REFERENCE_KEYS = ("suite", "task", "init")
 
@@ -373,15 +238,6 @@ def add_relative_efficiency(episodes: pd.DataFrame, references: pd.DataFrame | N
 # -- aggregates ---------------------------------------------------------------------------------------------
 
 
-def _distinct(values: pd.Series) -> str:
-    """Sorted distinct values as text (integers stay integers when a missing value made the column float)."""
-
-    def text(v) -> str:
-        return str(int(v)) if isinstance(v, float) and v.is_integer() else str(v)
-
-    return ",".join(sorted({text(v) for v in values.dropna()}))
-
-
 def aggregate(
     episodes: pd.DataFrame,
     *,
@@ -415,7 +271,7 @@ def aggregate(
         _add_restricted_mean(row, group[outcome_mask], confidence, n_boot, seed)
         degenerate = group.get("degenerate_protocol", pd.Series(dtype=object))
         row["n_degenerate"] = int(degenerate.fillna(False).astype(bool).sum())
-        _add_budget_counts(row, group)
+        add_budget_counts(row, group)
         row["latency_sim_realised_mean_s"] = realised_latency_s(group)
         # Provenance of every row: what produced these numbers.
         for column, name in PROVENANCE_COLUMNS.items():
@@ -463,60 +319,6 @@ def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: 
         else:
             out[f"{name}_p"] = 1.0 if float(values.mean()) == 0 else 0.0
     return out
-
-
-def _add_budget_counts(row: dict, group: pd.DataFrame) -> None:
-    """Budget attribution of a group (see :func:`add_budget_attribution`): ``n_budget_limited``,
-    ``n_policy_limited`` and ``n_budget_unattributed`` timeouts under budget ``all``; the success of the group's
-    action-budget twins (``action_budget_success_rate`` over ``action_budget_n``); and the cell's mark:
-
-    - ``budget_mark`` "decided" (``budget_decided``): every timeout has its action-budget twin and at least half
-      of them succeeded there (``budget_decided_n`` of ``n_timeouts``): the same episodes, given the ticks the
-      holds took, succeed;
-    - "proxy": no twin ran, and at least half the timeouts pass the zero-latency action-ticks proxy
-      (``budget_proxy_n``), in a cell without degenerate episodes or underruns: a hint, not a finding;
-    - "" otherwise.
-    """
-    budget = group.get("budget_counts", pd.Series(DEFAULT_BUDGET_COUNTS, index=group.index))
-    paper = budget.fillna(DEFAULT_BUDGET_COUNTS) == DEFAULT_BUDGET_COUNTS
-    failures = paper & (group["status"] == "failure")
-    limited = group.get("budget_limited", pd.Series(None, index=group.index, dtype=object))
-    n_limited = sum(1 for v in limited[failures] if v is True or v is np.True_)
-    n_policy = sum(1 for v in limited[failures] if v is False or v is np.False_)
-    n_failures = int(failures.sum())
-    basis = group.get("budget_basis", pd.Series(None, index=group.index, dtype=object))
-    twin_of_failure = group.get("budget_twin_success", pd.Series(None, index=group.index, dtype=object))[failures]
-    n_twin_decided = sum(1 for v in twin_of_failure if v is True or v is np.True_)
-    n_twinned = sum(1 for v in twin_of_failure if _is_flag(v))
-    n_proxy = sum(1 for v, b in zip(limited[failures], basis[failures], strict=True)
-                  if (v is True or v is np.True_) and b == "zero-latency action ticks")  # fmt: skip
-    degenerate = group.get("degenerate_protocol", pd.Series(False, index=group.index)).fillna(False).astype(bool)
-    underruns = pd.to_numeric(group.get("underrun_ticks", pd.Series(0, index=group.index)), errors="coerce").fillna(0)
-    proxy_allowed = not degenerate.any() and not (underruns > 0).any()
-    if n_failures and n_twinned == n_failures and 2 * n_twin_decided >= n_failures:
-        mark = "decided"
-    elif n_failures and n_twinned == 0 and proxy_allowed and 2 * n_proxy >= n_failures:
-        mark = "proxy"
-    else:
-        mark = ""
-    row.update(
-        budget_counts=_distinct(budget),
-        n_budget_limited=n_limited,
-        n_policy_limited=n_policy,
-        n_budget_unattributed=n_failures - n_limited - n_policy,
-        n_timeouts=n_failures,
-        budget_decided_n=n_twin_decided,
-        budget_proxy_n=n_proxy,
-        budget_mark=mark,
-        budget_decided=mark == "decided",
-    )
-    twins = [bool(v) for v in group.get("budget_twin_success", pd.Series(dtype=object))[paper] if _is_flag(v)]
-    row["action_budget_n"] = len(twins)
-    row["action_budget_success_rate"] = sum(twins) / len(twins) if twins else math.nan
-
-
-def _is_flag(value) -> bool:
-    return isinstance(value, bool | np.bool_)
 
 
 def realised_latency_s(episodes: pd.DataFrame) -> float:
@@ -774,37 +576,6 @@ def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.
             return "–"
         return _small_n_text(mean, row.get(f"{prefix}_values"), int(n), decimals, scale, sign)
     return _with_ci(mean, row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi"), decimals, scale, sign)
-
-
-#: Marks a budget-decided cell in tables (figures: a hollow marker); a proxy-only cell (figures: a dotted ring).
-BUDGET_MARK = "◇"
-PROXY_MARK = "◌"
-
-
-def budget_note(agg: pd.Series | dict) -> str:
-    """What decided an aggregate row's timeouts: e.g. ``◇ budget-decided by the action-budget twins: 3/3 timeouts
-    succeed there`` or ``◌ budget proxy only, no twin run: 3/4 timeouts executed fewer action ticks than the 0 s
-    success`` (empty without timeouts under the paper budget; ``action budget`` for such a cell)."""
-    if agg.get("budget_counts") == "action":
-        return "action budget"
-    counts = [agg.get(k) for k in ("n_budget_limited", "n_policy_limited", "n_budget_unattributed")]
-    if any(c is None or pd.isna(c) for c in counts) or not sum(counts):
-        return ""
-    mark, timeouts = agg.get("budget_mark"), int(sum(counts))
-    if mark == "decided":
-        text = f"{BUDGET_MARK} budget-decided by the action-budget twins: {int(agg['budget_decided_n'])}/{timeouts}"
-        text += " timeouts succeed there"
-    elif mark == "proxy":
-        text = (f"{PROXY_MARK} budget proxy only, no twin run: {int(agg['budget_proxy_n'])}/{timeouts} timeouts ran"
-                " fewer action ticks than the 0 s success")  # fmt: skip
-    else:
-        text = f"{int(counts[0])}/{timeouts} timeouts budget-limited"
-        if counts[2]:
-            text += f" ({int(counts[2])} unattributed)"
-    n_twins = agg.get("action_budget_n")
-    if n_twins and not pd.isna(n_twins):
-        text += f"; action budget: {100 * agg['action_budget_success_rate']:.0f} % of {int(n_twins)}"
-    return text
 
 
 def sampling_label(agg: pd.Series | dict) -> str:
