@@ -62,6 +62,7 @@ from lq_ros.scoring.labels import (  # noqa: F401 (labels of report and benchmar
     base_labels,
     label_variants,
 )
+from lq_ros.scoring.survival import greenwood
 
 SUCCESS_ONLY, WITH_OUTCOME, BY_OUTCOME = "success", "outcome", "by_outcome"
 #: metric -> the episodes its ``_mean`` is over (see the module docstring). BY_OUTCOME metrics are
@@ -498,18 +499,8 @@ def kaplan_meier(times: ArrayLike, events: ArrayLike) -> tuple[np.ndarray, np.nd
     Raises:
         ValueError: mismatched lengths, negative or non-finite times.
     """
-    t = np.asarray(times, dtype=np.float64).reshape(-1)
-    e = np.asarray(events, dtype=bool).reshape(-1)
-    if t.size != e.size:
-        raise ValueError(f"need one event flag per time, got {t.size} times and {e.size} flags")
-    if not np.all(np.isfinite(t)) or np.any(t < 0):
-        raise ValueError("times must be finite and >= 0")
-    steps, survival, s = [0.0], [1.0], 1.0
-    for ti in np.unique(t[e]):
-        s *= 1.0 - np.sum((t == ti) & e) / np.sum(t >= ti)
-        steps.append(float(ti))
-        survival.append(float(s))
-    return np.array(steps), np.array(survival)
+    steps, survival, _ = greenwood(times, events)  # the same steps, with Greenwood's variance beside them
+    return steps, survival
 
 
 #: Axes of the time-to-success curves: the per-episode column an episode's end is read from.
