@@ -93,11 +93,12 @@ def add_budget_counts(row: dict, group: pd.DataFrame) -> None:
     ``n_policy_limited`` and ``n_budget_unattributed`` timeouts under budget ``all``; the success of the group's
     action-budget twins (``action_budget_success_rate`` over ``action_budget_n``); and the cell's mark:
 
-    - ``budget_mark`` "decided" (``budget_decided``): every timeout has its action-budget twin and at least half
-      of them succeeded there (``budget_decided_n`` of ``n_timeouts``): the same episodes, given the ticks the
-      holds took, succeed;
-    - "proxy": no twin ran, and at least half the timeouts pass the zero-latency action-ticks proxy
-      (``budget_proxy_n``), in a cell without degenerate episodes or underruns: a hint, not a finding;
+    - ``budget_mark`` "decided" (``budget_decided``): at least half the timeouts (``n_timeouts``) succeed in their
+      action-budget twin (``budget_decided_n``; ``budget_twinned_n`` of them had a twin): the same episodes, given
+      the ticks the holds took, succeed (a timeout without a twin counts against the mark);
+    - "proxy": no twin ran for any episode of the cell, and at least half the timeouts pass the zero-latency
+      action-ticks proxy (``budget_proxy_n``), in a cell without degenerate episodes or underruns: a hint,
+      not a finding;
     - "" otherwise.
     """
     budget = group.get("budget_counts", pd.Series(DEFAULT_BUDGET_COUNTS, index=group.index))
@@ -116,9 +117,11 @@ def add_budget_counts(row: dict, group: pd.DataFrame) -> None:
     degenerate = group.get("degenerate_protocol", pd.Series(False, index=group.index)).fillna(False).astype(bool)
     underruns = pd.to_numeric(group.get("underrun_ticks", pd.Series(0, index=group.index)), errors="coerce").fillna(0)
     proxy_allowed = not degenerate.any() and not (underruns > 0).any()
-    if n_failures and n_twinned == n_failures and 2 * n_twin_decided >= n_failures:
+    # Twins of any episode of the cell (a success's too): with one, "no twin run" would be false.
+    twins = [bool(v) for v in group.get("budget_twin_success", pd.Series(dtype=object))[paper] if _is_flag(v)]
+    if n_failures and n_twinned and 2 * n_twin_decided >= n_failures:
         mark = "decided"
-    elif n_failures and n_twinned == 0 and proxy_allowed and 2 * n_proxy >= n_failures:
+    elif n_failures and not twins and proxy_allowed and 2 * n_proxy >= n_failures:
         mark = "proxy"
     else:
         mark = ""
@@ -129,11 +132,11 @@ def add_budget_counts(row: dict, group: pd.DataFrame) -> None:
         n_budget_unattributed=n_failures - n_limited - n_policy,
         n_timeouts=n_failures,
         budget_decided_n=n_twin_decided,
+        budget_twinned_n=n_twinned,
         budget_proxy_n=n_proxy,
         budget_mark=mark,
         budget_decided=mark == "decided",
     )
-    twins = [bool(v) for v in group.get("budget_twin_success", pd.Series(dtype=object))[paper] if _is_flag(v)]
     row["action_budget_n"] = len(twins)
     row["action_budget_success_rate"] = sum(twins) / len(twins) if twins else math.nan
 
@@ -144,8 +147,6 @@ def _is_flag(value) -> bool:
 
 #: Marks a budget-decided cell in tables (figures: a hollow marker); a proxy-only cell (figures: a dotted ring).
 BUDGET_MARK = "◇"
-
-
 PROXY_MARK = "◌"
 
 
@@ -162,6 +163,9 @@ def budget_note(agg: pd.Series | dict) -> str:
     if mark == "decided":
         text = f"{BUDGET_MARK} budget-decided by the action-budget twins: {int(agg['budget_decided_n'])}/{timeouts}"
         text += " timeouts succeed there"
+        twinned = agg.get("budget_twinned_n", timeouts)
+        untwinned = 0 if twinned is None or pd.isna(twinned) else timeouts - int(twinned)
+        text += f" ({untwinned} without a twin)" if untwinned > 0 else ""
     elif mark == "proxy":
         text = (f"{PROXY_MARK} budget proxy only, no twin run: {int(agg['budget_proxy_n'])}/{timeouts} timeouts ran"
                 " fewer action ticks than the 0 s success")  # fmt: skip
