@@ -74,3 +74,28 @@ def test_rows_labelled_by_variant_are_decomposed_by_their_bare_policy():
     )
     out = decompose(label_variants(pd.DataFrame(data))).iloc[0]
     assert out["policy"] == "oft" and (out["success_paper"], out["success_action"]) == (0.0, 0.5)
+
+
+def test_component_intervals_resample_whole_tasks():
+    """Two tasks of five inits: at 0.2 s the action budget rescues every episode of task 0 and none of task 1. The
+    pairs of a task are not independent draws: resampling tasks gives a budget share anywhere in [0, 1], where
+    resampling the ten pairs alone would give about [0.2, 0.8]."""
+
+    def by_task(latency: float, budget_counts: str, successes: list[bool]) -> list[dict]:
+        out = rows("oft", "sync", latency, budget_counts, "stop", successes)
+        for i, row in enumerate(out):
+            row["task"], row["init"] = i // 5, i % 5
+        return out
+
+    data = by_task(0.0, "all", [True] * 10) + by_task(0.2, "all", [False] * 10)
+    data += by_task(0.2, "action", [True] * 5 + [False] * 5)
+    row = decompose(pd.DataFrame(data), n_boot=400).iloc[0]
+    assert row["n_pairs"] == 10 and row["drop_budget"] == 0.5 and row["drop_rest"] == 0.5
+    assert row["drop_budget_ci"] == (0.0, 1.0) and row["drop_rest_ci"] == (0.0, 1.0)
+    assert row["drop_total_ci"] == (1.0, 1.0)  # every pair dropped: no spread to resample
+
+
+def test_one_task_gives_no_interval():
+    data = rows("oft", "sync", 0.0, "all", "stop", [True]) + rows("oft", "sync", 0.2, "all", "stop", [False])
+    low, high = decompose(pd.DataFrame(data)).iloc[0]["drop_total_ci"]
+    assert low != low and high != high  # NaN: one task says nothing about other tasks
