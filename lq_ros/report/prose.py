@@ -114,11 +114,13 @@ NOTES = (
     "bootstrap interval over pairs.",
     "Budgets: under the paper budget (holds count) every tick, held or not, counts against the suite's step budget; "
     "under the action budget only ticks whose command came from a chunk do (hard stop at 4x the budget). Fig. 4 draws "
-    "both when a sweep ran both. A cell is budget-decided (◇, hollow marker) only from its action-budget twin: every "
-    "timeout was run again under the action budget and at least half of them succeed there, so latency made the "
+    "both when a sweep ran both. A cell is budget-decided (◇, hollow marker) only from its action-budget twins: the "
+    "same episodes run again under the action budget, and at least half of its timeouts succeed there (a timeout "
+    "without a twin counts as not), so latency made the "
     "policy slower and the budget turned slower into failed. Without a twin, a cell whose timeouts executed fewer "
     "action ticks than the same episodes needed at 0 s gets the weaker proxy mark (◌, dotted ring): a hint, not a "
-    "finding. The proxy is never applied to an arm that received no fresh action or whose buffer ran dry.",
+    "finding; a cell where any twin ran gets no proxy mark. The proxy is never applied to an arm that received no "
+    "fresh action or whose buffer ran dry.",
     "Fig. 9 separates slower from failing: the fraction succeeded by t, in sim seconds and in action ticks, with "
     "failures censored at their end and a pointwise 95% Greenwood band (log-log); a slower cell rises later, a "
     "failing cell levels off lower.",

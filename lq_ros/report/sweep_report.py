@@ -40,6 +40,7 @@ from lq_ros.report.tables import (  # noqa: E402
 )
 from lq_ros.scoring import aggregate as agg  # noqa: E402
 from lq_ros.scoring import metrics, paired_tests  # noqa: E402
+from lq_ros.scoring.attribution import decompose, decomposition_table  # noqa: E402
 
 # -- data ------------------------------------------------------------------------------------
 
@@ -177,6 +178,24 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
 # -- pages -----------------------------------------------------------------------------------
 
 
+ATTRIBUTION_TITLE = "Where the drop comes from: budget and rest"
+ATTRIBUTION_NOTE = (
+    "Cells run under both budgets, over the (task, init, seed) pairs present in each: drop = S(0) - S(paper budget) "
+    "= budget + rest, with budget = S(action budget) - S(paper budget) and rest = S(0) - S(action budget), all "
+    "with the paper's hold (stop); hold repeat = S(action budget, hold repeat) - S(action budget) is a sensitivity "
+    "beside the sum. Percentage points with paired 95% bootstrap intervals (whole tasks resampled)."
+)
+
+
+def budget_decomposition(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+    """attribution.csv: lq_ros.scoring.attribution.decompose for the cells that ran under both budgets (the rest
+    would only repeat the drop against 0 s)."""
+    rows = decompose(episodes, n_boot=n_boot, seed=seed)
+    if rows.empty or "drop_budget" not in rows:
+        return pd.DataFrame()
+    return rows[rows["drop_budget"].notna()].reset_index(drop=True)
+
+
 def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
     """What produced these numbers: versions, commits, seeds, transports, spec."""
     out: dict[str, str] = {}
@@ -212,7 +231,8 @@ def _link(bag, prefix: str) -> str:
 
 def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: dict, episodes: pd.DataFrame,
                    prefix: str, paired: pd.DataFrame | None = None,
-                   comparisons: pd.DataFrame | None = None) -> None:  # fmt: skip
+                   comparisons: pd.DataFrame | None = None,
+                   attribution: pd.DataFrame | None = None) -> None:  # fmt: skip
     lines = ["# LIBERO-LQ sweep report", ""]
     lines += [INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
     if comparisons is not None and not comparisons.empty:
@@ -228,6 +248,8 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     if comparisons is not None and not comparisons.empty:
         lines += ["## Paired comparisons of policies and protocols", "",
                   comparison_table(comparisons).to_markdown(index=False), ""]  # fmt: skip
+    if attribution is not None and not attribution.empty:
+        lines += [f"## {ATTRIBUTION_TITLE}", "", ATTRIBUTION_NOTE, "", attribution.to_markdown(index=False), ""]
     lines += ["## Per task", "", per_task_md, ""]
     lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
     lines += media.videos_md(episodes, FIGURE_KEYS)
@@ -256,7 +278,7 @@ def _bold_html(markdown: str) -> str:
 
 def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: dict, episodes: pd.DataFrame,
                prefix: str, paired: pd.DataFrame | None = None,
-               comparisons: pd.DataFrame | None = None) -> None:  # fmt: skip
+               comparisons: pd.DataFrame | None = None, attribution: pd.DataFrame | None = None) -> None:  # fmt: skip
     e = html.escape
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>LIBERO-LQ sweep report</title>",
              f"<style>{_CSS}</style></head><body><h1>LIBERO-LQ sweep report</h1>",
@@ -279,6 +301,8 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
     if has_comparisons:
         table = comparison_table(comparisons).to_html(index=False, na_rep="–")
         parts.append("<h2>Paired comparisons of policies and protocols</h2>" + table)
+    if attribution is not None and not attribution.empty:
+        parts.append(f"<h2>{e(ATTRIBUTION_TITLE)}</h2><p>{e(ATTRIBUTION_NOTE)}</p>" + attribution.to_html(index=False))
     parts.append("<h2>Per task</h2>" + per_task.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.4g}"))
     parts.append("<h2>Provenance</h2><table>")
     parts += [f"<tr><th>{e(k)}</th><td style='text-align:left'>{e(v)}</td></tr>" for k, v in prov.items()]
@@ -337,6 +361,11 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     comparisons_csv = out_dir / "paired_policies.csv"
     comparisons.to_csv(comparisons_csv, index=False)
     files[comparisons_csv.name] = comparisons_csv
+    attribution = budget_decomposition(episodes, n_boot=n_boot, seed=seed)
+    if not attribution.empty:
+        attribution_csv = out_dir / "attribution.csv"
+        attribution.to_csv(attribution_csv, index=False)
+        files[attribution_csv.name] = attribution_csv
     figures = make_figures(pooled, episodes) | report_async.make_boundary_figures(episodes, n_boot=n_boot, seed=seed)
     for name, fig in figures.items():
         path = out_dir / f"{name}.png"
@@ -350,8 +379,10 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     prefix = os.path.relpath(results_dir, out_dir).rstrip("/") + "/"
     summary = summary_table(pooled)
     files["report.md"] = out_dir / "report.md"
+    attribution_view = decomposition_table(attribution)
     write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix, paired,
-                   comparisons)  # fmt: skip
+                   comparisons, attribution_view)  # fmt: skip
     files["report.html"] = out_dir / "report.html"
-    write_html(files["report.html"], summary, per_task_view(per_task), prov, episodes, prefix, paired, comparisons)
+    write_html(files["report.html"], summary, per_task_view(per_task), prov, episodes, prefix, paired, comparisons,
+               attribution_view)  # fmt: skip
     return Report(out_dir, files, episodes, pooled, figures if keep_figures else {}, media_warnings, paired)

@@ -22,6 +22,8 @@ underruns: their rows give ``total``, ``budget`` and ``rest`` the same way.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 
@@ -71,6 +73,7 @@ def decompose(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> p
     if "policy_name" in df:  # rows labelled by variant (lq_ros.scoring.aggregate.label_variants): the bare name
         df["policy"] = df["policy_name"]
     df["budget_counts"] = df.get("budget_counts", pd.Series("all", index=df.index)).fillna("all")
+    df["hold"] = df.get("hold", pd.Series("stop", index=df.index)).fillna("stop")  # RunConfig's default
     for col in CELL_KEYS:
         if col not in df:
             df[col] = None
@@ -110,4 +113,44 @@ def decompose(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> p
                     row[f"drop_{component}"] = float(diffs.mean())
                     row[f"drop_{component}_ci"] = _paired_interval(diffs, [k[0] for k in order], n_boot, seed)
             out.append(row)
+    return pd.DataFrame(out)
+
+
+def _rate_text(row: pd.Series, name: str) -> str:
+    value = row.get(f"success_{name}")
+    if value is None or value != value:
+        return "–"
+    low, high = row[f"success_{name}_ci"]
+    return f"{100 * value:.0f} [{100 * low:.0f}, {100 * high:.0f}]"
+
+
+def _points_text(row: pd.Series, name: str) -> str:
+    value = row.get(f"drop_{name}")
+    if value is None or value != value:
+        return "–"
+    low, high = row.get(f"drop_{name}_ci", (math.nan, math.nan))
+    return f"{100 * value:+.0f}" + ("" if low != low else f" [{100 * low:+.0f}, {100 * high:+.0f}]")
+
+
+def decomposition_table(rows: pd.DataFrame) -> pd.DataFrame:
+    """The decomposition as the report and benchmarks/attribution_table.py print it (one formatter, so both quote
+    the same numbers): success % per setting (Wilson 95%), then the drop and its parts in percentage points with
+    their paired 95% intervals; drop = budget + rest, hold repeat a sensitivity beside the sum."""
+    if rows.empty:
+        return pd.DataFrame()
+    out = []
+    for _, row in rows.sort_values(["suite", "policy", "policy_args", "mode", "latency_s"]).iterrows():
+        args = row["policy_args"]
+        line = {"policy": row["policy"] if args in (None, "{}") else f"{row['policy']} {args}"}
+        if rows["suite"].nunique() > 1:  # a cell is one suite's: name it when several are present
+            line["suite"] = row["suite"]
+        line |= {
+            "protocol": row["mode"], "Δt_sim s": f"{row['latency_s']:g}", "n pairs": int(row["n_pairs"]),
+            "success at 0 s %": _rate_text(row, "zero"), "paper budget %": _rate_text(row, "paper"),
+            "action budget %": _rate_text(row, "action"),
+            "action budget, hold repeat %": _rate_text(row, "action_repeat"),
+            "drop (pp)": _points_text(row, "total"), "budget (pp)": _points_text(row, "budget"),
+            "rest (pp)": _points_text(row, "rest"), "hold repeat (pp, sensitivity)": _points_text(row, "hold_repeat"),
+        }  # fmt: skip
+        out.append(line)
     return pd.DataFrame(out)

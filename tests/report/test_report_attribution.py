@@ -13,6 +13,7 @@ from lq_ros.report import figures as fg
 from lq_ros.report import prose, tables
 from lq_ros.report import sweep_report as rp
 from lq_ros.scoring import aggregate as agg
+from lq_ros.scoring.attribution import decomposition_table
 
 
 def _row(status: str, *, mode: str = "sync", latency: float = 0.0, steps: int = 100, action: int = 100, **kw):
@@ -180,7 +181,37 @@ def test_real_bags_attribute_the_sync_timeout_to_the_budget_and_the_async_one_to
     assert slower > 0
     assert (
         "**scripted [max_steps=140, budget_counts=action] · sync, 0.2 s (N=4)** against 0 s: success 1/1 against 1/1; "
-        f"over the 1 pair that succeeds in both, no change shown; not shown to change: completion time (s) {slower:+.2f}"
-        " (n=1)"
+        "over the 1 pair that succeeds in both, no change shown; not shown to change: completion time (s) "
+        f"{slower:+.2f} (n=1)"
     ) in md
     assert "fig9_time_to_success.png" in md and report.files["fig9_time_to_success.png"].stat().st_size > 10_000
+
+
+def test_the_report_decomposes_the_cells_run_under_both_budgets(synthetic):
+    """Sync 0.2 s ran under both budgets (3 pairs: 0 s success, paper budget timeout, action budget success): drop
+    100 points, all of it the budget's. Async ran under the paper budget only: no row (the paired table has its
+    drop)."""
+    episodes, _, _ = synthetic
+    rows = rp.budget_decomposition(episodes, n_boot=100)
+    assert rows[["mode", "latency_s", "n_pairs"]].values.tolist() == [["sync", 0.2, 3]]
+    row = rows.iloc[0]
+    assert (row["drop_total"], row["drop_budget"], row["drop_rest"]) == (1.0, 1.0, 0.0)
+    view = decomposition_table(rows)
+    assert view[["drop (pp)", "budget (pp)", "rest (pp)"]].values.tolist() == [["+100", "+100", "+0"]]  # one task
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_real_bags_report_the_same_decomposition_as_the_benchmark(real_report):
+    """benchmarks/attribution_table.py and the report's section print one table from the same bags."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    from attribution_table import table
+
+    _, report = real_report
+    md = Path(report.files["report.md"]).read_text()
+    bags = report.files["report.md"].parent.parent / "bags"
+    benchmark = table(bags)
+    assert f"## {rp.ATTRIBUTION_TITLE}" in md and benchmark in md
+    assert "+100 |" in benchmark and report.files["attribution.csv"].exists()  # drop and budget, one task
