@@ -448,6 +448,92 @@ def sweep(
         raise typer.Exit(1)
 
 
+#: ``lq eval`` flag -> the spec key it sets (one set of names; ``tests/test_cli_eval.py`` checks the mapping).
+EVAL_FLAG_TO_SPEC_KEY = {
+    "--policy": "policies[].name", "--policy-arg": "policies[].args", "--suite": "suites", "--tasks": "tasks",
+    "--inits": "inits", "--latencies": "latencies_s", "--modes": "modes", "--merge": "modes.async.merge",
+    "--replan-steps": "modes.sync.replan_steps", "--seeds": "seeds", "--transport": "transport",
+}  # fmt: skip
+
+
+def _csv(text: str, flag: str, kind=str) -> list:
+    """``a,b,c`` -> [a, b, c] converted by ``kind``; a bad item is one line naming the flag."""
+    items = [t for t in (x.strip() for x in text.split(",")) if t]
+    try:
+        return [kind(t) for t in items]
+    except ValueError:
+        _refuse(f"{flag}: expected a comma-separated list of {kind.__name__}, got {text!r}")
+    return []
+
+
+@app.command(name="eval")
+def eval_(
+    policy: Annotated[str, typer.Option(help="Registry name or package.module:Class.")],
+    out: Annotated[Path, typer.Option(help="Folder for the spec, the episodes and the report (resumable).")],
+    policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
+    suite: Annotated[str, typer.Option(help="LIBERO suite.")] = "libero_spatial",
+    tasks: Annotated[str, typer.Option(help="Task ids: all, or ranges like 0-9 or 0-4,7.")] = "all",
+    inits: Annotated[str, typer.Option(help="Init states: all (0-49, the paper's), or ranges like 0-9.")] = "all",
+    latencies: Annotated[
+        str, typer.Option(help="Δt_sim list in s (or distributions), e.g. 0,0.1,0.2.")
+    ] = "0,0.1,0.2,0.4",
+    modes: Annotated[str, typer.Option(help="sync, async or both: sync,async.")] = "sync,async",
+    merge: Annotated[str, typer.Option(help="async merge strategy (docs/guide/async.md).")] = "replace",
+    replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = 5,
+    seeds: Annotated[str, typer.Option(help="Seeds, replications of every episode: e.g. 7 or 7,8,9.")] = "7",
+    workers: Annotated[int | None, typer.Option(help="Parallel workers; default: CPU cores.")] = None,
+    transport: Annotated[
+        Transport, typer.Option(help="inprocess (fastest, same episodes) or ros.")
+    ] = Transport.inprocess,
+) -> None:
+    """The paper's protocol for one policy, without a YAML file: tasks x init states x latencies x protocols.
+
+    Writes the spec it ran to OUT/eval_spec.yaml, runs the resumable sweep (run it again after any stop), writes
+    the report to OUT/report and prints the headline table. Flags map to spec keys (docs/guide/sweeps.md):
+    --latencies is latencies_s, --policy-arg is a policy's args."""
+    import yaml
+
+    from lq_ros.report.sweep_report import build_report
+    from lq_ros.run import sweep as sw
+
+    mode_list = _csv(modes, "--modes")
+    if not mode_list or set(mode_list) - {"sync", "async"}:
+        _refuse(f"--modes: expected sync, async or sync,async, got {modes!r}")
+    latency_list = [float(v) if v.replace(".", "", 1).isdigit() else v for v in _csv(latencies, "--latencies")]
+    proto = {"sync": {"replan_steps": replan_steps, "hold": "stop"}, "async": {"request_threshold": -1, "merge": merge}}
+    raw = {
+        "name": out.name or "eval", "transport": transport.value,
+        "suites": {suite: {"tasks": tasks, "inits": inits}}, "seeds": _csv(seeds, "--seeds", int),
+        "policies": [{"name": policy, "args": _parse_policy_args(policy_arg)}], "latencies_s": latency_list,
+        "modes": {m: proto[m] for m in mode_list},
+    }  # fmt: skip
+    try:
+        spec = sw.expand_spec(raw, default_name="eval")
+        sw.check_policies(spec.configs)
+    except sw.SpecError as exc:
+        _refuse(str(exc))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "eval_spec.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
+    console.print(f"{len(spec.configs)} episodes; the spec: {out / 'eval_spec.yaml'}", soft_wrap=True)
+    try:
+        summary = _run_sweep_with_progress(spec, out, workers=workers, transport=transport.value)
+    except (sw.RayConnectError, sw.StoreError) as exc:
+        _refuse(str(exc))
+    result = build_report(out)
+    table = Table(title=f"{policy} on {suite}: success % [task-clustered 95%] (n episodes)")
+    for column in ("mode", "latency", "success", "n", "errors"):
+        table.add_column(column)
+    for _, r in result.pooled.sort_values(["mode", "latency_s"]).iterrows():
+        lo, hi = r.get("success_cluster_ci_lo"), r.get("success_cluster_ci_hi")
+        ci = f" [{100 * lo:.0f}, {100 * hi:.0f}]" if lo == lo and hi == hi else ""
+        rate = "–" if r["success_rate"] != r["success_rate"] else f"{100 * r['success_rate']:.0f}{ci}"
+        table.add_row(str(r["mode"]), str(r["latency_label"]), rate, str(int(r["n"])), str(int(r["n_error"])))
+    Console().print(table)
+    console.print(f"report: {result.files['report.html']}", soft_wrap=True)
+    if summary.counts["error"]:
+        raise typer.Exit(1)
+
+
 def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
     """run_sweep with a rich progress bar: episodes done, successes, failures, errors, ETA."""
     from rich.progress import (

@@ -90,6 +90,24 @@ def _ints(value, where: str, lo: int, hi: int) -> list[int]:
     return out
 
 
+def index_list(value, where: str, lo: int, hi: int) -> list[int]:
+    """Task or init-state indices: a list of integers, or text of ranges and integers (``0-49``, ``0-4,7``)."""
+    if not isinstance(value, str):
+        return _ints(value, where, lo, hi)
+    out: list[int] = []
+    for part in value.replace(" ", "").split(","):
+        first, dash, last = part.partition("-")
+        if not first.isdigit() or (dash and not last.isdigit()) or len(part) > 12:
+            raise SpecError(f"{where}: expected integers or ranges like 0-49 (or 'all'), got {value!r}")
+        a, b = int(first), int(last) if dash else int(first)
+        if not lo <= a <= b <= hi:
+            raise SpecError(f"{where}: {part} is outside {lo}..{hi} (or an empty range)")
+        out += range(a, b + 1)
+    if len(set(out)) != len(out):
+        raise SpecError(f"{where}: {value!r} names an index twice")
+    return out
+
+
 def _n(value) -> int:
     return len(value) if isinstance(value, list) else 1
 
@@ -97,9 +115,12 @@ def _n(value) -> int:
 def _cells(suite, body) -> int:
     if not isinstance(body, dict):
         return 1
-    tasks = body.get("tasks")
-    n_tasks = num_tasks(suite) if tasks == "all" and isinstance(suite, str) and suite in STEP_BUDGETS else _n(tasks)
-    return max(n_tasks, 1) * max(_n(body.get("inits")), 1)
+    tasks, inits = body.get("tasks"), body.get("inits")
+    # 'all' or a range text: counted at its largest (every task, every init state) before anything is expanded.
+    known = isinstance(suite, str) and suite in STEP_BUDGETS
+    n_tasks = num_tasks(suite) if isinstance(tasks, str) and known else _n(tasks)
+    n_inits = NUM_INIT_STATES if isinstance(inits, str) else _n(inits)
+    return max(n_tasks, 1) * max(n_inits, 1)
 
 
 def _parts(raw: dict) -> list[dict] | None:
@@ -222,16 +243,15 @@ def _suites(raw: dict) -> list[tuple[str, list[int], list[int]]]:
             raise SpecError(f"{where}: expected keys 'tasks' and 'inits', got {body!r}")
         if "tasks" not in body or "inits" not in body:
             raise SpecError(
-                f"{where}: 'tasks' (a list or 'all') and 'inits' (a list of init-state indices) are required"
+                f"{where}: 'tasks' and 'inits' are required (a list, ranges like '0-49', or 'all')"
             )
-        n = num_tasks(suite) if body["tasks"] == "all" or not isinstance(body["tasks"], str) else None
-        if body["tasks"] == "all":
-            tasks = list(range(n))
-        elif isinstance(body["tasks"], str):
-            raise SpecError(f"{where}.tasks: expected a list of task ids or 'all', got {body['tasks']!r}")
-        else:
-            tasks = _ints(body["tasks"], f"{where}.tasks", 0, n - 1)
-        inits = _ints(body["inits"], f"{where}.inits", 0, NUM_INIT_STATES - 1)
+        n = num_tasks(suite)
+        tasks = list(range(n)) if body["tasks"] == "all" else index_list(body["tasks"], f"{where}.tasks", 0, n - 1)
+        inits = (
+            list(range(NUM_INIT_STATES))
+            if body["inits"] == "all"
+            else index_list(body["inits"], f"{where}.inits", 0, NUM_INIT_STATES - 1)
+        )
         out.append((suite, tasks, inits))
     return out
 
