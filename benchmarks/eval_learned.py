@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from lq_ros.core.run_config import BUDGET_COUNTS, versions
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies import Policy, make_policy
-from lq_ros.scoring.metrics import wilson_interval
+from lq_ros.scoring.intervals import wilson_interval
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.training.collect import parse_spec as parse_policy_spec
 from lq_ros.transport.inprocess import run_conventional

@@ -16,6 +16,7 @@ from lq_ros.core.merge import Merge  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.report import plot_rules as pr  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
+from lq_ros.scoring.labels import _variant_label  # noqa: E402
 
 NAME = "fig8_chunk_boundary"
 TITLE = "Fig. 8 - success and chunk-boundary quality vs latency, per merge strategy (async)"
@@ -62,7 +63,7 @@ def boundary_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int
     unlabelled = eps.copy()
     if "policy_name" in unlabelled:
         unlabelled["policy"] = unlabelled["policy_name"]
-    eps["base"] = unlabelled.apply(lambda r: agg._variant_label(r, ("merge", "latency_dist")), axis=1)
+    eps["base"] = unlabelled.apply(lambda r: _variant_label(r, ("merge", "latency_dist")), axis=1)
     by = [*SERIES, "latency_s"]
     cells = agg.aggregate(eps, by=by, n_boot=n_boot, seed=seed)
     idle = pr.never_moved(eps) & eps["status"].isin(["success", "failure"])

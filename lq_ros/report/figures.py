@@ -17,6 +17,7 @@ from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import plot_rules as pr  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
+from lq_ros.scoring.labels import base_labels  # noqa: E402
 from lq_ros.scoring.survival import kaplan_meier_band as survival_band  # noqa: E402
 
 #: Figures pool tasks and init states, never suites: one point per (policy, protocol, suite, latency) at one
@@ -370,7 +371,7 @@ def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Fig
     lower: the two are different things."""
     eps = episodes.copy()
     # One row per variant, protocol and suite: its constant latencies, distributions and both budgets together.
-    eps["series_policy"] = agg.base_labels(eps, ("budget_counts", "latency_dist"))
+    eps["series_policy"] = base_labels(eps, ("budget_counts", "latency_dist"))
     suites = _suites(eps)
     if "suite" in eps:
         eps["series_policy"] = [_with_suite(str(p), s, suites) for p, s in zip(eps["series_policy"], eps["suite"],

@@ -22,10 +22,10 @@ import matplotlib.transforms as mtransforms  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from lq_ros.scoring import aggregate as agg  # noqa: E402
+from lq_ros.scoring.intervals import MIN_N_INTERVAL  # noqa: E402
 
 #: Fewest values a mean needs to be joined to its neighbours (the same as for an interval).
-MIN_JOIN_N = agg.MIN_N_INTERVAL
+MIN_JOIN_N = MIN_N_INTERVAL
 SMALL_N_NOTE = f"hollow, unjoined point: mean of fewer than {MIN_JOIN_N} values (no band; dots are the values)"
 IDLE_NOTE = "× at the foot: every episode of the cell held throughout (no fresh action ran), its value is not drawn"
 DEGENERATE_NOTE = "red ring: cell with degenerate-protocol episodes (see the summary)"

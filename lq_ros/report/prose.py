@@ -6,6 +6,8 @@ import pandas as pd
 
 from lq_ros.report.tables import count_text, outcomes_text
 from lq_ros.scoring import aggregate as agg
+from lq_ros.scoring.budget import budget_note
+from lq_ros.scoring.intervals import MIN_N_INTERVAL
 from lq_ros.scoring.paired_tests import ALPHA
 
 #: (metric, sentence name, decimals, scale, unit) of the paired changes the report's sentences name.
@@ -32,7 +34,7 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
         text += (
             f"success {count_text(r, 'cell_n_success')}/{outcomes_text(r)} against {r['zero_n_success']}/{r['zero_n']}"
         )
-        note = agg.budget_note(r)
+        note = budget_note(r)
         text += f" ({note})" if note and note != "action budget" else ""
         if not r["n_pairs"]:
             lines.append(text + "; no (task, init) pair succeeds in both, so there is no paired change.")
@@ -100,7 +102,7 @@ NOTES = (
     f"Intervals: success carries the Wilson interval over episodes and, for a cell of several tasks, the "
     "task-clustered interval (whole tasks resampled; success clusters by task, so this is the one that speaks for "
     "other tasks); the mean of a metric carries the Student t interval. Few values: a metric over fewer than "
-    f"{agg.MIN_N_INTERVAL} episodes (or pairs) gets no interval; tables print the mean, n and the values, "
+    f"{MIN_N_INTERVAL} episodes (or pairs) gets no interval; tables print the mean, n and the values, "
     "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw such a mean hollow, joined to no other, with its "
     "values as dots and no band.",
     "Comparisons: two policies (one protocol) or two protocols (one policy) are compared only on the episodes both "

@@ -39,7 +39,7 @@ from lq_ros.report.tables import (  # noqa: E402
     summary_table,
 )
 from lq_ros.scoring import aggregate as agg  # noqa: E402
-from lq_ros.scoring import metrics, paired_tests  # noqa: E402
+from lq_ros.scoring import intervals, labels, paired_tests  # noqa: E402
 from lq_ros.scoring.attribution import decompose, decomposition_table  # noqa: E402
 
 # -- data ------------------------------------------------------------------------------------
@@ -117,7 +117,7 @@ def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int =
             values = pd.to_numeric(episodes.loc[mask, name], errors="coerce").to_numpy(dtype=np.float64)
             values = values[np.isfinite(values)]
             if len(values):
-                lo, hi = metrics.bootstrap_ci(values, 0.95, n_boot, seed)
+                lo, hi = intervals.bootstrap_ci(values, 0.95, n_boot, seed)
                 means.append(float(values.mean()))
                 lows.append(lo)
                 highs.append(hi)
@@ -127,7 +127,7 @@ def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int =
                 highs.append(math.nan)
         pooled[f"{name}_mean"], pooled[f"{name}_ci_lo"], pooled[f"{name}_ci_hi"] = means, lows, highs
     # The series a cell belongs to whatever its budget (Fig. 4 draws both budgets of a variant in one colour).
-    series = dict(zip(episodes["policy"], agg.base_labels(episodes, ("budget_counts",)), strict=True))
+    series = dict(zip(episodes["policy"], labels.base_labels(episodes, ("budget_counts",)), strict=True))
     pooled["series_policy"] = pooled["policy"].map(series)
     pooled["latency_label"] = [agg.cell_latency_label(r) for _, r in pooled.iterrows()]
     return pooled
@@ -145,13 +145,13 @@ def policy_comparisons(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
     """paired_policies.csv: every pair of policy variants (one protocol) and sync against async (one variant), per
     suite, latency and budget, over their shared (task, init, seed) episodes (lq_ros/scoring/paired_tests.py)."""
     eps = episodes.copy()
-    eps["variant"] = agg.base_labels(eps, ("budget_counts", "latency_dist"))
+    eps["variant"] = labels.base_labels(eps, ("budget_counts", "latency_dist"))
     return paired_tests.paired_policies(eps, arm="variant", n_boot=n_boot, seed=seed)
 
 
 def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0):
-    """agg.paired_differences per figure cell, with each cell's latency label and budget attribution."""
-    paired = agg.paired_differences(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
+    """paired_tests.paired_differences per figure cell, with each cell's latency label and budget attribution."""
+    paired = paired_tests.paired_differences(episodes, by=FIGURE_KEYS, n_boot=n_boot, seed=seed)
     if paired.empty:
         return paired
     extra = ["latency_label", "series_policy", "budget_counts", "budget_decided", "budget_mark", "budget_decided_n",
@@ -167,7 +167,7 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
     paired = paired.sort_values(order, kind="stable").drop(columns=["_budget_order", "_variant"])
     # Many changes against 0 s (every metric of every cell): Benjamini-Hochberg over all of them; a sentence calls
     # a change only when its adjusted p is below 0.05 (lq_ros/scoring/paired_tests.py).
-    p_columns = [f"{m}_diff_p" for m in agg.PAIRED_METRICS if f"{m}_diff_p" in paired]
+    p_columns = [f"{m}_diff_p" for m in paired_tests.PAIRED_METRICS if f"{m}_diff_p" in paired]
     if p_columns:
         adjusted = paired_tests.benjamini_hochberg(paired[p_columns].to_numpy(dtype=np.float64).reshape(-1))
         for k, column in enumerate(p_columns):

@@ -9,6 +9,7 @@ import pandas as pd
 from lq_ros.report import episode_media as media
 from lq_ros.report.figures import FIGURE_KEYS
 from lq_ros.scoring import aggregate as agg
+from lq_ros.scoring.budget import budget_note
 
 #: (header, metric, decimals, scale) of the pooled summary table.
 SUMMARY_COLUMNS = (
@@ -34,7 +35,7 @@ def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
             row[header] = agg.ci_text(r, metric, decimals, scale)
             if metric == "success":
                 row["success 95% (tasks)"] = cluster_text(r)
-        row["budget"] = agg.budget_note(r)
+        row["budget"] = budget_note(r)
         row["note"] = f"⚠ degenerate in {int(r['n_degenerate'])} episodes" if r.get("n_degenerate") else ""
         rows.append(row)
     return pd.DataFrame(rows)

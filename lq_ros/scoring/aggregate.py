@@ -18,13 +18,11 @@ episodes, and episodes of one task are not independent draws of it); continuous 
 does not). Below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
 (``<metric>_values``, :func:`ci_text`).
 
-Attribution of latency effects (docs/guide/scoring.md, "Attributing latency effects"):
-- :func:`paired_differences`: each latency > 0 cell against the zero-latency cell of the same variant and
-  protocol, over the (suite, task, init, seed) pairs that succeed in both, so a change is not a change of
-  the task mix that succeeds.
-- lq_ros/scoring/budget.py: whether a timeout under ``budget_counts`` ``all`` was decided by the budget (hold
-  ticks spent it) or by the policy; :func:`aggregate` adds each cell's ``budget_mark``.
-- :func:`kaplan_meier`: time-to-success curves with failures censored at their end.
+The rest of the scoring statistics live beside this module: lq_ros/scoring/intervals.py (every interval),
+lq_ros/scoring/paired_tests.py (arms compared pair by pair: McNemar, paired changes against 0 s, multiplicity),
+lq_ros/scoring/budget.py (whether the step budget decided a cell's timeouts: :func:`aggregate` adds each cell's
+``budget_mark``) and lq_ros/scoring/labels.py (variant labels). :func:`kaplan_meier` gives time-to-success
+curves with failures censored at their end.
 """
 
 from __future__ import annotations
@@ -38,13 +36,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
-from scipy import stats
 
 from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
 from lq_ros.scoring import metrics
 from lq_ros.scoring.bag_scorer import BagError, find_bags, score_bag
-from lq_ros.scoring.budget import (  # noqa: F401 (add_budget_attribution, budget_note: re-exported)
+from lq_ros.scoring.budget import (
     BUDGET_MARK,
     DEFAULT_BUDGET_COUNTS,
     PROXY_MARK,
@@ -52,16 +49,15 @@ from lq_ros.scoring.budget import (  # noqa: F401 (add_budget_attribution, budge
     add_budget_counts,
     budget_note,
 )
-from lq_ros.scoring.intervals import cluster_bootstrap_ci, design_effect, t_interval
-from lq_ros.scoring.labels import (  # noqa: F401 (labels of report and benchmarks: re-exported)
-    PAIR_KEYS,
-    _distinct,
-    _pair_keys,
-    _text,
-    _variant_label,
-    base_labels,
-    label_variants,
+from lq_ros.scoring.intervals import (
+    MIN_N_INTERVAL,
+    bootstrap_ci,
+    cluster_bootstrap_ci,
+    design_effect,
+    mean_stats,
+    wilson_interval,
 )
+from lq_ros.scoring.labels import _distinct, label_variants
 from lq_ros.scoring.survival import greenwood
 
 SUCCESS_ONLY, WITH_OUTCOME, BY_OUTCOME = "success", "outcome", "by_outcome"
@@ -119,20 +115,6 @@ PROVENANCE_COLUMNS = {
 POPULATIONS = {"": "success", "_failure": "failure", "_all": "outcome"}
 #: Per-episode columns stored as JSON text (nested values do not fit CSV/Parquet columns uniformly).
 _JSON_COLUMNS = ("versions", "null_reasons", "warnings", "policy_args")
-#: Fewest values an interval of a mean is given for: tables and figures show the values and their count instead.
-MIN_N_INTERVAL = 5
-#: Metrics of the paired view (:func:`paired_differences`): cell minus zero-latency cell, per pair.
-PAIRED_METRICS = (
-    "completion_time_s",
-    "action_ticks",
-    "jerk_mean",
-    "jerk_p90",
-    "ee_osc",
-    "ee_osc_detrended",
-    "traj_length",
-    "energy_total_j",
-    "energy_per_step_j",
-)
 
 
 # -- per-episode rows --------------------------------------------------------------------------------------
@@ -257,7 +239,7 @@ def aggregate(
         row.update(n=len(group), n_success=n_success, n_failure=n_failure, n_error=len(group) - n_outcome)
         outcome_mask = status.isin(["success", "failure"])
         if n_outcome:
-            low, high = metrics.wilson_interval(n_success, n_outcome, confidence)
+            low, high = wilson_interval(n_success, n_outcome, confidence)
             row.update(success_rate=n_success / n_outcome, success_ci_lo=low, success_ci_hi=high)
         else:
             row.update(success_rate=math.nan, success_ci_lo=math.nan, success_ci_hi=math.nan)
@@ -298,28 +280,6 @@ def _add_mean(
 ) -> None:
     values = pd.to_numeric(group.loc[mask, metric], errors="coerce") if metric in group else pd.Series([], dtype=float)
     row.update(mean_stats(values.to_numpy(dtype=np.float64), name, confidence, n_boot, seed))
-
-
-def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: int = 2000, seed: int = 0) -> dict:
-    """``<name>_n``, ``_mean``, ``_ci_lo``, ``_ci_hi``, ``_p`` and ``_values`` of the finite ``values``: the Student t
-    interval (and the one-sample t test's two-sided p against 0, for a change) from MIN_N_INTERVAL values on;
-    below that the interval is NaN and ``_values`` lists them (JSON). ``n_boot`` and ``seed`` are unused (kept for
-    callers)."""
-    values = values[np.isfinite(values)]
-    out = {f"{name}_n": len(values), f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan,
-           f"{name}_p": math.nan}  # fmt: skip
-    out[f"{name}_values"] = json.dumps([float(v) for v in values]) if 0 < len(values) < MIN_N_INTERVAL else ""
-    if len(values):
-        out[f"{name}_mean"] = float(values.mean())
-    if len(values) >= MIN_N_INTERVAL:
-        out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = t_interval(values, confidence)
-        spread = float(values.std(ddof=1))
-        if spread > 0:
-            t = float(values.mean()) / (spread / math.sqrt(len(values)))
-            out[f"{name}_p"] = float(2 * stats.t.sf(abs(t), len(values) - 1))
-        else:
-            out[f"{name}_p"] = 1.0 if float(values.mean()) == 0 else 0.0
-    return out
 
 
 def realised_latency_s(episodes: pd.DataFrame) -> float:
@@ -368,7 +328,7 @@ def _add_restricted_mean(row: dict, outcomes: pd.DataFrame, confidence: float, n
     elif np.all(times[~events] >= horizon - 1e-9):
         # Every failure is censored at the budget: the estimate is the mean of min(t, horizon) exactly,
         # so the (vectorised) bootstrap of that mean is the bootstrap of the estimate.
-        low, high = metrics.bootstrap_ci(np.minimum(times, horizon), confidence, n_boot, seed)
+        low, high = bootstrap_ci(np.minimum(times, horizon), confidence, n_boot, seed)
     else:
         rng = np.random.default_rng(seed)
         draws = rng.integers(0, len(times), size=(n_boot, len(times)))
@@ -408,84 +368,7 @@ def write_tables(episodes: pd.DataFrame, aggregates: pd.DataFrame, out_dir: Path
     return written
 
 
-# -- attribution: paired changes, time to success -----------------------------------------------------------
-
-
-def paired_differences(
-    episodes: pd.DataFrame,
-    *,
-    by: Sequence[str] = GROUP_KEYS,
-    metric_names: Sequence[str] = PAIRED_METRICS,
-    n_boot: int = 2000,
-    seed: int = 0,
-    confidence: float = 0.95,
-) -> pd.DataFrame:
-    """The change of each metric from latency 0, per cell (``by``) with latency_s > 0, over matched pairs.
-
-    A cell's zero-latency cell has the same ``by`` values besides the latency and the same variant label
-    without its latency kind (a ``uniform`` cell is compared with the constant 0 s cell of its variant and
-    protocol). The change is taken per PAIR_KEYS pair (suite, task, init, seed) that succeeds in both cells:
-    success-only means of two cells pool different task mixes whenever their success differs (3 successes at
-    0.2 s against 9 at 0.1 s), a paired change does not.
-
-    At latency 0 no tick holds, so a budget (``budget_counts``) without a 0 s cell of its own is compared with the
-    other budget's (``zero_budget_counts`` says which).
-
-    Columns: the cell's ``by`` values; ``zero_budget_counts``; ``n_success``; ``zero_n`` and ``zero_n_success``
-    (outcomes and successes of the zero-latency cell; 0 when there is none); ``n_pairs``; per metric
-    ``<metric>_diff_{n,mean,ci_lo,ci_hi,values}`` (cell minus zero per pair, a bootstrap interval over pairs from
-    MIN_N_INTERVAL pairs on) and ``<metric>_zero_mean`` / ``<metric>_cell_mean`` over the same pairs.
-    """
-    if "latency_s" not in by:
-        raise ValueError("paired_differences compares latencies: `by` must contain latency_s")
-    if episodes.empty:
-        return pd.DataFrame()
-    eps = episodes.reset_index(drop=True)
-    # Zero-latency cells are keyed by the variant without its budget and the budget apart: at 0 s no tick holds,
-    # so both budgets run the same episode and the other budget's 0 s cell stands in when a budget has none.
-    base = base_labels(eps, ("latency_dist", "budget_counts")).to_numpy()
-    budget = eps["budget_counts"].astype(str).to_numpy() if "budget_counts" in eps else np.full(len(eps), "all")
-    pairs = _pair_keys(eps)
-    match = [k for k in by if k not in ("policy", "latency_s", "latency_dist")]
-    match_values = [tuple(_text(v) for v in values) for values in zip(*(eps[k] for k in match), strict=True)]
-    if not match:
-        match_values = [()] * len(eps)
-    latency = pd.to_numeric(eps["latency_s"], errors="coerce").round(9).to_numpy()
-    status = eps["status"].to_numpy()
-    zero_counts: dict[tuple, list[int]] = {}
-    zero_success: dict[tuple, int] = {}
-    for i in np.flatnonzero(latency == 0):
-        cell = (base[i], match_values[i], budget[i])
-        if status[i] in ("success", "failure"):
-            counts = zero_counts.setdefault(cell, [0, 0])
-            counts[0] += 1
-            counts[1] += int(status[i] == "success")
-        if status[i] == "success":
-            zero_success.setdefault((*cell, pairs[i]), i)
-    columns = {m: pd.to_numeric(eps[m], errors="coerce").to_numpy(dtype=np.float64) for m in metric_names if m in eps}
-    rows = []
-    for key, group in eps.groupby(list(by), dropna=False, sort=True):
-        first = group.index[0]
-        if not latency[first] > 0:
-            continue
-        row = dict(zip(by, key if isinstance(key, tuple) else (key,), strict=True))
-        candidates = [(base[first], match_values[first], b) for b in (budget[first], *sorted(set(budget)))]
-        cell = next((c for c in candidates if c in zero_counts), candidates[0])
-        row["zero_budget_counts"] = cell[2] if cell in zero_counts else None
-        successes = [i for i in group.index if status[i] == "success"]
-        zero_n, zero_n_success = zero_counts.get(cell, (0, 0))
-        matched = [(i, zero_success[(*cell, pairs[i])]) for i in successes if (*cell, pairs[i]) in zero_success]
-        row.update(n_success=len(successes), zero_n=zero_n, zero_n_success=zero_n_success, n_pairs=len(matched))
-        for metric in metric_names:
-            values = columns.get(metric, np.full(len(eps), math.nan))
-            at_cell = np.array([values[i] for i, _ in matched], dtype=np.float64)
-            at_zero = np.array([values[j] for _, j in matched], dtype=np.float64)
-            ok = np.isfinite(at_cell) & np.isfinite(at_zero)
-            row.update(mean_stats(at_cell[ok] - at_zero[ok], f"{metric}_diff", confidence, n_boot, seed))
-            row[f"{metric}_zero_mean"] = float(at_zero[ok].mean()) if ok.any() else math.nan
-            row[f"{metric}_cell_mean"] = float(at_cell[ok].mean()) if ok.any() else math.nan
-        rows.append(row)
-    return pd.DataFrame(rows)
+# -- time to success -------------------------------------------------------------------------------------------
 
 
 def kaplan_meier(times: ArrayLike, events: ArrayLike) -> tuple[np.ndarray, np.ndarray]:

@@ -16,16 +16,17 @@ the sweep ran weighs the same, so with equal init states per task, the mean over
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
+from statistics import NormalDist
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats
 
-from lq_ros.scoring.metrics import bootstrap_ci, wilson_interval
-
-__all__ = ["bootstrap_ci", "cluster_bootstrap_ci", "design_effect", "t_interval", "wilson_interval"]
+#: Fewest values an interval of a mean is given for: tables and figures show the values and their count instead.
+MIN_N_INTERVAL = 5
 
 
 def t_interval(values: ArrayLike, confidence: float = 0.95) -> tuple[float, float]:
@@ -90,3 +91,80 @@ def design_effect(clusters: Sequence[ArrayLike]) -> float:
     resid = np.array([g.sum() - g.size * p for g in groups])
     clustered = float((resid**2).sum()) * k / (k - 1) / n**2
     return clustered / srs
+
+
+def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval for a binomial proportion (e.g. success rate over n episodes).
+
+    Returns ``(low, high)`` as fractions in [0, 1]. Example: 8 / 10 at 95 % gives (0.4902, 0.9433).
+
+    Raises:
+        ValueError: n <= 0, successes outside [0, n], or confidence outside (0, 1).
+    """
+    if n <= 0:
+        raise ValueError(f"n must be a positive number of trials, got {n}")
+    if not 0 <= successes <= n:
+        raise ValueError(f"successes must be in [0, n={n}], got {successes}")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    z = NormalDist().inv_cdf(1.0 - (1.0 - confidence) / 2.0)
+    p = successes / n
+    z2 = z * z
+    denom = 1.0 + z2 / n
+    center = (p + z2 / (2.0 * n)) / denom
+    half = (z / denom) * math.sqrt(p * (1.0 - p) / n + z2 / (4.0 * n * n))
+    # At 0 or n successes the bound is exactly 0 or 1; don't let rounding report 3e-17.
+    low = 0.0 if successes == 0 else max(0.0, center - half)
+    high = 1.0 if successes == n else min(1.0, center + half)
+    return low, high
+
+
+def bootstrap_ci(
+    values: ArrayLike, confidence: float = 0.95, n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile-bootstrap confidence interval of the mean; deterministic for a given ``seed``.
+
+    Resamples with replacement using ``numpy.random.default_rng(seed)`` and takes the
+    ``(1 - confidence) / 2`` and ``(1 + confidence) / 2`` quantiles (numpy linear interpolation) of the
+    resampled means. Returns ``(low, high)`` in the unit of ``values``; a single value gives (v, v).
+
+    Raises:
+        ValueError: empty or non-finite values, n_resamples < 1, or confidence outside (0, 1).
+    """
+    x = np.asarray(values, dtype=np.float64).reshape(-1)
+    if x.size == 0:
+        raise ValueError("bootstrap_ci needs at least one value")
+    if not np.all(np.isfinite(x)):
+        raise ValueError("bootstrap_ci values contain non-finite entries")
+    if n_resamples < 1:
+        raise ValueError(f"n_resamples must be >= 1, got {n_resamples}")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, x.size, size=(int(n_resamples), x.size))
+    means = x[idx].mean(axis=1)
+    alpha = 1.0 - confidence
+    low, high = np.quantile(means, [alpha / 2.0, 1.0 - alpha / 2.0])
+    return float(low), float(high)
+
+
+def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: int = 2000, seed: int = 0) -> dict:
+    """``<name>_n``, ``_mean``, ``_ci_lo``, ``_ci_hi``, ``_p`` and ``_values`` of the finite ``values``: the Student t
+    interval (and the one-sample t test's two-sided p against 0, for a change) from MIN_N_INTERVAL values on;
+    below that the interval is NaN and ``_values`` lists them (JSON). ``n_boot`` and ``seed`` are unused (kept for
+    callers)."""
+    values = values[np.isfinite(values)]
+    out = {f"{name}_n": len(values), f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan,
+           f"{name}_p": math.nan}  # fmt: skip
+    out[f"{name}_values"] = json.dumps([float(v) for v in values]) if 0 < len(values) < MIN_N_INTERVAL else ""
+    if len(values):
+        out[f"{name}_mean"] = float(values.mean())
+    if len(values) >= MIN_N_INTERVAL:
+        out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = t_interval(values, confidence)
+        spread = float(values.std(ddof=1))
+        if spread > 0:
+            t = float(values.mean()) / (spread / math.sqrt(len(values)))
+            out[f"{name}_p"] = float(2 * stats.t.sf(abs(t), len(values) - 1))
+        else:
+            out[f"{name}_p"] = 1.0 if float(values.mean()) == 0 else 0.0
+    return out

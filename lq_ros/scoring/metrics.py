@@ -1,4 +1,4 @@
-"""Trajectory-quality, energy and statistics metrics for LIBERO-LQ (pure numpy/scipy, no ROS, no I/O).
+"""Trajectory-quality, energy and time-to-success metrics for LIBERO-LQ (pure numpy/scipy, no ROS, no I/O).
 
 Definitions follow the LIBERO-LQ paper, appendix A (jerk, EE-Osc, trajectory length) and appendix B
 (energy model), plus two standard smoothness measures on the speed profile (SPARC and log dimensionless
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from statistics import NormalDist
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -30,7 +29,6 @@ __all__ = [
     "MIN_MOVEMENT_SPEED_M_S",
     "SPARC_PADLEVEL",
     "EnergyTerms",
-    "bootstrap_ci",
     "check_uniform",
     "dimensionless_jerk",
     "ee_oscillation",
@@ -46,7 +44,6 @@ __all__ = [
     "sparc",
     "speed_profile",
     "trajectory_length",
-    "wilson_interval",
 ]
 
 #: Electrical loss coefficient R * Kt^-2 of the simplified DC-motor model, W / (N m)^2 (paper eq. 8,
@@ -503,34 +500,8 @@ def resample_uniform(t_s: ArrayLike, values: ArrayLike, dt_s: float) -> tuple[ND
 
 
 # --------------------------------------------------------------------------------------------------
-# confidence intervals
+# time to success
 # --------------------------------------------------------------------------------------------------
-
-
-def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion (e.g. success rate over n episodes).
-
-    Returns ``(low, high)`` as fractions in [0, 1]. Example: 8 / 10 at 95 % gives (0.4902, 0.9433).
-
-    Raises:
-        ValueError: n <= 0, successes outside [0, n], or confidence outside (0, 1).
-    """
-    if n <= 0:
-        raise ValueError(f"n must be a positive number of trials, got {n}")
-    if not 0 <= successes <= n:
-        raise ValueError(f"successes must be in [0, n={n}], got {successes}")
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    z = NormalDist().inv_cdf(1.0 - (1.0 - confidence) / 2.0)
-    p = successes / n
-    z2 = z * z
-    denom = 1.0 + z2 / n
-    center = (p + z2 / (2.0 * n)) / denom
-    half = (z / denom) * math.sqrt(p * (1.0 - p) / n + z2 / (4.0 * n * n))
-    # At 0 or n successes the bound is exactly 0 or 1; don't let rounding report 3e-17.
-    low = 0.0 if successes == 0 else max(0.0, center - half)
-    high = 1.0 if successes == n else min(1.0, center + half)
-    return low, high
 
 
 def restricted_mean_time(times: ArrayLike, events: ArrayLike, horizon: float) -> float:
@@ -561,32 +532,3 @@ def restricted_mean_time(times: ArrayLike, events: ArrayLike, horizon: float) ->
         survival *= 1.0 - int(np.sum((t == ti) & e)) / at_risk
         last_t = ti
     return float(area + survival * (horizon - last_t))
-
-
-def bootstrap_ci(
-    values: ArrayLike, confidence: float = 0.95, n_resamples: int = 2000, seed: int = 0
-) -> tuple[float, float]:
-    """Percentile-bootstrap confidence interval of the mean; deterministic for a given ``seed``.
-
-    Resamples with replacement using ``numpy.random.default_rng(seed)`` and takes the
-    ``(1 - confidence) / 2`` and ``(1 + confidence) / 2`` quantiles (numpy linear interpolation) of the
-    resampled means. Returns ``(low, high)`` in the unit of ``values``; a single value gives (v, v).
-
-    Raises:
-        ValueError: empty or non-finite values, n_resamples < 1, or confidence outside (0, 1).
-    """
-    x = np.asarray(values, dtype=np.float64).reshape(-1)
-    if x.size == 0:
-        raise ValueError("bootstrap_ci needs at least one value")
-    if not np.all(np.isfinite(x)):
-        raise ValueError("bootstrap_ci values contain non-finite entries")
-    if n_resamples < 1:
-        raise ValueError(f"n_resamples must be >= 1, got {n_resamples}")
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, x.size, size=(int(n_resamples), x.size))
-    means = x[idx].mean(axis=1)
-    alpha = 1.0 - confidence
-    low, high = np.quantile(means, [alpha / 2.0, 1.0 - alpha / 2.0])
-    return float(low), float(high)

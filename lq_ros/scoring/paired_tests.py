@@ -15,26 +15,46 @@ intervals. For success (the primary endpoint):
 ``p_adjusted`` is Holm's step-down adjustment over every comparison of the table (family-wise error 5%); a
 difference is called only when its adjusted p is below 0.05. Secondary tables (many metrics against 0 s latency)
 use Benjamini-Hochberg (false discovery rate 5%).
+
+Secondary: :func:`paired_differences`, each latency > 0 cell against the zero-latency cell of the same variant and
+protocol, metric by metric, over the (suite, task, init, seed) pairs that succeed in both (so a change is not a
+change of the task mix that succeeds; the restricted-mean time above is the comparison without that survivor
+selection).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 from scipy import stats
 
+from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
-from lq_ros.scoring.intervals import cluster_bootstrap_ci
+from lq_ros.scoring.intervals import cluster_bootstrap_ci, mean_stats
+from lq_ros.scoring.labels import _pair_keys, _text, base_labels
 
 #: The episodes two arms share: a pair is one (task, init state, seed); the cluster is the task.
 PAIR_KEYS = ("task", "init", "seed")
 #: What makes two arms comparable: the same suite, latency and budget.
 CELL_KEYS = ("suite", "latency_s", "latency_dist", "budget_counts")
 ALPHA = 0.05
+#: Metrics of the paired view (:func:`paired_differences`): cell minus zero-latency cell, per pair.
+PAIRED_METRICS = (
+    "completion_time_s",
+    "action_ticks",
+    "jerk_mean",
+    "jerk_p90",
+    "ee_osc",
+    "ee_osc_detrended",
+    "traj_length",
+    "energy_total_j",
+    "energy_per_step_j",
+)
 
 
 def mcnemar_exact_p(a_only: int, b_only: int) -> float:
@@ -177,3 +197,83 @@ def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int 
     table["p_adjusted"] = holm(table["mcnemar_p"].to_numpy())
     table["called"] = table["p_adjusted"] < ALPHA
     return table
+
+
+# -- changes against zero latency (secondary) ---------------------------------------------------------
+
+
+def paired_differences(
+    episodes: pd.DataFrame,
+    *,
+    by: Sequence[str] = GROUP_KEYS,
+    metric_names: Sequence[str] = PAIRED_METRICS,
+    n_boot: int = 2000,
+    seed: int = 0,
+    confidence: float = 0.95,
+) -> pd.DataFrame:
+    """The change of each metric from latency 0, per cell (``by``) with latency_s > 0, over matched pairs.
+
+    A cell's zero-latency cell has the same ``by`` values besides the latency and the same variant label
+    without its latency kind (a ``uniform`` cell is compared with the constant 0 s cell of its variant and
+    protocol). The change is taken per PAIR_KEYS pair (suite, task, init, seed) that succeeds in both cells:
+    success-only means of two cells pool different task mixes whenever their success differs (3 successes at
+    0.2 s against 9 at 0.1 s), a paired change does not.
+
+    At latency 0 no tick holds, so a budget (``budget_counts``) without a 0 s cell of its own is compared with the
+    other budget's (``zero_budget_counts`` says which).
+
+    Columns: the cell's ``by`` values; ``zero_budget_counts``; ``n_success``; ``zero_n`` and ``zero_n_success``
+    (outcomes and successes of the zero-latency cell; 0 when there is none); ``n_pairs``; per metric
+    ``<metric>_diff_{n,mean,ci_lo,ci_hi,values}`` (cell minus zero per pair, a bootstrap interval over pairs from
+    MIN_N_INTERVAL pairs on) and ``<metric>_zero_mean`` / ``<metric>_cell_mean`` over the same pairs.
+    """
+    if "latency_s" not in by:
+        raise ValueError("paired_differences compares latencies: `by` must contain latency_s")
+    if episodes.empty:
+        return pd.DataFrame()
+    eps = episodes.reset_index(drop=True)
+    # Zero-latency cells are keyed by the variant without its budget and the budget apart: at 0 s no tick holds,
+    # so both budgets run the same episode and the other budget's 0 s cell stands in when a budget has none.
+    base = base_labels(eps, ("latency_dist", "budget_counts")).to_numpy()
+    budget = eps["budget_counts"].astype(str).to_numpy() if "budget_counts" in eps else np.full(len(eps), "all")
+    pairs = _pair_keys(eps)
+    match = [k for k in by if k not in ("policy", "latency_s", "latency_dist")]
+    match_values = [tuple(_text(v) for v in values) for values in zip(*(eps[k] for k in match), strict=True)]
+    if not match:
+        match_values = [()] * len(eps)
+    latency = pd.to_numeric(eps["latency_s"], errors="coerce").round(9).to_numpy()
+    status = eps["status"].to_numpy()
+    zero_counts: dict[tuple, list[int]] = {}
+    zero_success: dict[tuple, int] = {}
+    for i in np.flatnonzero(latency == 0):
+        cell = (base[i], match_values[i], budget[i])
+        if status[i] in ("success", "failure"):
+            counts = zero_counts.setdefault(cell, [0, 0])
+            counts[0] += 1
+            counts[1] += int(status[i] == "success")
+        if status[i] == "success":
+            zero_success.setdefault((*cell, pairs[i]), i)
+    columns = {m: pd.to_numeric(eps[m], errors="coerce").to_numpy(dtype=np.float64) for m in metric_names if m in eps}
+    rows = []
+    for key, group in eps.groupby(list(by), dropna=False, sort=True):
+        first = group.index[0]
+        if not latency[first] > 0:
+            continue
+        row = dict(zip(by, key if isinstance(key, tuple) else (key,), strict=True))
+        candidates = [(base[first], match_values[first], b) for b in (budget[first], *sorted(set(budget)))]
+        cell = next((c for c in candidates if c in zero_counts), candidates[0])
+        row["zero_budget_counts"] = cell[2] if cell in zero_counts else None
+        successes = [i for i in group.index if status[i] == "success"]
+        zero_n, zero_n_success = zero_counts.get(cell, (0, 0))
+        matched = [(i, zero_success[(*cell, pairs[i])]) for i in successes if (*cell, pairs[i]) in zero_success]
+        row.update(n_success=len(successes), zero_n=zero_n, zero_n_success=zero_n_success, n_pairs=len(matched))
+        for metric in metric_names:
+            values = columns.get(metric, np.full(len(eps), math.nan))
+            at_cell = np.array([values[i] for i, _ in matched], dtype=np.float64)
+            at_zero = np.array([values[j] for _, j in matched], dtype=np.float64)
+            ok = np.isfinite(at_cell) & np.isfinite(at_zero)
+            row.update(mean_stats(at_cell[ok] - at_zero[ok], f"{metric}_diff", confidence, n_boot, seed))
+            row[f"{metric}_zero_mean"] = float(at_zero[ok].mean()) if ok.any() else math.nan
+            row[f"{metric}_cell_mean"] = float(at_cell[ok].mean()) if ok.any() else math.nan
+        rows.append(row)
+    return pd.DataFrame(rows)

@@ -10,20 +10,18 @@ import pandas as pd
 import pytest
 
 from lq_ros.scoring.aggregate import (
-    MIN_N_INTERVAL,
     aggregate,
-    budget_note,
     cell_latency_label,
     ci_text,
     efficiency_references,
     episodes_frame,
     kaplan_meier,
     markdown_table,
-    paired_differences,
     time_to_success,
     write_tables,
 )
-from lq_ros.scoring.intervals import t_interval
+from lq_ros.scoring.budget import budget_note
+from lq_ros.scoring.intervals import MIN_N_INTERVAL, t_interval
 
 
 def _episode(status: str, *, latency: float = 0.0, steps: int = 100, length: float = 1.0, jerk: float = 10.0, **kw):
@@ -243,55 +241,6 @@ def test_below_five_values_the_table_prints_the_values_and_n_not_an_interval():
     assert ci_text(agg5, "completion_time_s", 2) == f"6.00 [{low:.2f}, {high:.2f}]" and low < 6.0 < high
     # The success rate keeps its Wilson interval at any n.
     assert ci_text(agg3, "success", 0, 100.0) == "100 [44, 100]"
-
-
-def _paired_rows():
-    """Zero latency: inits 0-3 succeed at 100, 110, 120, 130 steps. At 0.2 s: inits 0-2 succeed 20, 30, 40 steps
-    later, init 3 fails, init 4 (never run at 0 s) succeeds fast. A uniform cell pairs with the constant 0 s."""
-    rows = [_episode("success", steps=100 + 10 * i, init=i, jerk=10.0 + i) for i in range(4)]
-    rows += [_episode("success", latency=0.2, steps=120 + 20 * i, init=i, jerk=12.0 + i) for i in range(3)]
-    rows += [_episode("failure", latency=0.2, steps=220, init=3), _episode("success", latency=0.2, steps=60, init=4)]
-    rows += [_episode("success", latency=0.2, latency_dist="uniform:0.1:0.3", steps=105, init=0)]
-    return rows
-
-
-def test_paired_view_compares_the_pairs_that_succeed_in_both_cells():
-    paired = paired_differences(episodes_frame(_paired_rows()), n_boot=200).set_index("latency_dist")
-    row = paired.loc["constant"]
-    assert (row["n_success"], row["zero_n"], row["zero_n_success"], row["n_pairs"]) == (4, 4, 4, 3)
-    # Per pair +20, +30, +40 steps = +1.0, +1.5, +2.0 s: mean +1.5 s; three pairs, so no interval.
-    assert row["completion_time_s_diff_mean"] == pytest.approx(1.5)
-    assert json.loads(row["completion_time_s_diff_values"]) == pytest.approx([1.0, 1.5, 2.0])
-    assert math.isnan(row["completion_time_s_diff_ci_lo"])
-    assert row["jerk_mean_diff_mean"] == pytest.approx(2.0)
-    assert (row["completion_time_s_zero_mean"], row["completion_time_s_cell_mean"]) == pytest.approx((5.5, 7.0))
-    assert ci_text(row, "completion_time_s_diff", 2, signed=True) == "+1.50 (n=3: +1.00, +1.50, +2.00)"
-    # The unpaired success-only means would say the latency made the policy faster (init 4 is easy and only ran there).
-    agg = aggregate(episodes_frame(_paired_rows())).set_index("latency_s")
-    assert agg.loc[0.2, "completion_time_s_mean"].max() < agg.loc[0.0, "completion_time_s_mean"] + 1.5
-    # The uniform cell: the policy label carries its latency kind, yet it pairs with the constant 0 s cell.
-    uniform = paired.loc["uniform:0.1:0.3"]
-    assert uniform["policy"] == "p [latency=uniform]" and uniform["n_pairs"] == 1
-    assert uniform["completion_time_s_diff_mean"] == pytest.approx(0.25)
-
-
-def test_paired_view_with_five_pairs_has_an_interval_and_needs_a_zero_cell():
-    rows = [_episode("success", steps=100, init=i) for i in range(6)]
-    rows += [_episode("success", latency=0.1, steps=100 + 2 * i, init=i) for i in range(6)]  # +0.0 .. +0.5 s
-    rows += [_episode("success", latency=0.1, steps=100, init=0, mode="async")]  # no async 0 s cell
-    paired = paired_differences(episodes_frame(rows), n_boot=500).set_index("mode")
-    sync = paired.loc["sync"]
-    assert sync["n_pairs"] == 6 and sync["completion_time_s_diff_mean"] == pytest.approx(0.25)
-    assert sync["completion_time_s_diff_ci_lo"] < 0.25 < sync["completion_time_s_diff_ci_hi"]
-    assert paired.loc["async", "zero_n"] == 0 and paired.loc["async", "n_pairs"] == 0
-
-
-def test_a_budget_without_its_own_zero_latency_cell_pairs_with_the_other_budgets():
-    rows = [_episode("success", steps=100, init=i) for i in range(2)]  # 0 s under the paper budget only
-    rows += [_episode("success", latency=0.2, steps=150, init=i, budget_counts="action") for i in range(2)]
-    row = paired_differences(episodes_frame(rows), n_boot=100).iloc[0]
-    assert row["policy"] == "p [budget_counts=action]" and row["zero_budget_counts"] == "all"
-    assert row["n_pairs"] == 2 and row["completion_time_s_diff_mean"] == pytest.approx(2.5)
 
 
 def _budget_rows():

@@ -65,7 +65,7 @@ def test_no_zero_latency_cell_no_row():
 
 
 def test_rows_labelled_by_variant_are_decomposed_by_their_bare_policy():
-    from lq_ros.scoring.aggregate import label_variants
+    from lq_ros.scoring.labels import label_variants
 
     data = (
         rows("oft", "sync", 0.0, "all", "stop", [True, True])

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from lq_ros.scoring.intervals import bootstrap_ci, cluster_bootstrap_ci, design_effect, t_interval
+from lq_ros.scoring.intervals import bootstrap_ci, cluster_bootstrap_ci, design_effect, t_interval, wilson_interval
 
 
 def coverage(interval, draw, true_mean: float, n: int, reps: int, seed: int) -> float:
@@ -63,3 +63,26 @@ def test_design_effect():
     assert design_effect(clustered) == pytest.approx(10.0 * 99 / 90 * 10 / 9 / 1.0, rel=0.2)
     assert design_effect(independent) == pytest.approx(0.0)
     assert math.isnan(design_effect([np.ones(5)]))
+
+
+def test_wilson_interval_textbook():
+    low, high = wilson_interval(8, 10)
+    assert low == pytest.approx(0.4902, abs=1e-4)
+    assert high == pytest.approx(0.9433, abs=1e-4)
+    low0, high0 = wilson_interval(0, 10)
+    assert low0 == 0.0 and 0.0 < high0 < 0.35
+    with pytest.raises(ValueError):
+        wilson_interval(11, 10)
+
+
+def test_bootstrap_ci_deterministic_and_contains_mean():
+    values = np.random.default_rng(3).normal(5.0, 2.0, 40)
+    a = bootstrap_ci(values, seed=7)
+    b = bootstrap_ci(values, seed=7)
+    assert a == b
+    assert bootstrap_ci(values, seed=8) != a
+    low, high = a
+    assert low < float(np.mean(values)) < high
+    assert high - low < 2.0  # ~ 2 * 1.96 * 2 / sqrt(40) = 1.24
+    assert bootstrap_ci([1.5]) == (1.5, 1.5)
+    assert math.isclose(bootstrap_ci(np.full(10, 2.0))[0], 2.0)

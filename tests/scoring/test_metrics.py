@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 
@@ -176,32 +174,6 @@ def test_resample_uniform_reproduces_linear_function():
     assert m.check_uniform(t_new, DT) is None
     _, v1 = m.resample_uniform(t, vals[:, 0], DT)
     np.testing.assert_allclose(v1, v_new[:, 0])
-
-
-# ------------------------------------------------------------------ confidence intervals
-
-
-def test_wilson_interval_textbook():
-    low, high = m.wilson_interval(8, 10)
-    assert low == pytest.approx(0.4902, abs=1e-4)
-    assert high == pytest.approx(0.9433, abs=1e-4)
-    low0, high0 = m.wilson_interval(0, 10)
-    assert low0 == 0.0 and 0.0 < high0 < 0.35
-    with pytest.raises(ValueError):
-        m.wilson_interval(11, 10)
-
-
-def test_bootstrap_ci_deterministic_and_contains_mean():
-    values = np.random.default_rng(3).normal(5.0, 2.0, 40)
-    a = m.bootstrap_ci(values, seed=7)
-    b = m.bootstrap_ci(values, seed=7)
-    assert a == b
-    assert m.bootstrap_ci(values, seed=8) != a
-    low, high = a
-    assert low < float(np.mean(values)) < high
-    assert high - low < 2.0  # ~ 2 * 1.96 * 2 / sqrt(40) = 1.24
-    assert m.bootstrap_ci([1.5]) == (1.5, 1.5)
-    assert math.isclose(m.bootstrap_ci(np.full(10, 2.0))[0], 2.0)
 
 
 def test_smoothness_is_undefined_without_movement():
