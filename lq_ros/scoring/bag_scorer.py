@@ -316,19 +316,26 @@ def _native_dt(t_ns: np.ndarray) -> float | None:
 
 
 def _coverage(
-    t_ns: np.ndarray, t0_ns: int | None, t1_ns: int | None, first_s: float, dt_s: float, what: str
+    t_ns: np.ndarray,
+    t0_ns: int | None,
+    t1_ns: int | None,
+    first_s: float,
+    dt_s: float,
+    what: str,
+    to_end: bool = True,
 ) -> str | None:
     """Why ``t_ns`` does not run from the episode's start to its end (None when it does).
 
     ``first_s``: where the first sample belongs after the start event (0 for a state sample, one
     interval for a sample that closes an interval). A series that stops early or starts late would
-    otherwise be scored as if it were the whole episode.
+    otherwise be scored as if it were the whole episode. ``to_end`` False: only the start is checked (an
+    episode without an outcome is scored over what was recorded up to its end event, see :func:`score_episode`).
     """
     if t0_ns is None or t1_ns is None or not len(t_ns):
         return None
     tol_ns = 0.01 * dt_s * 1e9
     first, last = int(t_ns[0]), int(t_ns[-1])
-    if abs(first - (t0_ns + first_s * 1e9)) > tol_ns or abs(t1_ns - last) > tol_ns:
+    if abs(first - (t0_ns + first_s * 1e9)) > tol_ns or (to_end and abs(t1_ns - last) > tol_ns):
         return (
             f"{what} samples span {first / 1e9:.3f}-{last / 1e9:.3f} s, the episode "
             f"{(t0_ns + first_s * 1e9) / 1e9:.3f}-{t1_ns / 1e9:.3f} s"
@@ -385,6 +392,11 @@ def score_episode(
         status = {m.EventKind.SUCCESS: "success", m.EventKind.TIMEOUT: "failure"}.get(kind, "error")
     row["status"] = status
     row["success"] = {"success": True, "failure": False}.get(status)
+    # An episode with an outcome is scored over its whole span: a series that stops before the end event is
+    # incomplete. One without (a run error, a stopped recording) is scored over what was recorded up to its end
+    # event, in both clocks: in lockstep the recorder stamps a STOPPED event at its last commanded tick, in real
+    # time at the wall time it stopped, after the last sample by however long the stop took.
+    outcome = status in ("success", "failure")
     row["error_reason"] = reason if status in ("error", "unknown") else None
     # The budget a failure is censored at (Kaplan-Meier completion time in the aggregates).
     row["step_budget"] = cfg.get("max_steps") or STEP_BUDGETS.get(cfg.get("suite"))
@@ -425,7 +437,8 @@ def score_episode(
             else f"fewer than 2 EE samples on {ee_topic}"
         )
         # The first physics sample closes the first substep; a state sample starts at the start event.
-        span = gap or _coverage(t_ee, t0_ns, t1_ns, PHYSICS_DT_S if sampling == "physics" else 0.0, dt, ee_topic)
+        first_s = PHYSICS_DT_S if sampling == "physics" else 0.0
+        span = gap or _coverage(t_ee, t0_ns, t1_ns, first_s, dt, ee_topic, to_end=outcome)
         if gap is not None:
             _null(row, traj_keys, f"EE pose series rejected: {gap}")
         elif span is not None:
@@ -438,7 +451,7 @@ def score_episode(
     _score_boundaries(row, data, cfg, t0_ns, t1_ns)
 
     # -- energy ---------------------------------------------------------------------------------
-    _score_energy(row, data, energy_rate, ours, t0_ns, t1_ns, elec_coeff, overhead_w, warnings, name)
+    _score_energy(row, data, energy_rate, ours, t0_ns, t1_ns, elec_coeff, overhead_w, warnings, name, outcome)
 
     row["partial"] = bool(warnings)
     row["warnings"] = warnings
@@ -544,18 +557,24 @@ def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> 
     if not data.command_groups or not data.chunk_records:
         return _null(row, keys, "no commands or action chunks in the bag")
     cmds = boundary.Commands(**{k: np.concatenate([g[k] for g in data.command_groups]) for k in data.command_groups[0]})
+    realtime = cfg.get("clock") == "realtime"
+    missed, unknown = _missed_commands(data.metadata, cfg) if realtime else ([], None)
     try:
-        found = boundary.analyse(cfg["mode"], cfg.get("merge"), data.chunk_records, cmds)
+        found = boundary.analyse(
+            cfg["mode"], cfg.get("merge"), data.chunk_records, cmds, realtime=realtime, missed_ticks=missed
+        )
     except (boundary.ReplayMismatch, ValueError) as exc:
         return _null(row, keys, f"chunk replay failed: {exc}")
     ticks, jumps = found.switch_ticks, found.jumps
-    row["chunk_switches"] = len(ticks)
     row["chunks_overlapping"] = found.overlapping
-    row["chunk_overlap_ends"] = len(found.overlap_end_ticks)
     if len(found.disagreements):
         row["chunk_disagreement_mean"] = float(found.disagreements.mean())
     else:
         _null(row, ["chunk_disagreement_mean"], "no tick where a new chunk met the old plan")
+    if unknown is not None:  # the plan is known, what the robot executed is not
+        return _null(row, [k for k in keys if k not in boundary.PLAN_KEYS], unknown)
+    row["chunk_switches"] = len(ticks)
+    row["chunk_overlap_ends"] = len(found.overlap_end_ticks)
     if not len(ticks):
         return _null(row, list(boundary.PER_SWITCH_KEYS), "no chunk switch")
     row["switch_executed_step_mean"] = float(found.executed_steps.mean())
@@ -567,13 +586,32 @@ def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> 
     try:
         if len(t_ee) < 2 or metrics.check_uniform(t_ee / 1e9, CONTROL_DT_S, _UNIFORM_TOL["control"]) is not None:
             raise ValueError("no uniform 20 Hz EE pose series")
-        first = int(np.min(cmds.tick[cmds.source == Source.CHUNK]))
-        mean, ratio, why = boundary.jerk_near_switches(pos, ticks, CONTROL_DT_S, first)
+        mean, ratio, why = boundary.jerk_near_switches(pos, ticks, CONTROL_DT_S, found.first_chunk_tick)
         row["chunk_switch_jerk_mean"], row["chunk_switch_jerk_ratio"] = mean, ratio
         if why:
             _null(row, ["chunk_switch_jerk_ratio"], why)
     except ValueError as exc:
         _null(row, ["chunk_switch_jerk_mean", "chunk_switch_jerk_ratio"], str(exc))
+
+
+def _missed_commands(meta: dict, cfg: dict) -> tuple[list[int], str | None]:
+    """(ticks the real-time sim stepped with the stop hold because their command was late, why they are unknown).
+
+    A robot applies every command when it arrives (none missed). The sim lists the ticks in the bag's metadata
+    (``realtime.sim``) when its episode ends; a sim stopped before that (a run error) reported nothing.
+    """
+    if cfg.get("robot"):
+        return [], None
+    stats = meta.get("realtime")
+    sim = stats.get("sim") if isinstance(stats, dict) else None
+    if not isinstance(sim, dict):
+        return [], "the real-time sim did not report which commands it missed (no realtime.sim in the metadata)"
+    listed, count = sim.get("missed_command_ticks"), sim.get("missed_commands")
+    if not isinstance(listed, list) or not all(isinstance(t, int) and not isinstance(t, bool) for t in listed):
+        return [], "the real-time sim's missed_command_ticks is not a list of ticks"
+    if not isinstance(count, int) or count != len(listed):
+        return [], f"the real-time sim missed {count} commands; the metadata lists the ticks of {len(listed)}"
+    return listed, None
 
 
 def _score_trajectory(
@@ -609,6 +647,7 @@ def _score_energy(
     overhead_w: float,
     warnings: list[str],
     name: str,
+    outcome: bool = True,
 ) -> None:
     keys = ["energy_mech_j", "energy_elec_j", "energy_overhead_j", "energy_total_j", "energy_per_step_j"]
     sampling = energy_rate
@@ -623,7 +662,9 @@ def _score_energy(
         if not len(t):
             return _null(row, keys, f"no {m.ENERGY_INTEGRALS.name} records (a bag of another tool or an older one)")
         problem = metrics.check_uniform(t / 1e9, CONTROL_DT_S) if len(t) >= 2 else None
-        problem = problem or _coverage(t, t0_ns, t1_ns, CONTROL_DT_S, CONTROL_DT_S, m.ENERGY_INTEGRALS.name)
+        problem = problem or _coverage(
+            t, t0_ns, t1_ns, CONTROL_DT_S, CONTROL_DT_S, m.ENERGY_INTEGRALS.name, to_end=outcome
+        )
         if problem is not None:
             warnings.append(f"{name or 'bag'}: {problem}")
             return _null(row, keys, f"energy integrals incomplete: {problem}")
@@ -648,7 +689,7 @@ def _score_energy(
         gap = metrics.check_uniform(t / 1e9, dt, _UNIFORM_TOL[sampling]) if len(t) >= 2 else None
         if gap is not None:
             return _null(row, keys, f"joint state series rejected: {gap}")
-        span = _coverage(t, t0_ns, t1_ns, dt, dt, topic)
+        span = _coverage(t, t0_ns, t1_ns, dt, dt, topic, to_end=outcome)
         if span is not None:
             warnings.append(f"{name or 'bag'}: {span}")
             return _null(row, keys, f"joint state series incomplete: {span}")

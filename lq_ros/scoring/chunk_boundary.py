@@ -48,6 +48,26 @@ The plan is reconstructed by replaying the recorded chunks through the run's mer
 (lq_ros/core/merge.py, the executor's own code); the replayed commands must equal the recorded ones (to
 1e-9), otherwise the metrics are null with the first tick that differs.
 
+**Real time** (``clock: realtime``, the sim on the wall clock or a robot). Nothing waits, so two things
+differ from lockstep, and the replay follows what was recorded instead of the nominal schedule:
+
+- *A late chunk* (not there 25 ms into its due tick: lq_ros/transport/ros/wall_clock.py) takes effect at the first later tick after it arrived; until then the executor runs on its buffer or
+  holds. Its stale rows are the ticks that really passed since its observation. The bag does not say at
+  which tick a chunk took effect, but its commands do: it is the first tick at or after the due tick whose
+  command names that request (async: its row must be the ticks passed since the observation). A chunk
+  with no fresh row left (every row stale) names no tick: it empties the buffer, so it took effect at the
+  first hold recorded while the replayed buffer still held actions (or at once when the buffer is empty,
+  where the tick makes no difference). A chunk still waiting when the next request was made is a mismatch
+  (one inference in flight).
+- *A late command* (the real-time sim did not have tick t's command when it stepped t) is a stop hold:
+  the sim stepped zero arm delta and the last gripper command, and counts the tick as a missed command
+  (the bag's metadata lists the ticks). The executor's replay is unchanged (it sent that command), but the
+  executed series that every metric above reads is what the sim applied: a missed tick is a hold there. A
+  switch whose first command was missed is the next tick that executed the new chunk; its old plan is the
+  one for that tick. A robot applies every command when it arrives: no tick is missed.
+
+In lockstep every chunk takes effect at its due tick and nothing is missed; the replay checks both.
+
 **Jerk near switches** (``chunk_switch_jerk_ratio``): the jerk sample j_k = (p_k - 3p_{k-1} + 3p_{k-2} -
 p_{k-3}) / dt³ of the 20 Hz EE positions (p_k after k ticks) is centred at (k - 1.5) dt; the command of
 switch tick t acts over [t, t + 1] dt, centred at (t + 0.5) dt. The samples within ±2 ticks of a switch
@@ -62,12 +82,13 @@ reason.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from lq_ros.core.executor_protocol import Source
+from lq_ros.core.executor_protocol import Source, stop_hold
 from lq_ros.core.merge import ENSEMBLE_COEFF, Merge, apply_chunk
+from lq_ros.core.suite_constants import DUMMY_ACTION
 from lq_ros.scoring import metrics
 
 #: Arm dimensions of the 7-D action (OSC position and rotation deltas); the gripper is the last.
@@ -94,6 +115,9 @@ KEYS = (
     "chunk_switch_jerk_mean",
     "chunk_switch_jerk_ratio",
 )
+#: The fields that follow from the executor's plan alone (the recorded chunks and commands), not from what the
+#: robot executed: known even when a real-time bag does not say which commands the sim missed.
+PLAN_KEYS = ("chunks_overlapping", "chunk_disagreement_mean")
 #: The fields that need at least one switch (null with "no chunk switch" otherwise).
 PER_SWITCH_KEYS = (
     "switch_executed_step_mean",
@@ -151,13 +175,29 @@ class Boundaries:
     executed_steps: np.ndarray
     #: ‖a_t - o_t‖ (arm), new chunk row against the old plan, one per arriving chunk and overlapped tick reached.
     disagreements: np.ndarray
+    #: First tick that executed a chunk command (None: none did).
+    first_chunk_tick: int | None = None
+    #: Request id -> tick at which its chunk took effect (real time: may be after its due tick).
+    applied_ticks: dict[int, int] = field(default_factory=dict)
 
 
 def analyse(
-    mode: str, merge: str, chunks: list[Chunk], cmds: Commands, ensemble_coeff: float = ENSEMBLE_COEFF
+    mode: str,
+    merge: str,
+    chunks: list[Chunk],
+    cmds: Commands,
+    ensemble_coeff: float = ENSEMBLE_COEFF,
+    *,
+    realtime: bool = False,
+    missed_ticks: tuple[int, ...] | list[int] = (),
 ) -> Boundaries:
     """The chunk boundaries of an episode (switches, overlap ends, executed steps, disagreement, jumps against
-    the old plan) by replaying its chunks through the run's merge strategy; raises ReplayMismatch."""
+    the old plan) by replaying its chunks through the run's merge strategy; raises ReplayMismatch.
+
+    ``realtime``: chunks may take effect after their due tick (found from the commands, see the module
+    docstring); otherwise each takes effect exactly at its due tick. ``missed_ticks``: ticks the real-time sim
+    stepped with the stop hold because their command came too late (the executed series holds there).
+    """
     order = np.argsort(cmds.tick, kind="stable")
     ticks, actions = cmds.tick[order], cmds.action[order]
     sources, rids, idxs = cmds.source[order], cmds.request_id[order], cmds.chunk_index[order]
@@ -168,9 +208,17 @@ def analyse(
     due: dict[int, list[Chunk]] = {}
     for c in sorted(valid.values(), key=lambda c: c.request_id):
         due.setdefault(c.due_tick, []).append(c)
+    # Real time: the observation tick of the request after each one (one inference in flight: a chunk has
+    # taken effect by then).
+    requested = sorted((c.request_id, c.observation_tick) for c in chunks)
+    next_request_tick = {rid: nxt for (rid, _), (_, nxt) in zip(requested, requested[1:], strict=False)}
+    waiting: list[Chunk] = []  # real time: due but not yet taken by the executor
+    applied_ticks: dict[int, int] = {}
     buffer: list = []
     sync_chunk: Chunk | None = None
-    old_plan_at: dict[int, np.ndarray | None] = {}  # tick -> the old plan's action for it (None: exhausted)
+    # request id -> the old plan it met: async, the buffered actions for its applied tick on; sync, the old
+    # chunk's next unexecuted row (None: nothing left).
+    old_plans: dict[int, list[np.ndarray] | np.ndarray | None] = {}
     overlapping = 0
     disagreements: list[float] = []
     votes = [1] * len(ticks)  # chunks merged into each tick's executed command (1: one chunk, or a hold)
@@ -192,25 +240,45 @@ def analyse(
             )
         return ReplayMismatch(reason)
 
+    def takes_effect(c: Chunk, t: int) -> bool:
+        """Real time: whether the waiting chunk ``c`` took effect at tick ``t`` (the module docstring's rule)."""
+        if source_list[t] == Source.CHUNK and rid_list[t] == c.request_id:
+            return True
+        stale = mode != "sync" and len(c.actions) <= t - c.observation_tick
+        return stale and (source_list[t] != Source.CHUNK or not buffer)
+
     for t in range(len(ticks)):
-        for c in due.get(t, []):
+        arriving = due.get(t, [])
+        if realtime:
+            waiting.extend(arriving)
+            arriving = [c for c in waiting if takes_effect(c, t)]
+            waiting = [c for c in waiting if c not in arriving]
+            late = [c for c in waiting if next_request_tick.get(c.request_id, len(ticks)) <= t]
+            if late:
+                raise mismatch(
+                    f"tick {t}: a request was made while the chunk of request {late[0].request_id} had not taken "
+                    "effect (one inference in flight)"
+                )
+        for c in arriving:
+            applied_ticks[c.request_id] = t
+            n = t - c.observation_tick  # the ticks that passed (lockstep: the chunk's latency ticks)
             if mode == "sync":
                 nxt = None
                 if sync_chunk is not None and last_row is not None and last_row[0] == sync_chunk.request_id:
                     row = last_row[1] + 1
                     nxt = sync_chunk.actions[row] if row < len(sync_chunk.actions) else None
-                old_plan_at[t] = nxt
+                old_plans[c.request_id] = nxt
                 sync_chunk = c
             else:
-                old_plan_at[t] = buffer[0].action if buffer else None
+                old_plans[c.request_id] = [step.action for step in buffer]
                 overlapping += bool(buffer)
-                fresh = np.asarray(c.actions, dtype=np.float64)[min(c.latency_ticks, len(c.actions)) :]
+                fresh = np.asarray(c.actions, dtype=np.float64)[min(n, len(c.actions)) :]
                 # Old plan row k and fresh row k are for tick t + k; only ticks the episode reached count.
                 reached = min(len(buffer), len(fresh), len(ticks) - t)
                 disagreements.extend(
                     float(np.linalg.norm(fresh[k][ARM_DIMS] - buffer[k].action[ARM_DIMS])) for k in range(reached)
                 )
-                buffer, _ = apply_chunk(strategy, buffer, c.actions, c.request_id, c.latency_ticks, ensemble_coeff)
+                buffer, _ = apply_chunk(strategy, buffer, c.actions, c.request_id, n, ensemble_coeff)
         if source_list[t] != Source.CHUNK:
             if mode != "sync" and buffer:
                 raise mismatch(f"tick {t}: a hold was recorded while the replayed buffer held actions")
@@ -229,28 +297,47 @@ def analyse(
             replayed.append((t, step.action, step.request_id, step.chunk_index))
     if _first_mismatch(replayed, actions, rids, idxs) is not None:
         raise mismatch("")
+
+    # What the robot executed: the recorded commands, with the stop hold at every tick the sim missed.
+    executed, exec_sources, exec_rids = actions, source_list, rid_list
+    missed = sorted({int(t) for t in missed_ticks if 0 <= t < len(ticks)})
+    if missed:
+        executed, exec_sources, exec_rids = actions.copy(), list(source_list), list(rid_list)
+        for t in missed:
+            executed[t] = stop_hold(executed[t - 1] if t else np.asarray(DUMMY_ACTION, dtype=np.float64))
+            exec_sources[t], exec_rids[t] = int(Source.HOLD_INFERENCE), 0
+
+    def old_plan_for(rid: int, t: int) -> np.ndarray | None:
+        """The old plan's action for tick ``t`` when the chunk of ``rid`` took effect (None: none left)."""
+        plan = old_plans.get(rid)
+        if plan is None or not isinstance(plan, list):
+            return plan
+        k = t - applied_ticks[rid]  # > 0 only when the sim missed the new chunk's first commands
+        return plan[k] if k < len(plan) else None
+
     switch_ticks, jumps, overlap_ends = [], [], []
     last_rid, last_action = None, None
     for t in range(len(ticks)):
-        if source_list[t] != Source.CHUNK:
+        if exec_sources[t] != Source.CHUNK:
             continue
-        if last_rid is not None and rid_list[t] != last_rid:
-            planned = old_plan_at.get(t)
+        if last_rid is not None and exec_rids[t] != last_rid:
+            planned = old_plan_for(exec_rids[t], t)
             planned = last_action if planned is None else planned
             switch_ticks.append(t)
-            jumps.append(float(np.linalg.norm(actions[t][ARM_DIMS] - planned[ARM_DIMS])))
+            jumps.append(float(np.linalg.norm(executed[t][ARM_DIMS] - planned[ARM_DIMS])))
         elif (
             t > 0
-            and source_list[t - 1] == Source.CHUNK
-            and rid_list[t - 1] == rid_list[t]
+            and exec_sources[t - 1] == Source.CHUNK
+            and exec_rids[t - 1] == exec_rids[t]
             and votes[t] == 1
             and votes[t - 1] > 1
         ):
             overlap_ends.append(t)
-        last_rid, last_action = rid_list[t], actions[t]
+        last_rid, last_action = exec_rids[t], executed[t]
     handovers = np.array(sorted({*switch_ticks, *overlap_ends}), dtype=np.int64)
-    arm = actions[:, ARM_DIMS]
+    arm = executed[:, ARM_DIMS]
     steps = np.linalg.norm(arm[handovers] - arm[handovers - 1], axis=1) if len(handovers) else np.zeros(0)
+    first = next((t for t, src in enumerate(exec_sources) if src == Source.CHUNK), None)
     return Boundaries(
         switch_ticks=np.array(switch_ticks, dtype=np.int64),
         jumps=np.array(jumps),
@@ -259,6 +346,8 @@ def analyse(
         handover_ticks=handovers,
         executed_steps=steps,
         disagreements=np.array(disagreements),
+        first_chunk_tick=first,
+        applied_ticks=applied_ticks,
     )
 
 
