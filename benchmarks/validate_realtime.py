@@ -156,11 +156,12 @@ def paired_agreement(episodes: pd.DataFrame) -> str:
     index = ["L_s", "mode", "init"]
     real = episodes[episodes.clock == "realtime"].set_index(index)
     lines = []
-    for arm in sorted(set(episodes.clock) - {"realtime"}):
-        other = episodes[episodes.clock == arm].set_index(index)
+    arms = episodes.loc[episodes.clock != "realtime", ["L_s", "mode", "clock"]].drop_duplicates()
+    for lat, mode, arm in sorted(arms.itertuples(index=False, name=None)):
+        other = episodes[(episodes.clock == arm) & (episodes.L_s == lat) & (episodes["mode"] == mode)].set_index(index)
         both = real.join(other, how="inner", rsuffix="_arm")
         energy_close = (both.energy_total_j - both.energy_total_j_arm).abs() <= 1e-6 * both.energy_total_j.abs()
-        lines.append({"arm vs realtime": arm, "pairs": len(both),
+        lines.append({"L s": lat, "mode": mode, "arm vs realtime": arm, "pairs": len(both),
                       "same outcome": int((both.status == both.status_arm).sum()),
                       "same completion tick": int((both.completion_steps == both.completion_steps_arm).sum()),
                       "energy within 1e-6 rel.": int(energy_close.sum())})  # fmt: skip
