@@ -582,11 +582,21 @@ def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> 
     row["chunk_switch_jump_mean"] = float(jumps.mean())
     row["chunk_switch_jump_p90"] = float(np.percentile(jumps, 90))
     row["chunk_switch_jump_max"] = float(jumps.max())
-    t_ee, pos = data.ee.arrays(t0_ns, t1_ns)  # the 20 Hz pose: one sample per tick
+    t_ee, pos = data.ee.arrays(t0_ns, t1_ns)  # the 20 Hz pose: one sample per tick (a robot's: its own rate)
     try:
-        if len(t_ee) < 2 or metrics.check_uniform(t_ee / 1e9, CONTROL_DT_S, _UNIFORM_TOL["control"]) is not None:
+        if len(t_ee) >= 2 and metrics.check_uniform(t_ee / 1e9, CONTROL_DT_S, _UNIFORM_TOL["control"]) is None:
+            mean, ratio, why = boundary.jerk_near_switches(pos, ticks, CONTROL_DT_S, found.first_chunk_tick)
+        elif (  # a robot's pose at its own rate: the windows in time
+            realtime
+            and t0_ns is not None
+            and len(t_ee) >= 4
+            and metrics.check_uniform(t_ee / 1e9, _native_dt(t_ee), _UNIFORM_TOL["native"]) is None
+        ):
+            mean, ratio, why = boundary.jerk_near_switch_times(
+                (t_ee - t0_ns) / 1e9, pos, ticks, 0.0, CONTROL_DT_S, found.first_chunk_tick
+            )
+        else:
             raise ValueError("no uniform 20 Hz EE pose series")
-        mean, ratio, why = boundary.jerk_near_switches(pos, ticks, CONTROL_DT_S, found.first_chunk_tick)
         row["chunk_switch_jerk_mean"], row["chunk_switch_jerk_ratio"] = mean, ratio
         if why:
             _null(row, ["chunk_switch_jerk_ratio"], why)

@@ -51,14 +51,15 @@ The plan is reconstructed by replaying the recorded chunks through the run's mer
 **Real time** (``clock: realtime``, the sim on the wall clock or a robot). Nothing waits, so two things
 differ from lockstep, and the replay follows what was recorded instead of the nominal schedule:
 
-- *A late chunk* (not there 25 ms into its due tick: lq_ros/transport/ros/wall_clock.py) takes effect at the first later tick after it arrived; until then the executor runs on its buffer or
-  holds. Its stale rows are the ticks that really passed since its observation. The bag does not say at
-  which tick a chunk took effect, but its commands do: it is the first tick at or after the due tick whose
-  command names that request (async: its row must be the ticks passed since the observation). A chunk
-  with no fresh row left (every row stale) names no tick: it empties the buffer, so it took effect at the
-  first hold recorded while the replayed buffer still held actions (or at once when the buffer is empty,
-  where the tick makes no difference). A chunk still waiting when the next request was made is a mismatch
-  (one inference in flight).
+- *A late chunk* (not there 25 ms into its due tick: lq_ros/transport/ros/wall_clock.py) takes effect at
+  the first later tick after it arrived; until then the executor runs on its buffer or holds. Its stale
+  rows are the ticks that really passed since its observation. The bag does not say at which tick a chunk
+  took effect, but its commands do: it is the first tick at or after the due tick whose command names that
+  request (async: its row must be the ticks passed since the observation). A chunk with no fresh row left
+  (every row stale) names no tick: it empties the buffer, so it took effect at the first hold recorded
+  while the replayed buffer still held actions (or at once when the buffer is empty, where the tick makes
+  no difference). A chunk still waiting when the next request was made is a mismatch (one inference in
+  flight).
 - *A late command* (the real-time sim did not have tick t's command when it stepped t) is a stop hold:
   the sim stepped zero arm delta and the last gripper command, and counts the tick as a missed command
   (the bag's metadata lists the ticks). The executor's replay is unchanged (it sent that command), but the
@@ -77,7 +78,10 @@ pose the new command moves, and one before). The ratio is the mean jerk norm ove
 numerator (m/s³). 1 means the boundary is no rougher than the rest of the motion. Samples up to ±2 ticks
 after the first chunk command (the arm starts from rest) and before it are in neither population; with
 fewer than 5 samples away from every switch (a switch every 5 ticks or less) the ratio is null with the
-reason.
+reason. A robot's EE pose comes at its own rate (e.g. 100 Hz), not one sample per tick: the same windows are
+taken in time (:func:`jerk_near_switch_times`): tick t starts at t0 + t dt_c (t0: the STARTED stamp, the
+robot's sample expected at tick 0), a jerk sample is near a switch when its centre is within 2 dt_c of the
+switch command's centre, and the ratio needs 5 ticks' worth of samples away from every switch.
 """
 
 from __future__ import annotations
@@ -393,6 +397,52 @@ def jerk_near_switches(
         why = (
             f"only {int(far.sum())} jerk samples are more than ±{SWITCH_WINDOW_TICKS} ticks from a switch (a switch "
             f"every {period:.1f} ticks): nothing to compare with"
+        )
+        return near_mean, None, why
+    elsewhere = float(j[far].mean())
+    if elsewhere <= 0.0:
+        return near_mean, None, "zero jerk away from the switches"
+    return near_mean, near_mean / elsewhere, None
+
+
+def jerk_near_switch_times(
+    t_s: np.ndarray,
+    pos: np.ndarray,
+    switch_ticks: np.ndarray,
+    t0_s: float,
+    tick_s: float,
+    first_chunk_tick: int = 0,
+) -> tuple[float, float | None, str | None]:
+    """:func:`jerk_near_switches` for a pose series at its own uniform rate (a robot's), the windows in time.
+
+    ``t_s``: the samples' stamps (s), uniform; ``t0_s``: when tick 0 starts on that clock; ``tick_s``: the
+    control period. Tick t's command is centred at t0 + (t + 0.5) tick_s; a jerk sample (stencil p_k..p_{k-3})
+    at t_k - 1.5 dt. Near: within 2 ticks of a switch's centre; considered: more than 2 ticks after the first
+    chunk command's centre; the ratio needs 5 ticks' worth of samples elsewhere. On a 20 Hz series stamped on
+    the ticks this selects the same samples as :func:`jerk_near_switches`.
+    """
+    if not len(switch_ticks):
+        raise ValueError("no chunk switch")
+    t_s = np.asarray(t_s, dtype=np.float64)
+    dt = float(np.median(np.diff(t_s)))
+    j = metrics.jerk_norms(pos, dt)  # j[m] has newest pose k = m + 3
+    centre = t_s[3:] - 1.5 * dt
+    window = SWITCH_WINDOW_TICKS * tick_s * (1 + 1e-9)  # (float rounding of the stamps)
+    near = np.zeros(len(j), dtype=bool)
+    for t in switch_ticks:
+        near |= np.abs(centre - (t0_s + (t + 0.5) * tick_s)) <= window
+    considered = centre - (t0_s + (first_chunk_tick + 0.5) * tick_s) > window
+    near &= considered
+    far = considered & ~near
+    if not near.any():
+        raise ValueError("no jerk sample within ±2 ticks of a switch")
+    near_mean = float(j[near].mean())
+    needed = MIN_ELSEWHERE * tick_s / dt
+    if far.sum() < needed - 1e-9:
+        period = float(np.mean(np.diff(switch_ticks))) if len(switch_ticks) > 1 else float("nan")
+        why = (
+            f"only {int(far.sum())} jerk samples ({far.sum() * dt:.2f} s) are more than ±{SWITCH_WINDOW_TICKS} ticks "
+            f"from a switch (a switch every {period:.1f} ticks): nothing to compare with"
         )
         return near_mean, None, why
     elsewhere = float(j[far].mean())
