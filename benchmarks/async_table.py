@@ -10,8 +10,8 @@ per policy.
 One row per (latency, merge strategy) over the async episodes: success (Wilson 95% CI), and over every
 episode with an outcome (few succeed, so success-only columns would be mostly empty) the mean jerk, the
 executed command step at handovers (switches and overlap ends; per-episode mean and max), the chunks'
-disagreement where they overlap (before merging) and the jerk ratio near switches, each with its seeded
-bootstrap 95% CI (lq_ros.scoring.aggregate; definitions in lq_ros/scoring/chunk_boundary.py), plus the mean
+disagreement where they overlap (before merging) and the jerk ratio near switches, each with its Student t
+95% CI (lq_ros.scoring.intervals; definitions in lq_ros/scoring/chunk_boundary.py), plus the mean
 number of switches and overlap ends per episode and how many episodes were flagged degenerate (no chunk could
 overlap the old plan).
 """

@@ -66,20 +66,35 @@ def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
             "" if r["budget_counts"] == "all" else f", {r['budget_counts']} budget"
         )
         better = r["diff"] > 0
+        lo, hi = r["diff_ci_lo"], r["diff_ci_hi"]
+        if pd.isna(lo) or pd.isna(hi):
+            scope = f"(too few tasks for a task-clustered interval: shown on these {int(r['n_tasks'])} tasks only)"
+        elif lo > 0 or hi < 0:
+            scope = f"[{100 * lo:+.0f}, {100 * hi:+.0f}] (task-clustered)"
+        else:  # McNemar treats pairs as independent; resampling tasks says the gap may not hold for other tasks
+            scope = (f"[{100 * lo:+.0f}, {100 * hi:+.0f}] (task-clustered: includes 0, so shown on these tasks, not "
+                     "for tasks of this kind)")  # fmt: skip
         lines.append(
             f"**{r['arm_a']} · {r['mode_a']}** succeeds {'more' if better else 'less'} often than **{r['arm_b']} · "
             f"{r['mode_b']}** ({where}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
             f"{int(r['n_pairs'])} shared episodes of {int(r['n_tasks'])} tasks; {int(r['a_only'])} succeed only with "
-            f"A and {int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points "
-            f"[{100 * r['diff_ci_lo']:+.0f}, {100 * r['diff_ci_hi']:+.0f}] (task-clustered), "
+            f"A and {int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points {scope}, "
             f"McNemar p = {r['mcnemar_p']:.2g}, Holm-adjusted p = {r['p_adjusted']:.2g}."
         )
-    rest = len(comparisons) - len(called)
-    if rest:
+    all_ = pd.Series(True, index=comparisons.index)  # a table from before the Holm family was restricted
+    testable = comparisons["testable"].astype(bool) if "testable" in comparisons else all_
+    tested_rest, untestable = int(testable.sum()) - len(called), int((~testable).sum())
+    if tested_rest:
         lines.append(
-            f"The other {rest} of {len(comparisons)} paired comparisons show no difference at a family-wise 5% level "
+            f"{tested_rest} of the {len(comparisons)} paired comparisons show{'s' if tested_rest == 1 else ''} no "
+            "difference at a family-wise 5% level "
             "(Holm-adjusted McNemar p >= 0.05): their arms are not shown to differ, which is not the same as equal "
             "(paired_policies.csv has each one's interval)."
+        )
+    if untestable:
+        lines.append(
+            f"{untestable} comparison{' has' if untestable == 1 else 's have'} fewer than 6 discordant pairs, too few "
+            "for an exact McNemar p below 0.05 whatever their direction: outside the Holm family, no difference shown."
         )
     return lines
 
@@ -88,7 +103,7 @@ INTRO = (
     "Pooled over tasks and init states per (policy, protocol, suite, applied Δt_sim = N × 0.05 s, sampling), never "
     "over suites; mean [95% CI]. "
     "Success: Wilson interval over episodes with an outcome (errors counted apart). Completion time, trajectory "
-    "quality and energy: over successful episodes (succ.), seeded bootstrap of the mean; time (KM) is the "
+    "quality and energy: over successful episodes (succ.), Student t interval of the mean; time (KM) is the "
     "Kaplan-Meier restricted mean up to the step budget over every episode with an outcome. The protocols differ in "
     "their replan horizon, not only in blocking: sync executes replan_steps actions of each chunk, async the H - N "
     "fresh ones (actions/chunk: measured). ⚠ / red rings: cells with degenerate-protocol episodes (async chunks no "
@@ -99,21 +114,27 @@ INTRO = (
 )
 #: The report's reading notes (after INTRO): how to read what the figures and tables attribute.
 NOTES = (
-    f"Intervals: success carries the Wilson interval over episodes and, for a cell of several tasks, the "
-    "task-clustered interval (whole tasks resampled; success clusters by task, so this is the one that speaks for "
-    "other tasks); the mean of a metric carries the Student t interval. Few values: a metric over fewer than "
+    f"Intervals: success carries the Wilson interval over episodes (these tasks, other init states) and, for a cell "
+    f"of at least {MIN_N_INTERVAL} tasks, the task-clustered interval (whole tasks resampled, expanded percentile; "
+    "success clusters by task, so this is the one that speaks for other tasks of this kind); the mean of a metric "
+    "carries the Student t interval. Each holds its 95% coverage at these sizes in simulation "
+    "(docs/design/scoring.md). Few values: a metric over fewer than "
     f"{MIN_N_INTERVAL} episodes (or pairs) gets no interval; tables print the mean, n and the values, "
     "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw such a mean hollow, joined to no other, with its "
     "values as dots and no band.",
     "Comparisons: two policies (one protocol) or two protocols (one policy) are compared only on the episodes both "
     "ran (same task, init state and seed): the discordant pairs, an exact McNemar test and the paired difference "
     "with a task-clustered interval. Success is the primary endpoint; its p-values are Holm-adjusted over every "
-    "comparison of the report (paired_policies.csv). The many changes against 0 s are adjusted by "
-    "Benjamini-Hochberg, and a sentence calls a change only when its adjusted p is below 0.05.",
+    "comparison of the report with at least 6 discordant pairs, the fewest that can reach p < 0.05 "
+    "(paired_policies.csv). McNemar counts pairs as independent; when the task-clustered "
+    "interval includes 0 a sentence says the difference is shown on these tasks only. The many changes against 0 s "
+    "are secondary: Benjamini-Hochberg adjusted, called (and starred in the paired table) only when the adjusted p "
+    "is below 0.05.",
     "Paired changes: success-only means of two latencies average different task mixes whenever their success "
     "differs, so the findings compare each latency > 0 cell with the zero-latency cell of the same variant and "
     "protocol over the (task, init state, seed) pairs that succeed in both: the change per pair, its mean and its "
-    "bootstrap interval over pairs.",
+    "t interval over pairs. Restricting to pairs that succeed in both selects the survivors; the restricted-mean "
+    "time to success of paired_policies.csv counts every pair (a failure at the budget).",
     "Budgets: under the paper budget (holds count) every tick, held or not, counts against the suite's step budget; "
     "under the action budget only ticks whose command came from a chunk do (hard stop at 4x the budget). Fig. 4 draws "
     "both when a sweep ran both. A cell is budget-decided (◇, hollow marker) only from its action-budget twins: the "

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import html
 import json
-import math
 import os
 import re
 from dataclasses import dataclass
@@ -115,16 +114,10 @@ def figure_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int =
         for cell in cells:
             mask = with_outcome & cell
             values = pd.to_numeric(episodes.loc[mask, name], errors="coerce").to_numpy(dtype=np.float64)
-            values = values[np.isfinite(values)]
-            if len(values):
-                lo, hi = intervals.bootstrap_ci(values, 0.95, n_boot, seed)
-                means.append(float(values.mean()))
-                lows.append(lo)
-                highs.append(hi)
-            else:
-                means.append(math.nan)
-                lows.append(math.nan)
-                highs.append(math.nan)
+            stats_ = intervals.mean_stats(values, "v")  # the t interval from MIN_N_INTERVAL values on, as every mean
+            means.append(stats_["v_mean"])
+            lows.append(stats_["v_ci_lo"])
+            highs.append(stats_["v_ci_hi"])
         pooled[f"{name}_mean"], pooled[f"{name}_ci_lo"], pooled[f"{name}_ci_hi"] = means, lows, highs
     # The series a cell belongs to whatever its budget (Fig. 4 draws both budgets of a variant in one colour).
     series = dict(zip(episodes["policy"], labels.base_labels(episodes, ("budget_counts",)), strict=True))

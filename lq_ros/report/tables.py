@@ -10,6 +10,7 @@ from lq_ros.report import episode_media as media
 from lq_ros.report.figures import FIGURE_KEYS
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.budget import budget_note
+from lq_ros.scoring.paired_tests import ALPHA
 
 #: (header, metric, decimals, scale) of the pooled summary table.
 SUMMARY_COLUMNS = (
@@ -63,13 +64,22 @@ def paired_table(paired: pd.DataFrame) -> pd.DataFrame:
                "success vs 0 s": f"{count_text(r, 'cell_n_success')}/{outcomes_text(r)} vs {zero}",
                "pairs": int(r["n_pairs"])}  # fmt: skip
         for header, metric, decimals, scale in PAIRED_COLUMNS:
-            row[header] = agg.ci_text(r, f"{metric}_diff", decimals, scale, signed=True)
+            row[header] = agg.ci_text(r, f"{metric}_diff", decimals, scale, signed=True) + _star(r, metric)
         rows.append(row)
     return pd.DataFrame(rows)
 
 
+#: Marks a paired change whose Benjamini-Hochberg adjusted p (over every change of the report) is below ALPHA.
+ADJUSTED_HIT = " *"
+
+
+def _star(r, metric: str) -> str:
+    adjusted = r.get(f"{metric}_diff_p_adjusted")
+    return ADJUSTED_HIT if adjusted is not None and not pd.isna(adjusted) and adjusted < ALPHA else ""
+
+
 def cluster_text(r) -> str:
-    """The task-clustered success interval in %, or – within one task."""
+    """The task-clustered success interval in %, or – with fewer than MIN_N_INTERVAL tasks."""
     lo, hi = r.get("success_cluster_ci_lo"), r.get("success_cluster_ci_hi")
     if lo is None or hi is None or pd.isna(lo) or pd.isna(hi):
         return "–"
@@ -77,7 +87,8 @@ def cluster_text(r) -> str:
 
 
 def comparison_table(comparisons: pd.DataFrame) -> pd.DataFrame:
-    """paired_policies.csv as a table: A against B over shared episodes, McNemar p and its Holm adjustment."""
+    """paired_policies.csv as a table: A against B over shared episodes, McNemar p and its Holm adjustment (none for a
+    comparison whose discordant pairs cannot reach p < 0.05: it is outside the Holm family)."""
     rows = []
     for _, r in comparisons.iterrows():
         latency = agg.cell_latency_label(r)
@@ -86,7 +97,8 @@ def comparison_table(comparisons: pd.DataFrame) -> pd.DataFrame:
             "B": f"{r['arm_b']} · {r['mode_b']}", "pairs": int(r["n_pairs"]), "tasks": int(r["n_tasks"]),
             "A only / B only": f"{int(r['a_only'])} / {int(r['b_only'])}",
             "success A − B (points)": _points(r["diff"], r["diff_ci_lo"], r["diff_ci_hi"]),
-            "McNemar p": f"{r['mcnemar_p']:.2g}", "Holm p": f"{r['p_adjusted']:.2g}",
+            "McNemar p": f"{r['mcnemar_p']:.2g}",
+            "Holm p": f"{r['p_adjusted']:.2g}" if not pd.isna(r["p_adjusted"]) else "– (too few discordant)",
             "time to success A − B s (RMST)": _seconds(r["rmst_diff_s"], r["rmst_ci_lo"], r["rmst_ci_hi"]),
         })  # fmt: skip
     return pd.DataFrame(rows)
@@ -96,7 +108,7 @@ def _points(diff: float, lo: float, hi: float) -> str:
     if pd.isna(diff):
         return "–"
     text = f"{100 * diff:+.0f}"
-    return text + (f" [{100 * lo:+.0f}, {100 * hi:+.0f}]" if not pd.isna(lo) else " (one task: no interval)")
+    return text + (f" [{100 * lo:+.0f}, {100 * hi:+.0f}]" if not pd.isna(lo) else " (too few tasks: no interval)")
 
 
 def _seconds(diff: float, lo: float, hi: float) -> str:

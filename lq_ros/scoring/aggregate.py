@@ -51,10 +51,11 @@ from lq_ros.scoring.budget import (
 )
 from lq_ros.scoring.intervals import (
     MIN_N_INTERVAL,
-    bootstrap_ci,
-    cluster_bootstrap_ci,
+    bootstrap_t_interval,
+    clustered_success_ci,
     design_effect,
     mean_stats,
+    t_interval,
     wilson_interval,
 )
 from lq_ros.scoring.labels import _distinct, label_variants
@@ -264,13 +265,14 @@ def aggregate(
 
 
 def task_clustered_success(outcomes: pd.DataFrame, confidence: float, n_boot: int, seed: int) -> dict:
-    """``n_tasks``, ``success_cluster_ci_lo``/``_hi`` (task-cluster bootstrap) and ``success_design_effect`` of a
-    group's episodes with an outcome (NaN within one task: one task says nothing about the others)."""
+    """``n_tasks``, ``success_cluster_ci_lo``/``_hi`` (intervals.clustered_success_ci: the task-cluster bootstrap,
+    never narrower than Wilson) and ``success_design_effect`` of a group's episodes with an outcome (no interval below
+    MIN_N_INTERVAL tasks: a handful of tasks says too little about others)."""
     if outcomes.empty or "task" not in outcomes:
         return {"n_tasks": 0, "success_cluster_ci_lo": math.nan, "success_cluster_ci_hi": math.nan,
                 "success_design_effect": math.nan}  # fmt: skip
     clusters = [(g["status"] == "success").to_numpy(float) for _, g in outcomes.groupby("task", sort=True)]
-    low, high = cluster_bootstrap_ci(clusters, n_boot=n_boot, seed=seed, confidence=confidence)
+    low, high = clustered_success_ci(clusters, n_boot=n_boot, seed=seed, confidence=confidence)
     return {"n_tasks": len(clusters), "success_cluster_ci_lo": low, "success_cluster_ci_hi": high,
             "success_design_effect": design_effect(clusters)}  # fmt: skip
 
@@ -309,7 +311,7 @@ def cell_latency_label(row: pd.Series | dict) -> str:
 
 def _add_restricted_mean(row: dict, outcomes: pd.DataFrame, confidence: float, n_boot: int, seed: int) -> None:
     """Kaplan-Meier restricted mean completion time up to the tick limit (the step budget; with budget_counts
-    action, the hard stop at 4x it, where such an episode ends at the latest), with a bootstrap CI."""
+    action, the hard stop at 4x it, where such an episode ends at the latest), with its interval."""
     keys = ("completion_time_rmst_s", "completion_time_rmst_ci_lo", "completion_time_rmst_ci_hi")
     row.update(dict.fromkeys(keys, math.nan))
     row["completion_time_rmst_n"] = len(outcomes)
@@ -324,17 +326,17 @@ def _add_restricted_mean(row: dict, outcomes: pd.DataFrame, confidence: float, n
     horizon = float(budgets[0]) * CONTROL_DT_S
     estimate = metrics.restricted_mean_time(times, events, horizon)
     if len(times) < MIN_N_INTERVAL:
-        low = high = math.nan  # too few episodes for a bootstrap interval (see MIN_N_INTERVAL)
+        low = high = math.nan  # too few episodes for an interval (see MIN_N_INTERVAL)
     elif np.all(times[~events] >= horizon - 1e-9):
-        # Every failure is censored at the budget: the estimate is the mean of min(t, horizon) exactly,
-        # so the (vectorised) bootstrap of that mean is the bootstrap of the estimate.
-        low, high = bootstrap_ci(np.minimum(times, horizon), confidence, n_boot, seed)
+        # Every failure is censored at the budget: the estimate is exactly the mean of min(t, horizon), so its
+        # interval is that mean's t interval.
+        low, high = t_interval(np.minimum(times, horizon), confidence)
     else:
+        # Failures ending before the horizon (the action budget's): the bootstrap standard error in a t interval.
         rng = np.random.default_rng(seed)
         draws = rng.integers(0, len(times), size=(n_boot, len(times)))
         boot = np.array([metrics.restricted_mean_time(times[i], events[i], horizon) for i in draws])
-        alpha = 1.0 - confidence
-        low, high = (float(q) for q in np.quantile(boot, [alpha / 2.0, 1.0 - alpha / 2.0]))
+        low, high = bootstrap_t_interval(estimate, boot, len(times), confidence)
     row.update(dict(zip(keys, (estimate, low, high), strict=True)))
 
 

@@ -15,9 +15,10 @@ S_action(L)`` (what changing the hold would change), never subtracted from the r
 
 S is the success rate over the (task, init, seed) pairs present in every compared cell; S(0) is the zero-latency
 cell under the paper's settings (at N = 0 nothing holds, so neither budget nor hold can change it). Every component
-is a mean of per-pair differences of 0/1 outcomes, and carries a 95% percentile-bootstrap interval over those pairs,
-whole tasks resampled (lq_ros/scoring/intervals.py, seeded). Async cells hold only before the first chunk and on
-underruns: their rows give ``total``, ``budget`` and ``rest`` the same way.
+is a mean of per-pair differences of 0/1 outcomes, and carries a 95% bootstrap interval over those pairs, whole
+tasks resampled (the expanded percentile interval of lq_ros/scoring/intervals.py, seeded; none below 5 tasks). Async
+cells hold only before the first chunk and on underruns: their rows give ``total``, ``budget`` and ``rest`` the same
+way.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from lq_ros.scoring.intervals import cluster_bootstrap_ci, wilson_interval
+from lq_ros.scoring.intervals import paired_success_ci, wilson_interval
 
 #: (setting name, budget_counts, hold): the cells each decomposition compares.
 SETTINGS = (("paper", "all", "stop"), ("action", "action", "stop"), ("action_repeat", "action", "repeat"))
@@ -43,14 +44,11 @@ def _key(value: object) -> object:
     return repr(value) if isinstance(value, dict | list) else value
 
 
-def _paired_interval(diffs: np.ndarray, tasks: list, n_boot: int, seed: int) -> tuple[float, float]:
-    """95% bootstrap interval of the mean of per-pair differences, whole tasks resampled (a task's (init, seed)
-    pairs are not independent draws; with one init per task this is the bootstrap over pairs). NaN below two
-    tasks."""
-    by_task: dict = {}
-    for task, diff in zip(tasks, diffs, strict=True):
-        by_task.setdefault(task, []).append(diff)
-    return cluster_bootstrap_ci(list(by_task.values()), n_boot=n_boot, seed=seed)
+def _paired_interval(gain: np.ndarray, base: np.ndarray, tasks: list, n_boot: int, seed: int) -> tuple[float, float]:
+    """95% interval of S(gain) - S(base) over the pairs: whole tasks resampled (a task's (init, seed) pairs are not
+    independent draws), never narrower than Newcombe's paired score interval (intervals.paired_success_ci). NaN below
+    MIN_N_INTERVAL tasks."""
+    return paired_success_ci(gain.astype(bool), base.astype(bool), tasks, n_boot=n_boot, seed=seed)
 
 
 #: component -> (the cell it gains, the cell it is measured from): component = S(first) - S(second) per pair.
@@ -111,7 +109,8 @@ def decompose(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> p
                 if gain in outcome and base in outcome:
                     diffs = outcome[gain] - outcome[base]
                     row[f"drop_{component}"] = float(diffs.mean())
-                    row[f"drop_{component}_ci"] = _paired_interval(diffs, [k[0] for k in order], n_boot, seed)
+                    tasks = [k[0] for k in order]
+                    row[f"drop_{component}_ci"] = _paired_interval(outcome[gain], outcome[base], tasks, n_boot, seed)
             out.append(row)
     return pd.DataFrame(out)
 

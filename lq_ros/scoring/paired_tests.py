@@ -7,13 +7,17 @@ intervals. For success (the primary endpoint):
 
 - the discordant pairs (A succeeded where B failed, and the reverse) and the **exact McNemar test** (a two-sided
   binomial test of the discordant pairs at 1/2);
-- the **paired difference** of success rates with a 95% task-cluster bootstrap interval (pairs of one task
-  resampled together: intervals.cluster_bootstrap_ci);
+- the **paired difference** of success rates with a 95% task-clustered interval (pairs of one task resampled
+  together, never narrower than Newcombe's paired score interval: intervals.paired_success_ci);
 - the **paired restricted-mean time to success** difference over all pairs (a failure counts as the horizon, the
-  episode's tick limit: every episode counts, not only those that succeed in both arms), with the same interval.
+  episode's tick limit: every episode counts, not only those that succeed in both arms), with a task-cluster
+  bootstrap interval (none when every pair differs by the same amount: no spread to resample).
 
-``p_adjusted`` is Holm's step-down adjustment over every comparison of the table (family-wise error 5%); a
-difference is called only when its adjusted p is below 0.05. Secondary tables (many metrics against 0 s latency)
+``p_adjusted`` is Holm's step-down adjustment (family-wise error 5%) over the comparisons of the table that can
+reach p < 0.05 at all: the exact McNemar p of d discordant pairs is at least 2 / 2^d, so fewer than 6 discordant
+pairs can never be called, and counting them would only weaken the others (Tarone 1990; Holm over the testable
+ones keeps the family-wise error). Those get ``testable`` False and no adjusted p. A difference is called only
+when its adjusted p is below 0.05. Secondary tables (many metrics against 0 s latency)
 use Benjamini-Hochberg (false discovery rate 5%).
 
 Secondary: :func:`paired_differences`, each latency > 0 cell against the zero-latency cell of the same variant and
@@ -35,7 +39,7 @@ from scipy import stats
 
 from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
-from lq_ros.scoring.intervals import cluster_bootstrap_ci, mean_stats
+from lq_ros.scoring.intervals import cluster_bootstrap_ci, mean_stats, paired_success_ci
 from lq_ros.scoring.labels import _pair_keys, _text, base_labels
 
 #: The episodes two arms share: a pair is one (task, init state, seed); the cluster is the task.
@@ -141,7 +145,7 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
     if not len(both):
         return out
     diff = sa.astype(float) - sb.astype(float)
-    lo, hi = cluster_bootstrap_ci(_clusters(diff, tasks), n_boot=n_boot, seed=seed)
+    lo, hi = paired_success_ci(sa, sb, tasks, n_boot=n_boot, seed=seed)
     out.update(success_a=float(sa.mean()), success_b=float(sb.mean()), diff=float(diff.mean()), diff_ci_lo=lo,
                diff_ci_hi=hi)  # fmt: skip
     horizon = np.fmin(both["horizon_s_a"].to_numpy(), both["horizon_s_b"].to_numpy())
@@ -151,7 +155,10 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
         tb = np.where(sb, np.fmin(both["completion_time_s_b"].to_numpy(), horizon), horizon)
         if np.all(np.isfinite(ta)) and np.all(np.isfinite(tb)):
             d = ta - tb
-            lo, hi = cluster_bootstrap_ci(_clusters(d, tasks), n_boot=n_boot, seed=seed)
+            # Every pair the same difference (both arms fail everywhere, say): the sample has no spread to give an
+            # interval from, and a zero-width one would claim certainty.
+            spread = np.ptp(d) > 0
+            lo, hi = cluster_bootstrap_ci(_clusters(d, tasks), n_boot=n_boot, seed=seed) if spread else (math.nan,) * 2
             out.update(rmst_a_s=float(ta.mean()), rmst_b_s=float(tb.mean()), rmst_diff_s=float(d.mean()),
                        rmst_ci_lo=lo, rmst_ci_hi=hi)  # fmt: skip
     return out
@@ -162,8 +169,9 @@ def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int 
 
     ``arm``: the column naming a policy variant (the report's label, without budget and protocol). One row per
     comparison with ``comparison`` ("policy" or "protocol"), ``arm_a``/``arm_b`` and ``mode_a``/``mode_b``, the
-    columns of :func:`compare_pairs`, ``p_adjusted`` (Holm over the whole table) and ``called`` (adjusted p
-    below 0.05). Comparisons without a shared pair are left out.
+    columns of :func:`compare_pairs`, ``testable`` (enough discordant pairs to reach p < 0.05), ``p_adjusted``
+    (Holm over the testable comparisons of the whole table; NaN for the others) and ``called`` (adjusted p below
+    0.05). Comparisons without a shared pair are left out.
     """
     if episodes.empty:
         return pd.DataFrame()
@@ -194,9 +202,18 @@ def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int 
     table = pd.DataFrame(rows)
     if table.empty:
         return table
-    table["p_adjusted"] = holm(table["mcnemar_p"].to_numpy())
-    table["called"] = table["p_adjusted"] < ALPHA
+    table["testable"] = [can_reach(a + b) for a, b in zip(table["a_only"], table["b_only"], strict=True)]
+    testable = table["testable"].to_numpy(dtype=bool)
+    adjusted = np.full(len(table), math.nan)
+    adjusted[testable] = holm(table["mcnemar_p"].to_numpy(dtype=np.float64)[testable])
+    table["p_adjusted"] = adjusted
+    table["called"] = table["p_adjusted"] < ALPHA  # NaN (untestable) is never called
     return table
+
+
+def can_reach(discordant: int, alpha: float = ALPHA) -> bool:
+    """Whether an exact McNemar test of ``discordant`` discordant pairs can give p < ``alpha`` (all on one side)."""
+    return int(discordant) > 0 and mcnemar_exact_p(int(discordant), 0) < alpha
 
 
 # -- changes against zero latency (secondary) ---------------------------------------------------------

@@ -113,12 +113,15 @@ def test_mean_interval_is_the_t_interval_whatever_the_seed():
 
 
 def test_success_gets_a_task_clustered_interval():
-    # Task 0 succeeds 5/5, task 1 0/5, task 2 5/5, task 3 0/5: the clustering widens the interval.
-    rows = [_episode("success" if t % 2 == 0 else "failure", task=t, init=i) for t in range(4) for i in range(5)]
+    # Tasks 0, 2, 4 succeed 5/5, tasks 1, 3, 5 0/5: the clustering widens the interval.
+    rows = [_episode("success" if t % 2 == 0 else "failure", task=t, init=i) for t in range(6) for i in range(5)]
     row = aggregate(episodes_frame(rows), by=("policy", "mode", "latency_s", "suite")).iloc[0]
-    assert row["n_tasks"] == 4 and row["success_rate"] == 0.5
+    assert row["n_tasks"] == 6 and row["success_rate"] == 0.5
     assert row["success_cluster_ci_lo"] < row["success_ci_lo"] and row["success_cluster_ci_hi"] > row["success_ci_hi"]
     assert row["success_design_effect"] > 2
+    # Four tasks: no task-cluster interval (intervals.MIN_N_INTERVAL), the Wilson interval stays.
+    four = aggregate(episodes_frame(rows[:20]), by=("policy", "mode", "latency_s", "suite")).iloc[0]
+    assert four["n_tasks"] == 4 and math.isnan(four["success_cluster_ci_lo"]) and four["success_ci_lo"] > 0
 
 
 def test_relative_efficiency_within_task_and_init_among_successes():
@@ -359,3 +362,14 @@ def test_a_distribution_cell_is_labelled_by_its_realised_mean_over_chunks():
     assert cell_latency_label(uniform) == "uniform:0.1:0.3 (realised mean 0.275 s)"
     assert cell_latency_label(constant) == "0.2 s (N=4)"
     assert "uniform:0.1:0.3 (realised mean 0.275 s)" in markdown_table(aggregate(episodes_frame(rows)))
+
+
+def test_seeds_are_replications_of_one_cell():
+    """A sweep with seeds [7, 8]: the seed is no group key, so both seeds of a (task, init) pool into one cell, and the
+    cell says which seeds it holds."""
+    rows = [_episode("success", init=i, seed=s) for i in range(3) for s in (7, 8)]
+    rows[-1] = _episode("failure", init=2, seed=8)
+    out = aggregate(episodes_frame(rows))
+    assert len(out) == 1
+    row = out.iloc[0]
+    assert (row["n"], row["n_success"], row["seeds"]) == (6, 5, "7,8")

@@ -6,6 +6,7 @@ import pandas as pd
 import pytest
 
 from lq_ros.scoring.attribution import decompose
+from lq_ros.scoring.intervals import newcombe_paired_ci
 
 
 def rows(policy: str, mode: str, latency: float, budget_counts: str, hold: str, successes: list[bool]) -> list[dict]:
@@ -77,9 +78,9 @@ def test_rows_labelled_by_variant_are_decomposed_by_their_bare_policy():
 
 
 def test_component_intervals_resample_whole_tasks():
-    """Two tasks of five inits: at 0.2 s the action budget rescues every episode of task 0 and none of task 1. The
-    pairs of a task are not independent draws: resampling tasks gives a budget share anywhere in [0, 1], where
-    resampling the ten pairs alone would give about [0.2, 0.8]."""
+    """Six tasks of five inits: at 0.2 s the action budget rescues every episode of tasks 0-2 and none of tasks 3-5.
+    The pairs of a task are not independent draws: resampling tasks gives a budget share anywhere in [0, 1], where
+    resampling the 30 pairs alone would give about [0.3, 0.7]."""
 
     def by_task(latency: float, budget_counts: str, successes: list[bool]) -> list[dict]:
         out = rows("oft", "sync", latency, budget_counts, "stop", successes)
@@ -87,15 +88,16 @@ def test_component_intervals_resample_whole_tasks():
             row["task"], row["init"] = i // 5, i % 5
         return out
 
-    data = by_task(0.0, "all", [True] * 10) + by_task(0.2, "all", [False] * 10)
-    data += by_task(0.2, "action", [True] * 5 + [False] * 5)
+    data = by_task(0.0, "all", [True] * 30) + by_task(0.2, "all", [False] * 30)
+    data += by_task(0.2, "action", [True] * 15 + [False] * 15)
     row = decompose(pd.DataFrame(data), n_boot=400).iloc[0]
-    assert row["n_pairs"] == 10 and row["drop_budget"] == 0.5 and row["drop_rest"] == 0.5
+    assert row["n_pairs"] == 30 and row["drop_budget"] == 0.5 and row["drop_rest"] == 0.5
     assert row["drop_budget_ci"] == (0.0, 1.0) and row["drop_rest_ci"] == (0.0, 1.0)
-    assert row["drop_total_ci"] == (1.0, 1.0)  # every pair dropped: no spread to resample
+    # Every pair dropped: resampling has no spread, so the interval is Newcombe's paired one (30 of 30), not [1, 1].
+    assert row["drop_total_ci"] == pytest.approx(newcombe_paired_ci(0, 30, 0, 0)) and row["drop_total_ci"][0] < 0.9
 
 
-def test_one_task_gives_no_interval():
-    data = rows("oft", "sync", 0.0, "all", "stop", [True]) + rows("oft", "sync", 0.2, "all", "stop", [False])
+def test_fewer_than_five_tasks_give_no_interval():
+    data = rows("oft", "sync", 0.0, "all", "stop", [True] * 4) + rows("oft", "sync", 0.2, "all", "stop", [False] * 4)
     low, high = decompose(pd.DataFrame(data)).iloc[0]["drop_total_ci"]
-    assert low != low and high != high  # NaN: one task says nothing about other tasks
+    assert low != low and high != high  # NaN: four tasks say too little about other tasks for a 95% claim

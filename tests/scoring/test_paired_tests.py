@@ -11,6 +11,7 @@ import pytest
 from lq_ros.scoring.aggregate import aggregate, ci_text, episodes_frame
 from lq_ros.scoring.paired_tests import (
     benjamini_hochberg,
+    can_reach,
     compare_pairs,
     holm,
     mcnemar_exact_p,
@@ -40,7 +41,7 @@ def test_holm_and_benjamini_hochberg():
 def arm(statuses: list[str], times: list[float] | None = None, tasks: list[int] | None = None) -> pd.DataFrame:
     n = len(statuses)
     return pd.DataFrame({
-        "task": tasks or [i // 5 for i in range(n)], "init": [i % 5 for i in range(n)], "seed": 7,
+        "task": tasks or [i // 2 for i in range(n)], "init": [i % 2 for i in range(n)], "seed": 7,
         "status": statuses, "completion_time_s": times or [5.0 if s == "success" else 11.0 for s in statuses],
         "tick_limit": 220, "step_budget": 220,
     })  # fmt: skip
@@ -58,6 +59,12 @@ def test_compare_pairs_counts_discordant_pairs_and_leaves_errors_out():
     # Time to success over every pair, failures at the horizon (220 ticks = 11 s): A 8 x 5 s + 1 x 11 s.
     assert out["rmst_a_s"] == pytest.approx((8 * 5 + 11) / 9)
     assert out["rmst_b_s"] == pytest.approx((4 * 11 + 5 * 5) / 9)
+    assert out["rmst_diff_s"] == pytest.approx(out["rmst_a_s"] - out["rmst_b_s"])
+    assert out["rmst_ci_lo"] <= out["rmst_diff_s"] <= out["rmst_ci_hi"] and out["rmst_ci_lo"] < out["rmst_ci_hi"]
+    # Five tasks of two pairs here; four tasks are too few for a task-cluster interval, the counts and p remain.
+    few = compare_pairs(arm(["success"] * 8), arm(["failure"] * 8), n_boot=200)
+    assert few["n_tasks"] == 4 and few["a_only"] == 8 and few["mcnemar_p"] == pytest.approx(2 * 0.5**8)
+    assert math.isnan(few["diff_ci_lo"]) and math.isnan(few["rmst_ci_hi"])
 
 
 def test_paired_policies_compares_policies_within_a_protocol_and_protocols_within_a_policy():
@@ -72,10 +79,25 @@ def test_paired_policies_compares_policies_within_a_protocol_and_protocols_withi
     assert kinds == [("policy", "p", "sync", "q", "sync"), ("protocol", "p", "sync", "p", "async")]
     protocol = table[table.comparison == "protocol"].iloc[0]
     assert (protocol.a_only, protocol.b_only, protocol["diff"]) == (10, 0, 1.0)
-    assert protocol.p_adjusted == pytest.approx(min(1.0, 2 * mcnemar_exact_p(10, 0)))
-    assert bool(protocol.called)
+    # Five discordant pairs cannot reach p < 0.05 (2 / 2^5 = 0.0625): that comparison is left out of the Holm family,
+    # which then holds the protocol comparison alone.
     policy = table[table.comparison == "policy"].iloc[0]
-    assert policy.a_only == 5 and not policy.called
+    assert policy.a_only == 5 and not policy.testable and math.isnan(policy.p_adjusted) and not policy.called
+    assert protocol.testable and protocol.p_adjusted == pytest.approx(mcnemar_exact_p(10, 0))
+    assert bool(protocol.called)
+
+
+def test_holm_family_is_the_comparisons_that_can_reach_significance():
+    assert [can_reach(d) for d in (0, 1, 5, 6, 20)] == [False, False, False, True, True]
+    rows = []
+    for policy, statuses in (("p", ["success"] * 10), ("q", ["failure"] * 10), ("r", ["failure"] * 10)):
+        frame = arm(statuses)
+        frame["policy"], frame["mode"], frame["suite"], frame["latency_s"] = policy, "sync", "libero_spatial", 0.2
+        rows.append(frame)
+    table = paired_policies(pd.concat(rows, ignore_index=True), n_boot=200).set_index(["arm_a", "arm_b"])
+    # p-q and p-r: 10 discordant pairs each, testable; q-r: none, so Holm's family is two, not three.
+    assert not table.loc[("q", "r"), "testable"]
+    assert table.loc[("p", "q"), "p_adjusted"] == pytest.approx(2 * mcnemar_exact_p(10, 0))
 
 
 def _episode(status: str, *, latency: float = 0.0, steps: int = 100, jerk: float = 10.0, **kw) -> dict:
@@ -134,3 +156,12 @@ def test_a_budget_without_its_own_zero_latency_cell_pairs_with_the_other_budgets
     row = paired_differences(episodes_frame(rows), n_boot=100).iloc[0]
     assert row["policy"] == "p [budget_counts=action]" and row["zero_budget_counts"] == "all"
     assert row["n_pairs"] == 2 and row["completion_time_s_diff_mean"] == pytest.approx(2.5)
+
+
+def test_two_seeds_of_one_episode_are_two_pairs():
+    """Seeds are replications: (task, init) run under seeds 7 and 8 gives two pairs, each matched on its own seed."""
+    a, b = arm(["success"] * 10), arm(["failure"] * 5 + ["success"] * 5)
+    a8, b8 = a.assign(seed=8), b.assign(seed=8)
+    b8["status"] = ["success"] * 5 + ["failure"] * 5  # seed 8: the other half fails
+    out = compare_pairs(pd.concat([a, a8]), pd.concat([b, b8]), n_boot=200)
+    assert out["n_pairs"] == 20 and (out["a_only"], out["b_only"], out["both"]) == (10, 0, 10)

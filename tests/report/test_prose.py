@@ -1,0 +1,51 @@
+"""lq_ros.report.prose: the sentences on paired comparisons say what the paired tests found and no more."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from lq_ros.report import prose
+from lq_ros.scoring.paired_tests import paired_policies
+
+
+def _cell(latency: float, tasks: int, inits: int, p_fails: set, q_fails: set) -> list[dict]:
+    """Arms p and q (sync, LIBERO-Spatial) on ``tasks`` x ``inits`` shared episodes; the sets hold (task, init) pairs
+    that fail."""
+    rows = []
+    for policy, fails in (("p", p_fails), ("q", q_fails)):
+        for t in range(tasks):
+            for i in range(inits):
+                rows.append({"policy": policy, "mode": "sync", "suite": "libero_spatial", "latency_s": latency,
+                             "task": t, "init": i, "seed": 7, "status": "failure" if (t, i) in fails else "success",
+                             "completion_time_s": 5.0, "tick_limit": 220, "step_budget": 220})  # fmt: skip
+    return rows
+
+
+def comparisons() -> pd.DataFrame:
+    rows = _cell(0.1, 6, 2, set(), {(t, i) for t in range(6) for i in range(2)})  # q fails all 12: across tasks
+    rows += _cell(0.2, 6, 10, set(), {(t, i) for t in (0, 1) for i in range(10)})  # q fails two whole tasks
+    rows += _cell(0.3, 6, 1, set(), {(0, 0), (1, 0), (2, 0)})  # three discordant pairs: untestable
+    rows += _cell(0.4, 6, 10, {(5, 8), (5, 9)}, {(t, 0) for t in range(6)})  # 6 against 2: tested, not called
+    return paired_policies(pd.DataFrame(rows), n_boot=500)
+
+
+def test_comparison_sentences_call_only_adjusted_hits_and_qualify_clustered_ones():
+    table = comparisons().set_index("latency_s")
+    assert list(table["testable"]) == [True, True, False, True]
+    assert list(table["called"]) == [True, True, False, False]
+    lines = prose.comparison_sentences(table.reset_index())
+    assert len(lines) == 4
+    across, clustered, tested, untestable = lines
+    assert across.startswith("**p · sync** succeeds more often than **q · sync** (libero_spatial, 0.1 s (N=2))")
+    assert "12 succeed only with A and 0 only with B" in across and "(task-clustered)," in across
+    # Two whole tasks carry the difference: McNemar calls it, resampling tasks does not exclude 0, and the sentence
+    # says the difference holds for these tasks only.
+    assert "includes 0, so shown on these tasks, not for tasks of this kind" in clustered
+    assert tested.startswith("1 of the 4 paired comparisons shows no difference at a family-wise 5% level")
+    assert untestable.startswith("1 comparison has fewer than 6 discordant pairs")
+
+
+def test_no_sentence_compares_separate_intervals():
+    lines = prose.comparison_sentences(comparisons())
+    assert not any("overlap" in line for line in lines)
+    assert all("McNemar" in line or "discordant" in line or "family-wise" in line for line in lines)
