@@ -160,8 +160,11 @@ def test_energy_constants_are_parameters(tmp_path):
 # -- our own episode bags: damage --------------------------------------------------------------------------
 
 
-def write_episode_bag(path: Path, n_ticks: int = 400) -> Path:
-    """An episode bag from our writer: STARTED, n_ticks of state and commands, SUCCESS at the end."""
+def write_episode_bag(
+    path: Path, n_ticks: int = 400, end_kind: int = m.EventKind.SUCCESS, end_after_ns: int = 0
+) -> Path:
+    """An episode bag from our writer: STARTED, n_ticks of state and commands, SUCCESS (or ``end_kind``) at the
+    last sample (or ``end_after_ns`` after it)."""
     from lq_ros.core.executor_protocol import Command
 
     writer = EpisodeBagWriter(path, list(m.CORE_TOPICS))
@@ -174,8 +177,8 @@ def write_episode_bag(path: Path, n_ticks: int = 400) -> Path:
         writer.write(m.JOINT_STATES, t_ns, m.joint_state_msg(t_ns, np.zeros(7), VELOCITY, TORQUE))
         cmd = Command(tick=i, action=np.zeros(7), source=0, request_id=1, chunk_index=0)
         writer.write(m.COMMAND, t_ns, m.command_msg(t_ns, cmd))
-    end = _stamp(n_ticks - 1)
-    writer.write(m.EPISODE_EVENTS, end, m.event_msg(end, m.EventKind.SUCCESS, n_ticks - 1))
+    end = _stamp(n_ticks - 1) + end_after_ns
+    writer.write(m.EPISODE_EVENTS, end, m.event_msg(end, end_kind, n_ticks - 1))
     writer.close()
     return path
 
@@ -329,3 +332,81 @@ def test_scoring_needs_no_ros_and_no_simulator(tmp_path):
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
     assert result.stdout.strip() == "[]"
+
+
+# -- episodes without an outcome; real-time chunk boundaries ------------------------------------------------------
+
+
+@pytest.mark.parametrize("end_after_ns", [0, 41_000_000])
+def test_an_episode_without_an_outcome_is_scored_up_to_its_end_event(tmp_path, end_after_ns):
+    """A real-time recorder stopped by a killed node stamps its STOPPED event at the wall time it stopped, after
+    the last sample (41 ms here): the recorded part is scored as in lockstep (where the event is at the last
+    sample), and the row stays an error. An episode with an outcome still needs samples up to its end event."""
+    bag = write_episode_bag(tmp_path / "stopped", 200, m.EventKind.STOPPED, end_after_ns)
+    row = score_bag(bag)
+    assert row["status"] == "error" and row["success"] is None and row["partial"] is False
+    pos = _cubic_positions(200)
+    assert row["jerk_mean"] == pytest.approx(metrics.jerk_mean(pos, DT), rel=1e-9)
+    assert row["traj_length"] == pytest.approx(metrics.trajectory_length(pos), rel=1e-9)
+    assert row["energy_mech_j"] == pytest.approx(expected_energy(199)[0], rel=1e-9)
+    success = score_bag(write_episode_bag(tmp_path / "success", 200, m.EventKind.SUCCESS, end_after_ns))
+    if end_after_ns:
+        assert success["jerk_mean"] is None and "incomplete" in success["null_reasons"]["jerk_mean"]
+        assert success["partial"] is True
+    else:
+        assert success["jerk_mean"] == row["jerk_mean"]
+
+
+def write_realtime_bag(path: Path, chunks, cmds, latency_s: float, metadata: dict, merge: str = "replace") -> Path:
+    """A real-time async episode bag: the chunks and commands of a stream, a 20 Hz pose, a timeout at the end."""
+    writer = EpisodeBagWriter(path, list(m.CORE_TOPICS))
+    config = {"policy": "synthetic", "mode": "async", "merge": merge, "latency_s": latency_s, "suite": "s",
+              "task": 0, "init": 0, "seed": 7, "clock": "realtime", "robot": ""}  # fmt: skip
+    writer.set_run_metadata({"config": config, "clock": "realtime", **metadata})
+    writer.write(m.EPISODE_EVENTS, _stamp(0), m.event_msg(_stamp(0), m.EventKind.STARTED, 0))
+    n = len(cmds.tick)
+    for i, pos in enumerate(_cubic_positions(n + 1)):
+        writer.write(m.EE_POSE, _stamp(i), m.ee_pose_msg(_stamp(i), pos, [0, 0, 0, 1]))
+    for c in chunks:
+        t_ns = _stamp(c.observation_tick)
+        data = m.chunk_msg(t_ns, c.request_id, c.observation_tick, latency_s, 0.01, c.actions, "synthetic")
+        writer.write(m.ACTION_CHUNK, _stamp(c.due_tick), data)
+    from lq_ros.core.executor_protocol import Command
+
+    for t in range(n):
+        cmd = Command(int(cmds.tick[t]), cmds.action[t], int(cmds.source[t]), int(cmds.request_id[t]),
+                      int(cmds.chunk_index[t]))  # fmt: skip
+        writer.write(m.COMMAND, _stamp(t), m.command_msg(_stamp(t), cmd))
+    writer.write(m.EPISODE_EVENTS, _stamp(n), m.event_msg(_stamp(n), m.EventKind.TIMEOUT, n, "step budget"))
+    writer.close()
+    return path
+
+
+def test_realtime_bag_boundaries_follow_late_chunks_and_missed_commands(tmp_path):
+    from lq_ros.core.executor_protocol import ExecutorConfig
+    from lq_ros.scoring import chunk_boundary as boundary
+    from tests.scoring.test_chunk_boundary import late_pattern, ramp_chunk, run_core_realtime
+
+    chunks, cmds, applied = run_core_realtime(ExecutorConfig(mode="async", latency_ticks=2), 80, ramp_chunk,
+                                              late_pattern)  # fmt: skip
+    missed = [14, 40, 41]  # 14: a switch
+    sim = {"missed_commands": 3, "missed_command_ticks": missed, "node": "sim"}
+    row = score_bag(write_realtime_bag(tmp_path / "rt", chunks, cmds, 0.1, {"realtime": {"sim": sim}}))
+    expected = boundary.analyse("async", "replace", chunks, cmds, realtime=True, missed_ticks=missed)
+    assert row["chunk_switches"] == len(expected.switch_ticks) > 10, row["null_reasons"]
+    assert row["switch_executed_step_mean"] == pytest.approx(expected.executed_steps.mean(), rel=1e-12)
+    assert row["chunk_switch_jump_max"] == pytest.approx(expected.jumps.max(), rel=1e-12)
+    # Missed ticks change what ran: not the same as ignoring them.
+    ignored = boundary.analyse("async", "replace", chunks, cmds, realtime=True)
+    assert row["switch_executed_step_mean"] != pytest.approx(ignored.executed_steps.mean(), rel=1e-9)
+
+    # The sim did not report (stopped by a killed peer), or listed fewer ticks than it missed: the plan's fields
+    # only, the rest null with the reason.
+    for name, stats, why in [
+        ("nostats", {"realtime": {}}, "did not report which commands it missed"),
+        ("cut", {"realtime": {"sim": {**sim, "missed_commands": 250}}}, "missed 250 commands"),
+        ("junk", {"realtime": {"sim": {**sim, "missed_command_ticks": "9,40"}}}, "not a list of ticks"),
+    ]:
+        row = score_bag(write_realtime_bag(tmp_path / name, chunks, cmds, 0.1, stats))
+        assert row["chunks_overlapping"] == 0 and row["chunk_switches"] is None
+        assert why in row["null_reasons"]["switch_executed_step_mean"]

@@ -316,3 +316,170 @@ def test_real_episode_fields_equal_a_recomputation_from_the_commands(tmp_path, e
         # 3 overlapped ticks per arrival (the last arrival's may be cut by the episode's end), each a real blend.
         assert 3 * len(ends) <= len(blended) <= 3 * len(switches) and min(gaps) > 0
         assert row["chunk_disagreement_mean"] == pytest.approx(np.mean(gaps), rel=1e-6)
+
+
+# -- real time: late chunks and missed commands, driven through the core as the wall-clock executor does ---------
+
+
+def run_core_realtime(cfg: ExecutorConfig, ticks: int, make_chunk, late_by):
+    """Drive the core like the wall-clock executor: the chunk of request r arrives ``late_by(r)`` ticks after its
+    due tick, and until then each due tick is marked late (the executor's ``core.late``). Chunks are recorded as the
+    bag holds them, with their nominal latency; returns (chunks, commands, request id -> tick it took effect)."""
+    core, pending, chunks, cmds, applied = ExecutorCore(cfg), {}, [], [], {}
+    for t in range(ticks):
+        while True:
+            step = core.advance(t)
+            if isinstance(step, ObservationNeeded):
+                req = step.request
+                pending[req.request_id] = (req, make_chunk(req), req.due_tick + late_by(req.request_id))
+            elif isinstance(step, ChunkDue):
+                req, chunk, arrives = pending[step.request.request_id]
+                if t < arrives:
+                    core.late(t)
+                    continue
+                del pending[req.request_id]
+                core.deliver(req.request_id, chunk)
+                chunks.append(boundary.Chunk(req.request_id, req.tick, req.latency_ticks, chunk))
+                applied[req.request_id] = t
+            else:
+                assert isinstance(step, Command), step
+                cmds.append(step)
+                break
+    commands = boundary.Commands(
+        tick=np.array([c.tick for c in cmds]),
+        action=np.array([c.action for c in cmds]),
+        source=np.array([int(c.source) for c in cmds]),
+        request_id=np.array([c.request_id for c in cmds]),
+        chunk_index=np.array([c.chunk_index for c in cmds]),
+    )
+    return chunks, commands, applied
+
+
+def late_pattern(request_id: int) -> int:
+    """Ticks late: 0, 1, 3, 0, 2, 1, 0, ... (a mix of on-time and late chunks)."""
+    return (0, 1, 3, 0, 2, 1)[request_id % 6]
+
+
+def as_if_lockstep(chunks, applied):
+    """The same chunks recorded with the latency they really had (applied tick - observation tick): in lockstep
+    each takes effect at its due tick, so this is what a lockstep replay of the real-time episode must give."""
+    return [boundary.Chunk(c.request_id, c.observation_tick, applied[c.request_id] - c.observation_tick, c.actions)
+            for c in chunks]  # fmt: skip
+
+
+def assert_same(a: boundary.Boundaries, b: boundary.Boundaries) -> None:
+    for name in ("switch_ticks", "jumps", "overlap_end_ticks", "handover_ticks", "executed_steps", "disagreements"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.overlapping == b.overlapping and a.first_chunk_tick == b.first_chunk_tick
+
+
+@pytest.mark.parametrize(
+    "mode, merge, latency_ticks",
+    [("async", "replace", 2), ("async", "weighted_average", 1), ("async", "temporal_ensemble", 1),
+     ("async", "latest_only", 1), ("sync", "replace", 2)],
+)  # fmt: skip
+def test_late_chunks_take_effect_where_the_commands_say(mode, merge, latency_ticks):
+    """The lockstep replay refuses a real-time stream (a chunk late at its due tick looks like a hold over a full
+    buffer, or a switch where none was due); the real-time replay finds every chunk's tick and equals the lockstep
+    replay of the same chunks recorded with the latency they really had."""
+    cfg = ExecutorConfig(mode=mode, latency_ticks=latency_ticks, merge=merge, replan_steps=3)
+    chunks, cmds, applied = run_core_realtime(cfg, 80, ramp_chunk, late_pattern)
+    assert any(applied[c.request_id] > c.due_tick for c in chunks)
+    found = boundary.analyse(mode, merge, chunks, cmds, realtime=True)
+    assert found.applied_ticks == applied
+    assert_same(found, boundary.analyse(mode, merge, as_if_lockstep(chunks, applied), cmds))
+    # Every chunk with a fresh row switches where it took effect (the first excepted): the late ones too.
+    fresh = [c for c in chunks[1:] if len(c.actions) > applied[c.request_id] - c.observation_tick]
+    expected = [applied[c.request_id] for c in fresh]
+    assert found.switch_ticks.tolist() == expected
+    if mode == "async":
+        with pytest.raises(boundary.ReplayMismatch, match="tick"):
+            boundary.analyse(mode, merge, chunks, cmds)  # the lockstep replay: chunks at their due ticks
+
+
+def test_realtime_replay_of_an_on_time_stream_equals_the_lockstep_replay():
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, merge="weighted_average")
+    chunks, cmds = run_core(cfg, 60, ramp_chunk)
+    assert_same(
+        boundary.analyse("async", "weighted_average", chunks, cmds, realtime=True),
+        boundary.analyse("async", "weighted_average", chunks, cmds),
+    )
+
+
+def two_horizons(req):
+    """Chunk 1 long (8 rows), chunk 2 short (2 rows), the rest 8: a late chunk 2 has no fresh row left."""
+    return ramp_chunk(req, horizon=2 if req.request_id == 2 else 8)
+
+
+def test_a_late_chunk_with_no_fresh_row_empties_the_buffer_at_the_first_hold():
+    """Threshold 6, N = 1: chunk 1 lands at tick 1 with 7 rows; request 2 is made at tick 2 and due at 3, one tick
+    late it lands at 4 with both its rows stale: the buffer (rows for 4..7) is dropped and tick 4 holds."""
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, request_threshold=6)
+    chunks, cmds, applied = run_core_realtime(cfg, 30, two_horizons, lambda rid: 1 if rid == 2 else 0)
+    assert applied[2] == 4 and cmds.source[4] == 3  # HOLD_UNDERRUN with actions of chunk 1 still planned
+    found = boundary.analyse("async", "replace", chunks, cmds, realtime=True)
+    assert found.applied_ticks == applied
+    assert_same(found, boundary.analyse("async", "replace", as_if_lockstep(chunks, applied), cmds))
+    # A request made while that chunk had not taken effect contradicts one inference in flight.
+    tampered = boundary.Commands(cmds.tick, cmds.action.copy(), cmds.source.copy(), cmds.request_id.copy(),
+                                 cmds.chunk_index.copy())  # fmt: skip
+    tampered.source[4], tampered.request_id[4], tampered.chunk_index[4] = 0, 1, 4  # chunk 1 ran on at tick 4
+    tampered.action[4] = chunks[0].actions[4]
+    with pytest.raises(boundary.ReplayMismatch, match="request 2 had not taken effect"):
+        boundary.analyse("async", "replace", chunks, tampered, realtime=True)
+
+
+def test_missed_commands_are_stop_holds_in_the_executed_series():
+    """N = 1, H = 8, half-chunk threshold: a chunk lands every 4 ticks (5, 9, 13, ...) over 3 ticks of the old plan,
+    whose overlap ends 3 ticks later. The sim missed ticks 9 (the first command of a chunk) and 12 (its overlap end).
+    The switch moves to 10, its executed step is from the stop hold (arm 0) and its jump is against the old plan for
+    tick 10; 12 is a hold, no overlap end, and the switch at 13 steps from that hold."""
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, merge="weighted_average")
+    chunks, cmds = run_core(cfg, 30, ramp_chunk)
+    plain = boundary.analyse("async", "weighted_average", chunks, cmds)
+    assert 9 in plain.switch_ticks.tolist()
+    rid = int(cmds.request_id[9])
+    assert cmds.request_id[10] == rid and cmds.request_id[12] == rid and cmds.source[12] == 0
+    found = boundary.analyse("async", "weighted_average", chunks, cmds, realtime=True, missed_ticks=[9, 12, 99])
+    assert found.switch_ticks.tolist() == [10 if t == 9 else t for t in plain.switch_ticks.tolist()]
+    assert {9, 12, 13} <= set(plain.handover_ticks.tolist())
+    handovers = found.handover_ticks.tolist()
+    assert 9 not in handovers and 12 not in handovers and {10, 13} <= set(handovers)
+    for t in (10, 13):  # from the stop hold: the whole arm command
+        assert found.executed_steps[handovers.index(t)] == pytest.approx(np.linalg.norm(cmds.action[t][:6]), rel=1e-12)
+    # The old plan for tick 10: the row of the chunk before, one tick after the one that met tick 9.
+    old = next(c for c in chunks if c.request_id == rid - 1)
+    expected_jump = np.linalg.norm(cmds.action[10][:6] - old.actions[10 - old.observation_tick][:6])
+    assert found.jumps[found.switch_ticks.tolist().index(10)] == pytest.approx(expected_jump, rel=1e-12)
+    # What the executor planned is not what the sim missed: overlaps and disagreement are unchanged.
+    assert found.overlapping == plain.overlapping
+    np.testing.assert_array_equal(found.disagreements, plain.disagreements)
+
+
+def test_jerk_windows_in_time_select_the_tick_windows_on_a_20_hz_series():
+    pos = np.random.default_rng(3).normal(size=(80, 3))
+    switches = np.array([12, 30, 51])
+    t_s = np.arange(80) * 0.05
+    timed = boundary.jerk_near_switch_times(t_s, pos, switches, 0.0, 0.05, 3)
+    ticked = boundary.jerk_near_switches(pos, switches, 0.05, 3)
+    assert ticked[2] is None and timed[2] is None
+    assert timed[:2] == pytest.approx(ticked[:2], rel=1e-12)
+    # Switches every 4 ticks: neither has enough samples elsewhere.
+    dense = np.arange(4, 80, 4)
+    assert boundary.jerk_near_switch_times(t_s, pos, dense, 0.0, 0.05)[1] is None
+    assert boundary.jerk_near_switches(pos, dense, 0.05)[1] is None
+
+
+def test_jerk_windows_in_time_on_a_100_hz_series():
+    """A position step between two 100 Hz samples 0.06 s into switch tick 20's command (centre 1.025 s): its jerk
+    samples are centred within 0.1 s of it, so all of the step's jerk is near the switch; the same step 0.5 s later
+    is all elsewhere."""
+    t_s = np.arange(400) * 0.01
+    pos = np.zeros((400, 3))
+    pos[109:, 0] = 1e-3
+    near_mean, ratio, why = boundary.jerk_near_switch_times(t_s, pos, np.array([20]), 0.0, 0.05)
+    assert near_mean > 0 and why == "zero jerk away from the switches"
+    later = np.zeros((400, 3))
+    later[159:, 0] = 1e-3
+    near_mean, ratio, why = boundary.jerk_near_switch_times(t_s, later, np.array([20]), 0.0, 0.05)
+    assert near_mean == 0.0 and ratio == 0.0 and why is None
