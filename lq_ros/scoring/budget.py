@@ -171,8 +171,12 @@ def budget_note(agg: pd.Series | dict) -> str:
                 " fewer action ticks than the 0 s success")  # fmt: skip
     else:
         text = f"{int(counts[0])}/{timeouts} timeouts budget-limited"
-        if counts[2]:
-            text += f" ({int(counts[2])} unattributed)"
+        proxy = agg.get("budget_proxy_n")
+        # Counted by the proxy alone (no twin): say so, it is a hint, not a finding.
+        by_proxy = int(proxy) if proxy is not None and not pd.isna(proxy) else 0
+        notes = [f"{by_proxy} by the proxy alone"] if by_proxy else []
+        notes += [f"{int(counts[2])} unattributed"] if counts[2] else []
+        text += f" ({'; '.join(notes)})" if notes else ""
     n_twins = agg.get("action_budget_n")
     if n_twins and not pd.isna(n_twins):
         text += f"; action budget: {100 * agg['action_budget_success_rate']:.0f} % of {int(n_twins)}"

@@ -115,6 +115,8 @@ def test_underruns_anywhere_in_the_cell_withhold_the_proxy_mark():
     assert frame.loc[frame["latency_s"] == 0.4, "budget_limited"].tolist() == [True, True, True, None]
     cell = _cell(aggregate(frame, n_boot=50), "async", 0.4)
     assert cell["budget_proxy_n"] == 3 and cell["budget_mark"] == ""
+    # The note says the three come from the proxy alone, not from a twin.
+    assert budget_note(cell) == "3/4 timeouts budget-limited (3 by the proxy alone; 1 unattributed)"
 
 
 def test_counts_of_a_group_without_timeouts():
