@@ -165,6 +165,7 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
         adjusted = paired_tests.benjamini_hochberg(paired[p_columns].to_numpy(dtype=np.float64).reshape(-1))
         for k, column in enumerate(p_columns):
             paired[column.replace("_p", "_p_adjusted")] = adjusted.reshape(len(paired), len(p_columns))[:, k]
+        paired["p_adjustment"] = paired_tests.BH_ADJUSTMENT  # the CSV says how its p-values were adjusted
     return paired.reset_index(drop=True)
 
 

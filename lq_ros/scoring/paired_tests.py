@@ -47,6 +47,9 @@ PAIR_KEYS = ("task", "init", "seed")
 #: What makes two arms comparable: the same suite, latency and budget.
 CELL_KEYS = ("suite", "latency_s", "latency_dist", "budget_counts")
 ALPHA = 0.05
+#: How each table's p-values are adjusted (its ``p_adjustment`` column).
+HOLM_ADJUSTMENT = "Holm over the comparisons with at least 6 discordant pairs"
+BH_ADJUSTMENT = "Benjamini-Hochberg over every change against 0 s"
 #: Metrics of the paired view (:func:`paired_differences`): cell minus zero-latency cell, per pair.
 PAIRED_METRICS = (
     "completion_time_s",
@@ -208,6 +211,7 @@ def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int 
     adjusted[testable] = holm(table["mcnemar_p"].to_numpy(dtype=np.float64)[testable])
     table["p_adjusted"] = adjusted
     table["called"] = table["p_adjusted"] < ALPHA  # NaN (untestable) is never called
+    table["p_adjustment"] = HOLM_ADJUSTMENT
     return table
 
 

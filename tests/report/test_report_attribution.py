@@ -14,6 +14,7 @@ from lq_ros.report import prose, tables
 from lq_ros.report import sweep_report as rp
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.attribution import decomposition_table
+from lq_ros.scoring.paired_tests import BH_ADJUSTMENT
 
 
 def _row(status: str, *, mode: str = "sync", latency: float = 0.0, steps: int = 100, action: int = 100, **kw):
@@ -118,6 +119,7 @@ def test_tables_and_sentences(synthetic):
     zero = summary.loc[("scripted", "sync", "0 s (N=0)")]
     assert zero["time s (succ.)"] == "5.05 (n=3: 5.00, 5.05, 5.10)"  # three values: listed, no interval
     paired = rp.paired_aggregates(episodes, pooled, n_boot=100)
+    assert set(paired["p_adjustment"]) == {BH_ADJUSTMENT}  # paired_vs_zero_latency.csv names its correction
     sentences = prose.paired_sentences(paired)
     failed = [s for s in sentences if s.startswith("**scripted · sync, 0.2 s")][0]
     assert "success 0/3 against 3/3 (◇ budget-decided" in failed and "no (task, init) pair succeeds" in failed

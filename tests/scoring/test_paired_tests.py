@@ -10,6 +10,7 @@ import pytest
 
 from lq_ros.scoring.aggregate import aggregate, ci_text, episodes_frame
 from lq_ros.scoring.paired_tests import (
+    HOLM_ADJUSTMENT,
     benjamini_hochberg,
     can_reach,
     compare_pairs,
@@ -97,6 +98,7 @@ def test_holm_family_is_the_comparisons_that_can_reach_significance():
     table = paired_policies(pd.concat(rows, ignore_index=True), n_boot=200).set_index(["arm_a", "arm_b"])
     # p-q and p-r: 10 discordant pairs each, testable; q-r: none, so Holm's family is two, not three.
     assert not table.loc[("q", "r"), "testable"]
+    assert set(table["p_adjustment"]) == {HOLM_ADJUSTMENT}
     assert table.loc[("p", "q"), "p_adjusted"] == pytest.approx(2 * mcnemar_exact_p(10, 0))
 
 
