@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from lq_ros.report.sweep_report import load_episodes  # noqa: E402
-from lq_ros.scoring.intervals import cluster_bootstrap_ci, wilson_interval  # noqa: E402
+from lq_ros.scoring.intervals import clustered_success_ci, wilson_interval  # noqa: E402
 from lq_ros.scoring.paired_tests import compare_pairs, holm  # noqa: E402
 
 #: Request slack K = H - 2N of the "naive + slack" arm per (family, latency label) (heldout_delay_study.md).
@@ -64,7 +64,7 @@ def success_line(rows: pd.DataFrame) -> dict:
     k, n = int((ok.status == "success").sum()), len(ok)
     lo, hi = wilson_interval(k, n) if n else (np.nan, np.nan)
     per_task = ok.groupby(level="task").status.apply(lambda s: (s == "success").to_numpy(float))
-    clo, chi = cluster_bootstrap_ci(list(per_task), n_boot=N_BOOT, seed=0) if n else (np.nan, np.nan)
+    clo, chi = clustered_success_ci(list(per_task), n_boot=N_BOOT, seed=0) if n else (np.nan, np.nan)
     return {"n": n, "errors": int((rows.status == "error").sum()), "success": k,
             "success %": f"{100 * k / n:.0f}" if n else "-", "Wilson 95%": f"[{100 * lo:.0f}, {100 * hi:.0f}]",
             "task-clustered 95%": f"[{100 * clo:.0f}, {100 * chi:.0f}]"}  # fmt: skip
