@@ -28,3 +28,12 @@ def _pin_openblas_kernels() -> None:
 _pin_openblas_kernels()
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """``lq_ros.run_episode``: one episode with a policy object (lq_ros/run/notebook.py), imported when first used."""
+    if name == "run_episode":
+        from lq_ros.run.notebook import run_episode
+
+        return run_episode
+    raise AttributeError(f"module 'lq_ros' has no attribute {name!r}")

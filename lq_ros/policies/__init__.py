@@ -6,6 +6,7 @@ import importlib
 
 from lq_ros.core.merge import ActionPrefix
 from lq_ros.policies.base import Policy, PolicyError
+from lq_ros.policies.openpi_remote import libero_state_8d, libero_training_image
 
 #: name -> "module:Class". Adding a policy is one new module and one line here.
 REGISTRY: dict[str, str] = {
@@ -57,4 +58,7 @@ def make_policy(name: str, **params) -> Policy:
     return policy_class(name)(**params)
 
 
-__all__ = ["ActionPrefix", "Policy", "PolicyError", "REGISTRY", "is_registered", "make_policy", "policy_class"]
+__all__ = [
+    "ActionPrefix", "Policy", "PolicyError", "REGISTRY", "is_registered", "libero_state_8d", "libero_training_image",
+    "make_policy", "policy_class",
+]  # fmt: skip
