@@ -16,14 +16,21 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from lq_ros.core.run_config import BUDGET_COUNTS, DEFAULT_CAMERA_SIZE_PX, TRANSPORTS, RunConfig
+from lq_ros.core.executor_protocol import Hold, Mode
+from lq_ros.core.merge import Merge
+from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, DEFAULT_CAMERA_SIZE_PX, TRANSPORTS, RunConfig
 from lq_ros.scoring.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
 # Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="LIBERO-LQ: latency-aware VLA evaluation on ROS 2.")
-console = Console(stderr=True)
+#: Messages (stderr). soft_wrap: a long path stays on one line, whatever the terminal's width (or none, piped).
+console = Console(stderr=True, soft_wrap=True)
+#: Width of --help when the output is no terminal (a pipe, a file): wide enough for every option name.
+PIPED_WIDTH = 160
+#: Width of result tables when piped: wide enough for every column of a scored row, none cut short.
+PIPED_TABLE_WIDTH = 240
 #: Largest --n-boot of lq score: the bootstrap holds n_boot x episodes draws per cell in memory.
 MAX_N_BOOT = 100_000
 
@@ -63,6 +70,32 @@ BudgetCounts = StrEnum("BudgetCounts", {v: v for v in BUDGET_COUNTS})
 
 #: --transport choices (lq_ros.core.run_config.TRANSPORTS).
 Transport = StrEnum("Transport", {v: v for v in TRANSPORTS})
+
+#: --clock choices (lq_ros.core.run_config.CLOCKS).
+Clock = StrEnum("Clock", {v: v for v in CLOCKS})
+
+#: lq sweep --backend choices (lq_ros.run.sweep.BACKENDS; tests/test_cli_errors.py checks they agree).
+Backend = StrEnum("Backend", {v: v for v in ("local", "ray")})
+
+#: lq score --rate and --energy-rate choices (lq_ros.scoring.bag_scorer.TRAJECTORY_RATES / ENERGY_RATES; checked by
+#: tests/test_cli_errors.py): literal here, so that ``lq --help`` does not import the scorer.
+TrajectoryRate = StrEnum("TrajectoryRate", {v: v for v in ("auto", "control", "physics", "native")})
+EnergyRate = StrEnum("EnergyRate", {v: v for v in ("auto", "substep", "physics", "control", "native")})
+
+#: --merge's help: every strategy named (its choices are too many for the option's column).
+MERGE_HELP = (
+    "async: how a new chunk meets the buffered one: " + ", ".join(m.value for m in Merge) + " (docs/guide/async.md)."
+)
+#: --policy's help, shared by lq run and lq eval.
+POLICY_HELP = (
+    "A registered policy (scripted, oft, flow, openpi, openvla, lerobot, sine, faulty; docs/guide/policies.md) or "
+    "your own class as module:Class, a subclass of lq_ros.policies.Policy (examples/my_policy.py). Modules in the "
+    "current directory are importable, as with python -m."
+)
+POLICY_ARG_HELP = (
+    "A keyword argument of the policy's constructor, key=value (repeatable); values are JSON when they parse as JSON "
+    "(5, 0.1, true, [1,2]), else text. In a spec: policies: [{name: P, args: {key: value}}]."
+)
 
 
 def _refuse(message: str) -> None:
@@ -109,13 +142,32 @@ def _fmt(value) -> str:
     return str(value)
 
 
+def stdout_console() -> Console:
+    """The console for results on stdout: the terminal's width, or PIPED_TABLE_WIDTH when piped (nothing cut)."""
+    return Console(width=None if sys.stdout.isatty() else PIPED_TABLE_WIDTH, soft_wrap=True)
+
+
 def print_rows(rows: list[dict], title: str = "") -> None:
+    """Scored rows as a table on stdout; under it, on stderr, the reason of every error row."""
     table = Table(title=title or None, caption="bags and episode names: see the run folder")
     for _, header in ROW_COLUMNS:
         table.add_column(header, justify="right")
     for row in rows:
         table.add_row(*(_fmt(row.get(k)) for k, _ in ROW_COLUMNS))
-    Console(width=None if sys.stdout.isatty() else 160).print(table)
+    stdout_console().print(table)
+    print_error_reasons(rows)
+
+
+def print_error_reasons(rows: list[dict], limit: int = 20) -> None:
+    """One line per error row: its episode and why (the table shows only ``error``); at most ``limit`` lines."""
+    from rich.markup import escape
+
+    errors = [r for r in rows if r.get("status") == "error"]
+    for row in errors[:limit]:
+        reason = " ".join(str(row.get("error_reason") or "no reason recorded").split())
+        console.print(f"[red]error:[/red] {escape(str(row.get('episode', '')))}: {escape(reason)}", highlight=False)
+    if len(errors) > limit:
+        console.print(f"... and {len(errors) - limit} more errors (episodes.csv has every reason)")
 
 
 @app.command()
@@ -123,8 +175,12 @@ def run(
     suite: Annotated[str, typer.Option(help="LIBERO suite.")] = _RUN.suite,
     task: Annotated[int, typer.Option(help="Task index in the suite.")] = _RUN.task,
     init: Annotated[int, typer.Option(help="Init state index.")] = _RUN.init,
-    seed: int = _RUN.seed,
-    mode: Annotated[str, typer.Option(help="sync (hold while inferring) or async (buffer).")] = _RUN.mode,
+    seed: Annotated[int, typer.Option(help="Seed of the episode (init-state noise aside, policies draw from it).")] = (
+        _RUN.seed
+    ),
+    mode: Annotated[
+        Mode, typer.Option(help="sync: the robot holds while the policy infers; async: it executes buffered actions.")
+    ] = Mode(_RUN.mode),
     latency: Annotated[
         str,
         typer.Option(
@@ -137,7 +193,9 @@ def run(
         LatencyRounding, typer.Option(help="exact: refuse a latency between ticks; nearest: round it to N·0.05 s.")
     ] = LatencyRounding.exact,
     replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = _RUN.replan_steps,
-    hold: Annotated[str, typer.Option(help="sync hold: stop or repeat.")] = _RUN.hold,
+    hold: Annotated[
+        Hold, typer.Option(help="sync: what the robot does while it waits: stop (zero arm delta) or repeat the last.")
+    ] = Hold(_RUN.hold),
     request_threshold: Annotated[
         int, typer.Option(help="async: request at this buffer size; -1: the merge strategy's default (replace: N).")
     ] = _RUN.request_threshold,
@@ -148,15 +206,9 @@ def run(
             "lockstep best case: a chunk lands exactly as the buffer empties (docs/design/async.md)."
         ),
     ] = _RUN.request_slack,
-    merge: Annotated[
-        str,
-        typer.Option(
-            help="async merge: replace, latest_only, weighted_average, average, conservative, temporal_ensemble, "
-            "rtc, rtc_hard (docs/design/async.md)."
-        ),
-    ] = _RUN.merge,
-    policy: str = _RUN.policy,
-    policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
+    merge: Annotated[Merge, typer.Option(help=MERGE_HELP, metavar="STRATEGY")] = Merge(_RUN.merge),
+    policy: Annotated[str, typer.Option(help=POLICY_HELP)] = _RUN.policy,
+    policy_arg: Annotated[list[str], typer.Option(help=POLICY_ARG_HELP, metavar="KEY=VALUE")] = [],  # noqa: B006
     camera_size: Annotated[
         int,
         typer.Option(help=f"Camera render size, px; 0: the policy's reference size, else {DEFAULT_CAMERA_SIZE_PX}."),
@@ -171,12 +223,12 @@ def run(
         ),
     ] = BudgetCounts(_RUN.budget_counts),
     clock: Annotated[
-        str,
+        Clock,
         typer.Option(
             help="lockstep (deterministic) or realtime (wall-clock ticks, real inference time + Δt_sim; "
             "not bit-reproducible; docs/guide/real_robot.md)."
         ),
-    ] = _RUN.clock,
+    ] = Clock(_RUN.clock),
     robot: Annotated[
         str,
         typer.Option(
@@ -184,11 +236,14 @@ def run(
             "(standin: the LIBERO stand-in, started with the run; franka_ros2). Needs --clock realtime."
         ),
     ] = _RUN.robot,
-    out: Path = Path("bags"),
+    out: Annotated[Path, typer.Option(help="Folder for the episode's bag (OUT/<episode name>).")] = Path("bags"),
     overwrite: Annotated[
         bool, typer.Option(help="Replace the episode's bag folder if the same configuration already ran into --out.")
     ] = False,
-    transport: Transport = Transport.ros,
+    transport: Annotated[
+        Transport,
+        typer.Option(help="ros: the four ROS 2 nodes; inprocess: one process, no ROS (the same episode, faster)."),
+    ] = Transport.ros,
     domain_id: Annotated[int | None, typer.Option(help="ROS_DOMAIN_ID; default: a free one.")] = None,
     timeout: Annotated[float | None, typer.Option(help="Wall-clock limit of the run, seconds.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the scored row as JSON.")] = False,
@@ -207,12 +262,15 @@ def run(
             seconds = round_latency(seconds)
         latency_fields = {"latency_s": seconds}
     try:
+        from lq_ros.run import validation as validate
+
+        validate.check_suite(suite)  # before RunConfig, whose own message has no suggestion
         cfg = RunConfig(
-            suite=suite, task=task, init=init, seed=seed, mode=mode, **latency_fields,
-            replan_steps=replan_steps, hold=hold, request_threshold=request_threshold, merge=merge,
+            suite=suite, task=task, init=init, seed=seed, mode=mode.value, **latency_fields,
+            replan_steps=replan_steps, hold=hold.value, request_threshold=request_threshold, merge=merge.value,
             request_slack=request_slack, policy=policy, policy_args=_parse_policy_args(policy_arg),
             camera_size=camera_size, physics_rate=physics_rate, max_steps=max_steps,
-            budget_counts=budget_counts.value, clock=clock, robot=robot,
+            budget_counts=budget_counts.value, clock=clock.value, robot=robot,
         )  # fmt: skip
         if cfg.clock == "realtime" and transport is not Transport.ros:
             raise ValueError("--clock realtime runs through ROS only (--transport ros)")
@@ -220,8 +278,6 @@ def run(
             from lq_ros.robot.robot_config import load_robot_config
 
             load_robot_config(cfg.robot)  # a bad robot YAML: one line naming the entry
-        from lq_ros.run import validation as validate
-
         validate.check_run(cfg)  # task and init ranges, the policy and its arguments: before anything starts
         from lq_ros.policies import policy_class
 
@@ -238,16 +294,16 @@ def run(
     except ValueError as exc:  # validate.InputError included
         _refuse(str(exc))
     _make_room(out / cfg.episode_name(), overwrite)
-    # LIBERO prints progress on stdout; with --json stdout must hold nothing but the row.
-    with contextlib.redirect_stdout(sys.stderr) if as_json else contextlib.nullcontext():
+    # stdout holds the result alone: what LIBERO, robosuite or the policy print while the episode runs goes to stderr.
+    with contextlib.redirect_stdout(sys.stderr):
         row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
     if as_json:
         print(json.dumps(row, sort_keys=True, default=str))
+        print_error_reasons([row])
     else:
         print_rows([row], title=f"{cfg.suite} task {cfg.task} init {cfg.init} · {cfg.policy} · {transport.value}")
-        console.print(f"bag: {out / cfg.episode_name()}")
+        console.print(f"bag: {out / cfg.episode_name()}", highlight=False)
     if row.get("status") == "error":
-        console.print(f"[red]run error:[/red] {row.get('error_reason')}")
         raise typer.Exit(1)
 
 
@@ -263,10 +319,12 @@ def run_episode(cfg, out: Path, transport: Transport, **launch_kwargs) -> dict:
 
 @app.command()
 def demo(
-    out: Path = Path("bags/demo"),
-    policy: str = "scripted",
-    task: int = 0,
-    transport: Transport = Transport.ros,
+    out: Annotated[Path, typer.Option(help="Folder for the four episodes' bags.")] = Path("bags/demo"),
+    policy: Annotated[str, typer.Option(help=POLICY_HELP)] = "scripted",
+    task: Annotated[int, typer.Option(help="LIBERO-Spatial task index, 0..9.")] = 0,
+    transport: Annotated[
+        Transport, typer.Option(help="ros: the four ROS 2 nodes, kept up for the four episodes; inprocess: no ROS.")
+    ] = Transport.ros,
 ) -> None:
     """LIBERO-Spatial task 0 through one four-node stack: sync and async at 0 and 0.2 s latency (a rerun
     replaces the demo's episodes in OUT)."""
@@ -289,9 +347,10 @@ def demo(
         for cfg in configs:
             console.print(f"running {cfg.mode} Δt_sim={cfg.latency_s} s ...")
             _make_room(out / cfg.episode_name(), overwrite=True)
-            rows.append(run_episode(cfg, out, transport, **({"stack": stack} if stack else {})))
+            with contextlib.redirect_stdout(sys.stderr):  # stdout: the table alone
+                rows.append(run_episode(cfg, out, transport, **({"stack": stack} if stack else {})))
     print_rows(rows, title=f"LIBERO-LQ demo · libero_spatial task {task} · {policy} · {transport.value}")
-    console.print(f"bags: {out}/  (score again with: lq score {out})")
+    console.print(f"bags: {out}/  (score again with: lq score {out})", highlight=False)
     if any(r.get("status") == "error" for r in rows):
         raise typer.Exit(1)
 
@@ -303,19 +362,19 @@ def score(
     joint_topic: Annotated[str, typer.Option(help="sensor_msgs/JointState topic (with effort).")] = "/joint_states",
     osc_window: Annotated[int, typer.Option(help="EE-Osc window K in samples.")] = DEFAULT_OSC_WINDOW,
     rate: Annotated[
-        str,
+        TrajectoryRate,
         typer.Option(
             help="Trajectory sampling: auto (control for our bags, the topic's own rate for others), "
-            "control, physics, native."
+            "control (20 Hz), physics (500 Hz), native (the topic's own)."
         ),
-    ] = "auto",
+    ] = TrajectoryRate.auto,
     energy_rate: Annotated[
-        str,
+        EnergyRate,
         typer.Option(
-            help="Energy sampling: auto (substep integrals when present), substep, physics, "
+            help="Energy sampling: auto (substep integrals when present), substep, physics (500 Hz joint states), "
             "control (the paper's 20 Hz estimate), native."
         ),
-    ] = "auto",
+    ] = EnergyRate.auto,
     efficiency_reference: Annotated[
         Path | None,
         typer.Option(help="episodes.csv/.parquet of an earlier scoring: pin the relative-efficiency reference paths."),
@@ -328,7 +387,7 @@ def score(
     seed: Annotated[int, typer.Option(help="Bootstrap seed.")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per episode on stdout.")] = False,
 ) -> None:
-    """Score bags. A directory of bags also gets per (policy, mode, Δt_sim, suite, task) aggregates with
+    """Score bags. A folder of bags (even of one) also gets per (policy, mode, Δt_sim, suite, task) aggregates with
     95% CIs, written as CSV + Parquet, and a markdown table on stdout. Exits 1 if any bag is damaged."""
     from lq_ros.scoring.aggregate import aggregate, markdown_table, score_directory, write_tables
     from lq_ros.scoring.bag_scorer import find_bags
@@ -347,18 +406,12 @@ def score(
             _refuse(f"{name} must be a finite number >= 0, got {value}")
     if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO would block the read forever
         _refuse(f"{path}: not a regular file or folder (a FIFO or device is never read as a bag)")
-    if not find_bags(path):
-        console.print(f"[red]no rosbag2 MCAP bag at or below {path}[/red]")
-        raise typer.Exit(2)
-    from lq_ros.scoring.bag_scorer import ENERGY_RATES, TRAJECTORY_RATES
-
-    if rate not in TRAJECTORY_RATES:
-        raise typer.BadParameter(f"--rate must be one of {', '.join(TRAJECTORY_RATES)}; got {rate!r}")
-    if energy_rate not in ENERGY_RATES:
-        raise typer.BadParameter(f"--energy-rate must be one of {', '.join(ENERGY_RATES)}; got {energy_rate!r}")
+    bags = find_bags(path)
+    if not bags:
+        _refuse(f"no rosbag2 MCAP bag at or below {path}")
     references = _read_references(efficiency_reference) if efficiency_reference else None
-    kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate, energy_rate=energy_rate,
-                  elec_coeff=elec_coeff, overhead_w=overhead_w)  # fmt: skip
+    kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate.value,
+                  energy_rate=energy_rate.value, elec_coeff=elec_coeff, overhead_w=overhead_w)  # fmt: skip
     episodes = score_directory(path, jobs=jobs, references=references, **kwargs)
     rows = [{k: v for k, v in r.items() if not (isinstance(v, float) and v != v)} for r in episodes.to_dict("records")]
     # Partial: the bag was damaged or unreadable (a run error recorded in an intact bag is not).
@@ -366,9 +419,8 @@ def score(
     for row in rows:
         for warning in json.loads(row.get("warnings") or "[]"):
             console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
-        if row.get("status") == "error":
-            console.print(f"[red]error:[/red] {row.get('episode')}: {row.get('error_reason')}", soft_wrap=True)
-    single_bag = len(rows) == 1 and out is None
+    # One bag given as such: its row. A folder of bags, even of one: the aggregates too.
+    single_bag = bags == [path] and out is None
     if as_json:
         from lq_ros.scoring.bag_scorer import to_json
 
@@ -377,6 +429,8 @@ def score(
             print(to_json(row | nested))
     elif single_bag:
         print_rows(rows)
+    if as_json or not single_bag:
+        print_error_reasons(rows)
     if not single_bag:
         aggregates = aggregate(episodes, n_boot=n_boot, seed=seed)
         out_dir = out or (path if path.is_dir() else path.parent)
@@ -408,10 +462,12 @@ def _read_references(path: Path):
 
 @app.command()
 def sweep(
-    spec: Path,
+    spec: Annotated[Path, typer.Argument(help="The sweep spec, a YAML file (docs/guide/sweeps.md).")],
     workers: Annotated[int | None, typer.Option(help="Parallel workers; default: CPU cores.")] = None,
     transport: Annotated[Transport | None, typer.Option(help="Default: the spec's, else ros.")] = None,
-    backend: Annotated[str, typer.Option(help="local or ray.")] = "local",
+    backend: Annotated[
+        Backend, typer.Option(help="local: worker processes on this machine; ray: Ray actors (--address).")
+    ] = Backend.local,
     address: Annotated[str | None, typer.Option(help="Ray cluster address; none: a private local Ray.")] = None,
     out: Annotated[Path | None, typer.Option(help="Sweep folder; default: bags/sweeps/<spec name>.")] = None,
     retry_errors: Annotated[bool, typer.Option(help="Run episodes recorded as error again.")] = False,
@@ -419,9 +475,7 @@ def sweep(
     """Run a latency sweep (docs/guide/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
     from lq_ros.run import sweep as sw
 
-    if backend not in sw.BACKENDS:
-        raise typer.BadParameter(f"--backend must be one of {', '.join(sw.BACKENDS)}, got {backend!r}")
-    if address and backend != "ray":
+    if address and backend is not Backend.ray:
         raise typer.BadParameter("--address is the Ray cluster address: use it with --backend ray")
     if workers is not None and workers < 1:
         raise typer.BadParameter(f"--workers must be >= 1, got {workers}")
@@ -434,7 +488,7 @@ def sweep(
     try:
         summary = _run_sweep_with_progress(
             sweep_spec, out, workers=workers, transport=transport.value if transport else None,
-            backend=backend, address=address, retry_errors=retry_errors,
+            backend=backend.value, address=address, retry_errors=retry_errors,
         )  # fmt: skip
     except (sw.RayConnectError, sw.StoreError) as exc:  # a wrong --address or token; --out busy or unusable
         _refuse(str(exc))
@@ -448,12 +502,19 @@ def sweep(
         raise typer.Exit(1)
 
 
-#: ``lq eval`` flag -> the spec key it sets (one set of names; ``tests/test_cli_eval.py`` checks the mapping).
-EVAL_FLAG_TO_SPEC_KEY = {
-    "--policy": "policies[].name", "--policy-arg": "policies[].args", "--suite": "suites", "--tasks": "tasks",
-    "--inits": "inits", "--latencies": "latencies_s", "--modes": "modes", "--merge": "modes.async.merge",
-    "--replan-steps": "modes.sync.replan_steps", "--seeds": "seeds", "--transport": "transport",
-}  # fmt: skip
+#: ``lq eval``'s flags that set what runs, each named as the spec key it sets or mapped to it in
+#: lq_ros.run.sweep.spec.FLAG_TO_SPEC_KEY (tests/test_cli_eval.py checks both). --workers and --out say how it runs.
+EVAL_SPEC_FLAGS = (
+    "--policy", "--policy-arg", "--suite", "--tasks", "--inits", "--latencies", "--modes", "--merge", "--replan-steps",
+    "--seeds", "--camera-size", "--max-steps", "--transport",
+)  # fmt: skip
+#: The file ``lq eval`` writes the spec it runs to, in OUT (``lq sweep OUT/eval_spec.yaml --out OUT`` runs it again).
+EVAL_SPEC_FILE = "eval_spec.yaml"
+#: Columns of the report's summary table (lq_ros.report.tables.summary_table) that ``lq eval`` prints.
+EVAL_COLUMNS = (
+    "mode", "latency", "n", "errors", "success %", "success 95% (tasks)", "time s (succ.)", "jerk m/s³ (succ.)",
+    "EE-Osc mm (succ.)", "J/step (succ.)",
+)  # fmt: skip
 
 
 def _csv(text: str, flag: str, kind=str) -> list:
@@ -462,76 +523,142 @@ def _csv(text: str, flag: str, kind=str) -> list:
     try:
         return [kind(t) for t in items]
     except ValueError:
-        _refuse(f"{flag}: expected a comma-separated list of {kind.__name__}, got {text!r}")
+        _refuse(f"{flag}: expected a comma-separated list of {kind.__name__}s, got {text!r}")
     return []
+
+
+def _number_or_text(text: str) -> float | str:
+    """A latency as YAML should hold it: seconds as a number, a distribution as its text."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str, latencies: list, modes: list[str],
+              merge: str, replan_steps: int, seeds: list[int], camera_size: int, max_steps: int, transport: str,
+              name: str) -> dict:  # fmt: skip
+    """The sweep spec ``lq eval`` runs: its flags under their spec keys (docs/guide/sweeps.md)."""
+    protocol = {
+        "sync": {"replan_steps": replan_steps, "hold": "stop"},
+        "async": {"merge": merge, "request_threshold": -1},
+    }
+    raw = {
+        "name": name, "transport": transport, "suite": suite, "tasks": tasks, "inits": inits,
+        "policies": [{"name": policy, "args": policy_args} if policy_args else policy], "latencies_s": latencies,
+        "modes": {m: protocol[m] for m in modes}, "seeds": seeds,
+    }  # fmt: skip
+    raw |= {"camera_size": camera_size} if camera_size else {}
+    return raw | ({"max_steps": max_steps} if max_steps else {})
 
 
 @app.command(name="eval")
 def eval_(
-    policy: Annotated[str, typer.Option(help="Registry name or package.module:Class.")],
-    out: Annotated[Path, typer.Option(help="Folder for the spec, the episodes and the report (resumable).")],
-    policy_arg: Annotated[list[str], typer.Option(help="Policy parameter key=value (repeatable).")] = [],  # noqa: B006
-    suite: Annotated[str, typer.Option(help="LIBERO suite.")] = "libero_spatial",
-    tasks: Annotated[str, typer.Option(help="Task ids: all, or ranges like 0-9 or 0-4,7.")] = "all",
-    inits: Annotated[str, typer.Option(help="Init states: all (0-49, the paper's), or ranges like 0-9.")] = "all",
+    policy: Annotated[str, typer.Option(help=POLICY_HELP)],
+    out: Annotated[
+        Path,
+        typer.Option(help="Folder for the spec, the episodes and the report. Run the same command again to resume."),
+    ],
+    policy_arg: Annotated[list[str], typer.Option(help=POLICY_ARG_HELP, metavar="KEY=VALUE")] = [],  # noqa: B006
+    suite: Annotated[
+        str, typer.Option(help="LIBERO suite: libero_spatial, libero_object, libero_goal, libero_10, libero_90.")
+    ] = "libero_spatial",
+    tasks: Annotated[str, typer.Option(help="Task indices: all, or ranges and indices like 0-9 or 0-4,7.")] = "all",
+    inits: Annotated[
+        str, typer.Option(help="Init states: all (0-49, the paper's 50 per task), or ranges like 0-9.")
+    ] = "all",
     latencies: Annotated[
-        str, typer.Option(help="Δt_sim list in s (or distributions), e.g. 0,0.1,0.2.")
+        str,
+        typer.Option(
+            help="Injected latencies Δt_sim, comma-separated: seconds (whole 0.05 s ticks) or distributions "
+            "(uniform:0.1:0.3). Spec key: latencies_s."
+        ),
     ] = "0,0.1,0.2,0.4",
-    modes: Annotated[str, typer.Option(help="sync, async or both: sync,async.")] = "sync,async",
-    merge: Annotated[str, typer.Option(help="async merge strategy (docs/guide/async.md).")] = "replace",
-    replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = 5,
-    seeds: Annotated[str, typer.Option(help="Seeds, replications of every episode: e.g. 7 or 7,8,9.")] = "7",
-    workers: Annotated[int | None, typer.Option(help="Parallel workers; default: CPU cores.")] = None,
+    modes: Annotated[
+        str, typer.Option(help="Protocols, comma-separated: sync, async, or sync,async (both, paired).")
+    ] = "sync,async",
+    merge: Annotated[Merge, typer.Option(help=MERGE_HELP, metavar="STRATEGY")] = Merge.REPLACE,
+    replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed before the next.")] = 5,
+    seeds: Annotated[str, typer.Option(help="Seeds, comma-separated: every episode once per seed (7 or 7,8,9).")] = "7",
+    camera_size: Annotated[
+        int,
+        typer.Option(help=f"Camera render size, px; 0: the policy's reference size, else {DEFAULT_CAMERA_SIZE_PX}."),
+    ] = 0,
+    max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's (the paper's).")] = 0,
+    workers: Annotated[int | None, typer.Option(help="Episodes run in parallel; default: CPU cores.")] = None,
     transport: Annotated[
-        Transport, typer.Option(help="inprocess (fastest, same episodes) or ros.")
+        Transport,
+        typer.Option(
+            help="inprocess: one process per worker, no ROS (fastest; the same episodes); ros: the ROS nodes."
+        ),
     ] = Transport.inprocess,
 ) -> None:
-    """The paper's protocol for one policy, without a YAML file: tasks x init states x latencies x protocols.
+    """Evaluate one policy with the paper's protocol, without a YAML file: tasks x init states x latencies x
+    protocols (sync and async), paired.
 
-    Writes the spec it ran to OUT/eval_spec.yaml, runs the resumable sweep (run it again after any stop), writes
-    the report to OUT/report and prints the headline table. Flags map to spec keys (docs/guide/sweeps.md):
-    --latencies is latencies_s, --policy-arg is a policy's args."""
+    Writes the spec it runs to OUT/eval_spec.yaml, runs it as a resumable sweep with a progress bar (run the same
+    command again after any stop: finished episodes are skipped), writes the report (OUT/report: report.html,
+    report.md, figures, CSV tables) and prints the success table. Exits 1 if any episode was a run error; their
+    reasons are printed under the table.
+
+    Every flag is a spec key (docs/guide/sweeps.md): --suite, --tasks, --inits, --seeds, --modes, --camera-size,
+    --max-steps and --transport by the same name; --latencies is latencies_s, --policy and --policy-arg are
+    policies: [{name: P, args: {key: value}}], --merge is modes: {async: {merge: M}}, --replan-steps is
+    modes: {sync: {replan_steps: K}}.
+    """
     import yaml
 
     from lq_ros.report.sweep_report import build_report
     from lq_ros.run import sweep as sw
+    from lq_ros.run.validation import did_you_mean
 
+    if workers is not None and workers < 1:
+        _refuse(f"--workers must be >= 1, got {workers}")
     mode_list = _csv(modes, "--modes")
-    if not mode_list or set(mode_list) - {"sync", "async"}:
-        _refuse(f"--modes: expected sync, async or sync,async, got {modes!r}")
-    latency_list = [float(v) if v.replace(".", "", 1).isdigit() else v for v in _csv(latencies, "--latencies")]
-    proto = {"sync": {"replan_steps": replan_steps, "hold": "stop"}, "async": {"request_threshold": -1, "merge": merge}}
-    raw = {
-        "name": out.name or "eval", "transport": transport.value,
-        "suites": {suite: {"tasks": tasks, "inits": inits}}, "seeds": _csv(seeds, "--seeds", int),
-        "policies": [{"name": policy, "args": _parse_policy_args(policy_arg)}], "latencies_s": latency_list,
-        "modes": {m: proto[m] for m in mode_list},
-    }  # fmt: skip
+    bad = [m for m in mode_list if m not in ("sync", "async")]
+    if not mode_list or bad or len(set(mode_list)) != len(mode_list):
+        hint = did_you_mean(bad[0], ("sync", "async")) if bad else ""
+        _refuse(f"--modes {modes!r}: expected sync, async or sync,async{hint}")
+    raw = eval_spec(
+        policy, _parse_policy_args(policy_arg), suite, tasks, inits,
+        [_number_or_text(v) for v in _csv(latencies, "--latencies")], mode_list, merge.value, replan_steps,
+        _csv(seeds, "--seeds", int), camera_size, max_steps, transport.value, out.resolve().name or "eval",
+    )  # fmt: skip
     try:
         spec = sw.expand_spec(raw, default_name="eval")
         sw.check_policies(spec.configs)
     except sw.SpecError as exc:
         _refuse(str(exc))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "eval_spec.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
-    console.print(f"{len(spec.configs)} episodes; the spec: {out / 'eval_spec.yaml'}", soft_wrap=True)
+    (out / EVAL_SPEC_FILE).write_text(yaml.safe_dump(raw, sort_keys=False, allow_unicode=True))
+    console.print(f"{len(spec.configs)} episodes; the spec: {out / EVAL_SPEC_FILE}", highlight=False)
     try:
         summary = _run_sweep_with_progress(spec, out, workers=workers, transport=transport.value)
     except (sw.RayConnectError, sw.StoreError) as exc:
         _refuse(str(exc))
-    result = build_report(out)
-    table = Table(title=f"{policy} on {suite}: success % [task-clustered 95%] (n episodes)")
-    for column in ("mode", "latency", "success", "n", "errors"):
-        table.add_column(column)
-    for _, r in result.pooled.sort_values(["mode", "latency_s"]).iterrows():
-        lo, hi = r.get("success_cluster_ci_lo"), r.get("success_cluster_ci_hi")
-        ci = f" [{100 * lo:.0f}, {100 * hi:.0f}]" if lo == lo and hi == hi else ""
-        rate = "–" if r["success_rate"] != r["success_rate"] else f"{100 * r['success_rate']:.0f}{ci}"
-        table.add_row(str(r["mode"]), str(r["latency_label"]), rate, str(int(r["n"])), str(int(r["n_error"])))
-    Console().print(table)
-    console.print(f"report: {result.files['report.html']}", soft_wrap=True)
+    with contextlib.redirect_stdout(sys.stderr):
+        result = build_report(out)
+    print_eval_table(result, f"{policy} on {suite}")
+    print_error_reasons(result.episodes.to_dict("records"))
+    console.print(
+        f"report: {result.files['report.html']}  (markdown: {result.files['report.md'].name})", highlight=False
+    )
     if summary.counts["error"]:
         raise typer.Exit(1)
+
+
+def print_eval_table(result, title: str) -> None:
+    """The report's summary table, the columns of EVAL_COLUMNS, on stdout: each metric with its 95% interval."""
+    from lq_ros.report.tables import summary_table
+
+    summary = summary_table(result.pooled)
+    columns = [c for c in EVAL_COLUMNS if c in summary.columns]
+    table = Table(title=title, caption="metrics (succ.): over successful episodes; [95% interval]")
+    for column in columns:
+        table.add_column(column, justify="left" if column in ("mode", "latency") else "right")
+    for _, r in summary.iterrows():
+        table.add_row(*(str(r[c]) for c in columns))
+    stdout_console().print(table)
 
 
 def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
@@ -697,6 +824,14 @@ def main() -> int:
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", soft_wrap=True, highlight=False)
         return 2
+    _importable_current_directory()
+    if not sys.stdout.isatty() and "TERMINAL_WIDTH" not in os.environ:
+        import typer.rich_utils
+
+        typer.rich_utils.MAX_WIDTH = PIPED_WIDTH  # --help piped: no option name cut short
+    from lq_ros.run.quiet import quiet_simulator_banners
+
+    quiet_simulator_banners()
     try:
         return app(standalone_mode=False) or 0
     except exceptions.NoArgsIsHelpError as exc:
@@ -706,7 +841,7 @@ def main() -> int:
         from rich.markup import escape
 
         where = exc.ctx.command_path if exc.ctx is not None else "lq"
-        message = " ".join(exc.format_message().split())
+        message = _choice_hint(" ".join(exc.format_message().split()))
         console.print(f"[red]error:[/red] {escape(f'{where}: {message} (see {where} --help)')}", soft_wrap=True,
                       highlight=False)  # fmt: skip
         return exc.exit_code
@@ -716,6 +851,27 @@ def main() -> int:
     except typer.Abort:
         console.print("Aborted!")
         return 1
+
+
+def _importable_current_directory() -> None:
+    """``--policy module:Class`` finds a module in the current directory, as ``python -m`` would (after installed
+    packages, so a file there never hides one lq itself uses); PYTHONSAFEPATH / ``python -P`` turn it off."""
+    if not sys.flags.safe_path and os.getcwd() not in sys.path and "" not in sys.path:
+        sys.path.append(os.getcwd())
+
+
+def _choice_hint(message: str) -> str:
+    """Click's message for a value outside an option's choices, plainer and with the closest choice:
+    "Invalid value for '--mode': 'asynch' is not one of 'sync', 'async'. (did you mean 'async'?)"."""
+    import re
+
+    from lq_ros.run.validation import did_you_mean
+
+    message = message.replace("Value error, ", "")
+    found = re.search(r"'([^']*)' is not one of ((?:'[^']*'(?:, )?)+)", message)
+    if found:
+        message += did_you_mean(found.group(1), re.findall(r"'([^']*)'", found.group(2)))
+    return message
 
 
 def entry() -> None:

@@ -3,9 +3,13 @@ exit survive leaving without the interpreter's teardown; a process that loaded R
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -49,3 +53,29 @@ def test_a_process_that_loaded_ros_exits_the_normal_way(tmp_path):
     assert (proc.returncode, proc.stdout) == (3, "row\n")
     assert (tmp_path / "atexit").read_text() == "ran"
     assert (tmp_path / "teardown").read_text() == "ran", "DDS's destructors must run: the normal exit"
+
+
+LQ = Path(sys.executable).parent / "lq"  # the installed command: its own folder, not the current one, on sys.path
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "my_policy.py"
+
+
+@pytest.mark.sim
+def test_a_policy_module_in_the_current_directory_is_importable(tmp_path):
+    """``lq run --policy my_policy:MyPolicy`` from the folder that holds my_policy.py, as ``python -m`` would."""
+    shutil.copy(EXAMPLE, tmp_path / "my_policy.py")
+    args = [str(LQ), "run", "--policy", "my_policy:MyPolicy", "--policy-arg", "lift_m=0.1", "--transport",
+            "inprocess", "--max-steps", "5", "--json", "--out", "bags"]  # fmt: skip
+    proc = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    row = json.loads(proc.stdout)  # stdout holds the row alone: LIBERO's start-up lines went to stderr
+    assert row["status"] == "failure" and row["completion_steps"] == 5
+    assert (tmp_path / "bags").is_dir()
+
+
+def test_pythonsafepath_keeps_the_current_directory_out(tmp_path):
+    shutil.copy(EXAMPLE, tmp_path / "my_policy.py")
+    env = {**os.environ, "PYTHONSAFEPATH": "1"}
+    proc = subprocess.run([str(LQ), "run", "--policy", "my_policy:MyPolicy", "--transport", "inprocess"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 2 and "cannot import module 'my_policy'" in proc.stderr
+    assert not (tmp_path / "bags").exists()

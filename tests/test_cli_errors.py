@@ -170,3 +170,102 @@ def test_lq_score_refuses_a_bad_option_before_scoring(tmp_path, case):
     write_episode_bag(root / "ep2", n_ticks=20)
     assert_refused(lq("score", str(root), *args), *expected)
     assert not (root / "episodes.csv").exists()  # nothing was scored or written
+
+
+# -- enumerated options: the choices in --help and in the refusal, with the closest one -------------------------
+
+CHOICE_CASES = {
+    # command, option, a typo, the choices, the suggestion
+    "mode": ("run", "--mode", "asynch", ["'sync', 'async'"], "did you mean 'async'?"),
+    "hold": ("run", "--hold", "repaet", ["'stop', 'repeat'"], "did you mean 'repeat'?"),
+    "merge": ("run", "--merge", "rtx", ["'replace'", "'temporal_ensemble'", "'rtc_hard'"], "did you mean 'rtc'?"),
+    "clock": ("run", "--clock", "realtim", ["'lockstep', 'realtime'"], "did you mean 'realtime'?"),
+    "transport": ("run", "--transport", "inproc", ["'ros', 'inprocess'"], "did you mean 'inprocess'?"),
+    "budget": ("run", "--budget-counts", "actions", ["'all', 'action'"], "did you mean 'action'?"),
+    "rounding": ("run", "--latency-rounding", "nearst", ["'exact', 'nearest'"], "did you mean 'nearest'?"),
+    "backend": ("sweep", "--backend", "rey", ["'local', 'ray'"], "did you mean 'ray'?"),
+    "rate": ("score", "--rate", "ctrl", ["'auto', 'control', 'physics', 'native'"], "did you mean 'control'?"),
+    "energy rate": ("score", "--energy-rate", "substeps", ["'substep'", "'native'"], "did you mean 'substep'?"),
+}
+
+
+@pytest.mark.parametrize("case", list(CHOICE_CASES))
+def test_an_enumerated_option_lists_its_choices_in_help_and_refusal(tmp_path, case):
+    command, option, typo, choices, hint = CHOICE_CASES[case]
+    before = {"sweep": [str(tmp_path / "s.yaml")], "score": [str(tmp_path)]}.get(command, [])
+    line = assert_refused(lq(command, *before, option, typo), f"Invalid value for '{option}': '{typo}' is not one of",
+                          *choices, hint)  # fmt: skip
+    assert "Value error" not in line
+    help_text = " ".join(lq(command, "--help").stdout.replace("│", " ").split())
+    bare = [c.replace("'", "").replace(", ", "|") for c in choices]
+    if option == "--merge":  # too many for the option's column: the help text names them
+        assert "replace, latest_only, weighted_average, average, conservative, temporal_ensemble, rtc, rtc_hard" in (
+            help_text
+        )
+    else:
+        assert any(f"<{b}" in help_text or f"{b}>" in help_text for b in bare), (option, bare)
+
+
+def test_the_literal_choices_are_the_modules_own():
+    from lq_ros import cli
+    from lq_ros.run.sweep import BACKENDS
+    from lq_ros.scoring.bag_scorer import ENERGY_RATES, TRAJECTORY_RATES
+
+    assert tuple(b.value for b in cli.Backend) == BACKENDS
+    assert tuple(r.value for r in cli.TrajectoryRate) == TRAJECTORY_RATES
+    assert tuple(r.value for r in cli.EnergyRate) == ENERGY_RATES
+
+
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["--suite", "libero_spatail"], ["unknown suite 'libero_spatail' (did you mean 'libero_spatial'?)"]),
+        (["--policy", "scriptd"], ["unknown policy 'scriptd' (did you mean 'scripted'?)", "module:Class"]),
+        (["--policy", "openpie"], ["(did you mean 'openpi'?)"]),
+    ],
+)
+def test_a_mistyped_suite_or_policy_gets_the_closest_name(tmp_path, args, expected):
+    assert_refused(lq("run", *args, "--transport", "inprocess", "--out", str(tmp_path / "b")), *expected)
+    assert not (tmp_path / "b").exists()
+
+
+def test_a_mistyped_spec_key_policy_or_suite_gets_the_closest_name(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    for change, hint in (({"sedes": [1]}, "did you mean 'seeds'?"), ({"policies": ["sien"]}, "did you mean 'sine'?"),
+                         ({"suite": "libero_gaol"}, "did you mean 'libero_goal'?")):  # fmt: skip
+        spec.write_text(yaml.safe_dump({**GOOD_SPEC, **change}))
+        assert_refused(lq("sweep", str(spec), "--out", str(tmp_path / "o")), hint)
+
+
+# -- what lq prints: results on stdout, nothing else; reasons under the table; paths whole ----------------------
+
+
+@pytest.mark.sim
+def test_a_run_error_prints_its_reason_under_the_table_and_stdout_holds_only_the_table(tmp_path):
+    out = tmp_path / ("a_long_folder_name_" * 6)  # longer than any terminal: a piped path is never wrapped
+    result = lq("run", "--policy", "faulty", "--policy-arg", "fault=raise", "--policy-arg", "at_requests=[1]",
+                "--max-steps", "5", "--transport", "inprocess", "--out", str(out))  # fmt: skip
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert " error │" in result.stdout and "constant" in result.stdout  # the row, no column cut short
+    assert "[info]" not in result.stdout and "Applying task order" not in result.stdout
+    (bag,) = [p for p in out.iterdir() if p.is_dir() and not p.name.endswith("logs")]
+    lines = result.stderr.splitlines()
+    assert f"error: {bag.name}: PolicyError: injected failure on request 1" in lines
+    assert f"bag: {bag}" in lines  # one line, whole
+    assert not any("macro file" in line for line in lines)  # robosuite's private-macro advice is silenced
+
+
+@pytest.mark.sim
+def test_lq_score_of_a_folder_with_one_bag_writes_the_aggregates(tmp_path):
+    from tests.scoring.test_bag_scorer import write_episode_bag
+
+    root = tmp_path / "bags"
+    write_episode_bag(root / "ep", n_ticks=20)
+    folder = lq("score", str(root))
+    assert folder.returncode == 0, folder.stderr[-2000:]
+    assert (root / "episodes.csv").exists() and (root / "aggregates.csv").exists()
+    assert "| policy" in folder.stdout or "policy |" in folder.stdout  # the markdown aggregate table
+    (root / "episodes.csv").unlink()
+    (root / "aggregates.csv").unlink()
+    one = lq("score", str(root / "ep"))  # the bag itself: its row, no tables
+    assert one.returncode == 0 and "steps" in one.stdout and not (root / "episodes.csv").exists()

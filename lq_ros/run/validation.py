@@ -7,6 +7,7 @@ values; the CLI prints it and exits with code 2, with no traceback and no bag.
 from __future__ import annotations
 
 import contextlib
+import difflib
 import inspect
 import sys
 import types
@@ -20,6 +21,20 @@ class InputError(ValueError):
     """A mistake in the user's input; the message is one line with the valid values."""
 
 
+def did_you_mean(value: object, choices) -> str:
+    """`` (did you mean 'x'?)`` for the choice closest to a mistyped ``value``, or "" when none is close."""
+    close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def check_choice(what: str, value: object, choices) -> None:
+    """``value`` is one of ``choices``, else one line naming them all (and the closest)."""
+    if value not in choices:
+        raise InputError(
+            f"{what}: {value!r} is not one of {', '.join(map(str, choices))}{did_you_mean(value, choices)}"
+        )
+
+
 # -- suites, tasks, init states -----------------------------------------------------------------------------
 
 
@@ -31,7 +46,9 @@ def num_tasks(suite: str) -> int:
 
 def check_suite(suite: str) -> None:
     if suite not in STEP_BUDGETS:
-        raise InputError(f"unknown suite {suite!r}; known: {', '.join(STEP_BUDGETS)}")
+        raise InputError(
+            f"unknown suite {suite!r}{did_you_mean(suite, STEP_BUDGETS)}; known: {', '.join(STEP_BUDGETS)}"
+        )
 
 
 def check_task(suite: str, task: int) -> None:
@@ -55,12 +72,17 @@ def policy_class(name: str) -> type:
     subclass of ``lq_ros.policies.base.Policy`` is accepted: any other importable callable (``subprocess:Popen``)
     is refused here, before anything calls it (``lq_ros.policies.policy_class``'s refusal as an InputError).
     """
+    from lq_ros.policies import REGISTRY
     from lq_ros.policies import policy_class as resolve
 
     try:
         return resolve(name)
     except (ImportError, ValueError) as exc:
-        raise InputError(str(exc)) from None
+        message = str(exc)
+        hint = did_you_mean(name, REGISTRY) if isinstance(name, str) and ":" not in name else ""
+        if hint and message.startswith(f"unknown policy {name!r}"):
+            message = message.replace(f"unknown policy {name!r}", f"unknown policy {name!r}{hint}", 1)
+        raise InputError(message) from None
 
 
 def policy_arguments(cls: type) -> tuple[dict[str, inspect.Parameter], dict[str, object], bool]:

@@ -18,7 +18,7 @@ from lq_ros.core.redact import redact_value
 from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, PROTOCOL_FIELDS, RunConfig
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 from lq_ros.run.episode import TRANSPORTS
-from lq_ros.run.validation import num_tasks
+from lq_ros.run.validation import did_you_mean, num_tasks
 
 MODES = ("sync", "async")
 #: The most episodes one spec may expand to (counted before anything is expanded); split larger sweeps.
@@ -47,6 +47,20 @@ SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
     "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budget_counts",
     "clock", "robot", "parts",
+}  # fmt: skip
+#: Every ``lq run`` / ``lq eval`` flag that sets an episode, and the spec key that sets the same thing: one set of
+#: names, plural where a spec takes a list. ``modes.<mode>.<key>``: a protocol parameter under its mode;
+#: ``policies[].name`` / ``policies[].args``: an entry of ``policies``. tests/test_cli_eval.py checks
+#: that every flag of both commands is here (or is no spec setting) and that every key is one a spec takes.
+FLAG_TO_SPEC_KEY = {
+    "--suite": "suite", "--task": "tasks", "--tasks": "tasks", "--init": "inits", "--inits": "inits",
+    "--seed": "seeds", "--seeds": "seeds", "--policy": "policies[].name", "--policy-arg": "policies[].args",
+    "--mode": "modes", "--modes": "modes", "--latency": "latencies_s", "--latencies": "latencies_s",
+    "--latency-rounding": "latency_rounding", "--replan-steps": "modes.sync.replan_steps", "--hold": "modes.sync.hold",
+    "--request-threshold": "modes.async.request_threshold", "--request-slack": "modes.async.request_slack",
+    "--merge": "modes.async.merge", "--camera-size": "camera_size", "--physics-rate": "physics_rate",
+    "--max-steps": "max_steps", "--budget-counts": "budget_counts", "--clock": "clock", "--robot": "robot",
+    "--transport": "transport", "--timeout": "timeout_s",
 }  # fmt: skip
 #: Keys that apply to the whole sweep: a ``parts`` entry may not set them.
 SWEEP_WIDE_KEYS = {"name", "transport", "timeout_s", "clock", "robot", "parts"}
@@ -141,11 +155,34 @@ def _parts(raw: dict) -> list[dict] | None:
             raise SpecError(f"parts[{i}]: {sorted(wide)} apply to the whole sweep; set them at the top level")
         unknown = set(part) - SPEC_KEYS
         if unknown:
-            raise SpecError(f"parts[{i}]: unknown key(s) {sorted(unknown, key=str)}; known: "
+            raise SpecError(f"parts[{i}]: unknown key(s) {sorted(unknown, key=str)}{_key_hint(unknown)}; known: "
                             f"{sorted(SPEC_KEYS - SWEEP_WIDE_KEYS)}")  # fmt: skip
         replaced = _SHORTHAND_KEYS if "suites" in part else {"suites"} if set(part) & _SHORTHAND_KEYS else set()
         merged.append({**{k: v for k, v in base.items() if k not in replaced}, **part})
     return merged
+
+
+def _key_hint(unknown: set) -> str:
+    """`` (did you mean 'latencies_s'?)``: the spec key of the first unknown key when that is a flag's name
+    (``latency``, ``policy-arg``: FLAG_TO_SPEC_KEY), else the closest spec key."""
+    key = str(sorted(unknown, key=str)[0])
+    flag = "--" + key.lstrip("-").replace("_", "-")
+    if flag in FLAG_TO_SPEC_KEY:
+        return f" (did you mean {spec_key_example(FLAG_TO_SPEC_KEY[flag])}?)"
+    return did_you_mean(key, sorted(SPEC_KEYS))
+
+
+def spec_key_example(path: str) -> str:
+    """A FLAG_TO_SPEC_KEY path as the YAML that sets it: ``modes.sync.hold`` -> ``modes: {sync: {hold: ...}}``, a
+    top-level key quoted (``'seeds'``)."""
+    if path == "policies[].name":
+        return "policies: [NAME]"
+    if path == "policies[].args":
+        return "policies: [{name: NAME, args: {KEY: VALUE}}]"
+    if "." not in path:
+        return repr(path)
+    head, *rest = path.split(".")
+    return f"{head}: " + "".join("{" + part + ": " for part in rest) + "..." + "}" * len(rest)
 
 
 def _short(value) -> str:
@@ -237,7 +274,9 @@ def _suites(raw: dict) -> list[tuple[str, list[int], list[int]]]:
     for suite, body in entries.items():
         where = f"suites.{suite}"
         if suite not in STEP_BUDGETS:
-            raise SpecError(f"{where}: unknown suite; known: {', '.join(STEP_BUDGETS)}")
+            raise SpecError(
+                f"{where}: unknown suite{did_you_mean(suite, STEP_BUDGETS)}; known: {', '.join(STEP_BUDGETS)}"
+            )
         body = body or {}
         if not isinstance(body, dict) or set(body) - {"tasks", "inits"}:
             raise SpecError(f"{where}: expected keys 'tasks' and 'inits', got {body!r}")
@@ -273,9 +312,9 @@ def _policies(raw: dict) -> list[tuple[str, dict]]:
                 f"{where}: expected a policy name or {{name: ..., args: {{...}}}}, got {redact_value(entry)!r}"
             )
         if not isinstance(name, str) or (name not in REGISTRY and not _POLICY_PATH.fullmatch(name)):
-            raise SpecError(
-                f"{where}: unknown policy {name!r}; known: {', '.join(sorted(REGISTRY))} or 'package.module:Class'"
-            )
+            hint = did_you_mean(name, sorted(REGISTRY)) if isinstance(name, str) else ""
+            known = f"{', '.join(sorted(REGISTRY))} or 'package.module:Class'"
+            raise SpecError(f"{where}: unknown policy {name!r}{hint}; known: {known}")
         if not isinstance(args, dict):
             raise SpecError(f"{where}.args: expected a mapping, got {args!r}")
         _finite_args(args, f"{where}.args")
@@ -367,7 +406,7 @@ def _modes(raw: dict) -> list[dict]:
     out = []
     for mode, params in modes.items():
         if mode not in MODES:
-            raise SpecError(f"modes: unknown mode {mode!r}; known: {', '.join(MODES)}")
+            raise SpecError(f"modes: unknown mode {mode!r}{did_you_mean(mode, MODES)}; known: {', '.join(MODES)}")
         params = params or {}
         if not isinstance(params, dict) or set(params) - set(PROTOCOL_KEYS):
             raise SpecError(f"modes.{mode}: expected a mapping with keys among {PROTOCOL_KEYS}, got {params!r}")
@@ -386,7 +425,7 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
         raise SpecError(f"a sweep spec is a YAML mapping, got {type(raw).__name__}")
     unknown = set(raw) - SPEC_KEYS
     if unknown:
-        raise SpecError(f"unknown key(s) {sorted(unknown, key=str)}; known: {sorted(SPEC_KEYS)}")
+        raise SpecError(f"unknown key(s) {sorted(unknown, key=str)}{_key_hint(unknown)}; known: {sorted(SPEC_KEYS)}")
     total = count_episodes(raw)  # before anything is expanded: a spec of a few KB can multiply to 10^9
     if total > MAX_EPISODES:
         raise SpecError(
