@@ -29,7 +29,8 @@ $(STAMP)/wheels: requirements.lock
 	@mkdir -p $(STAMP) && touch $@
 
 # Custom messages: rclpy classes generated from msg_schemas (the same files rosbags reads).
-$(STAMP)/msgs: $(STAMP)/wheels $(MSG_PKG)/CMakeLists.txt $(MSG_PKG)/package.xml $(wildcard $(MSG_PKG)/msg/*.msg)
+$(STAMP)/msgs: $(STAMP)/wheels $(MSG_PKG)/CMakeLists.txt $(MSG_PKG)/package.xml $(wildcard $(MSG_PKG)/msg/*.msg) \
+  $(wildcard $(MSG_PKG)/srv/*.srv)
 	rm -rf build/lq_msgs && mkdir -p build
 	source $(VENV)/bin/activate && export AMENT_PREFIX_PATH=$$VIRTUAL_ENV && \
 	cmake -S $(MSG_PKG) -B build/lq_msgs -G Ninja -DCMAKE_PREFIX_PATH=$$VIRTUAL_ENV \
@@ -39,7 +40,7 @@ $(STAMP)/msgs: $(STAMP)/wheels $(MSG_PKG)/CMakeLists.txt $(MSG_PKG)/package.xml 
 	  cmake --install build/lq_msgs >> build/lq_msgs.log 2>&1 || (cat build/lq_msgs.log; false)
 	@touch $@
 
-$(STAMP)/package: $(STAMP)/msgs setup.py package.xml
+$(STAMP)/package: $(STAMP)/msgs setup.py setup.cfg package.xml
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	@touch $@
 

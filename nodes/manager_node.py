@@ -18,22 +18,38 @@ leaves no Fast DDS file behind) sends it one JSON object per line on stdin and r
   ``{"event": "stopped"}``.
 - ``{"op": "shutdown", "skip": [...]}``: the shutdown transition for every node (they exit), then this
   process exits. Answers ``{"event": "shutdown"}``.
+
+The launcher's pipe is read only when stdin is one (a manager started by hand, ``ros2 run lq_ros manager_node``,
+serves its service alone). Beside it, the manager answers ``~/manage_nodes`` (``/lq_manager/manage_nodes``,
+lq_msgs/srv/ManageNodes: nav2's ManageLifecycleNodes request) for anyone in the ROS domain: STARTUP, PAUSE,
+RESUME, RESET, SHUTDOWN, CONFIGURE, CLEANUP, each over every node of ``node_names``. Both sources are served one
+operation at a time, in the order they arrive. An episode that STARTUP or RESUME started is ended like the
+launcher's: once the recorder has deactivated itself, the others are deactivated. A PAUSE, RESET or SHUTDOWN
+during the launcher's episode ends it (the launcher hears ``{"event": "done"}`` and scores what was recorded).
+
+The service lives on a node of its own, ``lq_manager`` (with the ``node_names`` parameter), spun in a thread: its
+callback waits for the operation while the calls to the managed nodes are made and spun by a second, hidden node
+(``_lq_manager_calls``) in the main thread.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
+import stat
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 
 import rclpy
 from lifecycle_msgs.msg import Transition, TransitionEvent
 from lifecycle_msgs.srv import ChangeState, GetState
+from lq_msgs.srv import ManageNodes
 from rcl_interfaces.srv import SetParameters
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -47,6 +63,25 @@ SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
 #: Wall seconds between two looks at the recorder's state during an episode when no transition event of it was
 #: heard (a missed event costs at most this); between get_state attempts.
 POLL_PERIOD_S, RETRY_S = 0.5, 2.0
+#: Wall seconds a manage_nodes call waits for its operation (queued behind others, configuring every node).
+MANAGE_ANSWER_S = 3600.0
+#: The node that does the calls to the managed nodes: hidden (a leading underscore), the service node is the face.
+CALLS_NODE = "_" + NODE_NAMES["manager"] + "_calls"
+#: manage_nodes command -> its name (lq_msgs/srv/ManageNodes; nav2's ManageLifecycleNodes values).
+COMMANDS = {
+    ManageNodes.Request.STARTUP: "startup", ManageNodes.Request.PAUSE: "pause", ManageNodes.Request.RESUME: "resume",
+    ManageNodes.Request.RESET: "reset", ManageNodes.Request.SHUTDOWN: "shutdown",
+    ManageNodes.Request.CONFIGURE: "configure", ManageNodes.Request.CLEANUP: "cleanup",
+}  # fmt: skip
+
+
+@dataclass
+class ServiceCall:
+    """A manage_nodes request, answered by the main loop: (success, message) in ``result`` once ``done`` is set."""
+
+    command: int
+    done: threading.Event = field(default_factory=threading.Event)
+    result: tuple[bool, str] = (False, "not served")
 
 
 class TransitionFailed(Exception):
@@ -55,14 +90,20 @@ class TransitionFailed(Exception):
         self.node, self.transition, self.reason = node, transition, reason
 
 
+def managed_node_names(node: Node) -> tuple[str, ...]:
+    """The ``node_names`` parameter of ``node`` (declared here): the managed nodes in activation order."""
+    node.declare_parameter("node_names", list(stack_node_names(robot=False)))
+    names = tuple(node.get_parameter("node_names").value)
+    if RECORDER not in names:
+        raise ValueError(f"node_names must include the recorder {RECORDER!r}, got {list(names)}")
+    return names
+
+
 class LifecycleManager(Node):
-    def __init__(self) -> None:
-        super().__init__(NODE_NAMES["manager"])
+    def __init__(self, node_names: tuple[str, ...]) -> None:
+        super().__init__(CALLS_NODE)
         # The managed nodes, in activation order (deactivation: the reverse).
-        self.declare_parameter("node_names", list(stack_node_names(robot=False)))
-        self.node_names = tuple(self.get_parameter("node_names").value)
-        if RECORDER not in self.node_names:
-            raise ValueError(f"node_names must include the recorder {RECORDER!r}, got {list(self.node_names)}")
+        self.node_names = node_names
         self.change = {n: self.create_client(ChangeState, f"/{n}/change_state") for n in self.node_names}
         self.get = {n: self.create_client(GetState, f"/{n}/get_state") for n in self.node_names}
         self.set_params = {n: self.create_client(SetParameters, f"/{n}/set_parameters") for n in self.node_names}
@@ -114,12 +155,12 @@ class LifecycleManager(Node):
             if not resp.success:
                 raise TransitionFailed(node, label, "refused (see the node's log)")
 
-    def states(self, nodes: list[str]) -> dict[str, str]:
+    def states(self, nodes: list[str], wait_s: float = SERVICE_WAIT_S) -> dict[str, str]:
         """Every node's state label, asked of all at once; a node that does not answer at once (restarted after a
-        SIGKILL: :meth:`state`) is asked again on its own."""
+        SIGKILL: :meth:`state`) is asked again on its own. ``wait_s``: for a node's service to appear."""
         futures = {}
         for node in nodes:
-            self._ready(node, self.get[node], "get_state", SERVICE_WAIT_S)
+            self._ready(node, self.get[node], "get_state", wait_s)
             futures[node] = self.get[node].call_async(GetState.Request())
         rclpy.spin_until_future_complete(self, _all(list(futures.values())), timeout_sec=RETRY_S)
         labels = {}
@@ -128,7 +169,7 @@ class LifecycleManager(Node):
                 labels[node] = future.result().current_state.label
             else:
                 self.get[node].remove_pending_request(future)
-                labels[node] = self.state(node)
+                labels[node] = self.state(node, wait_s)
         return labels
 
     def set_parameters(self, params: dict[str, dict]) -> None:
@@ -171,13 +212,60 @@ class LifecycleManager(Node):
                 self.transition(group, "activate")
 
     def end_episode(self) -> None:
-        """The recorder has closed and scored the bag: deactivate the other nodes, all at once."""
-        others = [n for n in self.node_names if n != RECORDER]
+        """The recorder has closed and scored the bag: deactivate the other nodes (those still active), all at once."""
         try:
-            self.transition(others, "deactivate", wait_s=5.0)
+            states = self.states([n for n in self.node_names if n != RECORDER], wait_s=5.0)
+            self.transition([n for n, state in states.items() if state == "active"], "deactivate", wait_s=5.0)
         except TransitionFailed as exc:  # e.g. a node that died meanwhile: the stop below finds out
             self.get_logger().error(str(exc))
             self.stop(set())
+
+    # -- manage_nodes (nav2's commands over every node) ----------------------------------------------------
+    def manage(self, command: int) -> str:
+        """Carry out a manage_nodes command; returns what was done, raises TransitionFailed (or ValueError)."""
+        name = COMMANDS.get(command)
+        if name is None:
+            raise ValueError(
+                f"unknown command {command}; known: " + ", ".join(f"{v} ({k})" for k, v in COMMANDS.items())
+            )
+        wait_s = SERVICE_WAIT_S if name in ("startup", "configure") else 5.0
+        states = self.states(list(self.node_names), wait_s=wait_s)
+        done: list[str] = []
+        if name in ("pause", "reset"):
+            active = []
+            for node in reversed(self.node_names):  # one by one, the sim first: nothing steps without its peers
+                # Asked again right before: the recorder deactivates itself once the sim has stopped the episode.
+                if states[node] == "active" and self.state(node, wait_s) == "active":
+                    self.transition([node], "deactivate")
+                    active.append(node)
+                states[node] = "inactive" if states[node] == "active" else states[node]
+            done += [f"deactivated {', '.join(active)}"] if active else []
+        if name in ("reset", "cleanup"):
+            if name == "cleanup" and any(states[n] == "active" for n in self.node_names):
+                raise ValueError("cleanup: some nodes are active; pause first")
+            inactive = [n for n in self.node_names if states[n] == "inactive"]
+            self.transition(inactive, "cleanup")
+            done += [f"cleaned up {', '.join(inactive)}"] if inactive else []
+        if name in ("startup", "configure"):
+            unconfigured = [n for n in self.node_names if states[n] == "unconfigured"]
+            self.transition(unconfigured, "configure", CONFIGURE_S)  # concurrently: env creation, policy loading
+            states.update(dict.fromkeys(unconfigured, "inactive"))
+            done += [f"configured {', '.join(unconfigured)}"] if unconfigured else []
+        if name in ("startup", "resume"):
+            if any(states[n] == "unconfigured" for n in self.node_names):
+                raise ValueError("resume: some nodes are unconfigured; startup (or configure) first")
+            inactive = [n for n in self.node_names if states[n] == "inactive"]
+            first, *between, last = self.node_names  # the recorder first, the node that starts the episode last
+            for group in ([first], between, [last]):
+                if group := [n for n in group if n in inactive]:
+                    self.transition(group, "activate")
+            done += [f"activated {', '.join(inactive)}"] if inactive else []
+        if name == "shutdown":
+            failed = self.shutdown({n for n, state in states.items() if state == "finalized"})
+            if failed:
+                raise ValueError("shutdown: " + "; ".join(failed))
+            done.append(f"shut down {', '.join(self.node_names)}")
+        return f"{name}: " + ("; ".join(done) or "nothing to do")
 
     def stop(self, skip: set[str]) -> None:
         for node in reversed(self.node_names):
@@ -189,11 +277,12 @@ class LifecycleManager(Node):
             except TransitionFailed as exc:
                 self.get_logger().error(str(exc))
 
-    def shutdown(self, skip: set[str]) -> None:
+    def shutdown(self, skip: set[str]) -> list[str]:
         """The shutdown transition for every node not in ``skip``: the others all at once (they exit concurrently),
         then the recorder, which closes an unfinished bag once nothing else publishes. A node that is not there,
-        refuses or does not answer is logged, and the others still go."""
+        refuses or does not answer is logged, and the others still go. Returns what failed, one text per node."""
         others = [n for n in reversed(self.node_names) if n not in skip and n != RECORDER]
+        failed = []
         for group in (others, [RECORDER] if RECORDER not in skip else []):
             futures = {}
             for node in group:
@@ -201,6 +290,7 @@ class LifecycleManager(Node):
                     futures[node] = self._request_transition(node, "shutdown", 5.0)
                 except TransitionFailed as exc:
                     self.get_logger().error(str(exc))
+                    failed.append(str(exc))
             rclpy.spin_until_future_complete(self, _all(list(futures.values())), timeout_sec=CALL_S)
             for node, future in futures.items():
                 if not future.done():
@@ -209,7 +299,9 @@ class LifecycleManager(Node):
                     why = "refused (see the node's log)"
                 else:
                     continue
-                self.get_logger().error(str(TransitionFailed(node, "shutdown", why)))
+                failed.append(str(TransitionFailed(node, "shutdown", why)))
+                self.get_logger().error(failed[-1])
+        return failed
 
 
 def _all(futures):
@@ -244,20 +336,28 @@ def read_ops(ops: queue.SimpleQueue, wake) -> None:
     wake.trigger()
 
 
-def serve(manager: LifecycleManager, replies) -> None:
-    """Answer the launcher's operations until shutdown or until the launcher goes away (stdin closed).
+def stdin_is_the_launchers() -> bool:
+    """The launcher talks through a pipe on stdin; a terminal, /dev/null or a file is no launcher."""
+    try:
+        mode = os.fstat(sys.stdin.fileno()).st_mode
+    except (OSError, ValueError, AttributeError):  # stdin closed or missing
+        return False
+    return stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
 
-    Nothing here polls on a period: the launcher's lines arrive through a reader thread that wakes the spin
-    (a guard condition), and the end of an episode is the recorder's own transition event (lifecycle_msgs
-    TransitionEvent on ``/lq_metrics/transition_event``), confirmed with ``get_state`` (a stale event of an
-    earlier episode must not end this one). A look every POLL_PERIOD_S covers an event that was never heard.
+
+def serve(manager: LifecycleManager, replies, ops: queue.SimpleQueue, wake, launcher: bool) -> None:
+    """Answer the operations on ``ops`` (the launcher's lines, manage_nodes calls) until the launcher's shutdown or
+    until it goes away (stdin closed); without a ``launcher``, until ROS shuts down.
+
+    Nothing here polls on a period: the operations arrive through threads that wake the spin (a guard condition),
+    and the end of an episode is the recorder's own transition event (lifecycle_msgs TransitionEvent on
+    ``/lq_metrics/transition_event``), confirmed with ``get_state`` (a stale event of an earlier episode must not
+    end this one). A look every POLL_PERIOD_S covers an event that was never heard.
     """
-    ops: queue.SimpleQueue = queue.SimpleQueue()
-    wake = manager.create_guard_condition(lambda: None)
-    threading.Thread(target=read_ops, args=(ops, wake), daemon=True).start()
     heard = []  # the recorder's transition events since the last look at its state
     manager.create_subscription(TransitionEvent, f"/{RECORDER}/transition_event", heard.append, 10)
     running = False  # an episode is active: watch the recorder
+    waiting = False  # the launcher waits for this episode's "done"
     poll = None  # (get_state future of the recorder, when it was sent)
     next_look = 0.0  # monotonic time of the next look at the recorder's state without an event
     recorder = manager.get[RECORDER]
@@ -272,6 +372,12 @@ def serve(manager: LifecycleManager, replies) -> None:
             recorder.remove_pending_request(poll[0])
         poll = None
 
+    def watch() -> None:
+        nonlocal running, next_look
+        running = True
+        heard.clear()
+        next_look = time.monotonic() + POLL_PERIOD_S
+
     while rclpy.ok():
         # Never blocks longer than a look: a stop from the launcher (a node died) wakes it at once, even when the
         # recorder is the node that died and will never answer.
@@ -281,18 +387,34 @@ def serve(manager: LifecycleManager, replies) -> None:
             op = ops.get()
             if op is None:
                 return  # the launcher is gone
-            skip = set(op.get("skip", ()))
-            running = False
             forget_poll()
+            if isinstance(op, ServiceCall):
+                name = COMMANDS.get(op.command, "")
+                try:
+                    op.result = (True, manager.manage(op.command))
+                except (TransitionFailed, ValueError) as exc:
+                    op.result = (False, f"{name or 'manage_nodes'}: {exc}")
+                finally:
+                    op.done.set()
+                manager.get_logger().info(f"manage_nodes {name or op.command}: {op.result[1]}")
+                if name in ("startup", "resume") and op.result[0]:
+                    watch()  # the episode it started is ended like the launcher's
+                elif name in ("pause", "reset", "shutdown"):
+                    running = False
+                    if waiting:  # the launcher's episode was stopped: what was recorded is all there is
+                        waiting = False
+                        reply({"event": "done"})
+                continue
+            skip = set(op.get("skip", ()))
+            running = waiting = False
             if op["op"] == "episode":
                 try:
                     manager.episode(op["params"], op.get("reconfigure", []))
                 except TransitionFailed as exc:
                     reply({"event": "failed", "node": exc.node, "transition": exc.transition, "reason": exc.reason})
                     continue
-                running = True
-                heard.clear()
-                next_look = time.monotonic() + POLL_PERIOD_S
+                watch()
+                waiting = True
                 reply({"event": "active"})
             elif op["op"] == "stop":
                 manager.stop(skip)
@@ -313,22 +435,59 @@ def serve(manager: LifecycleManager, replies) -> None:
             if recorded:
                 running = False
                 manager.end_episode()
-                reply({"event": "done"})
+                if waiting:
+                    waiting = False
+                    reply({"event": "done"})
         elif poll is not None and time.monotonic() - poll[1] > RETRY_S:
             forget_poll()  # asked again on the next pass
+
+
+def serve_manage_nodes(node: Node, ops: queue.SimpleQueue, wake) -> SingleThreadedExecutor:
+    """``~/manage_nodes`` on ``node``, spun by an executor of its own in a daemon thread (returned, to shut down):
+    each call waits there until the main loop has carried out its operation."""
+
+    def on_call(request, response):
+        call = ServiceCall(int(request.command))
+        ops.put(call)
+        wake.trigger()
+        if not call.done.wait(MANAGE_ANSWER_S):
+            call.result = (False, f"no answer within {MANAGE_ANSWER_S:.0f} s (the manager is busy or stuck)")
+        response.success, response.message = call.result
+        return response
+
+    node.create_service(ManageNodes, "~/manage_nodes", on_call)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=_spin_quietly, args=(executor,), name="manage_nodes", daemon=True).start()
+    return executor
+
+
+def _spin_quietly(executor: SingleThreadedExecutor) -> None:
+    with contextlib.suppress(ExternalShutdownException, KeyboardInterrupt):  # ROS shutting down with the process
+        executor.spin()
 
 
 def main() -> None:
     # Replies go to the launcher on the original stdout; everything else (rclpy's console log) to stderr.
     replies = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
+    service_executor = None
     try:
         rclpy.init()
-        manager = LifecycleManager()
+        face = Node(NODE_NAMES["manager"])  # the service and the node_names parameter
+        manager = LifecycleManager(managed_node_names(face))
+        ops: queue.SimpleQueue = queue.SimpleQueue()
+        wake = manager.create_guard_condition(lambda: None)
+        launcher = stdin_is_the_launchers()
+        if launcher:
+            threading.Thread(target=read_ops, args=(ops, wake), daemon=True).start()
+        service_executor = serve_manage_nodes(face, ops, wake)
         try:
-            serve(manager, replies)
+            serve(manager, replies, ops, wake, launcher)
         finally:
+            service_executor.shutdown(timeout_sec=1.0)
             manager.destroy_node()
+            face.destroy_node()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -20,6 +20,13 @@ Managed node: configure builds the policy (``policy``, ``policy_args``); activat
 episode's protocol (merge) and resets the episode state; the policy itself is reset for the task and
 seed when the sim announces the episode (STARTED).
 
+Policy arguments are ROS parameters one by one: ``policy_args.<name>`` sets the constructor argument ``name``
+(``ros2 param set /lq_policy policy_args.host 10.0.0.5``, ``-p policy_args.host:=...``, or ``policy_args: {host:
+...}`` in a params file). They add to, and override, the JSON text ``policy_args`` (what the launcher sets), and
+are read at configure like it. A name the (registered) policy does not take is refused when it is set, with the
+policy's arguments; setting ``policy_args`` (the JSON) or another ``policy`` clears them: the new value stands alone.
+Set ``policy`` first, then its arguments.
+
 Who chooses the policy: any participant of the ROS domain can set this node's parameters between
 episodes (``/lq_policy/set_parameters``), but a ``package.module:Class`` policy runs code, so it is built
 only if the launching user chose it: it (with the same ``policy_args``) is what the process was started
@@ -32,6 +39,8 @@ run code (``lerobot``: a Python program and a checkpoint; ``Policy.args_run_code
 
 from __future__ import annotations
 
+import array
+import dataclasses
 import fnmatch
 import json
 import sys
@@ -39,6 +48,8 @@ import time
 from pathlib import Path
 
 import yaml
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.parameter import Parameter
 
 from lq_ros.core.run_config import RunConfig
 from lq_ros.policies import REGISTRY, Policy, is_registered, make_policy, policy_class
@@ -48,6 +59,8 @@ from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
 
 NODE_NAME = NODE_NAMES["policy"]
+#: ``policy_args.<name>``: one constructor argument of the policy as a parameter of its own.
+ARG_PREFIX = "policy_args."
 
 
 def params_file_paths(argv: list[str]) -> list[Path]:
@@ -77,11 +90,15 @@ def policy_in_params_file(path: Path, node_name: str = NODE_NAME) -> tuple[str, 
             merged.update(section.get("ros__parameters") or {})
     if not isinstance(merged.get("policy"), str):
         return None
-    try:
-        args = json.loads(merged.get("policy_args", "{}"))
+    given = merged.get("policy_args", "{}")
+    try:  # the JSON text, or (nested in the file) one parameter per argument
+        args = dict(given) if isinstance(given, dict) else json.loads(given)
     except (TypeError, ValueError):
         return None
-    return (merged["policy"], args) if isinstance(args, dict) else None
+    if not isinstance(args, dict):
+        return None
+    args.update({k[len(ARG_PREFIX) :]: v for k, v in merged.items() if k.startswith(ARG_PREFIX)})
+    return merged["policy"], args
 
 
 def refuse_untrusted_policy(policy: str, args: dict, chosen_by_user: list[tuple[str, dict]]) -> None:
@@ -97,22 +114,86 @@ def refuse_untrusted_policy(policy: str, args: dict, chosen_by_user: list[tuple[
     )
 
 
+def plain(value):
+    """A ROS parameter value as a policy argument: arrays as lists."""
+    return list(value) if isinstance(value, array.array | tuple) else value
+
+
 class PolicyNode(EpisodeNode):
     CONFIGURE_FIELDS = ("policy", "policy_args")
 
     def __init__(self) -> None:
         super().__init__(NODE_NAME)
         self.policy: Policy | None = None
+        # policy_args.<name> given at launch (-p, a params file): declared now, so they take their values.
+        for name in getattr(self, "_parameter_overrides", {}):  # rclpy has no public list of the overrides
+            if name.startswith(ARG_PREFIX):
+                self._declare_argument(name)
+        self.add_pre_set_parameters_callback(self._expand_arguments)
+        self.add_on_set_parameters_callback(self._check_arguments)
         # What the launching user chose: the parameters this process starts with (no service call has been
         # served yet), and the params files named on its command line (re-read at configure).
-        self.launch_policy = (self.cfg.policy, self.cfg.policy_args)
+        self.launch_policy = (self.cfg.policy, self.policy_arguments(self.cfg))
         self.params_files = params_file_paths(sys.argv)
 
+    # -- policy_args.<name> ----------------------------------------------------------------------------------
+    def _declare_argument(self, name: str) -> None:
+        self.declare_parameter(
+            name, None, ParameterDescriptor(dynamic_typing=True, description="an argument of the policy's constructor")
+        )
+
+    def argument_parameters(self) -> dict[str, object]:
+        """The ``policy_args.<name>`` parameters that hold a value: name -> value."""
+        return {
+            k: plain(p.value) for k, p in self.get_parameters_by_prefix("policy_args").items()
+            if p.type_ != Parameter.Type.NOT_SET
+        }  # fmt: skip
+
+    def policy_arguments(self, cfg: RunConfig) -> dict:
+        """The policy's arguments: the JSON ``policy_args``, each ``policy_args.<name>`` over it."""
+        return {**cfg.policy_args, **self.argument_parameters()}
+
+    def _expand_arguments(self, params: list[Parameter]) -> list[Parameter]:
+        """Before a set: declare a new ``policy_args.<name>`` (between episodes); when ``policy_args`` or another
+        ``policy`` is set, clear every ``policy_args.<name>`` (a NOT_SET value undeclares it)."""
+        names = {p.name for p in params}
+        current = self.get_parameter("policy").value
+        replaced = "policy_args" in names or any(p.name == "policy" and p.value != current for p in params)
+        out = list(params)
+        if replaced:
+            out += [Parameter(ARG_PREFIX + k) for k in self.get_parameters_by_prefix("policy_args") if
+                    ARG_PREFIX + k not in names]  # fmt: skip
+        if not self.active:  # while active every change is refused anyway ("deactivate first")
+            for p in params:
+                if p.name.startswith(ARG_PREFIX) and not self.has_parameter(p.name):
+                    self._declare_argument(p.name)
+        return out
+
+    def _check_arguments(self, params: list[Parameter]) -> SetParametersResult:
+        """A ``policy_args.<name>`` a registered policy does not take (or of the wrong type) is refused at once,
+        with the policy's arguments. A ``package.module:Class`` is not imported here: configure checks it."""
+        from lq_ros.run.validation import InputError, check_policy_args
+
+        policy = next((p.value for p in params if p.name == "policy"), self.get_parameter("policy").value)
+        args = {p.name[len(ARG_PREFIX) :]: plain(p.value) for p in params
+                if p.name.startswith(ARG_PREFIX) and p.type_ != Parameter.Type.NOT_SET}  # fmt: skip
+        if args and is_registered(policy):
+            try:
+                check_policy_args(policy, args)
+            except InputError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def configured_values(self) -> dict:
+        return {**super().configured_values(), **{ARG_PREFIX + k: v for k, v in self.argument_parameters().items()}}
+
+    # -- lifecycle -------------------------------------------------------------------------------------------
     def chosen_by_user(self) -> list[tuple[str, dict]]:
         from_files = [policy_in_params_file(path) for path in self.params_files]
         return [self.launch_policy, *(p for p in from_files if p is not None)]
 
     def configure(self, cfg: RunConfig) -> None:
+        cfg = self.cfg = dataclasses.replace(cfg, policy_args=self.policy_arguments(cfg))
         refuse_untrusted_policy(cfg.policy, cfg.policy_args, self.chosen_by_user())  # before any import
         self.policy = make_policy(cfg.policy, **cfg.policy_args)
 
