@@ -86,6 +86,8 @@ EnergyRate = StrEnum("EnergyRate", {v: v for v in ("auto", "substep", "physics",
 MERGE_HELP = (
     "async: how a new chunk meets the buffered one: " + ", ".join(m.value for m in Merge) + " (docs/guide/async.md)."
 )
+#: --suite's help (lq_ros.core.suite_constants.STEP_BUDGETS; checked by tests/test_cli_errors.py).
+SUITE_HELP = "LIBERO suite: libero_spatial, libero_object, libero_goal, libero_10, libero_90."
 #: --policy's help, shared by lq run and lq eval.
 POLICY_HELP = (
     "A registered policy (scripted, oft, flow, openpi, openvla, lerobot, sine, faulty; docs/guide/policies.md) or "
@@ -172,12 +174,15 @@ def print_error_reasons(rows: list[dict], limit: int = 20) -> None:
 
 @app.command()
 def run(
-    suite: Annotated[str, typer.Option(help="LIBERO suite.")] = _RUN.suite,
-    task: Annotated[int, typer.Option(help="Task index in the suite.")] = _RUN.task,
-    init: Annotated[int, typer.Option(help="Init state index.")] = _RUN.init,
-    seed: Annotated[int, typer.Option(help="Seed of the episode (init-state noise aside, policies draw from it).")] = (
-        _RUN.seed
+    suite: Annotated[str, typer.Option(help=SUITE_HELP)] = _RUN.suite,
+    task: Annotated[int, typer.Option(help="Task index in the suite: 0..9 (libero_90: 0..89).")] = _RUN.task,
+    init: Annotated[int, typer.Option(help="Init state index, 0..49 (the object layout the episode starts from).")] = (
+        _RUN.init
     ),
+    seed: Annotated[
+        int,
+        typer.Option(help="Seed of the scene's reset and of the policy's (a rerun with the same seed is identical)."),
+    ] = _RUN.seed,
     mode: Annotated[
         Mode, typer.Option(help="sync: the robot holds while the policy infers; async: it executes buffered actions.")
     ] = Mode(_RUN.mode),
@@ -248,7 +253,10 @@ def run(
     timeout: Annotated[float | None, typer.Option(help="Wall-clock limit of the run, seconds.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the scored row as JSON.")] = False,
 ) -> None:
-    """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task)."""
+    """Run one episode and print its scored row. Exits 1 when the *run* failed (not the task).
+
+    Your own policy: lq run --transport inprocess --policy my_policy:MyPolicy, from the folder that holds my_policy.py
+    (a template: examples/my_policy.py)."""
     from lq_ros.core.suite_constants import round_latency
 
     latency_fields: dict = {"latency_dist": latency}  # a distribution (RunConfig parses and checks it)
@@ -560,9 +568,7 @@ def eval_(
         typer.Option(help="Folder for the spec, the episodes and the report. Run the same command again to resume."),
     ],
     policy_arg: Annotated[list[str], typer.Option(help=POLICY_ARG_HELP, metavar="KEY=VALUE")] = [],  # noqa: B006
-    suite: Annotated[
-        str, typer.Option(help="LIBERO suite: libero_spatial, libero_object, libero_goal, libero_10, libero_90.")
-    ] = "libero_spatial",
+    suite: Annotated[str, typer.Option(help=SUITE_HELP)] = "libero_spatial",
     tasks: Annotated[str, typer.Option(help="Task indices: all, or ranges and indices like 0-9 or 0-4,7.")] = "all",
     inits: Annotated[
         str, typer.Option(help="Init states: all (0-49, the paper's 50 per task), or ranges like 0-9.")
@@ -730,7 +736,7 @@ def report(
         bar.update(stages[stage], completed=done, total=total)
 
     try:
-        with bar:
+        with bar, contextlib.redirect_stdout(sys.stderr):  # --videos re-simulates: LIBERO prints as it loads
             result = build_report(results_dir, out, all_episodes=all_episodes, videos=videos, progress=progress)
     except FileNotFoundError as exc:
         console.print(f"[red]{exc}[/red]")
@@ -760,7 +766,8 @@ def replay(
     if not 16 <= size <= 2048:
         raise typer.BadParameter(f"--size must be 16..2048 pixels, got {size}")
     try:
-        result = replay_bag(bag, video=video, cameras=names, size_px=size)
+        with contextlib.redirect_stdout(sys.stderr):  # stdout: the verdict alone (LIBERO prints as it loads)
+            result = replay_bag(bag, video=video, cameras=names, size_px=size)
     except ReplayRefused as exc:
         from rich.markup import escape
 
