@@ -518,6 +518,11 @@ EVAL_SPEC_FLAGS = (
 )  # fmt: skip
 #: The file ``lq eval`` writes the spec it runs to, in OUT (``lq sweep OUT/eval_spec.yaml --out OUT`` runs it again).
 EVAL_SPEC_FILE = "eval_spec.yaml"
+#: What the printed table's brackets and columns mean (the report says more: docs/guide/scoring.md).
+EVAL_CAPTION = (
+    "[lo, hi]: 95% interval (success: Wilson); success 95% (tasks): clustered by task, from {n} tasks on; "
+    "(succ.): over successful episodes; (n=k): fewer than {n} values, no interval"
+)
 #: Columns of the report's summary table (lq_ros.report.tables.summary_table) that ``lq eval`` prints.
 EVAL_COLUMNS = (
     "mode", "latency", "n", "errors", "success %", "success 95% (tasks)", "time s (succ.)", "jerk m/s³ (succ.)",
@@ -656,10 +661,13 @@ def eval_(
 def print_eval_table(result, title: str) -> None:
     """The report's summary table, the columns of EVAL_COLUMNS, on stdout: each metric with its 95% interval."""
     from lq_ros.report.tables import summary_table
+    from lq_ros.scoring.intervals import MIN_N_INTERVAL
 
     summary = summary_table(result.pooled)
     columns = [c for c in EVAL_COLUMNS if c in summary.columns]
-    table = Table(title=title, caption="metrics (succ.): over successful episodes; [95% interval]")
+    from rich.markup import escape
+
+    table = Table(title=escape(title), caption=escape(EVAL_CAPTION.format(n=MIN_N_INTERVAL)))
     for column in columns:
         table.add_column(column, justify="left" if column in ("mode", "latency") else "right")
     for _, r in summary.iterrows():
