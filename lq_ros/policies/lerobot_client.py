@@ -4,7 +4,8 @@ LeRobot 0.4.4 cannot share this environment (it pins torch < 2.11; we pin 2.13),
 served from LeRobot's own venv (``make setup-lerobot`` makes ``.venv-lerobot``) by
 ``lq_ros/policies/lerobot_server.py``, which this class starts on 127.0.0.1 at the first inference, talks
 to over the openpi websocket protocol (:class:`OpenPIPolicy`'s client: deadlines, byte cap, safe
-decoding) and stops on ``close`` (or when this process dies: the server watches its parent).
+decoding) and stops on ``close`` (or when this process dies: the server watches its parent). Every request
+carries the secret token the server printed in its ready line; the server serves no one else.
 
 The checkpoint directory is checked here, before anything starts, from its ``config.json`` alone (one-line
 refusals): it must be a LeRobot ``save_pretrained`` folder with its saved processor pipelines, take
@@ -190,6 +191,7 @@ class LeRobotPolicy(OpenPIPolicy):
         self.config_sha256 = hashlib.sha256(config_file.read_bytes()).hexdigest()
         self._server: subprocess.Popen | None = None
         self._server_log = None
+        self._token = ""
         self._episode_start = False
         self._seed = 0
 
@@ -278,8 +280,13 @@ class LeRobotPolicy(OpenPIPolicy):
             )
             self.close()
             raise PolicyError(f"lerobot server for {self.path}: {why}")
+        self._token = str(answer.pop("token", ""))  # this run's secret: sent with each request, never recorded
         self.server_metadata = answer
         self._connect_uri = self.uri = f"ws://127.0.0.1:{int(answer['port'])}"
+
+    def _round_trip(self, request: dict) -> object:
+        """Each request carries the server's token (it refuses any request without it)."""
+        return super()._round_trip({**request, "token": self._token})
 
     @staticmethod
     def _read_ready_line(stream, ready: list[dict]) -> None:

@@ -19,34 +19,135 @@ chunk is exactly the ``n_action_steps`` actions ``lerobot-eval`` would execute f
 policy that keeps no action queue (ACT with temporal ensembling) answers with a chunk of one.
 
 Protocol (openpi ``websocket_policy_server``): a metadata frame, then one msgpack-numpy request, one reply.
-Request keys: ``observation/images/<lerobot image key>`` (uint8 H x W x 3 as robosuite renders it, bottom row
-first), ``observation/eef_pos``, ``observation/eef_quat`` (x y z w), ``observation/gripper_qpos``,
-``observation/joint_pos``, ``observation/joint_vel`` (float64), ``prompt``, ``reset`` (true on an
-episode's first request: the policy and processors are reset) and ``seed`` (with ``reset``). Reply:
-``actions`` (n, 7) float32 and ``policy_timing.infer_ms``. A failure is sent as a text frame (the traceback),
-then the socket closes.
+Request keys: ``token`` (this run's secret, see below), ``observation/images/<lerobot image key>`` (uint8
+H x W x 3 as robosuite renders it, bottom row first), ``observation/eef_pos``, ``observation/eef_quat``
+(x y z w), ``observation/gripper_qpos``, ``observation/joint_pos``, ``observation/joint_vel`` (float),
+``prompt``, ``reset`` (true on an episode's first request: the policy and processors are reset) and ``seed``
+(with ``reset``). Reply: ``actions`` (n, 7) float32 and ``policy_timing.infer_ms``. A failure is sent as one
+text line (the exception's type and message, no traceback), then the socket closes.
+
+Any local process can reach a loopback port, so the server trusts no peer:
+
+- **Secret**: the server draws a random token per run and prints it in its ready line (a pipe only the
+  process that started it reads). A request without it is refused and the connection closed; a connection
+  that sends no request within :data:`AUTH_TIMEOUT_S` is closed.
+- **Browsers**: a handshake with an ``Origin`` header (every web page's websocket has one) is refused (403).
+- **One client at a time**: an authenticated connection is served alone; a second waits until the first
+  closes (at most :data:`BUSY_WAIT_S`), so no one can reset or reseed the policy mid-episode.
+- **Decoding**: requests are decoded by the project's own msgpack hook (``remote_wire.py``, loaded by path:
+  plain numeric dtypes only, byte counts checked), never openpi-client's (it builds object arrays from the
+  peer's bytes), and each field is checked (dtype, shape, finite) before LeRobot sees it.
 
 Usage: ``python lerobot_server.py --path DIR [--device cpu] [--threads N] [--port 0]``; prints one JSON line
-``{"ready": true, "port": ...}`` on stdout once the policy is loaded, or one ``error:`` line on stderr and
-exits 2.
+``{"ready": true, "port": ..., "token": ...}`` on stdout once the policy is loaded, or one ``error:`` line on
+stderr and exits 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hmac
+import importlib.util
 import json
 import os
+import secrets
 import sys
 import threading
 import time
-import traceback
 from pathlib import Path
 
 #: LeRobot's names for LIBERO's cameras (``lerobot.envs.libero.LiberoEnv.camera_name_mapping``).
 CAMERA_KEYS = {"agentview_image": "image", "robot0_eye_in_hand_image": "image2"}
 #: Longest accepted request, bytes (two 512 px images and the state are ~1.6 MB).
 MAX_REQUEST_BYTES = 16 * 1024 * 1024
+#: How long a new connection may take to send its first (authenticated) request, s.
+AUTH_TIMEOUT_S = 10.0
+#: How long an authenticated connection waits for the one being served to close, s.
+BUSY_WAIT_S = 300.0
+#: Connections allowed to be waiting for their first request at once (each may hold a few frames in memory).
+MAX_PENDING = 4
+#: Frames websockets may buffer per connection (each at most MAX_REQUEST_BYTES).
+MAX_QUEUED_FRAMES = 2
+#: Largest camera side accepted, px; most joints; longest prompt, characters.
+MAX_IMAGE_SIDE = 2048
+MAX_JOINTS = 32
+MAX_PROMPT_CHARS = 4096
+#: Robot-state fields of a request and their lengths (None: 1 to MAX_JOINTS).
+STATE_FIELDS = {"eef_pos": 3, "eef_quat": 4, "gripper_qpos": 2, "joint_pos": None, "joint_vel": None}
+#: Longest error line sent to the client, characters.
+MAX_ERROR_CHARS = 300
+
+
+class RequestError(ValueError):
+    """A request we refuse: one line naming the problem."""
+
+
+def load_wire():
+    """``lq_ros/policies/remote_wire.py`` (the safe msgpack-numpy decoder), by path: lq_ros is not installed here."""
+    spec = importlib.util.spec_from_file_location("lq_lerobot_remote_wire", Path(__file__).with_name("remote_wire.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def checked_request(request: object, image_keys: list[str]) -> dict:
+    """The request's fields after checking each (dtype, shape, finite values), as writable arrays; RequestError."""
+    import numpy as np
+
+    if not isinstance(request, dict):
+        raise RequestError(f"a request is a dict, got {type(request).__name__}")
+    out: dict = {}
+    for key in image_keys:
+        name = f"observation/images/{key.removeprefix('observation.images.')}"
+        image = request.get(name)
+        if (
+            not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3
+            or not 1 <= image.shape[0] <= MAX_IMAGE_SIDE or not 1 <= image.shape[1] <= MAX_IMAGE_SIDE
+        ):  # fmt: skip
+            raise RequestError(f"{name}: valid: a uint8 H x W x 3 array, sides 1-{MAX_IMAGE_SIDE}; got {_what(image)}")
+        out[name] = np.array(image)
+    for field, length in STATE_FIELDS.items():
+        name = f"observation/{field}"
+        value = request.get(name)
+        if (
+            not isinstance(value, np.ndarray) or value.dtype.kind not in "fiu" or value.ndim != 1
+            or not (value.shape[0] == length if length else 1 <= value.shape[0] <= MAX_JOINTS)
+        ):  # fmt: skip
+            valid = f"{length}" if length else f"1-{MAX_JOINTS}"
+            raise RequestError(f"{name}: valid: a numeric 1-D array of {valid} values; got {_what(value)}")
+        value = np.array(value, dtype=np.float64)
+        if not np.all(np.isfinite(value)):
+            raise RequestError(f"{name}: valid: finite values; got {value.tolist()}")
+        out[name] = value
+    prompt = request.get("prompt", "")
+    if not isinstance(prompt, str) or len(prompt) > MAX_PROMPT_CHARS:
+        raise RequestError(f"prompt: valid: text of at most {MAX_PROMPT_CHARS} characters; got {_what(prompt)}")
+    reset = request.get("reset", False)
+    if not isinstance(reset, bool | np.bool_):
+        raise RequestError(f"reset: valid: true or false; got {_what(reset)}")
+    seed = request.get("seed")
+    if seed is not None and (
+        not isinstance(seed, int | np.integer) or isinstance(seed, bool) or not 0 <= int(seed) < 2**32
+    ):
+        raise RequestError(f"seed: valid: a whole number 0 to 2**32-1; got {_what(seed)}")
+    out.update(prompt=prompt, reset=bool(reset), seed=None if seed is None else int(seed))
+    return out
+
+
+def _what(value: object) -> str:
+    shape = getattr(value, "shape", None)
+    if shape is not None and hasattr(value, "dtype"):
+        return f"{type(value).__name__} of dtype {value.dtype} and shape {tuple(shape)}"
+    text = repr(value)
+    return f"{type(value).__name__} {text[:40]}{'...' if len(text) > 40 else ''}"
+
+
+def error_line(exc: BaseException) -> str:
+    """``Type: message`` on one line, cut to MAX_ERROR_CHARS: what the client shows (never a traceback)."""
+    message = " ".join(str(exc).split()) or "no message"
+    line = f"{type(exc).__name__}: {message}"
+    return line if len(line) <= MAX_ERROR_CHARS else line[: MAX_ERROR_CHARS - 3] + "..."
 
 
 class LeRobotServer:
@@ -161,6 +262,7 @@ class LeRobotServer:
             pipeline.reset()
 
     def answer(self, request: dict) -> dict:
+        """One chunk for a request :func:`checked_request` has checked."""
         if request.get("reset"):
             self.reset(request.get("seed"))
         started = time.perf_counter()
@@ -182,28 +284,88 @@ class LeRobotServer:
         return None
 
 
-def serve(server: LeRobotServer, host: str, port: int, ready_out) -> None:
-    """Answer one connection at a time until the process is stopped."""
+def serve(server, host: str, port: int, ready_out, token: str | None = None) -> None:
+    """Answer one authenticated connection at a time until the process is stopped (see the module docstring).
+
+    ``server`` has ``image_keys``, ``metadata()`` and ``answer(request)``; ``token`` (default: a fresh random
+    one) is printed in the ready line on ``ready_out``.
+    """
     from openpi_client import msgpack_numpy
+    from websockets.exceptions import ConnectionClosed
     from websockets.sync.server import serve as websocket_serve
 
-    packer = msgpack_numpy.Packer()
+    wire = load_wire()
+    token = token or secrets.token_urlsafe(32)
+    packer = msgpack_numpy.Packer()  # packs our own replies; requests are never unpacked by openpi-client
     metadata = server.metadata()
+    serving = threading.Lock()
+    pending = threading.BoundedSemaphore(MAX_PENDING)
+
+    def refuse(connection, line: str) -> None:
+        with contextlib.suppress(ConnectionClosed, OSError):
+            connection.send(line)
+        connection.close()
+
+    def request_of(frame: object) -> dict:
+        """The frame decoded and authenticated; RequestError (one line) otherwise."""
+        if not isinstance(frame, bytes):
+            raise RequestError("a request is one binary msgpack frame, got text")
+        try:
+            request = wire.unpack_msgpack_numpy(frame)
+        except wire.UnsafeReply as exc:
+            raise RequestError(f"request refused: {exc}") from None
+        except Exception as exc:  # noqa: BLE001 - any undecodable frame is garbage
+            raise RequestError(f"request is not msgpack-numpy ({type(exc).__name__})") from None
+        presented = request.get("token") if isinstance(request, dict) else None
+        if not isinstance(presented, str) or not hmac.compare_digest(presented.encode(), token.encode()):
+            raise PermissionError("request refused: it does not carry this server's token (from its ready line)")
+        return checked_request(request, server.image_keys)
 
     def handler(connection) -> None:
-        connection.send(packer.pack(metadata))
-        for frame in connection:
-            try:
-                reply = server.answer(msgpack_numpy.unpackb(frame))
-            except Exception:  # noqa: BLE001 - the client reports the traceback's last line as the error
-                connection.send(traceback.format_exc())
-                connection.close()
-                return
-            connection.send(packer.pack(reply))
+        if not pending.acquire(blocking=False):
+            refuse(connection, f"busy: {MAX_PENDING} connections are already waiting to authenticate")
+            return
+        try:
+            connection.send(packer.pack(metadata))
+            frame = connection.recv(timeout=AUTH_TIMEOUT_S)
+            request = request_of(frame)
+        except TimeoutError:
+            refuse(connection, f"TimeoutError: no request within {AUTH_TIMEOUT_S:g} s of connecting")
+            return
+        except ConnectionClosed:
+            return
+        except (RequestError, PermissionError) as exc:
+            refuse(connection, error_line(exc))
+            return
+        finally:
+            pending.release()
+        if not serving.acquire(timeout=BUSY_WAIT_S):
+            refuse(connection, f"busy: another client has been served for over {BUSY_WAIT_S:g} s")
+            return
+        try:
+            while True:
+                try:
+                    reply = server.answer(request)
+                except Exception as exc:  # noqa: BLE001 - the client shows this one line as the episode's error
+                    refuse(connection, error_line(exc))
+                    return
+                connection.send(packer.pack(reply))
+                try:
+                    request = request_of(connection.recv())
+                except (RequestError, PermissionError) as exc:
+                    refuse(connection, error_line(exc))
+                    return
+        except ConnectionClosed:
+            return
+        finally:
+            serving.release()
 
-    with websocket_serve(handler, host, port, max_size=MAX_REQUEST_BYTES, compression=None) as ws_server:
+    with websocket_serve(
+        handler, host, port, max_size=MAX_REQUEST_BYTES, max_queue=MAX_QUEUED_FRAMES, compression=None,
+        origins=[None],  # a handshake with an Origin header (a web page's) is refused with 403
+    ) as ws_server:  # fmt: skip
         bound_port = ws_server.socket.getsockname()[1]
-        print(json.dumps({"ready": True, "port": bound_port, **metadata}), file=ready_out, flush=True)
+        print(json.dumps({"ready": True, "port": bound_port, **metadata, "token": token}), file=ready_out, flush=True)
         ws_server.serve_forever()
 
 

@@ -252,6 +252,30 @@ def test_server_binds_loopback_only_and_dies_with_its_parent(checkpoints, tmp_pa
     pytest.fail("the LeRobot server outlived the process that started it")
 
 
+@pytest.mark.slow
+def test_the_server_answers_only_its_own_client(checkpoints):
+    """The real server: our client presents the run's token; another local peer, without it, is refused."""
+    import msgpack
+    from websockets.sync.client import connect
+
+    policy = make_policy("lerobot", path=str(checkpoints["act"]), threads=1)
+    try:
+        policy.reset(TASK_INFO, 0)
+        assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)).shape == (N_ACTION_STEPS["act"], 7)
+        token = policy._token
+        assert len(token) >= 32
+        recorded = json.dumps({"params": policy.params(), "metadata": policy.server_metadata}, default=str)
+        assert token not in recorded
+        with connect(policy.uri, compression=None, open_timeout=10) as peer:
+            peer.recv(timeout=10)  # metadata frame
+            peer.send(msgpack.packb({"reset": True, "seed": 1}))
+            refusal = peer.recv(timeout=10)
+        assert isinstance(refusal, str) and "does not carry this server's token" in refusal
+        assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 1)).shape == (N_ACTION_STEPS["act"], 7)
+    finally:
+        policy.close()
+
+
 def test_policy_node_accepts_lerobot_only_as_launched():
     """Its ``python`` is a program to run: like package.module:Class, never from a runtime parameter change."""
     from lq_ros_nodes.policy_node import refuse_untrusted_policy
