@@ -13,6 +13,7 @@ import gc
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import tempfile
@@ -158,7 +159,8 @@ class ShmTracker:
 
         For runs that died all at once (a machine-wide SIGKILL leaves nobody to clean up): their segments
         stay forever. A segment has exactly one owner, which holds its ``_el`` lock while it lives, so
-        ``cleanup`` removes only the dead ones. Port files are shared between participants and left alone.
+        ``cleanup`` removes only the dead ones; only this user's are considered. Port files are shared between
+        participants and left alone.
         """
         tracker = cls()
         now = time.time()
@@ -167,7 +169,8 @@ class ShmTracker:
             if name.startswith("fastrtps_port"):
                 continue
             with contextlib.suppress(FileNotFoundError):
-                if now - path.stat().st_mtime >= min_age_s:
+                info = path.lstat()
+                if info.st_uid == os.getuid() and now - info.st_mtime >= min_age_s:  # never another user's
                     tracker.names.add(name)
         return tracker
 
@@ -203,7 +206,8 @@ def ownerless(lock_path: Path, create: bool = False) -> Iterator[bool]:
     """True, holding the lock of ``lock_path``, when nobody else holds it (its owner is gone); False when a live
     process holds it or the file cannot be opened (``create``: make it if missing)."""
     try:
-        fd = os.open(lock_path, os.O_RDWR | (os.O_CREAT if create else 0), 0o644)
+        # Never through a link (/dev/shm and the temp folder are shared by every user).
+        fd = os.open(lock_path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC | (os.O_CREAT if create else 0), 0o644)
     except OSError:
         yield False
         return
@@ -239,16 +243,18 @@ def remove_orphaned_folders(prefix: str, parent: Path | None = None, min_age_s: 
     (a launcher killed with SIGKILL leaves its node logs); returns them.
 
     A folder counts once its lock file is older than ``min_age_s`` and nobody holds the lock; folders without a
-    lock file (not made by :func:`owned_temp_folder`) are left alone.
+    lock file (not made by :func:`owned_temp_folder`), links and other users' folders are left alone.
     """
     removed = []
     now = time.time()
     for lock_path in Path(parent or tempfile.gettempdir()).glob(f"{prefix}*/{OWNER_LOCK}"):
         try:
-            age_s = now - lock_path.stat().st_mtime
+            folder, lock = lock_path.parent.lstat(), lock_path.lstat()
         except OSError:  # removed meanwhile
             continue
-        if age_s < min_age_s:
+        if not stat.S_ISDIR(folder.st_mode) or folder.st_uid != os.getuid() or not stat.S_ISREG(lock.st_mode):
+            continue  # another user's folder (or a link): never touched
+        if now - lock.st_mtime < min_age_s:
             continue
         with ownerless(lock_path) as free:
             if free:  # (else its owner lives)

@@ -1,4 +1,5 @@
-"""Folders marked by their owner's lock (lq_ros.transport.processes): an orphan's is removed, a live one's kept."""
+"""Folders marked by their owner's lock (lq_ros.transport.processes): an orphan's is removed, a live one's kept;
+links and other users' folders and shared-memory files are never touched."""
 
 import os
 import signal
@@ -6,7 +7,8 @@ import subprocess
 import sys
 import time
 
-from lq_ros.transport.processes import OWNER_LOCK, owned_temp_folder, remove_orphaned_folders
+from lq_ros.transport import processes
+from lq_ros.transport.processes import OWNER_LOCK, ShmTracker, owned_temp_folder, ownerless, remove_orphaned_folders
 
 PREFIX = "lq_owned_"
 
@@ -54,3 +56,42 @@ def test_a_folder_without_a_lock_file_is_left_alone(tmp_path):
     (tmp_path / f"{PREFIX}legacy").mkdir()
     assert remove_orphaned_folders(PREFIX, tmp_path, min_age_s=0.0) == []
     assert (tmp_path / f"{PREFIX}legacy").is_dir()
+
+
+def test_links_and_other_users_folders_are_left_alone(tmp_path):
+    """The temp folder is shared: a link named like an owned folder, or another user's folder, is never removed."""
+    target = tmp_path / "someone_elses"
+    target.mkdir()
+    (target / OWNER_LOCK).touch()
+    (tmp_path / f"{PREFIX}link").symlink_to(target)
+    others, fd = owned_temp_folder(PREFIX, tmp_path)
+    os.close(fd)
+    if os.getuid() == 0:
+        os.chown(others, 65534, -1)
+    else:
+        others = None
+    assert remove_orphaned_folders(PREFIX, tmp_path, min_age_s=0.0) == []
+    assert (target / OWNER_LOCK).exists() and (others is None or others.is_dir())
+
+
+def test_ownerless_never_follows_a_link(tmp_path):
+    victim = tmp_path / "victim"
+    (tmp_path / "x_el").symlink_to(victim)
+    with ownerless(tmp_path / "x_el", create=True) as free:
+        assert not free
+    assert not victim.exists()
+
+
+def test_stale_shared_memory_of_other_users_is_not_considered(tmp_path, monkeypatch):
+    monkeypatch.setattr(processes, "SHM_DIR", tmp_path)
+    old = time.time() - 600
+    for name in ("fastrtps_mine", "fastrtps_theirs"):
+        (tmp_path / f"{name}_el").touch()
+        os.utime(tmp_path / f"{name}_el", (old, old))
+    if os.getuid() == 0:
+        os.chown(tmp_path / "fastrtps_theirs_el", 65534, -1)
+    else:
+        os.chmod(tmp_path, 0o700)
+    tracker = ShmTracker.stale_segments()
+    assert "fastrtps_mine" in tracker.names
+    assert os.getuid() != 0 or "fastrtps_theirs" not in tracker.names
