@@ -149,7 +149,7 @@ def test_refusals_before_anything_starts(tmp_path):
     # franka_ros2.yaml has no object tracker: the privileged-state expert cannot run on it.
     assert "needs object poses" in refused("--clock", "realtime", "--robot", "franka_ros2")
     assert "unknown robot" in refused("--clock", "realtime", "--robot", "nope")
-    assert "clock must be" in refused("--clock", "fast")
+    assert "'fast' is not one of 'lockstep', 'realtime'" in refused("--clock", "fast")
     assert "ROS only" in refused("--clock", "realtime", "--transport", "inprocess")
     assert not any(tmp_path.iterdir())
 
