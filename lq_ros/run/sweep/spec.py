@@ -281,9 +281,7 @@ def _suites(raw: dict) -> list[tuple[str, list[int], list[int]]]:
         if not isinstance(body, dict) or set(body) - {"tasks", "inits"}:
             raise SpecError(f"{where}: expected keys 'tasks' and 'inits', got {body!r}")
         if "tasks" not in body or "inits" not in body:
-            raise SpecError(
-                f"{where}: 'tasks' and 'inits' are required (a list, ranges like '0-49', or 'all')"
-            )
+            raise SpecError(f"{where}: 'tasks' and 'inits' are required (a list, ranges like '0-49', or 'all')")
         n = num_tasks(suite)
         tasks = list(range(n)) if body["tasks"] == "all" else index_list(body["tasks"], f"{where}.tasks", 0, n - 1)
         inits = (
