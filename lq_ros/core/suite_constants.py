@@ -61,9 +61,11 @@ def latency_ticks(latency_s: float, control_dt_s: float = CONTROL_DT_S) -> int:
     anything else is refused (ValueError naming the nearest valid values) rather than silently rounded
     (0.025 s would run as 0 s). :func:`round_latency` rounds on purpose.
     """
-    if not latency_s >= 0:  # also catches NaN
-        raise ValueError(f"injected latency must be >= 0 s, got {latency_s}")
+    if not latency_s >= 0 or not math.isfinite(latency_s):  # also catches NaN (inf: no whole number of ticks)
+        raise ValueError(f"injected latency must be finite and >= 0 s, got {latency_s}")
     ticks = latency_s / control_dt_s
+    if not math.isfinite(ticks):  # 1e308 s over 0.05 s ticks
+        raise ValueError(f"injected latency {latency_s:g} s is too large to count in control ticks")
     n = int(round(ticks))
     if abs(ticks - n) > 1e-6:
         lo, hi = math.floor(ticks) * control_dt_s, math.ceil(ticks) * control_dt_s

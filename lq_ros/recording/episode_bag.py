@@ -25,6 +25,8 @@ from lq_ros.wire import messages as m
 if TYPE_CHECKING:  # the scorer imports this module: keep it free of the run configuration's imports
     from lq_ros.core.run_config import RunConfig
 
+#: The largest metadata.yaml read, bytes (an episode's is a few kB).
+MAX_METADATA_BYTES = 1 << 20
 #: Key of the run metadata (JSON) in metadata.yaml's custom_data.
 RUN_METADATA_KEY = "lq_run"
 #: Key of the bag's state in metadata.yaml's custom_data: recording (provisional), closed, or reindexed.
@@ -334,9 +336,11 @@ def _custom_data(path: Path) -> dict:
     meta_file = Path(path) / "metadata.yaml"
     try:
         with open_regular(meta_file) as f:
-            text = f.read()
+            text = f.read(MAX_METADATA_BYTES + 1)  # bounded: a sparse 512 MiB file is not read whole
     except McapDamage as exc:  # a directory or a FIFO named metadata.yaml
         raise ValueError(str(exc).replace("not a bag file", "not a metadata file")) from None
+    if len(text) > MAX_METADATA_BYTES:
+        raise ValueError(f"{meta_file}: more than {MAX_METADATA_BYTES} bytes, not an episode's metadata file")
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: ~10x faster, matters when scoring many bags
     try:
         document = yaml.load(text, Loader=loader)  # safe: a !!python tag is refused, never constructed

@@ -10,6 +10,12 @@ walker of ``lq reindex`` (:meth:`StreamingMcapReader.messages`): one reader, one
 Hostile files are damage, never a hang or an allocation they dictate: only regular files are opened, a
 chunk is decompressed with an output bound (:data:`MAX_CHUNK_BYTES`, and never more than it declares),
 and a record header that cannot start a record (opcode 0, length 0) ends the walk of its chunk or file.
+What reading costs follows what is decoded, not what a file declares: a message index is checked against
+the chunk's records (entries that overlap, repeat or point elsewhere: the records are walked instead), a
+bulk-decoded message larger than :data:`MAX_BULK_PAYLOAD_BYTES` is skipped before it is copied, payloads are
+packed in bounded blocks, and a sequence count that cannot fit in its message is refused before it is
+walked. The file is read with bounded reads, never memory-mapped: a file cut while it is read is damage
+(a mapping would raise SIGBUS and kill the process).
 
 Payload decoding of the few fields the scorer needs (stamps, EE position, joint velocity/effort,
 command source, energy integrals) walks the CDR layout directly: ~40x cheaper than a generic deserializer per message.
@@ -18,7 +24,6 @@ command source, energy integrals) walks the CDR layout directly: ~40x cheaper th
 from __future__ import annotations
 
 import contextlib
-import mmap
 import os
 import stat
 import struct
@@ -42,8 +47,19 @@ MAX_CHUNK_BYTES = 256 << 20
 #: A chunk declaring more than this is decompressed in steps of this size, its record headers checked as they
 #: arrive: a zero-filled chunk (a decompression bomb) is stopped after its first step.
 _STEP_BYTES = 8 << 20
-#: The reader gives back the memory-mapped pages of the file it has walked past every this many bytes.
-_RELEASE_BYTES = 8 << 20
+#: The largest chunk record read: the largest chunk, compressed (zstd and lz4 grow incompressible data by less
+#: than 1/128), plus its header. A longer record is skipped without being read.
+MAX_CHUNK_RECORD_BYTES = MAX_CHUNK_BYTES + (MAX_CHUNK_BYTES >> 7) + 4096
+#: The largest message of a bulk-decoded per-tick type (WALKERS) read: a pose, a joint state, a command or an
+#: energy record is at most a few kB (a JointState of 1,000 named joints is ~40 kB); a larger one is damage,
+#: skipped before it is copied.
+MAX_BULK_PAYLOAD_BYTES = 1 << 20
+#: The most items a sequence of a bulk-decoded message may hold (joints, action dimensions), whatever its size.
+MAX_SEQUENCE_ITEMS = 1024
+#: Payloads are packed in blocks of at most this many bytes (bounds the index arrays to 16x a block).
+_PACK_BLOCK_BYTES = 1 << 20
+#: Distinct layouts decoded together per batch; messages of further layouts are decoded one by one.
+_MAX_LAYOUT_GROUPS = 32
 #: Problems after which a file is given up (a file of millions of malformed records is not walked to its end).
 MAX_DAMAGE = 100
 #: Smallest body of each record type read (MCAP spec): a shorter one is damage, skipped.
@@ -52,6 +68,10 @@ _MIN_LENGTH = {OP_SCHEMA: 14, OP_CHANNEL: 16, OP_MESSAGE: 22, OP_CHUNK: 40, OP_M
 
 class McapDamage(ValueError):
     """The file cannot be read from the start (not MCAP, not a regular file, unsupported encoding)."""
+
+
+class _FileCut(Exception):
+    """The file ended before a record its header announced (it shrank while it was read)."""
 
 
 def _record_problem(op: int, length: int) -> str | None:
@@ -138,21 +158,41 @@ def concat(batches: list[Batch]) -> Batch:
         if end - start == int(b.payload_lengths.sum()):  # already packed back to back (the reader's batches)
             parts.append(u8[start:end])
         else:
-            # Byte positions of every payload byte: each payload's start repeated over its length, plus a ramp.
-            ends = np.cumsum(b.payload_lengths)
-            idx = np.repeat(b.payload_offsets - (ends - b.payload_lengths), b.payload_lengths) + np.arange(ends[-1])
-            parts.append(u8[idx])
+            parts.append(_pack(u8, b.payload_offsets, b.payload_lengths))
         lengths.append(b.payload_lengths)
     all_lengths = np.concatenate(lengths)
     offsets = np.concatenate([[0], np.cumsum(all_lengths)[:-1]]).astype(np.int64)
     return Batch(batches[0].channel, memoryview(np.concatenate(parts)), offsets, all_lengths)
 
 
+def _pack(u8: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """The payloads ``u8[starts[i] : starts[i] + lengths[i]]`` back to back, copied block by block (the index
+    arrays of a block are 16x its bytes: blocks of at most _PACK_BLOCK_BYTES, a bigger payload copied alone)."""
+    ends = np.cumsum(lengths)
+    dst = ends - lengths
+    out = np.empty(int(ends[-1]) if len(ends) else 0, dtype=np.uint8)
+    i, n = 0, len(starts)
+    while i < n:
+        if lengths[i] >= _PACK_BLOCK_BYTES:
+            out[dst[i] : ends[i]] = u8[starts[i] : starts[i] + lengths[i]]
+            i += 1
+            continue
+        j = max(i + 1, int(np.searchsorted(ends, dst[i] + _PACK_BLOCK_BYTES, side="right")))
+        # Byte positions of every payload byte: each payload's start repeated over its length, plus a ramp.
+        idx = np.repeat(starts[i:j] - dst[i:j], lengths[i:j]) + np.arange(dst[i], ends[j - 1])
+        out[dst[i] : ends[j - 1]] = u8[idx]
+        i = j
+    return out
+
+
 def _gather(u8: np.ndarray, starts: np.ndarray, dtype: str, count: int = 1) -> np.ndarray:
-    """Values of ``dtype`` at byte offsets ``starts`` (count per offset) of a uint8 buffer, vectorised."""
+    """Values of ``dtype`` at byte offsets ``starts`` (count per offset) of a uint8 buffer, vectorised: rows of a
+    sliding-window view are copied (no index array per byte). IndexError for an offset past the buffer."""
     dt = np.dtype(dtype)
-    idx = starts[:, None] + np.arange(dt.itemsize * count)[None, :]
-    values = np.ascontiguousarray(u8[idx]).view(dt)
+    width = dt.itemsize * count
+    if width > len(u8):
+        raise IndexError(f"a field of {width} bytes in a buffer of {len(u8)}")
+    values = np.lib.stride_tricks.sliding_window_view(u8, width)[starts].view(dt)
     return values[:, 0] if count == 1 else values
 
 
@@ -162,16 +202,6 @@ def _string(buf: bytes | memoryview, off: int) -> tuple[str, int]:
     if off + 4 + n > len(buf):
         raise ValueError(f"a string of {n} bytes at record offset {off} runs past the record's {len(buf)} bytes")
     return bytes(buf[off + 4 : off + 4 + n]).decode(), off + 4 + n
-
-
-@contextlib.contextmanager
-def _mapped(file: BinaryIO, size: int) -> Iterator[BinaryIO | mmap.mmap]:
-    """The file memory-mapped (reads without a system call each: a chunk has a dozen index records)."""
-    if size == 0:  # mmap refuses empty files
-        yield file
-        return
-    with mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ) as mapped:
-        yield mapped
 
 
 _THREAD = threading.local()
@@ -234,6 +264,37 @@ def _decompress(compression: str, payload: memoryview, raw_size: int, at: int) -
     return parts
 
 
+def _read(f: BinaryIO, n: int, at: int) -> bytes:
+    """``n`` bytes of the record at byte ``at``; _FileCut when the file ends first (it shrank under the reader)."""
+    data = f.read(n)
+    if len(data) != n:
+        raise _FileCut(f"truncated while read: the record at byte {at} ends past the end of the file (it shrank)")
+    return data
+
+
+def _indexed_messages(u8: np.ndarray, offs: np.ndarray, owner: np.ndarray) -> tuple | str:
+    """(offsets, channel ids, record lengths) of the messages a chunk's index names, after checking them against
+    the chunk's bytes; or why the index cannot be used (entries past the end, on a record that is not a message
+    of their channel, repeated or overlapping: a message is copied once, whatever the index says)."""
+    offs = offs.astype(np.int64)
+    if not len(offs):
+        return offs, owner, offs
+    if (offs < 0).any() or (offs + 31 > len(u8)).any():
+        return "points past the chunk end"
+    lengths = _gather(u8, offs + 1, "<u8")
+    if (lengths > len(u8)).any():
+        return f"names a message record longer than the chunk at chunk offset {int(offs[lengths > len(u8)][0])}"
+    lengths = lengths.astype(np.int64)
+    bad = (u8[offs] != OP_MESSAGE) | (offs + 9 + lengths > len(u8)) | (lengths < 22)
+    bad |= _gather(u8, offs + 9, "<u2") != owner
+    if bad.any():
+        return f"names no message of its channel at chunk offset {int(offs[bad][0])}"
+    order = np.argsort(offs, kind="stable")
+    if (offs[order][1:] < (offs + 9 + lengths)[order][:-1]).any():
+        return "repeats or overlaps entries"
+    return offs, owner, lengths
+
+
 class StreamingMcapReader:
     """The messages of the wanted topics: :meth:`batches` (index-driven, for the scorer) or :meth:`messages`.
 
@@ -247,6 +308,8 @@ class StreamingMcapReader:
         self.topics = None if topics is None else set(topics)  # None: every topic
         self.channels: dict[int, Channel] = {}
         self._schemas: dict[int, str] = {}
+        #: topic -> how many known channels carry it (kept as channels are defined: never rebuilt per chunk)
+        self._known_topics: dict[str, int] = {}
         self.damage: list[str] = []
         self.complete = False
         self._size = 0
@@ -257,26 +320,32 @@ class StreamingMcapReader:
         with self._open() as f:
             # chunk offset, chunk record, message indexes of wanted or unknown channels, index records seen
             pending: tuple[int, bytes, list, list[int]] | None = None
-            for at, op, length in self._top_level(f):
-                if op == OP_MESSAGE_INDEX and pending is not None:
-                    pending[3][0] += 1
-                    channel_id = _U16.unpack(f.read(2))[0]
-                    if self._wanted(channel_id) or channel_id not in self.channels:
-                        pending[2].append((channel_id, f.read(length - 2)))
-                    continue
-                if pending is not None:
-                    yield from self._chunk_batches(*pending)
-                    pending = None
-                if op == OP_CHUNK:
-                    pending = (at, f.read(length), [], [0])
-                elif op in (OP_SCHEMA, OP_CHANNEL):
-                    self._definition(op, f.read(length), f"byte {at}")
-                elif op == OP_MESSAGE:  # a message outside any chunk (unchunked files)
-                    body = memoryview(f.read(length))
-                    channel_id = _U16.unpack_from(body)[0]
-                    if self._wanted(channel_id):
-                        one = np.array([22], dtype=np.int64)
-                        yield Batch(self.channels[channel_id], body, one, np.array([length - 22], dtype=np.int64))
+            try:
+                for at, op, length in self._top_level(f):
+                    if op == OP_MESSAGE_INDEX and pending is not None:
+                        pending[3][0] += 1
+                        channel_id = _U16.unpack(_read(f, 2, at))[0]
+                        if self._wanted(channel_id) or channel_id not in self.channels:
+                            pending[2].append((channel_id, _read(f, length - 2, at)))
+                        continue
+                    if pending is not None:
+                        yield from self._chunk_batches(*pending)
+                        pending = None
+                    if op == OP_CHUNK:
+                        if self._chunk_fits(at, length):
+                            pending = (at, _read(f, length, at), [], [0])
+                    elif op in (OP_SCHEMA, OP_CHANNEL):
+                        self._definition(op, _read(f, length, at), f"byte {at}")
+                    elif op == OP_MESSAGE:  # a message outside any chunk (unchunked files)
+                        channel_id = _U16.unpack(_read(f, 2, at))[0]
+                        if self._wanted(channel_id) and self._payload_fits(
+                            f"byte {at}", self.channels[channel_id], length - 22
+                        ):
+                            body = memoryview(_U16.pack(channel_id) + _read(f, length - 2, at))
+                            one = np.array([22], dtype=np.int64)
+                            yield Batch(self.channels[channel_id], body, one, np.array([length - 22], dtype=np.int64))
+            except _FileCut as cut:
+                self._damaged(str(cut))
             if pending is not None and self.complete:
                 yield from self._chunk_batches(*pending)
             elif pending is not None:
@@ -290,23 +359,30 @@ class StreamingMcapReader:
         ``lq reindex`` counts. A payload is a view of the chunk being walked: copy what must outlive the step.
         """
         with self._open() as f:
-            for at, op, length in self._top_level(f):
-                if op == OP_CHUNK:
-                    try:
-                        data = self._chunk_data(at, f.read(length))
-                    except Exception as exc:  # noqa: BLE001 - a corrupt header or payload, whatever the decoder raises
-                        self._damaged(_chunk_damage(at, exc))
-                        continue
-                    for off, inner_op, inner_length in self._chunk_records(data, at):
-                        body = data[off + 9 : off + 9 + inner_length]
-                        if inner_op in (OP_SCHEMA, OP_CHANNEL):
-                            self._definition(inner_op, body, f"chunk at byte {at}, chunk offset {off}")
-                        elif inner_op == OP_MESSAGE:
-                            yield from self._message(body)
-                elif op in (OP_SCHEMA, OP_CHANNEL):
-                    self._definition(op, f.read(length), f"byte {at}")
-                elif op == OP_MESSAGE:
-                    yield from self._message(memoryview(f.read(length)))
+            try:
+                for at, op, length in self._top_level(f):
+                    if op == OP_CHUNK:
+                        if not self._chunk_fits(at, length):
+                            continue
+                        try:
+                            data = self._chunk_data(at, _read(f, length, at))
+                        except _FileCut:
+                            raise
+                        except Exception as exc:  # noqa: BLE001 - a corrupt header or payload, whatever the decoder raises
+                            self._damaged(_chunk_damage(at, exc))
+                            continue
+                        for off, inner_op, inner_length in self._chunk_records(data, at):
+                            body = data[off + 9 : off + 9 + inner_length]
+                            if inner_op in (OP_SCHEMA, OP_CHANNEL):
+                                self._definition(inner_op, body, f"chunk at byte {at}, chunk offset {off}")
+                            elif inner_op == OP_MESSAGE:
+                                yield from self._message(body)
+                    elif op in (OP_SCHEMA, OP_CHANNEL):
+                        self._definition(op, _read(f, length, at), f"byte {at}")
+                    elif op == OP_MESSAGE:
+                        yield from self._message(memoryview(_read(f, length, at)))
+            except _FileCut as cut:
+                self._damaged(str(cut))
 
     def _message(self, body: memoryview) -> Iterator[tuple[Channel, int, memoryview]]:
         channel_id, _sequence, log_ns = struct.unpack_from("<HIQ", body)
@@ -314,31 +390,24 @@ class StreamingMcapReader:
             yield self.channels[channel_id], log_ns, body[22:]
 
     @contextlib.contextmanager
-    def _open(self) -> Iterator[BinaryIO | mmap.mmap]:
-        """The file, memory-mapped, past its magic bytes (McapDamage: not a regular file, not MCAP)."""
-        with open_regular(self.path) as file:
-            size = os.fstat(file.fileno()).st_size
-            with _mapped(file, size) as f:
-                if f.read(8) != MAGIC:
-                    raise McapDamage(f"{self.path}: not an MCAP file (bad magic bytes)")
-                self._size = size
-                yield f
+    def _open(self) -> Iterator[BinaryIO]:
+        """The file past its magic bytes (McapDamage: not a regular file, not MCAP). Read with bounded reads:
+        a memory map of a file that shrinks under it raises SIGBUS at the first page past the new end."""
+        with open_regular(self.path) as f:
+            size = os.fstat(f.fileno()).st_size
+            if f.read(8) != MAGIC:
+                raise McapDamage(f"{self.path}: not an MCAP file (bad magic bytes)")
+            self._size = size
+            yield f
 
-    def _top_level(self, f: BinaryIO | mmap.mmap) -> Iterator[tuple[int, int, int]]:
+    def _top_level(self, f: BinaryIO) -> Iterator[tuple[int, int, int]]:
         """(byte offset, opcode, body length) of each data-section record, the file positioned at its body.
 
         Ends at the data end record (``complete``) or at damage that stops the read (recorded): a cut record,
         or a header that cannot be a record (nothing after it can be found).
         """
         size, at = self._size, 8
-        # Memory-mapped pages stay resident once read: drop those walked past, or a big file ends up all in memory.
-        release = getattr(f, "madvise", None) if hasattr(mmap, "MADV_DONTNEED") else None
-        released = 0
         while True:
-            if release is not None and at - released >= _RELEASE_BYTES:
-                upto = min(at, size) // mmap.PAGESIZE * mmap.PAGESIZE
-                release(mmap.MADV_DONTNEED, released, upto - released)
-                released = upto
             if len(self.damage) >= MAX_DAMAGE:
                 self._damaged(f"more than {MAX_DAMAGE} problems: reading stopped at byte {at}")
                 return
@@ -366,14 +435,34 @@ class StreamingMcapReader:
                 yield at, op, length
             at += 9 + length
 
+    def _chunk_fits(self, at: int, length: int) -> bool:
+        """Whether a chunk record of ``length`` bytes may be read (else it is damage, skipped unread)."""
+        if length <= MAX_CHUNK_RECORD_BYTES:
+            return True
+        self._damaged(
+            f"chunk at byte {at}: a record of {length} bytes, more than a chunk of {MAX_CHUNK_BYTES >> 20} MiB "
+            "compresses to; chunk skipped"
+        )
+        return False
+
+    def _payload_fits(self, where: str, channel: Channel, length: int, count: int = 1) -> bool:
+        """Whether messages of ``length`` bytes of ``channel`` may be decoded (else damage: ``count`` skipped)."""
+        if channel.msgtype not in WALKERS or length <= MAX_BULK_PAYLOAD_BYTES:
+            return True
+        plural = "s" if count != 1 else ""
+        self._damaged(
+            f"{where}: {count} {channel.topic} message{plural} larger than the {MAX_BULK_PAYLOAD_BYTES} "
+            f"bytes a {channel.msgtype} may have; skipped"
+        )
+        return False
+
     def _damaged(self, message: str) -> None:
         if message not in self.damage:  # a chunk walked twice (definitions, then messages) is named once
             self.damage.append(message)
 
     def _all_wanted_known(self) -> bool:
         """Every wanted topic has a known channel (else an unread chunk might hold its definition)."""
-        known = {c.topic for c in self.channels.values()}
-        return self.topics is not None and self.topics <= known
+        return self.topics is not None and all(topic in self._known_topics for topic in self.topics)
 
     def _wanted(self, channel_id: int) -> bool:
         channel = self.channels.get(channel_id)
@@ -390,10 +479,19 @@ class StreamingMcapReader:
                 channel_id, schema_id = struct.unpack_from("<HH", body)
                 topic, off = _string(body, 4)
                 encoding, _ = _string(body, off)
-                self.channels[channel_id] = Channel(channel_id, topic, self._schemas.get(schema_id, ""), encoding)
+                self._define_channel(Channel(channel_id, topic, self._schemas.get(schema_id, ""), encoding))
         except (struct.error, ValueError) as exc:  # a short record, a string past its end, not UTF-8
             kind = "schema" if op == OP_SCHEMA else "channel"
             self._damaged(f"{where}: malformed {kind} record ({exc}); skipped")
+
+    def _define_channel(self, channel: Channel) -> None:
+        old = self.channels.get(channel.id)
+        if old is not None:
+            self._known_topics[old.topic] -= 1
+            if not self._known_topics[old.topic]:
+                del self._known_topics[old.topic]
+        self.channels[channel.id] = channel
+        self._known_topics[channel.topic] = self._known_topics.get(channel.topic, 0) + 1
 
     # -- chunks ------------------------------------------------------------------------------------
     def _chunk_batches(self, at: int, record: bytes, indexes: list, index_records: list[int] | int) -> Iterator[Batch]:
@@ -413,46 +511,48 @@ class StreamingMcapReader:
             return  # no message of a wanted (or unknown) channel in it
         if indexes and any(cid not in self.channels for cid, _ in indexes):
             self._scan_records(data, at, definitions_only=True)
-        if not n_index_records or any(cid not in self.channels for cid, _ in indexes):
-            # No usable index (e.g. the file was cut right after the chunk): walk the records.
+        u8 = np.frombuffer(data, dtype=np.uint8)
+        found = None
+        if n_index_records and all(cid in self.channels for cid, _ in indexes):
+            # A message index record: u32 byte length, then (u64 log time, u64 offset) entries.
+            wanted = [(cid, raw) for cid, raw in indexes if self._wanted(cid)]
+            offs = np.frombuffer(b"".join(raw[4:] for _, raw in wanted), dtype="<u8").reshape(-1, 2)[:, 1]
+            owner = np.repeat(
+                np.asarray([cid for cid, _ in wanted], dtype=np.int64), [(len(r) - 4) // 16 for _, r in wanted]
+            )
+            found = _indexed_messages(u8, offs, owner)
+            if isinstance(found, str):
+                self._damaged(f"chunk at byte {at}: message index of the chunk {found}; its records walked instead")
+                found = None
+        if found is None:
+            # No usable index (e.g. the file was cut right after the chunk, or the index is wrong): walk the records.
             scanned = self._scan_records(data, at)
             cids = list(scanned)
             offs = np.fromiter((o for cid in cids for o in scanned[cid]), dtype=np.int64)
-            counts = [len(scanned[cid]) for cid in cids]
-        else:
-            # A message index record: u32 byte length, then (u64 log time, u64 offset) entries.
-            wanted = [(cid, raw) for cid, raw in indexes if self._wanted(cid)]
-            cids = [cid for cid, _ in wanted]
-            offs = np.frombuffer(b"".join(raw[4:] for _, raw in wanted), dtype="<u8").reshape(-1, 2)[:, 1]
-            counts = [(len(raw) - 4) // 16 for _, raw in wanted]
+            owner = np.repeat(np.asarray(cids, dtype=np.int64), [len(scanned[cid]) for cid in cids])
+            lengths = _gather(u8, offs + 1, "<u8").astype(np.int64) if len(offs) else offs
+            found = offs, owner, lengths
+        offs, owner, lengths = found
         if not len(offs):
             return
-        owner = np.repeat(np.asarray(cids, dtype=np.int64), counts)
         order = np.lexsort((offs, owner))  # by channel, then file order
-        offs, owner = offs[order].astype(np.int64), owner[order]
-        # One vectorised pass over every wanted message of the chunk (numpy's per-call cost dominates here).
-        u8 = np.frombuffer(data, dtype=np.uint8)
-        past_end = (offs + 31 > len(data)) | (offs < 0)
-        if past_end.any():
-            for cid in np.unique(owner[past_end]).tolist():
-                self._damaged(f"chunk at byte {at}: message index of channel {cid} points past the chunk end")
-            keep = ~np.isin(owner, owner[past_end])
-            offs, owner = offs[keep], owner[keep]
+        offs, owner, lengths = offs[order], owner[order], lengths[order]
+        payload_lengths = lengths - 22
+        starts = np.flatnonzero(np.diff(owner, prepend=-1))
+        keep = np.ones(len(offs), dtype=bool)
+        for lo, hi in zip(starts.tolist(), [*starts[1:].tolist(), len(owner)], strict=True):
+            channel = self.channels[int(owner[lo])]
+            big = payload_lengths[lo:hi] > MAX_BULK_PAYLOAD_BYTES
+            too_big = int(payload_lengths[lo:hi][big][0]) if big.any() else 0
+            if big.any() and not self._payload_fits(f"chunk at byte {at}", channel, too_big, int(big.sum())):
+                keep[lo:hi] = ~big
+        if not keep.all():
+            offs, owner, payload_lengths = offs[keep], owner[keep], payload_lengths[keep]
             if not len(offs):
                 return
-        lengths = _gather(u8, offs + 1, "<u8").astype(np.int64)
-        bad = (u8[offs] != OP_MESSAGE) | (offs + 9 + lengths > len(data)) | (lengths < 22)
-        bad |= _gather(u8, offs + 9, "<u2") != owner
-        if bad.any():
-            first = int(offs[bad][0])
-            self._damaged(f"chunk at byte {at}: bad message record at chunk offset {first}; chunk skipped")
-            return
         # Pack the wanted payloads (the batches own their bytes; the decompressed chunk is freed).
-        payload_lengths = lengths - 22
-        ends = np.cumsum(payload_lengths)
-        packed_starts = ends - payload_lengths
-        idx = np.repeat(offs + 31 - packed_starts, payload_lengths) + np.arange(int(ends[-1]))
-        packed = memoryview(u8[idx])
+        packed = memoryview(_pack(u8, offs + 31, payload_lengths))
+        packed_starts = np.cumsum(payload_lengths) - payload_lengths
         starts = np.flatnonzero(np.diff(owner, prepend=-1))
         for lo, hi in zip(starts.tolist(), [*starts[1:].tolist(), len(owner)], strict=True):
             yield Batch(self.channels[int(owner[lo])], packed, packed_starts[lo:hi], payload_lengths[lo:hi])
@@ -565,20 +665,35 @@ class _Walker:
         self.off += 4
         return value
 
+    def count(self, what: str, item_bytes: int) -> int:
+        """A sequence's item count, refused (ValueError) when its items cannot fit in what is left of the
+        message (``item_bytes`` each at least) or exceed MAX_SEQUENCE_ITEMS: never walked item by item."""
+        count = self.u32(record_length=True)
+        left = len(self.buf) - self.off
+        if count * item_bytes > left or count > MAX_SEQUENCE_ITEMS:
+            raise ValueError(
+                f"{what} of {count} items at byte {self.off - 4} does not fit: {left} bytes remain, at most "
+                f"{MAX_SEQUENCE_ITEMS} items"
+            )
+        return count
+
+    def skip(self, n_bytes: int) -> None:
+        if n_bytes > len(self.buf) - self.off:
+            raise ValueError(f"a string of {n_bytes} bytes at byte {self.off - 4} runs past the message")
+        self.off += n_bytes
+
     def header(self) -> None:
         self.layout.fields["sec"] = (4, "i4", 1)
         self.layout.fields["nanosec"] = (8, "u4", 1)
         self.off = 12
-        frame_id_bytes = self.u32(record_length=True)  # with its NUL
-        self.off += frame_id_bytes
+        self.skip(self.u32(record_length=True))  # the frame id, with its NUL
 
     def string_sequence(self) -> None:
-        for _ in range(self.u32(record_length=True)):
-            string_bytes = self.u32(record_length=True)
-            self.off += string_bytes
+        for _ in range(self.count("string sequence", 4)):
+            self.skip(self.u32(record_length=True))
 
     def float64_sequence(self, name: str | None) -> None:
-        count = self.u32(record_length=True)
+        count = self.count("float64 sequence", 8)
         if count:
             self.off = _align(self.off, 8)
         if name:
@@ -660,11 +775,15 @@ def decode(batch: Batch) -> list[dict[str, np.ndarray]]:
         ref = int(remaining[0])
         layout = walker(batch.payload(ref))
         ref_start = int(starts[ref])
-        same = lengths[remaining] == lengths[ref]
-        for off in layout.length_fields:
-            ref_value = int.from_bytes(batch.data[ref_start + off : ref_start + off + 4], "little")
-            cand = remaining[same]
-            same[same] = _gather(u8, starts[cand] + off, "<u4") == ref_value
+        if len(groups) >= _MAX_LAYOUT_GROUPS:  # every message a layout of its own: one by one (linear, not n^2)
+            same = np.zeros(len(remaining), dtype=bool)
+            same[0] = True
+        else:
+            same = lengths[remaining] == lengths[ref]
+            for off in layout.length_fields:
+                ref_value = int.from_bytes(batch.data[ref_start + off : ref_start + off + 4], "little")
+                cand = remaining[same]
+                same[same] = _gather(u8, starts[cand] + off, "<u4") == ref_value
         members = remaining[same]
         group = {"index": members}
         for name, (off, dtype, count) in layout.fields.items():

@@ -279,6 +279,10 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
                     data.joints_without_effort += len(group["index"])
 
 
+#: The largest injected latency a chunk may record, s (a bag's whole episode is minutes): beyond, damage.
+MAX_INJECTED_LATENCY_S = 1e6
+
+
 def _collect_message(data: EpisodeData, role: str, msg) -> None:
     """One episode event or action chunk; everything is decoded before anything is kept (all or nothing)."""
     if role == "events":
@@ -286,11 +290,17 @@ def _collect_message(data: EpisodeData, role: str, msg) -> None:
         return
     actions = m.chunk_actions(msg)
     valid = not msg.error and validate_chunk(actions) is None
+    if not 0 <= msg.injected_latency_s <= MAX_INJECTED_LATENCY_S:  # NaN, inf, negative, absurd: damage
+        latency_s = msg.injected_latency_s
+        raise ValueError(f"chunk {msg.request_id}: injected latency {latency_s} s is outside 0 to 1e6 s")
     try:
         n = latency_ticks(msg.injected_latency_s)
     except ValueError:
         n = None  # another tool's latency between ticks: no replay of its protocol
-    timing = json.loads(msg.timing_json) if getattr(msg, "timing_json", "") else None  # older bags have none
+    try:
+        timing = json.loads(msg.timing_json) if getattr(msg, "timing_json", "") else None  # older bags have none
+    except RecursionError:
+        raise ValueError(f"timing_json of chunk {msg.request_id} is nested too deep") from None
     if timing is not None and not isinstance(timing, dict):
         raise ValueError(f"timing_json of chunk {msg.request_id} is not a JSON object")
     data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), valid))
