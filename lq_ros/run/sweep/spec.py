@@ -11,11 +11,10 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from lq_ros.core.latency import LatencyError, parse_latency
 from lq_ros.core.redact import redact_value
 from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, PROTOCOL_FIELDS, RunConfig
+from lq_ros.core.safe_yaml import YamlRefused, load_yaml
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.validation import did_you_mean, num_tasks
@@ -537,13 +536,12 @@ def load_spec(path: Path) -> SweepSpec:
     if len(data) > MAX_SPEC_BYTES:
         raise SpecError(f"{path}: more than {MAX_SPEC_BYTES} bytes; a spec has at most {MAX_SPEC_BYTES}")
     try:
-        raw = yaml.safe_load(data.decode("utf-8"))
+        # Aliases, nesting, integer digits and lone surrogates bounded (lq_ros.core.safe_yaml), one-line refusals.
+        raw = load_yaml(data.decode("utf-8"), str(path))
     except UnicodeDecodeError as exc:
         raise SpecError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from exc
-    except yaml.YAMLError as exc:
-        raise SpecError(f"{path}: not valid YAML ({exc})") from exc
-    except RecursionError:
-        raise SpecError(f"{path}: not valid YAML (nested too deeply)") from None
+    except YamlRefused as exc:
+        raise SpecError(str(exc)) from None
     try:
         return expand_spec(raw, default_name=path.stem)
     except SpecError as exc:
