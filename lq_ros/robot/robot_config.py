@@ -7,17 +7,20 @@ success flag; it takes an absolute EE target ``PoseStamped`` and a gripper width
 ``std_msgs/Float64MultiArray``. Its stamps are wall-clock time (``clock: wall``) or simulated time it
 publishes on ``/clock`` (``clock: sim``, e.g. a simulator). Examples: config/robots/standin.yaml,
 config/robots/franka_ros2.yaml.
-A bad file is refused with one line naming the entry and the valid values (:class:`RobotConfigError`).
+A bad file is refused with one line naming the entry and the valid values (:class:`RobotConfigError`): only a
+regular file of at most :data:`MAX_ROBOT_BYTES` is read (YAML bounded by lq_ros.core.safe_yaml), every rate and
+width is a finite number in its range, and topic names follow ROS 2's rules for absolute names.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
+from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file
 from lq_ros.core.shipped import shipped_path
 from lq_ros.wire import messages as m
 
@@ -31,6 +34,21 @@ CLOCK = "rosgraph_msgs/msg/Clock"
 CLOCK_TOPIC = "/clock"
 #: Shipped configurations, by name (``--robot standin`` = config/robots/standin.yaml, shipped with the package).
 ROBOTS_DIR = shipped_path("config/robots")
+#: The largest robot YAML read, bytes (the shipped ones are ~3 kB).
+MAX_ROBOT_BYTES = 1 << 20
+#: Highest publishing rate accepted, Hz (a rate is a period the stand-in and the bridge divide by).
+MAX_RATE_HZ = 100_000.0
+#: Widest gripper opening accepted, m.
+MAX_GRIPPER_WIDTH_M = 1.0
+#: An absolute ROS 2 topic name (design article "Topic and Service name mapping"): ``/`` then tokens of letters,
+#: digits and underscores that do not start with a digit, one ``/`` between tokens, no ``__``, no trailing ``/``.
+TOPIC_NAME = re.compile(r"(?:/[A-Za-z_][A-Za-z0-9_]*)+")
+#: Longest topic name accepted (rmw's limit is 255 with its prefix).
+MAX_TOPIC_CHARS = 200
+#: A name that becomes a topic token or a node parameter's name (a camera, an object).
+TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,99}")
+#: Joint names, frame ids and the robot's name: printable, no spaces, at most 200 characters.
+LABEL = re.compile(r"[\x21-\x7e]{1,200}")
 
 
 class RobotConfigError(ValueError):
@@ -155,27 +173,61 @@ def resolve_path(spec: str) -> Path:
 def load_robot_config(spec: str | Path) -> RobotConfig:
     path = resolve_path(str(spec))
     try:
-        raw = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise RobotConfigError(f"robot config {path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise RobotConfigError(f"robot config {path}: not YAML ({str(exc).splitlines()[0]})") from None
+        raw = load_yaml(read_text_file(path, MAX_ROBOT_BYTES, "robot config"), f"robot config {path}")
+    except YamlRefused as exc:
+        raise RobotConfigError(str(exc).replace("not valid YAML", "not YAML")) from None
     return parse_robot_config(raw, str(path))
+
+
+def _short(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _topic(value: object, where: str, key: str, example: str) -> str:
+    """``value`` if it is a valid absolute ROS 2 topic name; else RobotConfigError naming the rules."""
+    if (
+        not isinstance(value, str) or len(value) > MAX_TOPIC_CHARS or not TOPIC_NAME.fullmatch(value)
+        or "__" in value
+    ):  # fmt: skip
+        raise RobotConfigError(
+            f"{where}: '{key}' must be an absolute ROS topic name such as {example} (tokens of letters, digits and "
+            f"underscores, not starting with a digit, no '__', at most {MAX_TOPIC_CHARS} characters), "
+            f"got {_short(value)}"
+        )
+    return value
+
+
+def _number(value: object, where: str, key: str, lo: float, hi: float, *, lo_open: bool = False) -> float:
+    """``value`` as a finite number in [lo, hi] (``lo_open``: (lo, hi]); RobotConfigError otherwise."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and (value > lo if lo_open else value >= lo) and value <= hi:
+        return float(value)
+    bound = f"> {lo:g}" if lo_open else f">= {lo:g}"
+    raise RobotConfigError(f"{where}: '{key}' must be a finite number {bound} and <= {hi:g}, got {_short(value)}")
+
+
+def _labels(value: object, where: str, key: str, pattern: re.Pattern = LABEL) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) and pattern.fullmatch(v) for v in value):
+        raise RobotConfigError(
+            f"{where}: '{key}' must be a list of names (printable, no spaces, at most 200 characters), "
+            f"got {_short(value)}"
+        )
+    return tuple(value)
 
 
 def _stream(raw: dict, key: str, msgtype: str, where: str, *, need_joints: bool = False) -> StreamSpec:
     entry = raw.get(key)
-    if not isinstance(entry, dict) or not isinstance(entry.get("topic"), str) or not entry["topic"].startswith("/"):
+    if not isinstance(entry, dict) or "topic" not in entry:
         raise RobotConfigError(f"{where}: '{key}' needs 'topic' (an absolute name such as /robot/{key})")
+    topic = _topic(entry["topic"], where, f"{key}.topic", f"/robot/{key}")
     if entry.get("type", msgtype) != msgtype:
-        raise RobotConfigError(f"{where}: '{key}.type' is {entry['type']!r}; the stack reads {msgtype} there")
-    rate = entry.get("rate_hz", 0.0)
-    if not isinstance(rate, int | float) or rate < 0:
-        raise RobotConfigError(f"{where}: '{key}.rate_hz' must be a number >= 0, got {rate!r}")
+        raise RobotConfigError(f"{where}: '{key}.type' is {_short(entry['type'])}; the stack reads {msgtype} there")
+    rate = _number(entry.get("rate_hz", 0.0), where, f"{key}.rate_hz", 0.0, MAX_RATE_HZ)
     joints = entry.get("joints", [])
-    if need_joints and (not isinstance(joints, list) or not joints or not all(isinstance(j, str) for j in joints)):
+    if need_joints and (not isinstance(joints, list) or not joints):
         raise RobotConfigError(f"{where}: '{key}.joints' must list the joint names in order")
-    return StreamSpec(entry["topic"], msgtype, float(rate), tuple(joints or ()))
+    return StreamSpec(topic, msgtype, rate, _labels(joints or [], where, f"{key}.joints"))
 
 
 def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
@@ -187,15 +239,23 @@ def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
     if unknown:
         raise RobotConfigError(f"{where}: unknown entries {unknown}; valid: {', '.join(sorted(known))}")
     clock = raw.get("clock", "wall")
-    if clock not in ("wall", "sim"):
-        raise RobotConfigError(f"{where}: 'clock' must be wall or sim, got {clock!r}")
+    if not isinstance(clock, str) or clock not in ("wall", "sim"):
+        raise RobotConfigError(f"{where}: 'clock' must be wall or sim, got {_short(clock)}")
+    for key in ("name", "frame_id"):
+        if key in raw and not (isinstance(raw[key], str) and LABEL.fullmatch(raw[key])):
+            raise RobotConfigError(
+                f"{where}: '{key}' must be a name (printable, no spaces, at most 200 characters), "
+                f"got {_short(raw[key])}"
+            )
     joint_states = _stream(raw, "joint_states", JOINT_STATE, where, need_joints=True)
     if len(joint_states.joints) != 7:
         raise RobotConfigError(f"{where}: 'joint_states.joints' lists {len(joint_states.joints)} joints; a 7-DoF arm")
     ee_pose = _stream(raw, "ee_pose", POSE_STAMPED, where)
     rot = raw["ee_pose"].get("observation_rotation_xyzw", [0.0, 0.0, 0.0, 1.0])
-    if not (isinstance(rot, list) and len(rot) == 4 and all(isinstance(v, int | float) for v in rot)) or not (
-        abs(sum(v * v for v in rot) - 1.0) < 1e-3
+    numbers = isinstance(rot, list) and all(isinstance(v, int | float) and not isinstance(v, bool) for v in rot)
+    if (
+        not (numbers and len(rot) == 4 and all(map(math.isfinite, rot)))
+        or not abs(sum(v * v for v in rot) - 1.0) < 1e-3
     ):
         raise RobotConfigError(f"{where}: 'ee_pose.observation_rotation_xyzw' must be a unit quaternion [x, y, z, w]")
     ee_pose = StreamSpec(ee_pose.topic, ee_pose.type, ee_pose.rate_hz, (), tuple(float(v) for v in rot))
@@ -205,20 +265,30 @@ def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
     objects = None
     if raw.get("objects"):
         o = raw["objects"]
-        if not isinstance(o, dict) or not str(o.get("topic_prefix", "")).startswith("/"):
+        if not isinstance(o, dict) or "topic_prefix" not in o:
             raise RobotConfigError(f"{where}: 'objects' needs 'topic_prefix' (topics <prefix>/<name>/pose)")
+        prefix = _topic(o["topic_prefix"], where, "objects.topic_prefix", "/robot/objects")
         if o.get("type", POSE_STAMPED) != POSE_STAMPED:
             raise RobotConfigError(f"{where}: 'objects.type' must be {POSE_STAMPED}")
         names = o.get("names", [])
-        if names != "auto" and not (isinstance(names, list) and all(isinstance(n, str) for n in names)):
-            raise RobotConfigError(f"{where}: 'objects.names' must be a list of names or auto")
-        objects = ObjectsSpec(
-            o["topic_prefix"], float(o.get("rate_hz", 0.0)), None if names == "auto" else tuple(names)
-        )
+        if names != "auto" and not (
+            isinstance(names, list) and all(isinstance(n, str) and TOKEN.fullmatch(n) for n in names)
+        ):
+            raise RobotConfigError(
+                f"{where}: 'objects.names' must be auto or a list of names that can be topic tokens (letters, digits, "
+                f"underscores, not starting with a digit), got {_short(names)}"
+            )
+        rate = _number(o.get("rate_hz", 0.0), where, "objects.rate_hz", 0.0, MAX_RATE_HZ)
+        objects = ObjectsSpec(prefix, rate, None if names == "auto" else tuple(names))
     cams_raw = raw.get("cameras") or {}
     if not isinstance(cams_raw, dict):
         raise RobotConfigError(f"{where}: 'cameras' must map camera names to {{topic, type, rate_hz}}")
-    cameras = {str(c): _stream(cams_raw, c, IMAGE, f"{where}: cameras") for c in cams_raw}
+    for c in cams_raw:
+        if not isinstance(c, str) or not TOKEN.fullmatch(c):
+            raise RobotConfigError(
+                f"{where}: camera name {_short(c)} must be letters, digits and underscores, not starting with a digit"
+            )
+    cameras = {c: _stream(cams_raw, c, IMAGE, f"{where}: cameras") for c in cams_raw}
     command = raw.get("command")
     if not isinstance(command, dict):
         raise RobotConfigError(f"{where}: 'command' needs 'ee_target' (and 'gripper')")
@@ -227,10 +297,11 @@ def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
     if "gripper" in command:
         g = _stream(command, "gripper", FLOAT64_ARRAY, f"{where}: command")
         widths = command["gripper"]
-        try:
-            open_w, closed_w = float(widths["open_width_m"]), float(widths["closed_width_m"])
-        except (KeyError, TypeError, ValueError):
-            raise RobotConfigError(f"{where}: 'command.gripper' needs open_width_m and closed_width_m (m)") from None
+        if "open_width_m" not in widths or "closed_width_m" not in widths:
+            raise RobotConfigError(f"{where}: 'command.gripper' needs open_width_m and closed_width_m (m)")
+        hi = MAX_GRIPPER_WIDTH_M
+        open_w = _number(widths["open_width_m"], where, "command.gripper.open_width_m", 0.0, hi, lo_open=True)
+        closed_w = _number(widths["closed_width_m"], where, "command.gripper.closed_width_m", 0.0, hi)
         if not open_w > closed_w >= 0:
             raise RobotConfigError(f"{where}: 'command.gripper' needs open_width_m > closed_width_m >= 0")
         gripper_command = GripperCommandSpec(g.topic, g.type, open_w, closed_w)
