@@ -7,6 +7,11 @@ to over the openpi websocket protocol (:class:`OpenPIPolicy`'s client: deadlines
 decoding) and stops on ``close`` (or when this process dies: the server watches its parent). Every request
 carries the secret token the server printed in its ready line; the server serves no one else.
 
+A checkpoint is what the user names, nothing else: ``path=DIR`` must be an existing folder (a missing one is
+an error, never read as a hub id), ``path=hub:org/name`` fetches that hub repository. The checkpoint's
+processor files may name only LeRobot's registered processor steps; a step given by class path (code LeRobot
+would import and call) is refused unless the user passes ``trust_processors=1``.
+
 The checkpoint directory is checked here, before anything starts, from its ``config.json`` alone (one-line
 refusals): it must be a LeRobot ``save_pretrained`` folder with its saved processor pipelines, take
 LIBERO's cameras under LeRobot's names (``observation.images.image`` = agentview,
@@ -31,7 +36,7 @@ import numpy as np
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import PolicyError
-from lq_ros.policies.openpi_remote import AGENTVIEW, WRIST, OpenPIPolicy, camera_image, positive_number
+from lq_ros.policies.openpi_remote import AGENTVIEW, WRIST, OpenPIPolicy, camera_image, flag, positive_number
 
 #: LeRobot's image keys (``lerobot.envs.libero.LiberoEnv.camera_name_mapping``) -> our camera names.
 LEROBOT_CAMERAS = {"observation.images.image": AGENTVIEW, "observation.images.image2": WRIST}
@@ -43,10 +48,13 @@ LEROBOT_LIBERO_RENDER_SIZE = 256
 LEROBOT_STATE_KEY = "observation.state"
 LEROBOT_STATE_DIM = 8
 #: Files a LeRobot >= 0.4 ``save_pretrained`` folder holds (policy, weights, saved processor pipelines).
-CHECKPOINT_FILES = ("config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json")
+PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+CHECKPOINT_FILES = ("config.json", "model.safetensors", *PROCESSOR_FILES)
 #: Environment variable naming the Python of LeRobot's venv (default: ``.venv-lerobot`` beside the package).
 PYTHON_ENV = "LQ_LEROBOT_PYTHON"
 SERVER_SCRIPT = Path(__file__).with_name("lerobot_server.py")
+#: A Hugging Face hub checkpoint is named ``hub:org/name`` (a plain ``org/name`` is a local path).
+HUB_PREFIX = "hub:"
 #: A Hugging Face hub repository id (``org/name``), and how long fetching its config.json may take.
 HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
 HUB_TIMEOUT_S = 120.0
@@ -67,9 +75,34 @@ def venv_environment() -> dict[str, str]:
     return env
 
 
-def is_hub_id(path: str) -> bool:
-    """``org/name`` that is not a local path: a Hugging Face hub checkpoint."""
-    return bool(HUB_ID.fullmatch(path)) and not Path(path).exists()
+def hub_id(path: str) -> str | None:
+    """The repository of ``hub:org/name`` (ValueError if malformed); None for a local path."""
+    if not path.startswith(HUB_PREFIX):
+        return None
+    repo = path.removeprefix(HUB_PREFIX)
+    if not HUB_ID.fullmatch(repo) or ".." in repo:
+        raise ValueError(f"lerobot path {path!r}: a hub checkpoint is named {HUB_PREFIX}org/name")
+    return repo
+
+
+def check_processor_steps(folder: Path, where: str) -> None:
+    """Refuse a local checkpoint whose processor files name a step by class path (code LeRobot would import and
+    call): one line. The server checks the steps against LeRobot's registry too (and a hub checkpoint's)."""
+    for name in PROCESSOR_FILES:
+        try:
+            config = json.loads((folder / name).read_text())
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+            raise ValueError(f"lerobot path {where!r}: {name} is not JSON ({type(exc).__name__})") from None
+        steps = config.get("steps") if isinstance(config, dict) else None
+        if not isinstance(steps, list) or not all(isinstance(step, dict) for step in steps):
+            raise ValueError(f"lerobot path {where!r}: {name} has no list of steps")
+        for i, step in enumerate(steps):
+            if not isinstance(step.get("registry_name"), str):
+                raise ValueError(
+                    f"lerobot path {where!r}: {name} step {i} names the class {str(step.get('class'))[:100]!r}, "
+                    "which LeRobot would import and call; only LeRobot's registered processor steps are loaded "
+                    "unless you pass --policy-arg trust_processors=1"
+                )
 
 
 def fetch_hub_config(python: Path, repo_id: str, timeout_s: float = HUB_TIMEOUT_S) -> Path:
@@ -98,7 +131,10 @@ def fetch_hub_config(python: Path, repo_id: str, timeout_s: float = HUB_TIMEOUT_
 def read_checkpoint(path: Path) -> dict:
     """A local checkpoint's ``config.json``, after every check this side can make; ValueError (one line) if not fit."""
     if not path.is_dir():
-        raise ValueError(f"lerobot path {str(path)!r} is not a checkpoint directory (nor a hub id: org/name)")
+        raise ValueError(
+            f"lerobot path {str(path)!r} is not a checkpoint directory (a checkpoint on the Hugging Face hub is named "
+            f"{HUB_PREFIX}org/name)"
+        )
     missing = [name for name in CHECKPOINT_FILES if not (path / name).is_file()]
     if missing:
         raise ValueError(
@@ -146,9 +182,10 @@ def check_config(config_file: Path, where: str) -> dict:
 class LeRobotPolicy(OpenPIPolicy):
     """A LeRobot checkpoint served from LeRobot's own venv; see the module docstring.
 
-    Parameters: ``path`` (checkpoint folder), ``python`` (LeRobot's venv Python), ``device`` (torch device
-    of the server), ``threads`` (torch intra-op threads in the server; 0: torch's default), ``timeout_s``
-    (one inference), ``startup_timeout_s`` (loading the policy), ``prompt`` (instead of the task's language).
+    Parameters: ``path`` (checkpoint folder, or ``hub:org/name``), ``python`` (LeRobot's venv Python),
+    ``device`` (torch device of the server), ``threads`` (torch intra-op threads in the server; 0: torch's
+    default), ``timeout_s`` (one inference), ``startup_timeout_s`` (loading the policy), ``prompt`` (instead of
+    the task's language), ``trust_processors`` (load processor steps given by class path: runs their code).
     """
 
     name = "lerobot"
@@ -165,19 +202,25 @@ class LeRobotPolicy(OpenPIPolicy):
         timeout_s: float = 60.0,
         startup_timeout_s: float = 300.0,
         prompt: str | None = None,
+        trust_processors: bool = False,
     ) -> None:
         super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt)
+        self.trust_processors = flag("trust_processors", trust_processors)
         self.python = Path(python) if python else default_python()
         if not self.python.is_file():
             raise ValueError(f"lerobot: no Python at {self.python} for LeRobot's environment; {SETUP_HINT}")
-        if is_hub_id(str(path)):  # LeRobot's venv fetches it (config now, the rest when the server loads it)
-            self.path = Path(str(path))
-            config_file = fetch_hub_config(self.python, str(path))
+        repo = hub_id(str(path))
+        if repo is not None:  # LeRobot's venv fetches it (config now, the rest when the server loads it)
+            self.path = str(path)
+            config_file = fetch_hub_config(self.python, repo)
             self.config = check_config(config_file, str(path))
         else:
-            self.path = Path(str(path)).expanduser()
-            config_file = self.path / "config.json"
-            self.config = read_checkpoint(self.path)
+            folder = Path(str(path)).expanduser()
+            self.config = read_checkpoint(folder)
+            if not self.trust_processors:
+                check_processor_steps(folder, str(path))
+            self.path = str(folder.resolve())  # the server may run elsewhere: never a relative path
+            config_file = folder / "config.json"
         self.image_keys = [key for key in self.config["input_features"] if key in LEROBOT_CAMERAS]
         self.camera_names = tuple(LEROBOT_CAMERAS[key] for key in self.image_keys)
         self.device = str(device)
@@ -235,6 +278,7 @@ class LeRobotPolicy(OpenPIPolicy):
             "threads": self.threads,
             "timeout_s": self.timeout_s,
             "prompt": self.prompt_override,
+            "trust_processors": self.trust_processors,
         }
 
     def close(self) -> None:
@@ -262,6 +306,7 @@ class LeRobotPolicy(OpenPIPolicy):
         self._server_log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 - lives as long as the server
         command = [str(self.python), str(SERVER_SCRIPT), "--path", str(self.path), "--device", self.device]
         command += ["--threads", str(self.threads), "--port", "0", "--parent-pid", str(os.getpid())]
+        command += ["--trust-processors"] if self.trust_processors else []
         try:
             self._server = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log,

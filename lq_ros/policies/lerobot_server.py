@@ -38,9 +38,16 @@ Any local process can reach a loopback port, so the server trusts no peer:
   plain numeric dtypes only, byte counts checked), never openpi-client's (it builds object arrays from the
   peer's bytes), and each field is checked (dtype, shape, finite) before LeRobot sees it.
 
-Usage: ``python lerobot_server.py --path DIR [--device cpu] [--threads N] [--port 0]``; prints one JSON line
-``{"ready": true, "port": ..., "token": ...}`` on stdout once the policy is loaded, or one ``error:`` line on
-stderr and exits 2.
+What is loaded is what the user named: ``--path`` is an existing checkpoint folder (loaded offline: nothing is
+fetched from a hub, not even a missing state file) or an explicit ``hub:org/name``. The checkpoint's processor
+files name the steps LeRobot builds; a step is taken only from LeRobot's registry of processor steps (its
+``registry_name``), never a ``class`` path that LeRobot would import and call (a ``subprocess.Popen`` would run),
+and its ``state_file`` only from the checkpoint folder, unless ``--trust-processors`` (the user's explicit
+``trust_processors=1``).
+
+Usage: ``python lerobot_server.py --path DIR|hub:ORG/NAME [--device cpu] [--threads N] [--port 0]``; prints one
+JSON line ``{"ready": true, "port": ..., "token": ...}`` on stdout once the policy is loaded, or one ``error:``
+line on stderr and exits 2.
 """
 
 from __future__ import annotations
@@ -48,6 +55,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import hmac
+import importlib
 import importlib.util
 import json
 import os
@@ -77,6 +85,75 @@ MAX_PROMPT_CHARS = 4096
 STATE_FIELDS = {"eef_pos": 3, "eef_quat": 4, "gripper_qpos": 2, "joint_pos": None, "joint_vel": None}
 #: Longest error line sent to the client, characters.
 MAX_ERROR_CHARS = 300
+#: How a checkpoint on the Hugging Face hub is named (anything else is a local folder).
+HUB_PREFIX = "hub:"
+#: The processor pipelines a LeRobot >= 0.4 checkpoint saves (lerobot.utils.constants), and the largest read.
+PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
+MAX_PROCESSOR_BYTES = 1 << 20
+
+
+def checkpoint_source(path: str) -> tuple[str, bool]:
+    """(what LeRobot's from_pretrained is given, whether it is a local folder): ``hub:org/name`` or a folder."""
+    if path.startswith(HUB_PREFIX):
+        return path.removeprefix(HUB_PREFIX), False
+    folder = Path(path).expanduser()
+    if not folder.is_dir():
+        raise ValueError(f"{path!r} is not a checkpoint folder (a hub checkpoint is named {HUB_PREFIX}org/name)")
+    return str(folder.resolve()), True
+
+
+def check_processors(configs: dict[str, object], trust: bool) -> None:
+    """Refuse (ValueError, one line) a processor file whose steps are not LeRobot's registered steps, or whose
+    state files lie outside the checkpoint; ``trust`` allows ``class`` steps (the user chose to run them)."""
+    from lerobot.processor.pipeline import ProcessorStepRegistry
+
+    registered = set(ProcessorStepRegistry.list())
+    for name, config in configs.items():
+        steps = config.get("steps") if isinstance(config, dict) else None
+        if not isinstance(steps, list):
+            raise ValueError(f"{name}: no list of 'steps'")
+        for i, step in enumerate(steps):
+            if not isinstance(step, dict):
+                raise ValueError(f"{name}: step {i} is not a mapping")
+            registry_name = step.get("registry_name")
+            if registry_name is None and not trust:
+                raise ValueError(
+                    f"{name}: step {i} names the class {str(step.get('class'))[:100]!r}, which LeRobot would import "
+                    "and call; only LeRobot's registered processor steps (registry_name) are loaded unless the "
+                    "policy argument trust_processors=1 is given"
+                )
+            if registry_name is not None and registry_name not in registered:
+                raise ValueError(
+                    f"{name}: step {i} registry_name {str(registry_name)[:100]!r} is not a LeRobot processor step "
+                    f"(registered: {', '.join(sorted(registered))})"
+                )
+            state_file = step.get("state_file")
+            plain = (
+                isinstance(state_file, str) and Path(state_file).name == state_file and not state_file.startswith(".")
+            )
+            if state_file is not None and not plain and not trust:
+                raise ValueError(
+                    f"{name}: step {i} state_file {str(state_file)[:100]!r} is not a file name in the checkpoint"
+                )
+
+
+def processor_configs(source: str, local: bool) -> dict[str, object]:
+    """The checkpoint's processor files, parsed (from the folder, or fetched from the hub like LeRobot does)."""
+    out = {}
+    for name in PROCESSOR_FILES:
+        if local:
+            file = Path(source) / name
+        else:
+            from huggingface_hub import hf_hub_download
+
+            file = Path(hf_hub_download(source, name))
+        if not file.is_file() or file.stat().st_size > MAX_PROCESSOR_BYTES:
+            raise ValueError(f"{name}: not a file of at most {MAX_PROCESSOR_BYTES} bytes in the checkpoint")
+        try:
+            out[name] = json.loads(file.read_text())
+        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+            raise ValueError(f"{name}: not JSON ({type(exc).__name__})") from None
+    return out
 
 
 class RequestError(ValueError):
@@ -153,7 +230,9 @@ def error_line(exc: BaseException) -> str:
 class LeRobotServer:
     """A loaded LeRobot policy with its processors, answering observation dicts with action chunks."""
 
-    def __init__(self, path: str, device: str = "cpu", suite: str = "libero_spatial") -> None:
+    def __init__(
+        self, path: str, device: str = "cpu", suite: str = "libero_spatial", trust_processors: bool = False
+    ) -> None:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
@@ -161,6 +240,9 @@ class LeRobotServer:
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
         self.torch = torch
+        path, local = checkpoint_source(path)
+        if local:  # nothing fetched for a local checkpoint (LeRobot would try the hub for a missing state file)
+            os.environ["HF_HUB_OFFLINE"] = "1"
         config = PreTrainedConfig.from_pretrained(path)
         config.device = device
         n_obs_steps = int(getattr(config, "n_obs_steps", 1) or 1)
@@ -171,6 +253,11 @@ class LeRobotServer:
             )
         self.policy = get_policy_class(config.type).from_pretrained(path, config=config)
         self.policy.eval()
+        # The policy type's own processor steps register when its processor module is imported: import it (LeRobot's
+        # code) before checking that every saved step is a registered one.
+        with contextlib.suppress(ImportError):
+            importlib.import_module(f"lerobot.policies.{config.type}.processor_{config.type}")
+        check_processors(processor_configs(path, local), trust_processors)
         device_override = {"device": device}
         # As lerobot-eval: the saved pipelines, on the chosen device.
         self.preprocessor, self.postprocessor = make_pre_post_processors(
@@ -389,6 +476,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=0, help="0: any free port (printed in the ready line)")
     parser.add_argument("--suite", default="libero_spatial", help="LIBERO suite (selects LeRobot's env processor)")
     parser.add_argument("--parent-pid", type=int, default=0, help="exit when this process is gone (0: never)")
+    parser.add_argument(
+        "--trust-processors", action="store_true", help="load processor steps by class path (runs their code)"
+    )
     args = parser.parse_args(argv)
     # stdout carries the ready line alone: anything LeRobot prints ("Loading weights ...") goes to stderr.
     ready_out, sys.stdout = sys.stdout, sys.stderr
@@ -402,7 +492,7 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.threads > 0:
             torch.set_num_threads(args.threads)
-        server = LeRobotServer(str(Path(args.path)), device=args.device, suite=args.suite)
+        server = LeRobotServer(args.path, device=args.device, suite=args.suite, trust_processors=args.trust_processors)
     except Exception as exc:  # noqa: BLE001 - one line for the client to show
         print(f"error: cannot load a LeRobot policy from {args.path}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2

@@ -154,17 +154,84 @@ def test_episode_runs_in_both_protocols(checkpoints, kind, transport, tmp_path):
 
 # -- refusals -------------------------------------------------------------------------------------
 def test_missing_or_broken_checkpoint_is_one_line(tmp_path, monkeypatch):
+    lerobot_python()
     with pytest.raises(ValueError, match="is not a checkpoint directory") as missing:
         make_policy("lerobot", path=str(tmp_path / "nope"))
     assert "\n" not in str(missing.value)
-    # A hub id is fetched by LeRobot's venv (huggingface_hub); offline, and nothing cached, it is one line.
+    # A hub checkpoint is named hub:org/name and fetched by LeRobot's venv; offline and not cached, it is one line.
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")  # no traffic off this machine, even if it had a network
     with pytest.raises(ValueError, match="nor a hub checkpoint that could be fetched") as hub:
-        make_policy("lerobot", path="lq-tests/no_such_checkpoint")
+        make_policy("lerobot", path="hub:lq-tests/no_such_checkpoint")
     assert "\n" not in str(hub.value) and "huggingface-cli download" in str(hub.value)
+    with pytest.raises(ValueError, match="a hub checkpoint is named hub:org/name"):
+        make_policy("lerobot", path="hub:../etc")
     (tmp_path / "config.json").write_text("{}")
     with pytest.raises(ValueError, match="missing model.safetensors"):
         make_policy("lerobot", path=str(tmp_path))
+
+
+def test_a_wrong_relative_path_is_an_error_never_a_download(tmp_path, monkeypatch):
+    """``ckpt/act`` that does not exist here was read as the hub repository ckpt/act and downloaded (online)."""
+    import lq_ros.policies.lerobot_client as client
+
+    lerobot_python()
+    monkeypatch.chdir(tmp_path)
+
+    def no_download(*args, **kwargs):
+        raise AssertionError(f"a process was started: {args[0]}")
+
+    monkeypatch.setattr(client.subprocess, "run", no_download)
+    with pytest.raises(ValueError, match="'ckpt/act' is not a checkpoint directory") as refused:
+        make_policy("lerobot", path="ckpt/act")
+    assert "hub:org/name" in str(refused.value) and "\n" not in str(refused.value)
+
+
+def copy_checkpoint(source: Path, folder: Path, step_change=None) -> Path:
+    """A copy of ``source`` whose preprocessor steps are rewritten by ``step_change(steps)``."""
+    folder.mkdir()
+    for file in source.iterdir():
+        (folder / file.name).write_bytes(file.read_bytes())
+    if step_change is not None:
+        config = json.loads((folder / "policy_preprocessor.json").read_text())
+        step_change(config["steps"])
+        (folder / "policy_preprocessor.json").write_text(json.dumps(config))
+    return folder
+
+
+def test_processor_classes_are_lerobots_registered_steps_only(checkpoints, tmp_path):
+    """A processor file naming ``subprocess.Popen`` ran it when LeRobot loaded the checkpoint."""
+    marker = tmp_path / "popen_ran"
+    popen = {"class": "subprocess.Popen", "config": {"args": ["touch", str(marker)]}}
+    folder = copy_checkpoint(checkpoints["act"], tmp_path / "evil", lambda steps: steps.insert(0, popen))
+    with pytest.raises(ValueError, match="names the class 'subprocess.Popen'") as refused:
+        make_policy("lerobot", path=str(folder))
+    assert "trust_processors=1" in str(refused.value) and "\n" not in str(refused.value)
+    # The server refuses it too (a client that skipped the check, or a hub checkpoint): one line, exit 2, nothing run.
+    server = subprocess.run(
+        [str(lerobot_python()), str(SERVER_SCRIPT), "--path", str(folder)], capture_output=True, text=True,
+        timeout=300, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
+    )  # fmt: skip
+    assert server.returncode == 2 and "names the class 'subprocess.Popen'" in server.stderr, server.stderr[-2000:]
+    assert not marker.exists()
+
+
+@pytest.mark.slow
+def test_trust_processors_loads_steps_by_class_path(checkpoints, tmp_path):
+    """``trust_processors=1``: the user's explicit choice to let the checkpoint name classes (here LeRobot's own)."""
+
+    def by_class(steps):
+        steps[1] = {"class": "lerobot.processor.batch_processor.AddBatchDimensionProcessorStep", "config": {}}
+
+    folder = copy_checkpoint(checkpoints["act"], tmp_path / "by_class", by_class)
+    with pytest.raises(ValueError, match="names the class 'lerobot.processor.batch_processor"):
+        make_policy("lerobot", path=str(folder))
+    policy = make_policy("lerobot", path=str(folder), threads=1, trust_processors=1)
+    try:
+        policy.reset(TASK_INFO, 0)
+        assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)).shape == (N_ACTION_STEPS["act"], 7)
+        assert policy.params()["trust_processors"] is True
+    finally:
+        policy.close()
 
 
 def test_unsupported_inputs_and_history_are_refused(checkpoints, tmp_path):
