@@ -37,7 +37,7 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
         note = budget_note(r)
         text += f" ({note})" if note and note != "action budget" else ""
         if not r["n_pairs"]:
-            lines.append(text + "; no (task, init) pair succeeds in both, so there is no paired change.")
+            lines.append(text + "; no (task, init, seed) pair succeeds in both, so there is no paired change.")
             continue
         shown, not_shown = [], []
         for metric, name, decimals, scale, unit in PAIRED_SENTENCE:
