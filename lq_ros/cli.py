@@ -131,7 +131,7 @@ def _parse_policy_args(items: list[str]) -> dict:
             raise typer.BadParameter(f"--policy-arg expects key=value, got {item!r}")
         try:
             args[key] = json.loads(value)
-        except json.JSONDecodeError:
+        except (ValueError, RecursionError):  # not JSON, a 5000-digit number, nested too deep: the text itself
             args[key] = value
     return args
 
@@ -257,6 +257,7 @@ def run(
 
     Your own policy: lq run --transport inprocess --policy my_policy:MyPolicy, from the folder that holds my_policy.py
     (a template: examples/my_policy.py)."""
+    from lq_ros.core.latency import MAX_LATENCY_S
     from lq_ros.core.suite_constants import round_latency
 
     latency_fields: dict = {"latency_dist": latency}  # a distribution (RunConfig parses and checks it)
@@ -265,7 +266,8 @@ def run(
             seconds = float(latency)
         except ValueError:
             _refuse(f"--latency {latency!r}: expected seconds or a distribution (docs/design/async.md)")
-        if latency_rounding is LatencyRounding.nearest and seconds >= 0 and round_latency(seconds) != seconds:
+        bounded = 0 <= seconds <= MAX_LATENCY_S  # else RunConfig refuses it in one line
+        if latency_rounding is LatencyRounding.nearest and bounded and round_latency(seconds) != seconds:
             console.print(f"latency {seconds:g} s rounded to {round_latency(seconds):g} s (--latency-rounding nearest)")
             seconds = round_latency(seconds)
         latency_fields = {"latency_s": seconds}
@@ -301,10 +303,16 @@ def run(
                 probe.close()
     except ValueError as exc:  # validate.InputError included
         _refuse(str(exc))
-    _make_room(out / cfg.episode_name(), overwrite)
-    # stdout holds the result alone: what LIBERO, robosuite or the policy print while the episode runs goes to stderr.
-    with contextlib.redirect_stdout(sys.stderr):
-        row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
+    from lq_ros.transport.processes import ResourceBusy, claimed
+
+    try:  # one run per bag folder (a second lq run of this configuration into this --out), a domain id held: one line
+        with claimed(out / cfg.episode_name(), "bag folder"):
+            _make_room(out / cfg.episode_name(), overwrite)
+            # stdout holds the result alone: what LIBERO, robosuite or the policy print while it runs goes to stderr.
+            with contextlib.redirect_stdout(sys.stderr):
+                row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
+    except ResourceBusy as exc:
+        _refuse(str(exc))
     if as_json:
         print(json.dumps(row, sort_keys=True, default=str))
         print_error_reasons([row])

@@ -2,6 +2,9 @@
 
 Syntax (``--latency``, sweep ``latencies_s`` entries, ``RunConfig.latency_dist``):
 
+Every latency, distribution parameter and file value lies in 0..:data:`MAX_LATENCY_S` seconds, and so does a
+distribution's applied mean: checked here, once, for the command line, sweep specs and stored runs alike.
+
 - ``0.2``: a constant (seconds; whole ticks, as before: see :func:`lq_ros.core.suite_constants.latency_ticks`);
 - ``uniform:LO:HI``: uniform on [LO, HI] s;
 - ``normal:MEAN:STD``: normal truncated at 0 (the draw is conditioned on Δt >= 0, not clipped);
@@ -93,10 +96,20 @@ def _number(text: str, what: str, spec: str) -> float:
 
 #: The largest trace file read (bytes): a trace is a text file of seconds, one per line.
 MAX_TRACE_BYTES = 1 << 20
+#: The largest latency, s: a constant, a distribution's parameter, a file's value, an applied mean (an episode's
+#: whole budget is at most 26 s; 1e300 s made episode names too long for the file system).
+MAX_LATENCY_S = 10.0
 
 
-def _read_trace(path: Path, spec: str) -> tuple[float, ...]:
-    """The values of a trace file: a regular text file of at most MAX_TRACE_BYTES (never a device or pipe)."""
+def _bounded(value: float, what: str, spec: str) -> float:
+    if not 0 <= value <= MAX_LATENCY_S:
+        raise LatencyError(f"latency {spec!r}: {what} {value:g} is outside 0..{MAX_LATENCY_S:g} s")
+    return value
+
+
+def _read_trace(path: Path, spec: str) -> tuple[tuple[float, ...], str]:
+    """The values of a trace file and the sha256 of the bytes they were read from: a regular text file of at most
+    MAX_TRACE_BYTES (never a device or pipe), read once (a file swapped between two reads cannot differ)."""
     import os
     import stat
 
@@ -113,7 +126,14 @@ def _read_trace(path: Path, spec: str) -> tuple[float, ...]:
             raise LatencyError(
                 f"latency {spec!r}: {path} has {info.st_size} bytes; a trace has at most {MAX_TRACE_BYTES}"
             )
-        data = os.read(fd, MAX_TRACE_BYTES + 1)
+        chunks, size = [], 0
+        while size <= MAX_TRACE_BYTES:
+            chunk = os.read(fd, MAX_TRACE_BYTES + 1 - size)
+            if not chunk:
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+        data = b"".join(chunks)
     except OSError as exc:
         raise LatencyError(f"latency {spec!r}: cannot read {path} ({exc.strerror})") from None
     finally:
@@ -136,12 +156,12 @@ def _read_trace(path: Path, spec: str) -> tuple[float, ...]:
             value = float(text)
         except ValueError:
             raise LatencyError(f"latency trace {path}, line {i}: {text!r} is not a number of seconds") from None
-        if not (math.isfinite(value) and value >= 0):
-            raise LatencyError(f"latency trace {path}, line {i}: {text!r} is not a finite latency >= 0 s")
+        if not (math.isfinite(value) and 0 <= value <= MAX_LATENCY_S):
+            raise LatencyError(f"latency trace {path}, line {i}: {text!r} is not a latency in 0..{MAX_LATENCY_S:g} s")
         values.append(value)
     if not values:
         raise LatencyError(f"latency trace {path}: no values (seconds, one per line)")
-    return tuple(values)
+    return tuple(values), hashlib.sha256(data).hexdigest()[:16]
 
 
 @dataclass(frozen=True)
@@ -301,7 +321,7 @@ def parse_latency(spec: str | float | int) -> LatencyDist:
     text = str(spec).strip()
     kind, _, rest = text.partition(":")
     if not rest:
-        value = _number(text, "the constant latency", text)
+        value = _bounded(_number(text, "the constant latency", text), "the constant latency", text)
         try:
             latency_ticks(value)
         except ValueError as exc:
@@ -310,8 +330,7 @@ def parse_latency(spec: str | float | int) -> LatencyDist:
     if kind in FILE_KINDS:
         path_text, _, sha = rest.partition("@sha256:")
         path = Path(path_text).expanduser()
-        values = _read_trace(path, text)
-        digest = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+        values, digest = _read_trace(path, text)
         if sha and sha != digest:
             raise LatencyError(
                 f"latency {text!r}: {path} changed since it was configured (content sha256 {digest}..., "
@@ -334,7 +353,12 @@ def parse_latency(spec: str | float | int) -> LatencyDist:
         raise LatencyError(f"latency {text!r}: expected MEAN >= 0 and STD > 0")
     if kind == "lognormal" and not (a > 0 and b > 0):
         raise LatencyError(f"latency {text!r}: expected MEDIAN > 0 and SIGMA > 0")
-    return LatencyDist(kind, (a, b))
+    for value in (a, b):
+        _bounded(value, "a parameter", text)
+    dist = LatencyDist(kind, (a, b))
+    if dist.mean_s() > MAX_LATENCY_S:
+        raise LatencyError(f"latency {text!r}: applied mean {dist.mean_s():.4g} s is over {MAX_LATENCY_S:g} s")
+    return dist
 
 
 def label_of(text: str | None) -> str:

@@ -108,6 +108,8 @@ class RunConfig:
             else:
                 object.__setattr__(self, "latency_dist", dist.text)
                 object.__setattr__(self, "latency_s", dist.mean_s())
+        else:
+            parse_latency(self.latency_s)  # the bounds every latency is checked against (lq_ros.core.latency)
         self.executor_config()  # validates the protocol parameters
         if self.camera_size < 0 or self.max_steps < 0:
             raise ValueError(

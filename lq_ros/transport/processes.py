@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import fcntl
 import gc
 import os
@@ -105,6 +106,141 @@ def raise_keyboard_interrupt(*_) -> None:
 def sigterm_as_keyboard_interrupt() -> Callable[[int, FrameType | None], object] | int | None:
     """SIGTERM (a job runner, a parent stopping its workers) stops like Ctrl-C; returns the previous handler."""
     return signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
+
+
+class ResourceBusy(RuntimeError):
+    """Something another run holds, or that is not this user's to use (a domain id, an output folder, a lock
+    folder): the message is one line naming it and what to do."""
+
+
+def private_folder(path: Path) -> Path:
+    """``path`` as a folder only this user can write (made 0700 if missing); ResourceBusy if another user owns
+    it or it is not a plain folder (a link, a file)."""
+    with contextlib.suppress(FileExistsError):
+        os.mkdir(path, 0o700)
+    info = os.lstat(path)
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
+        what = "a link or a file" if not stat.S_ISDIR(info.st_mode) else f"a folder of user id {info.st_uid}"
+        raise ResourceBusy(
+            f"lock folder {path} is {what}, not this user's (id {os.getuid()}): remove it, or point TMPDIR elsewhere"
+        )
+    if stat.S_IMODE(info.st_mode) & 0o077:
+        os.chmod(path, 0o700)  # ours, but open to others: close it (its lock files are checked one by one anyway)
+    return path
+
+
+def open_lock_file(path: Path, mode: int = 0o600) -> int:
+    """A descriptor of the lock file ``path`` (made if missing): never through a link, never truncated, only a
+    regular file of this user; OSError otherwise (a link: "Too many levels of symbolic links")."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_uid != os.getuid():
+        os.close(fd)
+        raise OSError(errno.EPERM, "not a regular file of this user")
+    return fd
+
+
+#: Per-user folder of the locks that claim output folders (:func:`claimed`).
+CLAIM_DIR = Path(tempfile.gettempdir()) / f"lq_ros_claims-{os.getuid()}"
+
+
+@contextlib.contextmanager
+def claimed(path: Path, what: str = "folder") -> Iterator[None]:
+    """Hold ``path`` (e.g. an episode's bag folder) for this process: a second claim of the same path, by another
+    process, is ResourceBusy at once (two ``lq run`` of one configuration into one ``--out`` raced to create the
+    same bag folder). The lock lives in this user's private folder, keyed by the absolute path; nothing is written
+    next to ``path``."""
+    import hashlib
+
+    key = hashlib.sha256(str(Path(path).absolute()).encode()).hexdigest()[:32]
+    fd = open_lock_file(private_folder(CLAIM_DIR) / f"{key}.lock")
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise ResourceBusy(
+                f"{what} {path} is being written by another run now; wait for it or choose another"
+            ) from None
+        yield
+    finally:
+        os.close(fd)
+
+
+#: Locks this process holds that every process it launches must hold too (pass_fds), so that such a lock is
+#: free only once the whole process tree has exited.
+_INHERITED_LOCKS: list[int] = []
+
+
+def hold_for_children(fd: int) -> None:
+    """Have the processes this one launches (a stack's nodes) inherit and hold the lock of ``fd``."""
+    _INHERITED_LOCKS.append(fd)
+
+
+def inherited_locks() -> tuple[int, ...]:
+    return tuple(_INHERITED_LOCKS)
+
+
+#: The lock file in a sweep folder that its workers, and the nodes they launch, hold shared while they live.
+PROCESSES_LOCK = ".processes.lock"
+
+
+def hold_shared(path: Path) -> int:
+    """A shared ``flock`` on ``path`` (made if missing; never through a link), held until the descriptor closes and
+    by every child that inherits it (blocks while an exclusive holder waits for earlier holders to leave)."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_SH)
+    return fd
+
+
+def lock_holders(path: Path) -> list[int]:
+    """The live processes (this user's, that /proc shows) with ``path`` open: who holds its lock."""
+    target = str(Path(path).resolve())
+    holders = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if any(os.readlink(fd) == target for fd in (entry / "fd").iterdir()):
+                holders.append(int(entry.name))
+        except OSError:  # gone meanwhile, or another user's
+            continue
+    return holders
+
+
+def end_orphans(path: Path, wait_s: float, grace_s: float = 10.0) -> list[int]:
+    """Wait up to ``wait_s`` for the processes holding ``path`` (a killed sweep's workers and nodes, ending on their
+    own) to leave; then end those left (SIGTERM, then SIGKILL after ``grace_s``). Returns the pids still holding
+    it after all that (empty: free)."""
+    if wait_until_free(path, wait_s):
+        return []
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in lock_holders(path):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, sig)
+        if wait_until_free(path, grace_s):
+            return []
+    return lock_holders(path)
+
+
+def wait_until_free(path: Path, timeout_s: float) -> bool:
+    """Wait until nobody holds a lock on ``path`` (an exclusive flock can be taken; it is released at once);
+    whether that happened within ``timeout_s``. A missing file is free."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return True
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return True
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.2)
+    finally:
+        os.close(fd)
 
 
 #: Where Fast DDS keeps its shared-memory transport files (segments, ports, their locks and mutexes).

@@ -1,12 +1,15 @@
-"""Latency distributions (lq_ros/core/latency.py): syntax, draws, rounding, reproducibility, applied means."""
+"""Latency distributions (lq_ros/core/latency.py): syntax, draws, rounding, reproducibility, applied means;
+bounds (0..10 s, checked once), a file read once."""
 
 import math
+import re
 
 import numpy as np
 import pytest
 
 from lq_ros.core.executor_protocol import ChunkDue, ExecutorConfig, ExecutorCore, ObservationNeeded
 from lq_ros.core.latency import (
+    MAX_LATENCY_S,
     LatencyError,
     applied_seconds,
     label_of,
@@ -45,7 +48,7 @@ def test_parse_and_canonical_text(text, kind, label):
     "text, fragment",
     [
         ("0.075", "not a whole number of 0.05 s control ticks"),
-        ("-0.1", "must be >= 0"),
+        ("-0.1", "the constant latency -0.1 is outside 0..10 s"),
         ("gamma:1:2", "unknown distribution 'gamma'"),
         ("uniform:0.3:0.1", "0 <= LO <= HI"),
         ("uniform:0.1", "expected uniform:LO:HI"),
@@ -217,3 +220,51 @@ def test_empirical_resamples_the_measured_delays(tmp_path):
     # Not a replay: consecutive requests of one episode are not the file's order.
     assert [dist.ticks(streams[0], k) for k in range(1, 21)] != [[2, 2, 3, 4][(k - 1) % 4] for k in range(1, 21)]
     assert label_of(dist.text) == "empirical:fitted.txt"
+
+
+# -- bounds, checked once; a file read once ---------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "text, fragment",
+    [
+        ("1e308", "the constant latency 1e+308 is outside 0..10 s"),  # OverflowError traceback
+        ("1e300", "the constant latency 1e+300 is outside 0..10 s"),  # accepted, then "File name too long"
+        ("10.05", "outside 0..10 s"),
+        ("inf", "must be finite"),
+        ("uniform:0:1e308", "a parameter 1e+308 is outside 0..10 s"),
+        ("normal:1e300:1", "a parameter 1e+300 is outside"),
+        ("lognormal:9:9", "applied mean"),
+    ],
+)
+def test_latencies_are_bounded_in_one_place(text, fragment):
+    with pytest.raises(LatencyError, match=re.escape(fragment)) as refused:
+        parse_latency(text)
+    assert "\n" not in str(refused.value)
+    with pytest.raises(ValueError, match="outside 0..10 s|must be finite|applied mean"):
+        RunConfig(latency_s=float(text)) if ":" not in text else RunConfig(latency_dist=text)
+    assert parse_latency(MAX_LATENCY_S).params == (MAX_LATENCY_S,)
+
+
+@pytest.mark.parametrize("kind", ["trace", "empirical"])
+def test_a_file_value_beyond_the_bound_is_one_line(tmp_path, kind):
+    """An empirical file holding 1e308: its mean overflowed (OverflowError traceback)."""
+    path = tmp_path / "delays.txt"
+    path.write_text("0.1\n1e308\n")
+    with pytest.raises(LatencyError, match=r"line 2: '1e308' is not a latency in 0..10 s"):
+        parse_latency(f"{kind}:{path}")
+
+
+def test_a_trace_file_is_read_once(tmp_path, monkeypatch):
+    """Its hash is of the bytes its values came from: a second read (swapped to /dev/zero between) never happens."""
+    import hashlib
+    from pathlib import Path as P
+
+    path = tmp_path / "delays.txt"
+    path.write_bytes(b"0.1\n0.25\n")
+
+    def second_read(self, *args, **kwargs):
+        raise AssertionError(f"{self} read a second time")
+
+    monkeypatch.setattr(P, "read_bytes", second_read)
+    monkeypatch.setattr(P, "read_text", second_read)
+    dist = parse_latency(f"trace:{path}")
+    assert dist.trace == (0.1, 0.25) and dist.trace_sha == hashlib.sha256(b"0.1\n0.25\n").hexdigest()[:16]

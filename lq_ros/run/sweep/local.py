@@ -12,7 +12,14 @@ from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
 from lq_ros.run.sweep.worker import EpisodeWorker
-from lq_ros.transport.processes import die_with_parent, sigterm_as_keyboard_interrupt, wait_process_group_gone
+from lq_ros.transport.processes import (
+    PROCESSES_LOCK,
+    die_with_parent,
+    hold_for_children,
+    hold_shared,
+    sigterm_as_keyboard_interrupt,
+    wait_process_group_gone,
+)
 
 
 def _local_worker_main(slot: int, transport: str, bags_dir: str, timeout_s, tasks, results) -> None:
@@ -20,6 +27,9 @@ def _local_worker_main(slot: int, transport: str, bags_dir: str, timeout_s, task
     # Its own process group, which the ROS nodes it launches join: if this worker is killed, the sweep
     # waits for them (they stop on PR_SET_PDEATHSIG) before the episode's bag is kept and retried.
     os.setpgid(0, 0)
+    # This worker and the nodes it launches hold the sweep folder's processes lock: a resume after a kill -9 of the
+    # sweep waits for them (or ends them) before it touches the folder.
+    hold_for_children(hold_shared(Path(bags_dir).parent / PROCESSES_LOCK))
     # The parent decides when workers stop (SIGTERM); a stray SIGINT is ignored. A no-op handler, not
     # SIG_IGN, since an ignored SIGINT would be inherited by the ROS nodes a worker launches.
     signal.signal(signal.SIGINT, lambda *_: None)

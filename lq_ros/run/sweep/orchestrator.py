@@ -23,12 +23,15 @@ from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.sweep.local import LocalPool
 from lq_ros.run.sweep.ray_pool import RayPool
 from lq_ros.run.sweep.spec import SweepSpec
-from lq_ros.run.sweep.store import RECORD_FORMAT, ResultStore, atomic_write_text, fsync_tree
+from lq_ros.run.sweep.store import RECORD_FORMAT, ResultStore, StoreLocked, atomic_write_text, fsync_tree
 from lq_ros.run.sweep.worker import default_workers, env_key
+from lq_ros.transport.processes import PROCESSES_LOCK, end_orphans
 
 BACKENDS = ("local", "ray")
 #: A crashed episode is run at most this many times in total.
 MAX_ATTEMPTS = 2
+#: How long a resume waits for the workers and nodes of a killed sweep to end on their own, s (then it ends them).
+ORPHAN_WAIT_S = 60.0
 
 
 @dataclass
@@ -130,6 +133,11 @@ def run_sweep(
     # One sweep per folder at a time, for the sweep's whole life: a second one would schedule the same
     # episodes and clear the first one's bags in flight as leftovers (StoreLocked names the folder).
     with ResultStore(out_dir).lock():
+        # A sweep killed with -9 frees the folder's lock at once, while its workers and their nodes still close their
+        # episodes: wait for them (they end on their own, PR_SET_PDEATHSIG), or end them, before anything is touched.
+        left = end_orphans(Path(out_dir) / PROCESSES_LOCK, ORPHAN_WAIT_S)
+        if left:
+            raise StoreLocked(f"{out_dir}: processes of an earlier sweep on this folder still run (pids {left})")
         return _run_locked(spec, out_dir, workers, transport, backend, address, retry_errors, on_progress)
 
 

@@ -23,7 +23,13 @@ from pathlib import Path
 from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import episode_folders
 from lq_ros.run.sweep.worker import EpisodeWorker, default_workers
-from lq_ros.transport.processes import owned_temp_folder, remove_orphaned_folders
+from lq_ros.transport.processes import (
+    PROCESSES_LOCK,
+    hold_for_children,
+    hold_shared,
+    owned_temp_folder,
+    remove_orphaned_folders,
+)
 
 
 def _pack_dir(path: Path) -> bytes:
@@ -45,8 +51,10 @@ WORKER_PREFIX = "lq_ray_worker_"
 class _RayEpisodeActor:
     """One Ray worker: runs episodes into its own bag folder and ships each bag back with the result."""
 
-    def __init__(self, transport: str, timeout_s: float | None) -> None:
+    def __init__(self, transport: str, timeout_s: float | None, processes_lock: str | None = None) -> None:
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        if processes_lock:  # on the driver's machine: this actor and its nodes hold the sweep folder's lock
+            hold_for_children(hold_shared(Path(processes_lock)))
         remove_orphaned_folders(WORKER_PREFIX)  # those of workers that were killed (a Ray cluster's shutdown)
         self.root, self._root_lock = owned_temp_folder(WORKER_PREFIX)
         self.worker = EpisodeWorker(transport, self.root / "bags", timeout_s)
@@ -172,7 +180,10 @@ class RayPool:
             n = max(1, int(ray.cluster_resources().get("CPU", 1)))
         # SPREAD: one actor per node before a second on any (a cluster's nodes share the episodes).
         self._actor_cls = ray.remote(num_cpus=1, max_restarts=0, scheduling_strategy="SPREAD")(_RayEpisodeActor)
-        self._args = (transport, timeout_s)
+        # A private Ray runs its actors on this machine: they hold the sweep folder's processes lock, as local workers
+        # do (a resume after a kill -9 waits for them). A cluster's actors may run elsewhere: its own files there.
+        lock = None if address else str(self._bags_dir.parent / PROCESSES_LOCK)
+        self._args = (transport, timeout_s, lock)
         self._actors = [self._actor_cls.remote(*self._args) for _ in range(n)]
         self._pending: dict = {}  # ObjectRef -> (slot, log_path)
 

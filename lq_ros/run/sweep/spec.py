@@ -11,7 +11,7 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from lq_ros.core.latency import LatencyError, parse_latency
+from lq_ros.core.latency import MAX_LATENCY_S, LatencyError, parse_latency
 from lq_ros.core.redact import redact_value
 from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, PROTOCOL_FIELDS, RunConfig
 from lq_ros.core.safe_yaml import YamlRefused, load_yaml
@@ -24,8 +24,6 @@ MODES = ("sync", "async")
 MAX_EPISODES = 100_000
 #: The largest spec file read, bytes.
 MAX_SPEC_BYTES = 1 << 20
-#: Injected latencies (constants, a distribution's parameters and applied mean, trace values) are 0..this, s.
-MAX_LATENCY_S = 10.0
 #: Entries of ``latencies_s`` at most (each may read a trace file).
 MAX_LATENCIES = 256
 #: ``timeout_s``: wall seconds per episode at most (a day).

@@ -28,7 +28,6 @@ UDP transports and ignores that variable.
 from __future__ import annotations
 
 import contextlib
-import errno
 import fcntl
 import json
 import os
@@ -53,10 +52,14 @@ from lq_ros.recording.episode_folder import logs_dir
 from lq_ros.robot.observation_builder import Requirements, check_robot
 from lq_ros.robot.robot_config import SIM_RECORDER_PARAMETERS, RobotConfig
 from lq_ros.transport.processes import (
+    ResourceBusy,
     ShmTracker,
     die_with_parent,
     executor_choice,
+    inherited_locks,
+    open_lock_file,
     owned_temp_folder,
+    private_folder,
     remove_orphaned_folders,
     sim_cpu_choice,
     stop_processes,
@@ -106,35 +109,8 @@ class DomainReservation:
     lock_fd: int
 
 
-class LockFolderError(RuntimeError):
-    """The lock folder is not this user's private folder: one line naming it and what to do."""
-
-
-def private_folder(path: Path) -> Path:
-    """``path`` as a folder only this user can write (made 0700 if missing); LockFolderError if another user owns
-    it or it is not a plain folder (a link, a file)."""
-    with suppress(FileExistsError):
-        os.mkdir(path, 0o700)
-    info = os.lstat(path)
-    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid():
-        what = "a link or a file" if not stat.S_ISDIR(info.st_mode) else f"a folder of user id {info.st_uid}"
-        raise LockFolderError(
-            f"lock folder {path} is {what}, not this user's (id {os.getuid()}): remove it, or point TMPDIR elsewhere"
-        )
-    if stat.S_IMODE(info.st_mode) & 0o077:
-        os.chmod(path, 0o700)  # ours, but open to others: close it (its lock files are checked one by one anyway)
-    return path
-
-
-def open_lock_file(path: Path) -> int:
-    """A descriptor of the lock file ``path`` (made if missing): never through a link, never truncated, only a
-    regular file of this user; OSError otherwise (a link: "Too many levels of symbolic links")."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o600)
-    info = os.fstat(fd)
-    if not stat.S_ISREG(info.st_mode) or info.st_uid != os.getuid():
-        os.close(fd)
-        raise OSError(errno.EPERM, "not a regular file of this user")
-    return fd
+#: A lock folder that is not this user's (lq_ros.transport.processes.private_folder): one line.
+LockFolderError = ResourceBusy
 
 
 @contextmanager
@@ -171,7 +147,7 @@ def _first_free_lock(lock_dir: Path, candidates: Sequence[int], unusable: list[s
     yield None
 
 
-class DomainUnavailable(RuntimeError):
+class DomainUnavailable(ResourceBusy):
     """No domain id could be reserved: one line naming the ids and why each was skipped."""
 
 
@@ -378,7 +354,8 @@ class RosStack:
         self.cpus = os.sched_getaffinity(0)
         held = self._exit.enter_context(reserved_sim_cpu())
         self.sim_cpu, cpu_lock = held if held is not None else (None, None)
-        self._lock_fds = (self.domain.lock_fd,) + ((cpu_lock,) if cpu_lock is not None else ())
+        # The nodes hold the run's locks too (a domain, a CPU, a sweep's processes lock): free only once all are gone.
+        self._lock_fds = (self.domain.lock_fd,) + ((cpu_lock,) if cpu_lock is not None else ()) + inherited_locks()
         self.procs: dict[str, subprocess.Popen] = {}
         self.shm = ShmTracker()
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
