@@ -68,10 +68,15 @@ def default_python() -> Path:
     return Path(__file__).resolve().parents[2] / ".venv-lerobot" / "bin" / "python"
 
 
+#: What LeRobot's venv is not given of this process's environment: our package path (it must not shadow LeRobot's
+#: packages) and credentials it has no use for (a Ray cluster's token, an openpi API key).
+NOT_FOR_THE_SERVER = ("PYTHONPATH", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH", "OPENPI_API_KEY")
+
+
 def venv_environment() -> dict[str, str]:
-    """This process's environment for LeRobot's venv: our package's path must not shadow its packages."""
-    env = {**os.environ, "PYTHONNOUSERSITE": "1"}
-    env.pop("PYTHONPATH", None)
+    """This process's environment for LeRobot's venv, without :data:`NOT_FOR_THE_SERVER`."""
+    env = {k: v for k, v in os.environ.items() if k not in NOT_FOR_THE_SERVER}
+    env["PYTHONNOUSERSITE"] = "1"
     return env
 
 

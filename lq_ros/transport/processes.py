@@ -243,6 +243,16 @@ def wait_until_free(path: Path, timeout_s: float) -> bool:
         os.close(fd)
 
 
+#: Environment variables that carry a credential only the process that reads them needs (a Ray cluster's token):
+#: never handed to the programs the stack launches (nodes, a policy server).
+SECRET_ENV = ("RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")
+
+
+def without_secrets(env: dict[str, str]) -> dict[str, str]:
+    """``env`` without :data:`SECRET_ENV` (for a child that is not a Ray process)."""
+    return {k: v for k, v in env.items() if k not in SECRET_ENV}
+
+
 #: Where Fast DDS keeps its shared-memory transport files (segments, ports, their locks and mutexes).
 SHM_DIR = Path("/dev/shm")
 _FASTDDS_PREFIXES = ("fastrtps_", "fastdds_")

@@ -21,7 +21,7 @@ from lq_ros.core.redact import redact_config, redact_value
 from lq_ros.core.run_config import RunConfig
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.sweep.local import LocalPool
-from lq_ros.run.sweep.ray_pool import RayPool
+from lq_ros.run.sweep.ray_pool import RayPool, refuse_token_in_clear
 from lq_ros.run.sweep.spec import SweepSpec
 from lq_ros.run.sweep.store import RECORD_FORMAT, ResultStore, StoreLocked, atomic_write_text, fsync_tree
 from lq_ros.run.sweep.worker import default_workers, env_key
@@ -130,6 +130,8 @@ def run_sweep(
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if backend == "ray" and address:
+        refuse_token_in_clear(address)  # before the folder is touched: a token never travels in clear
     # One sweep per folder at a time, for the sweep's whole life: a second one would schedule the same
     # episodes and clear the first one's bags in flight as leftovers (StoreLocked names the folder).
     with ResultStore(out_dir).lock():

@@ -6,6 +6,12 @@ bag and logs travel back to the driver, and every attempt records the node that 
 authentication (Ray's default for a new cluster) needs the head's token in the driver's environment
 (``RAY_AUTH_MODE=token`` and ``RAY_AUTH_TOKEN_PATH`` or ``RAY_AUTH_TOKEN``); a driver that cannot connect
 gets one line naming the address and the token it used (:class:`RayConnectError`).
+
+The token is a credential. A private Ray gets a fresh token of its own, in a file only this user can read (Ray
+would otherwise write ``~/.ray/auth_token``, readable by everyone); the programs the workers launch (ROS nodes, a
+policy server) are not given it. A token is not sent in clear to another machine: joining a cluster at a
+non-loopback address with a token needs Ray's TLS (``RAY_USE_TLS=1``), or ``LQ_RAY_ALLOW_INSECURE=1`` to allow
+it explicitly (the rule the openpi and OpenVLA clients follow for their credentials).
 """
 
 from __future__ import annotations
@@ -87,6 +93,71 @@ class RayConnectError(RuntimeError):
     """The driver could not join the Ray cluster at ``--address``; the message is one line."""
 
 
+#: Set to 1 to send a Ray token unencrypted to a cluster on another machine.
+ALLOW_INSECURE_ENV = "LQ_RAY_ALLOW_INSECURE"
+#: A private Ray's token folder in the temp folder: lq_ray_token_<random> (0700, the token file 0600).
+TOKEN_PREFIX = "lq_ray_token_"
+
+
+def _sends_token() -> bool:
+    """Whether Ray will present a token when this driver joins a cluster (token mode, and a token it can read)."""
+    if os.environ.get("RAY_AUTH_MODE", "").lower() == "disabled":
+        return False
+    return bool(
+        os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+        or os.path.exists(os.path.expanduser("~/.ray/auth_token"))
+    )  # fmt: skip
+
+
+def refuse_token_in_clear(address: str) -> None:
+    """RayConnectError when joining ``address`` would send the cluster token unencrypted to another machine."""
+    tls = os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true")
+    allowed = os.environ.get(ALLOW_INSECURE_ENV, "0").lower() in ("1", "true")
+    if not is_loopback_address(address) and _sends_token() and not tls and not allowed:
+        raise RayConnectError(
+            f"cannot join the Ray cluster at {address}: its token ({_token_source()}) would travel unencrypted to "
+            f"another machine; use Ray's TLS (RAY_USE_TLS=1 with its certificates), a loopback address (e.g. through "
+            f"an SSH tunnel), or set {ALLOW_INSECURE_ENV}=1"
+        )
+
+
+class _PrivateToken:
+    """A fresh token for a private Ray, in a 0600 file of a 0700 folder, set for this process and the Ray processes
+    it starts (RAY_AUTH_MODE, RAY_AUTH_TOKEN_PATH) until :meth:`close` puts the environment back."""
+
+    def __init__(self) -> None:
+        import secrets
+
+        remove_orphaned_folders(TOKEN_PREFIX)  # those of drivers killed with SIGKILL
+        self.folder, self._lock = owned_temp_folder(TOKEN_PREFIX)
+        path = self.folder / "auth_token"
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(secrets.token_hex(32))
+        self._saved = {k: os.environ.get(k) for k in ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")}
+        os.environ.pop("RAY_AUTH_TOKEN", None)
+        os.environ.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN_PATH=str(path))
+        _reload_ray_auth()
+
+    def close(self) -> None:
+        for key, value in self._saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+        _reload_ray_auth()
+        shutil.rmtree(self.folder, ignore_errors=True)
+        os.close(self._lock)
+
+
+def _reload_ray_auth() -> None:
+    """Have this process's Ray read RAY_AUTH_MODE and the token again (as ray's own _enable_token_auth does)."""
+    from ray._raylet import AuthenticationTokenLoader, Config
+
+    Config.initialize("")
+    AuthenticationTokenLoader.instance().reset_cache()  # a token cached by an earlier Ray in this process
+
+
 def _loopback_only() -> None:
     """Keep every Ray server this process starts (and the driver's own) on 127.0.0.1.
 
@@ -123,6 +194,7 @@ def _token_source() -> str:
 
 def ray_connect(address: str) -> None:
     """Join an existing cluster (``ray start``) as the driver; RayConnectError in one line if that fails."""
+    refuse_token_in_clear(address)
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     kwargs = {}
     if is_loopback_address(address):  # a cluster on this machine's loopback: the driver joins the head's address
@@ -142,8 +214,9 @@ def ray_connect(address: str) -> None:
         ) from None
 
 
-def ray_init_local(num_cpus: int) -> None:
-    """A private single-node Ray on loopback only: no dashboard, no usage reporting."""
+def ray_init_local(num_cpus: int) -> _PrivateToken | None:
+    """A private single-node Ray on loopback only: no dashboard, no usage reporting; token authentication with a
+    token of its own (returned: close it after ray.shutdown) unless the user turned it off (RAY_AUTH_MODE=disabled)."""
     os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
     _loopback_only()
     # Ray starts workers at nice 15; here the workers are the work (a sim at nice 15 on a busy machine
@@ -151,27 +224,37 @@ def ray_init_local(num_cpus: int) -> None:
     os.environ.setdefault("RAY_worker_niceness", "0")
     import ray
 
-    ray.init(
-        num_cpus=num_cpus, _node_ip_address="127.0.0.1", include_dashboard=False, log_to_driver=False,
-        configure_logging=False,
-    )  # fmt: skip
+    token = None if os.environ.get("RAY_AUTH_MODE", "").lower() == "disabled" else _PrivateToken()
+    try:
+        ray.init(
+            num_cpus=num_cpus, _node_ip_address="127.0.0.1", include_dashboard=False, log_to_driver=False,
+            configure_logging=False,
+        )  # fmt: skip
+    except BaseException:
+        if token is not None:
+            token.close()
+        raise
     node_ip = ray.util.get_node_ip_address()
     if node_ip != "127.0.0.1":
         ray.shutdown()
+        if token is not None:
+            token.close()
         raise RuntimeError(
             f"local Ray came up on {node_ip}, not loopback: import ray only after "
             "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 is set (lq_ros.run.sweep.ray_init_local does this)"
         )
+    return token
 
 
 class RayPool:
     """Ray actors as workers (one CPU each); results and bags come back to the driver's store."""
 
     def __init__(self, n: int | None, transport: str, bags_dir: Path, timeout_s: float | None, address: str | None):
+        self._token = None
         if address:
             ray_connect(address)
         else:
-            ray_init_local(n or default_workers())
+            self._token = ray_init_local(n or default_workers())
         import ray
 
         self._ray = ray
@@ -224,9 +307,16 @@ class RayPool:
         with contextlib.suppress(Exception):
             ray.get([a.close.remote() for a in self._actors], timeout=30)
         ray.shutdown()
+        self._close_token()
+
+    def _close_token(self) -> None:
+        if self._token is not None:
+            self._token.close()
+            self._token = None
 
     def terminate(self) -> None:
         for actor in self._actors:
             with contextlib.suppress(Exception):
                 self._ray.kill(actor)
         self._ray.shutdown()
+        self._close_token()

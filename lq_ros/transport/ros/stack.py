@@ -63,6 +63,7 @@ from lq_ros.transport.processes import (
     remove_orphaned_folders,
     sim_cpu_choice,
     stop_processes,
+    without_secrets,
 )
 from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
 
@@ -251,7 +252,7 @@ def reserved_sim_cpu():
 
 
 def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
-    env = dict(os.environ)
+    env = without_secrets(dict(os.environ))  # a Ray token is the sweep driver's, not the nodes
     executor_choice(env)  # a wrong value is refused here, in one line, not by five node processes
     sim_cpu_choice(env)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")

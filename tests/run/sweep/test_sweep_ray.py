@@ -140,10 +140,11 @@ def two_node_cluster(tmp_path, monkeypatch):
     from lq_ros.run.sweep.ray_pool import _loopback_only
 
     _loopback_only()  # both nodes on 127.0.0.1 only
-    from ray._raylet import AuthenticationTokenLoader
     from ray.cluster_utils import Cluster
 
-    AuthenticationTokenLoader.instance().reset_cache()  # an earlier test's token must not be reused
+    from lq_ros.run.sweep.ray_pool import _reload_ray_auth
+
+    _reload_ray_auth()  # this process's Ray reads the mode and token above (not an earlier test's)
     cluster = Cluster(
         initialize_head=True,
         head_node_args={"num_cpus": 1, "include_dashboard": False, "node_ip_address": "127.0.0.1"},
