@@ -442,9 +442,9 @@ def serve(manager: LifecycleManager, replies, ops: queue.SimpleQueue, wake, laun
             forget_poll()  # asked again on the next pass
 
 
-def serve_manage_nodes(node: Node, ops: queue.SimpleQueue, wake) -> SingleThreadedExecutor:
-    """``~/manage_nodes`` on ``node``, spun by an executor of its own in a daemon thread (returned, to shut down):
-    each call waits there until the main loop has carried out its operation."""
+def serve_manage_nodes(node: Node, ops: queue.SimpleQueue, wake) -> tuple[SingleThreadedExecutor, threading.Thread]:
+    """``~/manage_nodes`` on ``node``, spun by an executor of its own in a thread (both returned: shut the executor
+    down, then join the thread): each call waits there until the main loop has carried out its operation."""
 
     def on_call(request, response):
         call = ServiceCall(int(request.command))
@@ -458,8 +458,11 @@ def serve_manage_nodes(node: Node, ops: queue.SimpleQueue, wake) -> SingleThread
     node.create_service(ManageNodes, "~/manage_nodes", on_call)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    threading.Thread(target=_spin_quietly, args=(executor,), name="manage_nodes", daemon=True).start()
-    return executor
+    # Not a daemon: a daemon thread still inside rcl's wait when the interpreter finalizes aborted the process
+    # (SIGABRT on SIGINT, seen in CI); main joins it once the executor is shut down.
+    thread = threading.Thread(target=_spin_quietly, args=(executor,), name="manage_nodes")
+    thread.start()
+    return executor, thread
 
 
 def _spin_quietly(executor: SingleThreadedExecutor) -> None:
@@ -471,7 +474,7 @@ def main() -> None:
     # Replies go to the launcher on the original stdout; everything else (rclpy's console log) to stderr.
     replies = os.fdopen(os.dup(1), "w")
     os.dup2(2, 1)
-    service_executor = None
+    service = None
     try:
         rclpy.init()
         face = Node(NODE_NAMES["manager"])  # the service and the node_names parameter
@@ -481,17 +484,27 @@ def main() -> None:
         launcher = stdin_is_the_launchers()
         if launcher:
             threading.Thread(target=read_ops, args=(ops, wake), daemon=True).start()
-        service_executor = serve_manage_nodes(face, ops, wake)
+        service = serve_manage_nodes(face, ops, wake)
         try:
             serve(manager, replies, ops, wake, launcher)
         finally:
-            service_executor.shutdown(timeout_sec=1.0)
+            stop_serving(*service)
             manager.destroy_node()
             face.destroy_node()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         rclpy.try_shutdown()
+        if service is not None:
+            stop_serving(*service)  # (again, if a signal cut the first: the thread must end before the process)
+
+
+def stop_serving(executor: SingleThreadedExecutor, thread: threading.Thread) -> None:
+    """Shut the manage_nodes executor down and wait for its thread (its spin returns once it is shut down or ROS
+    is)."""
+    with contextlib.suppress(KeyboardInterrupt, ExternalShutdownException):
+        executor.shutdown(timeout_sec=1.0)
+        thread.join(timeout=10.0)
 
 
 if __name__ == "__main__":
