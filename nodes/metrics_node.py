@@ -30,7 +30,10 @@ record besides:
 
 The score then uses ``ee_topic``/``joint_topic`` and the ``trajectory_rate``/``energy_rate`` given (a robot's
 topics have their own rates: ``native``), i.e. ``lq score BAG --ee-topic ... --rate native``. A robot keeps
-publishing after the episode: its topics are recorded until the bag closes, and never keep it open.
+publishing after the episode: its topics are recorded until the bag closes, and never keep it open, with one
+promise: a robot on sim time has its /clock recorded up to the end event's stamp (the bridge stamps the end with
+a /clock the recorder may receive after the event; the bag stays open for it up to ``CLOCK_COVER_WAIT_S``, and a
+/clock that never gets there is a WARNING event).
 
 Managed node: activate opens the episode's bag (``bag_path``); once the bag is closed and scored the
 node deactivates itself, which tells the lifecycle manager the episode is over.
@@ -76,6 +79,10 @@ _STAMPED_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped",
                   "rosgraph_msgs/msg/Clock"}  # fmt: skip
 #: Wall seconds after the terminal event the recorder waits at most for every node's message counts.
 COUNTS_WAIT_S = 2.0
+#: Wall seconds after the terminal event the recorder waits at most for a robot's /clock to reach the event's stamp.
+CLOCK_COVER_WAIT_S = 1.0
+#: The type of a robot's /clock (a robot on sim time).
+CLOCK_MSGTYPE = "rosgraph_msgs/msg/Clock"
 #: The nodes whose message counts the recorder takes (the sim or, against a robot, the bridge steps the episode).
 ANNOUNCING_NODES = tuple(NODE_NAMES[role] for role in ("sim", "bridge", "policy", "executor"))
 
@@ -120,6 +127,9 @@ class MetricsNode(EpisodeNode):
         self.closing = False
         self.stats: dict[str, dict] = {}  # real time: node -> its counts
         self.terminal_at: float | None = None
+        self.end_stamp_ns: int | None = None  # the terminal event's stamp
+        self.robot_clock = any(t.msgtype == CLOCK_MSGTYPE for t in robot_topics)  # a robot on sim time
+        self.last_clock_ns = -1  # its latest /clock recorded
         self.started_detail: dict = {}
         self.last_message = time.monotonic()
         self.terminal_seen = False
@@ -230,10 +240,15 @@ class MetricsNode(EpisodeNode):
                 self.robot_heard.add(topic.name)
                 self.heard_pub.publish(String(data=json.dumps({"topics": sorted(self.robot_heard)})))
             try:
-                self.writer.write(topic, self._log_time_ns(topic, data), data)
+                log_ns = self._log_time_ns(topic, data)
+                self.writer.write(topic, log_ns, data)
             except Exception as exc:  # noqa: BLE001 - never out of the spin loop
                 self.get_logger().error(f"recording {topic.name} failed: {exc}")
                 self.record_warning(f"recorder: a message on {topic.name} failed: {type(exc).__name__}: {exc}")
+                return
+            if topic.msgtype == CLOCK_MSGTYPE:
+                self.last_clock_ns = max(self.last_clock_ns, log_ns)
+                self.close_when_complete()  # (the end's stamp may be covered now)
 
         return record
 
@@ -314,6 +329,8 @@ class MetricsNode(EpisodeNode):
         elif event.kind in m.EventKind.TERMINAL:
             self.terminal_seen = True
             self.terminal_at = self.terminal_at or time.monotonic()
+            if self.end_stamp_ns is None:
+                self.end_stamp_ns = m.stamp_ns(event)
             if self.realtime:
                 return
             # SUCCESS and TIMEOUT at tick T come after the sim stepped T - 1: what was sent for T on never took
@@ -360,12 +377,29 @@ class MetricsNode(EpisodeNode):
         """Once the episode has ended and every message of it has arrived, close the bag (in a timer callback:
         deactivating destroys the subscription this may be called from)."""
         if self.terminal_seen and not self.finished and not self.closing and not self.missing():
+            if not self.clock_covered():
+                return  # (the timer asks again)
             self.closing = True
             self.get_logger().info(f"every message of the episode arrived; counts: {json.dumps(self.announced)}")
             self.episode_timer(0.0, self.close_bag)
 
+    def clock_covered(self) -> bool:
+        """A robot on sim time: its recorded /clock reaches the end event's stamp, or CLOCK_COVER_WAIT_S has passed
+        since the end (then a WARNING event says where the /clock stopped)."""
+        if not self.robot_clock or self.end_stamp_ns is None or self.last_clock_ns >= self.end_stamp_ns:
+            return True
+        if time.monotonic() - self.terminal_at < CLOCK_COVER_WAIT_S:
+            return False
+        self.record_warning(
+            f"recorder: the robot's /clock was recorded up to {self.last_clock_ns / 1e9:.3f} s, before the end "
+            f"event's {self.end_stamp_ns / 1e9:.3f} s ({CLOCK_COVER_WAIT_S:g} s waited)"
+        )
+        self.robot_clock = False  # said once
+        return True
+
     def finish_when_quiet(self) -> None:
         """A node's counts or messages did not come (it died): close once waited for and quiet, saying what lacks."""
+        self.close_when_complete()  # (complete, but waiting for a robot's /clock to cover the end)
         if not self.terminal_seen or self.finished or self.closing:
             return
         now = time.monotonic()

@@ -7,6 +7,7 @@ surviving process, no orphaned Fast DDS file in /dev/shm, and a bag the scorer r
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
@@ -102,16 +103,46 @@ def domain_of(pid: int) -> str:
     return next(e.split(b"=", 1)[1].decode() for e in env if e.startswith(b"ROS_DOMAIN_ID="))
 
 
-def orphaned_shm(before: set[str]) -> list[str]:
+def shm_base(name: str) -> str:
+    """The Fast DDS file a /dev/shm entry belongs to: its segment or port, without ``sem.``, ``_mutex``, ``_el``."""
+    return name.removeprefix("sem.").removesuffix("_mutex").removesuffix("_el")
+
+
+def shm_files_of(pids: Iterable[int]) -> set[str]:
+    """The Fast DDS files (:func:`shm_base` names) that processes ``pids`` have open or mapped now: their segments,
+    the ports they read or write, the locks and mutexes of those. Sampled while a run lives, these are the files a
+    test may call its run's."""
+    out = set()
+    for pid in pids:
+        paths = []
+        try:
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
+                with contextlib.suppress(OSError):
+                    paths.append(os.readlink(fd))
+            paths += [line.split(None, 5)[-1] for line in Path(f"/proc/{pid}/maps").read_text().splitlines()]
+        except OSError:  # gone
+            continue
+        for path in paths:
+            if path.startswith(f"{SHM}/"):
+                out.add(shm_base(path.removeprefix(f"{SHM}/")))
+    return {name for name in out if name.startswith(("fastrtps_", "fastdds_"))}
+
+
+def orphaned_shm(before: set[str], ours: set[str] | None = None) -> list[str]:
     """Fast DDS files in /dev/shm, new since ``before``, that no live process owns (its ``_el`` lock is free).
 
-    Files of other runs on this machine are in use (locked), so they never count. Checked twice, 1 s
-    apart: a file another run is creating right now may exist a moment before its lock does.
+    ``ours``: the files the run's own processes used (:func:`shm_files_of`, sampled while they lived); only those
+    count. Another run on the machine creates and drops files of its own meanwhile (a port file whose creator has
+    exited, while its peers still use it, has a free lock): without ``ours`` they counted as this run's leftovers.
+    Files of other live runs are in use (locked), so they never count either. Checked twice, 1 s apart: a file
+    another run is creating right now may exist a moment before its lock does.
     """
 
     def orphans() -> set[str]:
         out = set()
         new = set(os.listdir(SHM)) - before
+        if ours is not None:  # only the run's own files
+            new = {name for name in new if shm_base(name) in ours}
         # Python multiprocessing's named semaphores (sweep pools): orphaned when no process maps them.
         semaphores = {name for name in new if name.startswith("sem.mp-")}
         if semaphores:
@@ -123,7 +154,7 @@ def orphaned_shm(before: set[str]) -> list[str]:
                 semaphores = {name for name in semaphores if name not in text}
             out |= semaphores
         for name in new:
-            base = name.removeprefix("sem.").removesuffix("_mutex").removesuffix("_el")
+            base = shm_base(name)
             if not base.startswith(("fastrtps_", "fastdds_")):
                 continue
             try:
@@ -171,6 +202,7 @@ class ClockProbe:
 
     def __init__(self, tmp_path: Path, domain: str, watch: Callable[[], Iterable[int]] = tuple) -> None:
         self.shm = ShmTracker()
+        self.used: set[str] = set()  # every Fast DDS file the probe and the run's nodes were seen using
         self.watch = watch  # the run's node pids, asked again at every look (a restarted node is new)
         self.file = tmp_path / "clock_ns"
         env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -181,6 +213,7 @@ class ClockProbe:
 
     def now_ns(self) -> int:
         self.shm.sample([self.proc.pid, *self.watch()])
+        self.used |= shm_files_of([self.proc.pid, *self.watch()])
         try:
             return int(self.file.read_text())
         except (OSError, ValueError):
@@ -191,6 +224,7 @@ class ClockProbe:
 
     def stop(self) -> None:
         self.shm.sample([self.proc.pid, *self.watch()])
+        self.used |= shm_files_of([self.proc.pid, *self.watch()])
         self.proc.send_signal(signal.SIGINT)
         try:
             self.proc.wait(timeout=20)
@@ -210,9 +244,9 @@ def start_run_and_probe(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, 
         raise
 
 
-def assert_nothing_left(pids, before_shm: set[str]) -> None:
+def assert_nothing_left(pids, before_shm: set[str], ours: set[str] | None = None) -> None:
     wait_for(lambda: not any(alive(p) for p in pids), 60, "every process of the run to exit")
-    assert orphaned_shm(before_shm) == []
+    assert orphaned_shm(before_shm, ours) == []
 
 
 @pytest.fixture(scope="module")
@@ -245,7 +279,7 @@ def test_killed_recorder_leaves_a_bag_scored_up_to_the_last_half_second(tmp_path
             cli.kill()
     assert cli.returncode == 1
     assert "metrics node exited with code -9" in (tmp_path / "lq.err").read_text()
-    assert_nothing_left([*nodes.values(), probe.proc.pid], before_shm)
+    assert_nothing_left([*nodes.values(), probe.proc.pid], before_shm, probe.used)
 
     bag = tmp_path / "out" / CFG.episode_name()
     # metadata.yaml existed from the start, with the run's configuration.
@@ -304,7 +338,7 @@ def test_killed_node_ends_the_run_as_an_error_and_leaves_nothing(tmp_path, victi
     assert cli.returncode == 1
     err = (tmp_path / "lq.err").read_text()
     assert f"{victim} node exited with code -9" in err and "Traceback" not in err
-    assert_nothing_left([*nodes.values(), probe.proc.pid], before_shm)
+    assert_nothing_left([*nodes.values(), probe.proc.pid], before_shm, probe.used)
     row = json.loads((tmp_path / "lq.out").read_text().strip().splitlines()[-1])
     assert row["status"] == "error" and row["success"] is None
     # The recorder was stopped cleanly: a complete bag that says the episode never ended.
@@ -323,7 +357,7 @@ def test_killed_launcher_takes_every_node_with_it(tmp_path):
         wait_for(lambda: not any(alive(p) for p in nodes.values()), 60, "the nodes to exit")
     finally:
         probe.stop()
-    assert_nothing_left([*nodes.values(), probe.proc.pid], before_shm)
+    assert_nothing_left([*nodes.values(), probe.proc.pid], before_shm, probe.used)
     # The recorder, told to stop, closed its bag with a STOPPED event: a scored run error.
     bag = tmp_path / "out" / CFG.episode_name()
     scored = subprocess.run([sys.executable, "-m", "lq_ros.cli", "score", str(bag), "--json"], cwd=REPO,
@@ -365,14 +399,16 @@ def test_killed_sweep_worker_is_replaced_and_its_episode_retried(tmp_path):
         finally:
             probe.stop()
         seen.add(probe.proc.pid)
+        used = set(probe.used)
         while sweep.poll() is None:
             seen |= descendants(sweep.pid)
+            used |= shm_files_of(descendants(sweep.pid))
             time.sleep(0.2)
     finally:
         if sweep.poll() is None:
             sweep.kill()
     assert sweep.returncode == 0, (tmp_path / "lq.err").read_text()[-3000:]
-    assert_nothing_left(seen, before_shm)
+    assert_nothing_left(seen, before_shm, used)
     (record,) = [json.loads(p.read_text()) for p in (out / "results").glob("*.json")]
     assert record["status"] == "failure" and record["row"]["completion_steps"] == 120
     first, second = record["attempts"]
