@@ -103,7 +103,7 @@ class SimNode(EpisodeNode):
         if self.reset_for != (cfg.init, cfg.seed):  # (the first episode after configure starts from its reset)
             self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
         self.reset_for = None
-        state_topics = (m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.OBSERVATION, m.EPISODE_EVENTS)
+        state_topics = (m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, *m.TASK_TOPICS, m.OBSERVATION, m.EPISODE_EVENTS)
         if not self.realtime:
             state_topics = (m.CLOCK, *state_topics, m.OBSERVATION_REQUEST_QUEUED) + (
                 (m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ()

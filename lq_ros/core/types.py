@@ -72,6 +72,22 @@ class EnergyIntegrals:
     torque_squared_integral: float  # sum_k tau_k . tau_k dt, N^2 m^2 s
 
 
+@dataclass(frozen=True)
+class TaskStateSample:
+    """The task's state at one tick: object poses, gripper contact, and the goal predicates' truth.
+
+    Objects are the task's objects of interest and the goal predicates' arguments (objects and regions).
+    """
+
+    object_names: tuple[str, ...]
+    object_pos: np.ndarray  # (K, 3) m, world frame
+    object_quat_xyzw: np.ndarray  # (K, 4)
+    gripper_contact: np.ndarray  # (K,) bool: a gripper geom touches the object
+    grasped: np.ndarray  # (K,) bool: both finger pads touch it
+    predicate_names: tuple[str, ...]  # e.g. "(On akita_black_bowl_1 plate_1)"
+    predicate_values: np.ndarray  # (P,) bool
+
+
 @dataclass
 class TickState:
     """Robot state at the start of control tick ``tick`` (after the previous command was applied)."""
@@ -88,6 +104,8 @@ class TickState:
     physics: PhysicsSamples | None = None
     #: Integrals over the substeps of the tick that led here (None at tick 0: nothing applied yet).
     energy: EnergyIntegrals | None = None
+    #: The task's objects and goal predicates (None where the simulator gives none: a robot, a stand-in).
+    task: TaskStateSample | None = None
 
 
 @dataclass

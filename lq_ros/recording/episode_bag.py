@@ -42,7 +42,7 @@ ROS_DISTRO = "jazzy"
 
 def episode_topics(cfg: RunConfig, camera_names: tuple[str, ...]) -> list[m.Topic]:
     """Every topic an episode of ``cfg`` records (the same list for both transports)."""
-    topics = list(m.CORE_TOPICS)
+    topics = [*m.CORE_TOPICS, *m.TASK_TOPICS]
     if cfg.physics_rate:
         topics += [m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS]
     topics += [m.camera_topic(c) for c in camera_names]

@@ -280,6 +280,9 @@ class LiberoEnv:
         self._obs: dict | None = None
         self._tick = 0
         self._success = False
+        from lq_ros.sim.task_state import TaskStateProbe
+
+        self._task_probe = TaskStateProbe(self._env.env)  # object poses, contact, goal predicates per tick
 
     # -- stepping ---------------------------------------------------------------------------
     def reset(self, init_index: int, seed: int, *, hard: bool | None = None) -> TickState:
@@ -432,6 +435,7 @@ class LiberoEnv:
             success=self._success,
             physics=physics,
             energy=energy,
+            task=self._task_probe.sample(),
         )
 
     def _bind_sim(self) -> None:

@@ -19,7 +19,7 @@ from lq_ros.core.executor_protocol import Command, Request
 from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.shipped import shipped_path
 from lq_ros.core.suite_constants import PHYSICS_DT_S
-from lq_ros.core.types import EnergyIntegrals, Observation, TaskInfo, TickState
+from lq_ros.core.types import EnergyIntegrals, Observation, TaskInfo, TaskStateSample, TickState
 
 #: The lq_msgs definitions (msg_schemas/lq_msgs/msg, shipped with the package).
 MSG_DIR = shipped_path("msg_schemas/lq_msgs/msg")
@@ -51,6 +51,10 @@ EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
 ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
 #: Executor -> policy, merge rtc/rtc_hard only (not recorded: the commands that follow contain it).
 ACTION_PREFIX = Topic("/lq/action_prefix", "lq_msgs/msg/ActionPrefix")
+#: The task's state per tick (sim only): object poses, in the order of TASK_STATE's object_names at the same stamp,
+#: and the goal predicates' truth with the gripper's contacts (lq_ros.sim.task_state).
+TASK_OBJECT_POSES = Topic("/lq/task/object_poses", "geometry_msgs/msg/PoseArray")
+TASK_STATE = Topic("/lq/task/state", "lq_msgs/msg/TaskState")
 #: Real-time runs (``clock: realtime``): what a node counted over the episode (overrun ticks, missed commands,
 #: late chunks), one JSON object per node, published when the episode ends and recorded in the bag.
 REALTIME_STATS = Topic("/lq/realtime_stats", "std_msgs/msg/String")
@@ -82,6 +86,8 @@ CORE_TOPICS = (
     ACTION_CHUNK,
     EPISODE_EVENTS,
 )
+#: Topics of the simulator's task state (a robot's bag has them only if the robot publishes them).
+TASK_TOPICS = (TASK_OBJECT_POSES, TASK_STATE)
 
 
 class EventKind:
@@ -116,7 +122,10 @@ def _cls(msgtype: str):
 
 
 def serialize(msg, msgtype: str) -> bytes:
-    return bytes(typestore().serialize_cdr(msg, msgtype))
+    """CDR bytes of ``msg``, padded with zeros to a multiple of 4 bytes as Fast DDS delivers a serialized payload
+    (so a message recorded from ROS and one written in process are the same bytes; decoders ignore the tail)."""
+    data = bytes(typestore().serialize_cdr(msg, msgtype))
+    return data + bytes(-len(data) % 4)
 
 
 def deserialize(data: bytes | memoryview, msgtype: str):
@@ -199,9 +208,30 @@ def energy_integrals_msg(t_ns: int, tick: int, energy: EnergyIntegrals) -> bytes
     return serialize(msg, ENERGY_INTEGRALS.msgtype)
 
 
+def task_state_msgs(t_ns: int, tick: int, task: TaskStateSample) -> list[tuple[Topic, int, bytes]]:
+    """The task's state at one tick: the objects' PoseArray and the TaskState beside it (same stamp)."""
+    poses = _cls(TASK_OBJECT_POSES.msgtype)(
+        header=_header(t_ns, WORLD_FRAME),
+        poses=[_pose(p, q) for p, q in zip(task.object_pos, task.object_quat_xyzw, strict=True)],
+    )
+    state = _cls(TASK_STATE.msgtype)(
+        header=_header(t_ns),
+        tick=tick,
+        object_names=list(task.object_names),
+        gripper_contact=np.asarray(task.gripper_contact, dtype=bool),
+        grasped=np.asarray(task.grasped, dtype=bool),
+        predicate_names=list(task.predicate_names),
+        predicate_values=np.asarray(task.predicate_values, dtype=bool),
+    )
+    return [
+        (TASK_OBJECT_POSES, t_ns, serialize(poses, TASK_OBJECT_POSES.msgtype)),
+        (TASK_STATE, t_ns, serialize(state, TASK_STATE.msgtype)),
+    ]
+
+
 def tick_state_msgs(state: TickState, physics_rate: bool = False, clock: bool = True) -> list[tuple[Topic, int, bytes]]:
     """(topic, log time ns, bytes) for one tick: physics-rate samples first, then joints, pose, the
-    energy integrals of the tick that led here, clock.
+    energy integrals of the tick that led here, the task's state, clock.
 
     /clock starts a control tick; the sim leaves it out at the tick that ends the episode, so no
     node acts on a tick that will never be stepped.
@@ -220,6 +250,8 @@ def tick_state_msgs(state: TickState, physics_rate: bool = False, clock: bool = 
     out.append((EE_POSE, t_ns, ee_pose_msg(t_ns, state.eef_pos, state.eef_quat_xyzw)))
     if state.energy is not None:
         out.append((ENERGY_INTEGRALS, t_ns, energy_integrals_msg(t_ns, state.tick - 1, state.energy)))
+    if state.task is not None:
+        out += task_state_msgs(t_ns, state.tick, state.task)
     if clock:
         out.append((CLOCK, t_ns, clock_msg(t_ns)))
     return out

@@ -94,7 +94,8 @@ def stats_json(stats: dict) -> str:
 
 
 def tick_state_msgs(state: TickState, clock: TickClock) -> list[tuple[m.Topic, int, bytes]]:
-    """The 20 Hz state of one tick stamped with its scheduled wall time (no /clock, no physics-rate topics)."""
+    """The 20 Hz state of one tick (and the task's state) stamped with its scheduled wall time (no /clock, no
+    physics-rate topics)."""
     t_ns = clock.tick_ns(state.tick)
     out = [
         (m.JOINT_STATES, t_ns, m.joint_state_msg(t_ns, state.joint_pos, state.joint_vel, state.joint_torque)),
@@ -102,4 +103,6 @@ def tick_state_msgs(state: TickState, clock: TickClock) -> list[tuple[m.Topic, i
     ]
     if state.energy is not None:
         out.append((m.ENERGY_INTEGRALS, t_ns, m.energy_integrals_msg(t_ns, state.tick - 1, state.energy)))
+    if state.task is not None:
+        out += m.task_state_msgs(t_ns, state.tick, state.task)
     return out
