@@ -76,7 +76,8 @@ class EnergyIntegrals:
 class TaskStateSample:
     """The task's state at one tick: object poses, gripper contact, and the goal predicates' truth.
 
-    Objects are the task's objects of interest and the goal predicates' arguments (objects and regions).
+    Objects: the task's objects of interest, the goal predicates' arguments (objects and regions), then the
+    scene's other movable objects.
     """
 
     object_names: tuple[str, ...]

@@ -24,7 +24,7 @@ from lq_ros.recording import mcap_reader as mcap_stream
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.recording.mcap_reader import McapDamage, StreamingMcapReader
 from lq_ros.scoring import chunk_boundary as boundary
-from lq_ros.scoring import metrics
+from lq_ros.scoring import failure_modes, metrics
 from lq_ros.wire import messages as m
 
 #: Sampling of the trajectory metrics (jerk, EE-Osc, length, SPARC, LDLJ): ``control`` (20 Hz EE pose,
@@ -92,6 +92,10 @@ class EpisodeData:
     #: Decoded command groups: tick, action, source, request_id, chunk_index arrays.
     command_groups: list[dict] = field(default_factory=list)
     requests: int = 0
+    #: The simulator's task state: (stamp ns, tick, object names, contact (K,), grasped (K,), predicate names,
+    #: predicate values (P,)) per tick, and the object poses (stamp ns -> (K, 7) xyz + quaternion xyzw).
+    task_states: list = field(default_factory=list)
+    task_poses: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     #: The file was cut or corrupt: what the damage covered is missing.
@@ -144,6 +148,8 @@ def read_episode(
         m.COMMAND.name: ("commands", m.COMMAND.msgtype),
         m.OBSERVATION_REQUEST.name: ("requests", m.OBSERVATION_REQUEST.msgtype),
         m.ENERGY_INTEGRALS.name: ("energy", m.ENERGY_INTEGRALS.msgtype),
+        m.TASK_STATE.name: ("task", m.TASK_STATE.msgtype),
+        m.TASK_OBJECT_POSES.name: ("task_poses", m.TASK_OBJECT_POSES.msgtype),
     }
     if physics:
         roles[m.EE_POSE_PHYSICS.name] = ("ee_physics", m.EE_POSE_PHYSICS.msgtype)
@@ -250,11 +256,14 @@ def _collect_or_report(data: EpisodeData, reader: StreamingMcapReader, role: str
 def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
     if role == "requests":
         data.requests += len(batch)
-    elif role in ("events", "chunks"):  # a few per episode: the generic deserializer is fine
+    elif role in ("events", "chunks", "task", "task_poses"):  # small: the generic deserializer is fine
         bad, first = 0, None
         for i in range(len(batch)):
             try:  # one message at a time: an undecodable one is skipped, the others are kept
-                _collect_message(data, role, m.deserialize(batch.payload(i), batch.channel.msgtype))
+                payload = batch.payload(i)
+                if role in ("task", "task_poses") and len(payload) > MAX_TASK_MESSAGE_BYTES:
+                    raise ValueError(f"a {batch.channel.topic} message of {len(payload)} bytes (at most 64 KiB)")
+                _collect_message(data, role, m.deserialize(payload, batch.channel.msgtype))
             except _DECODE_ERRORS as exc:
                 bad, first = bad + 1, first or exc
         if bad:
@@ -283,10 +292,30 @@ def _collect(data: EpisodeData, role: str, batch: mcap_stream.Batch) -> None:
 MAX_INJECTED_LATENCY_S = 1e6
 
 
+#: A task-state message beyond this is damage: a scene has tens of objects and predicates, bytes.
+MAX_TASK_MESSAGE_BYTES = 64 << 10
+
+
 def _collect_message(data: EpisodeData, role: str, msg) -> None:
-    """One episode event or action chunk; everything is decoded before anything is kept (all or nothing)."""
+    """One episode event, action chunk or task state; everything is decoded before anything is kept."""
     if role == "events":
         data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
+        return
+    if role == "task":
+        k, p = len(msg.object_names), len(msg.predicate_names)
+        if len(msg.gripper_contact) != k or len(msg.grasped) != k or len(msg.predicate_values) != p:
+            raise ValueError(f"task state at tick {msg.tick}: {k} objects and {p} predicates, arrays of other lengths")
+        data.task_states.append((m.stamp_ns(msg), msg.tick, tuple(msg.object_names),
+                                 np.asarray(msg.gripper_contact, dtype=bool), np.asarray(msg.grasped, dtype=bool),
+                                 tuple(msg.predicate_names), np.asarray(msg.predicate_values, dtype=bool)))  # fmt: skip
+        return
+    if role == "task_poses":
+        rows = [(q.position.x, q.position.y, q.position.z, q.orientation.x, q.orientation.y, q.orientation.z,
+                 q.orientation.w) for q in msg.poses]  # fmt: skip
+        values = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"object poses at {m.stamp_ns(msg)} ns: not finite")
+        data.task_poses[m.stamp_ns(msg)] = values
         return
     actions = m.chunk_actions(msg)
     valid = not msg.error and validate_chunk(actions) is None
@@ -426,6 +455,9 @@ def score_episode(
     else:
         _null(row, ["completion_steps", "completion_time_s", "censored"], f"no outcome ({status})")
 
+    # -- task progress and failure mode -----------------------------------------------------------
+    _score_failure(row, data, status, t0_ns, t1_ns)
+
     # -- latency and protocol -------------------------------------------------------------------
     _score_protocol(row, data, cfg, meta)
 
@@ -467,6 +499,58 @@ def score_episode(
     row["warnings"] = warnings
     row["versions"] = meta.get("versions")
     return row
+
+
+FAILURE_KEYS = ["progress", "furthest_phase", "unmet_predicate", "predicate_events"]
+
+
+def _score_failure(row: dict, data: EpisodeData, status: str, t0_ns, t1_ns) -> None:
+    """``failure_mode``, ``progress``, ``furthest_phase``, ``unmet_predicate`` and ``predicate_events`` from the
+    task state (lq_ros.scoring.failure_modes); ``unavailable`` where the bag has none or too little."""
+    series, why = task_series(data, t0_ns, t1_ns)
+    if series is None:
+        row["failure_mode"] = "unavailable"
+        _null(row, FAILURE_KEYS, why)
+        row["null_reasons"]["failure_mode"] = why
+        return
+    analysis = failure_modes.classify(series, status if status in ("success", "failure") else "error")
+    row["failure_mode"] = analysis.failure_mode
+    row["progress"] = analysis.progress
+    row["furthest_phase"] = analysis.furthest_phase
+    row["unmet_predicate"] = analysis.unmet_predicate
+    row["predicate_events"] = [list(event) for event in analysis.predicate_events]
+
+
+def task_series(data: EpisodeData, t0_ns, t1_ns) -> tuple[failure_modes.TaskSeries | None, str]:
+    """The episode's task state as one array per quantity (with the EE position at each stamp), or why not."""
+    if not data.task_states:
+        return None, f"no {m.TASK_STATE.name} records (a bag from before task state, or a robot that publishes none)"
+    within = [s for s in data.task_states if (t0_ns is None or s[0] >= t0_ns) and (t1_ns is None or s[0] <= t1_ns)]
+    states = sorted(within, key=lambda s: s[0])
+    if not states:
+        return None, f"no {m.TASK_STATE.name} records within the episode"
+    names, predicates = states[0][2], states[0][5]
+    if any(s[2] != names or s[5] != predicates for s in states):
+        return None, f"{m.TASK_STATE.name}: the objects or predicates changed during the episode"
+    t_ee, ee = data.ee.arrays(t0_ns, t1_ns)
+    ee_at = dict(zip(t_ee.tolist(), range(len(t_ee)), strict=True))
+    keep = [s for s in states if s[0] in data.task_poses and s[0] in ee_at]
+    if len(keep) < 2 or len(keep) < 0.9 * len(states):
+        return None, f"{m.TASK_STATE.name}: {len(keep)} of {len(states)} ticks have their object poses and EE pose"
+    poses = np.stack([data.task_poses[s[0]] for s in keep])
+    if poses.shape[1] != len(names):
+        return None, f"{m.TASK_OBJECT_POSES.name}: {poses.shape[1]} poses for {len(names)} objects"
+    return failure_modes.TaskSeries(
+        ticks=np.array([s[1] for s in keep]),
+        object_names=names,
+        object_pos=poses[:, :, :3],
+        object_quat_xyzw=poses[:, :, 3:],
+        contact=np.stack([s[3] for s in keep]),
+        grasped=np.stack([s[4] for s in keep]),
+        predicate_names=predicates,
+        predicate_values=np.stack([s[6] for s in keep]).reshape(len(keep), len(predicates)),
+        ee_pos=ee[[ee_at[s[0]] for s in keep]],
+    ), ""
 
 
 def _score_protocol(row: dict, data: EpisodeData, cfg: dict, meta: dict) -> None:

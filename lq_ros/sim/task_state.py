@@ -2,8 +2,9 @@
 
 What it records (lq_msgs/msg/TaskState and a geometry_msgs/PoseArray, one each per tick):
 
-- the poses of the task's objects of interest (LIBERO's ``obj_of_interest``) and of every goal predicate's
-  arguments (objects, fixtures and regions: a region is a site, e.g. a drawer's ``top_region``);
+- the poses of the task's objects of interest (LIBERO's ``obj_of_interest``), of every goal predicate's
+  arguments (objects, fixtures and regions: a region is a site, e.g. a drawer's ``top_region``), then of the
+  scene's other movable objects;
 - the gripper's contact with each of them (any gripper geom) and whether it grasps it (a geom of each finger
   pad touches it: robosuite's ``_check_grasp`` test, computed here from MuJoCo's contact arrays with precomputed
   geom ids rather than robosuite's per-contact name lookups); a region counts through its parent object's geoms;
@@ -33,7 +34,10 @@ class TaskStateProbe:
         self._env = env
         self._goal = [list(state) for state in env.parsed_problem["goal_state"]]
         names: list[str] = []
-        for name in [*env.obj_of_interest, *(arg for state in self._goal for arg in state[1:])]:
+        # Then the scene's other movable objects: picking the wrong one (two identical bowls in LIBERO-Spatial) is
+        # a failure of its own, and it is seen only if that object is tracked.
+        goal_args = (arg for state in self._goal for arg in state[1:])
+        for name in [*env.obj_of_interest, *goal_args, *env.objects_dict]:
             if name not in names:
                 names.append(name)
         self.object_names = tuple(names)
