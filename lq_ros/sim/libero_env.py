@@ -269,6 +269,9 @@ class LiberoEnv:
                 use_camera_obs=False,
             )
         self._mujoco = mujoco
+        #: Tick through :class:`lq_ros.sim.fast_tick.FastTick` where it applies; False: robosuite's own ``env.step``
+        #: (the same trajectory, bit for bit; for comparisons).
+        self.fast_tick = True
         self._substeps: list[tuple[np.ndarray, ...]] = []
         self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
         #: The simulator's data when robosuite last sampled its observations (cameras render from it).
@@ -313,8 +316,7 @@ class LiberoEnv:
         self._reset_before = True
         self._env.set_init_state(self._init_states[init_index])
         for _ in range(NUM_WAIT_STEPS):
-            with self._stages.tick():
-                self._obs, _, _, _ = self._env.step(np.asarray(DUMMY_ACTION))
+            self._obs, _ = self._robosuite_step(np.asarray(DUMMY_ACTION))
         self._substeps.clear()  # the wait steps are not part of the episode
         self._energy[:] = 0.0
         self._tick = 0
@@ -341,11 +343,19 @@ class LiberoEnv:
         """Apply ``action`` for one control tick; returns the state at the next tick."""
         self._substeps.clear()
         self._energy[:] = 0.0
-        with self._stages.tick():
-            self._obs, _, done, _ = self._env.step(np.asarray(action, dtype=np.float64))
+        self._obs, done = self._robosuite_step(np.asarray(action, dtype=np.float64))
         self._tick += 1
         self._success = bool(done)
         return self._tick_state()
+
+    def _robosuite_step(self, action: np.ndarray) -> tuple[dict, bool]:
+        """robosuite's ``env.step`` as LIBERO runs it: (observations, done). Through :class:`FastTick` where it
+        applies (bit-identical, without robosuite's per-substep Python), else robosuite's own."""
+        with self._stages.tick():
+            if self.fast_tick and self._fast_tick is not None:
+                return self._fast_tick.step(action)
+            obs, _, done, _ = self._env.step(action)
+            return obs, done
 
     @property
     def tick(self) -> int:
@@ -456,6 +466,9 @@ class LiberoEnv:
         if not hasattr(self._sim, "_lq_stages"):
             self._wrap_sim_step()
         self._stages = self._sim._lq_stages
+        from lq_ros.sim.fast_tick import FastTick, unsupported
+
+        self._fast_tick = FastTick(self._env.env) if unsupported(self._env.env) is None else None
 
     def _wrap_observables(self) -> None:
         """Keep a copy of the simulator's data whenever robosuite samples its observables.

@@ -1,0 +1,247 @@
+"""robosuite's ``env.step`` for LIBERO's one Panda arm, without the Python robosuite wraps around each substep.
+
+A LIBERO tick is 25 physics substeps. In each, robosuite's ``env.step`` runs a forward pass, its robot's
+``control`` (the operational-space controller: re-reading the arm's state through name lookups, fresh arrays and
+properties, then the controller's maths), ``sim.step`` and an update of every observable (29 objects in a LIBERO
+scene, each keeping its own clock). Around MuJoCo's own cost that Python is about as much again.
+
+:class:`FastTick` runs the same tick with the same arithmetic in the same order:
+
+- the first substep (the policy step: the controller's new goal, robosuite's buffers of recent values) is
+  robosuite's own ``_pre_action``;
+- the other substeps run the controller's update and ``run_controller`` for the configuration LIBERO uses
+  (OSC_POSE, fixed impedance, no interpolator, position and orientation uncoupled) inline: the same MuJoCo calls
+  (``mj_jacSite``, ``mj_fullM``), the same NumPy operations on arrays of the same shapes and memory layouts, and
+  robosuite's own numba functions (``opspace_matrices``, ``nullspace_torques``, ``orientation_error``), so each
+  float is computed by the same code from the same inputs. Limits, gains and the gripper's control range are read
+  once per tick instead of once per substep;
+- observables are updated by robosuite's own code only at the substeps where one samples or its period wraps
+  (two per tick); between them only the shared clock advances, by the same float additions each observable makes;
+- after the substeps, robosuite's ``_post_action`` without its reward: LIBERO's reward is its success check, which
+  LIBERO's ``step`` evaluates again afterwards (the result ``done`` comes from), and nothing here reads the reward.
+
+Anything else (another controller, robot, gripper or observable delay, a subclass overriding one of these methods)
+is refused by :func:`unsupported` and the env steps through robosuite's own ``env.step``. The trajectory is bit
+for bit that of LIBERO's own env: tests/sim/test_parity.py compares joint positions, the whole MuJoCo state and the
+observations tick by tick against LIBERO's conventional loop on every suite.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def unsupported(env) -> str | None:
+    """Why :class:`FastTick` cannot step robosuite env ``env`` (LIBERO's inner env), or None if it can."""
+    from libero.libero.envs.bddl_base_domain import BDDLBaseDomain
+    from robosuite.controllers.base_controller import Controller
+    from robosuite.controllers.osc import OperationalSpaceController
+    from robosuite.environments.base import MujocoEnv
+    from robosuite.environments.robot_env import RobotEnv
+    from robosuite.models.grippers.panda_gripper import PandaGripper
+    from robosuite.robots.manipulator import Manipulator
+    from robosuite.robots.robot import Robot
+    from robosuite.robots.single_arm import SingleArm
+    from robosuite.utils import observables
+
+    # Each method this tick reproduces must be the one LIBERO's env runs, and each super() call reach the same class.
+    expected = {
+        "step": (BDDLBaseDomain, MujocoEnv),
+        "_pre_action": (BDDLBaseDomain, RobotEnv),
+        "_post_action": (BDDLBaseDomain, MujocoEnv),
+        "reward": (BDDLBaseDomain,),
+        "_get_observations": (MujocoEnv,),
+        "_update_observables": (MujocoEnv,),
+    }
+    for name, classes in expected.items():
+        definers = [c for c in type(env).__mro__ if name in vars(c)]
+        if tuple(definers[: len(classes)]) != classes:
+            return f"{type(env).__name__}.{name} is not the one this tick reproduces"
+    if env.action_dim != 7:
+        return f"an action of {env.action_dim} values (LIBERO's OSC_POSE takes 7)"
+    if len(env.robots) != 1:
+        return f"{len(env.robots)} robots"
+    robot = env.robots[0]
+    controller, gripper = robot.controller, robot.gripper
+    robot_methods = (type(robot).control, type(robot).grip_action, type(robot).torque_limits)
+    if robot_methods != (SingleArm.control, Manipulator.grip_action, Robot.torque_limits):
+        return f"robot {type(robot).__name__}"
+    if type(controller) is not OperationalSpaceController or type(controller).update is not Controller.update:
+        return f"controller {type(controller).__name__}"
+    if controller.interpolator_pos is not None or controller.interpolator_ori is not None:
+        return "an interpolating controller"
+    if controller.impedance_mode != "fixed" or not controller.uncoupling or not controller.use_ori:
+        return "an OSC_POSE controller other than LIBERO's (fixed impedance, uncoupled, with orientation)"
+    if type(gripper).format_action is not PandaGripper.format_action or gripper.dof != 1:
+        return f"gripper {type(gripper).__name__}"
+    if env.viewer is not None:
+        return "an on-screen viewer"
+    for observable in env._observables.values():
+        if observable._enabled and observable._delayer is not observables.NO_DELAY:
+            return f"observable {observable.name} has a delay"
+    return None
+
+
+class FastTick:
+    """One control tick of robosuite env ``env`` (see the module's docstring); ``step`` returns (obs, done)."""
+
+    def __init__(self, env) -> None:
+        self._env = env
+        self._model = None  # the MuJoCo model the buffers below were made for (robosuite swaps it on a hard reset)
+
+    def _bind(self) -> None:
+        import mujoco
+
+        sim = self._env.sim
+        self._model = model = sim.model._model
+        self._data = sim.data._data
+        self._jacp = np.zeros((3, model.nv))
+        self._jacr = np.zeros((3, model.nv))
+        self._full_mass = np.ndarray(shape=(model.nv, model.nv), dtype=np.float64, order="C")
+        self._mujoco = mujoco
+
+    def step(self, action: np.ndarray) -> tuple[dict, bool]:
+        """robosuite's ``env.step(action)`` as LIBERO's env runs it; returns the observations and LIBERO's done."""
+        from robosuite.utils.control_utils import nullspace_torques, opspace_matrices, orientation_error
+
+        env = self._env
+        if env.done:
+            raise ValueError("executing action in terminated episode")
+        if env.sim.model._model is not self._model:
+            self._bind()
+        mujoco, model, data = self._mujoco, self._model, self._data
+        sim = env.sim
+        forward, sim_step = sim.forward, sim.step
+        env.timestep += 1
+        clock = _ObservableClock(env)
+        dt = env.model_timestep
+
+        # Substep 1: the policy step, robosuite's own code (the controller's goal, the robot's recent-value buffers).
+        forward()
+        env._pre_action(action, True)
+        sim_step()
+        clock.advance(dt)
+
+        # Substeps 2..: the controller's update and run_controller, inline (robosuite's controllers/osc.py and
+        # base_controller.py, robots/single_arm.py control(), grippers/panda_gripper.py format_action()).
+        robot = env.robots[0]
+        controller, gripper = robot.controller, robot.gripper
+        sid = model.site(controller.eef_name).id
+        qpos_index, qvel_index = controller.qpos_index, controller.qvel_index
+        goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
+        kp, kd, initial_joint = controller.kp, controller.kd, controller.initial_joint
+        kp_pos, kp_ori, kd_pos, kd_ori = np.array(kp[0:3]), np.array(kp[3:6]), kd[0:3], kd[3:6]
+        torque_low, torque_high = robot.torque_limits
+        arm_actuators = robot._ref_joint_actuator_indexes
+        gripper_actuators = [model.actuator(name).id for name in gripper.actuators]
+        ctrl_range = model.actuator_ctrlrange[gripper_actuators]
+        grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
+        grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
+        gripper_action = action[controller.control_dim :]
+        grip_increment = np.array([-1.0, 1.0]) * gripper.speed * np.sign(gripper_action)
+        grip = gripper.current_action
+        jacp, jacr, full_mass = self._jacp, self._jacr, self._full_mass
+        site_xpos, site_xmat, qpos, qvel, qfrc_bias, ctrl = (
+            data.site_xpos,
+            data.site_xmat,
+            data.qpos,
+            data.qvel,
+            data.qfrc_bias,
+            data.ctrl,
+        )
+        for _ in range(int(env.control_timestep / env.model_timestep) - 1):
+            forward()  # the env loop's
+            forward()  # the controller update's
+            ee_pos = site_xpos[sid]
+            ee_ori_mat = site_xmat[sid].reshape([3, 3])
+            mujoco.mj_jacSite(model, data, jacp, jacr, sid)
+            ee_pos_vel = np.dot(jacp, qvel)
+            ee_ori_vel = np.dot(jacr, qvel)
+            joint_pos = qpos[qpos_index]
+            joint_vel = qvel[qvel_index]
+            j_pos = np.array(jacp[:, qvel_index])
+            j_ori = np.array(jacr[:, qvel_index])
+            j_full = np.array(np.vstack([j_pos, j_ori]))
+            mujoco.mj_fullM(model, full_mass, data.qM)
+            mass_matrix = full_mass[qvel_index, :][:, qvel_index]
+
+            ori_error = orientation_error(goal_ori, ee_ori_mat)
+            desired_force = np.multiply(goal_pos - ee_pos, kp_pos) + np.multiply(-ee_pos_vel, kd_pos)
+            desired_torque = np.multiply(ori_error, kp_ori) + np.multiply(-ee_ori_vel, kd_ori)
+            _, lambda_pos, lambda_ori, nullspace_matrix = opspace_matrices(mass_matrix, j_full, j_pos, j_ori)
+            wrench = np.concatenate([np.dot(lambda_pos, desired_force), np.dot(lambda_ori, desired_torque)])
+            torques = np.dot(j_full.T, wrench) + qfrc_bias[qvel_index]
+            torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
+
+            clipped = np.clip(torques, torque_low, torque_high)
+            grip = np.clip(grip + grip_increment, -1.0, 1.0)
+            ctrl[gripper_actuators] = grip_bias + grip_weight * grip
+            ctrl[arm_actuators] = clipped
+            sim_step()
+            clock.advance(dt)
+        if int(env.control_timestep / env.model_timestep) > 1:
+            # What robosuite leaves behind after a substep (the next policy step's update re-reads the state).
+            gripper.current_action = grip
+            controller.torques, robot.torques = torques, clipped
+            controller.ee_pos, controller.ee_ori_mat = np.array(ee_pos), np.array(ee_ori_mat)
+            controller.ee_pos_vel, controller.ee_ori_vel = ee_pos_vel, ee_ori_vel
+            controller.joint_pos, controller.joint_vel = joint_pos, joint_vel
+            controller.J_pos, controller.J_ori, controller.J_full = j_pos, j_ori, j_full
+            controller.mass_matrix = mass_matrix
+            controller.new_update = True
+        clock.store()
+
+        env.cur_time += env.control_timestep
+        # robosuite's _post_action without self.reward(action): LIBERO's reward is _check_success, evaluated below.
+        env.done = (env.timestep >= env.horizon) and not env.ignore_done
+        env._post_process()
+        observations = env._get_observations()
+        return observations, env._check_success()
+
+
+class _ObservableClock:
+    """The sampling clocks of an env's enabled observables, advanced together while none of them would act.
+
+    Every LIBERO observable samples at the control rate with no delay, and all start together, so their clocks
+    hold the same float. robosuite's own update runs only when that clock says one would sample or wrap; the
+    observables' clocks are brought up to date first, so they add the same floats in the same order."""
+
+    def __init__(self, env) -> None:
+        self._env = env
+        self._enabled = [o for o in env._observables.values() if o._enabled]
+        first = self._enabled[0] if self._enabled else None
+        self._uniform = first is not None and all(
+            o._time_since_last_sample == first._time_since_last_sample
+            and o._sampled == first._sampled
+            and o._sampling_timestep == first._sampling_timestep
+            and o._current_delay == first._current_delay
+            for o in self._enabled
+        )
+        if self._uniform:
+            self._time, self._sampled = first._time_since_last_sample, first._sampled
+            self._period, self._delay = first._sampling_timestep, first._current_delay
+        self._first = first
+
+    def advance(self, dt: float) -> None:
+        """robosuite's ``_update_observables()`` after a substep of ``dt`` seconds."""
+        if not self._uniform:
+            self._env._update_observables()
+            return
+        before = self._time
+        self._time = now = before + dt
+        if (not self._sampled and self._period - self._delay >= now) or now >= self._period:
+            for observable in self._enabled:
+                observable._time_since_last_sample = before
+            self._env._update_observables()
+            first = self._first
+            self._time, self._sampled, self._delay = (
+                first._time_since_last_sample,
+                first._sampled,
+                first._current_delay,
+            )
+
+    def store(self) -> None:
+        """Write the shared clock back into every observable (it ran ahead of them since their last update)."""
+        if self._uniform:
+            for observable in self._enabled:
+                observable._time_since_last_sample = self._time

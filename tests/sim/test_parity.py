@@ -1,0 +1,188 @@
+"""LiberoEnv's ticks (lq_ros.sim.fast_tick: robosuite's substeps without its per-substep Python, MuJoCo's repeated
+stages skipped) equal LIBERO's own env stepped with the same commands, bit for bit: on every suite, a grasp, a drawer,
+a knob, with cameras on, and for the joint positions of a lockstep bag."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lq_ros.core.run_config import RunConfig
+from lq_ros.core.suite_constants import DUMMY_ACTION, NUM_WAIT_STEPS
+from lq_ros.policies import make_policy
+from lq_ros.recording.bag_compare import bag_messages
+from lq_ros.sim.libero_env import LiberoEnv, load_task
+from lq_ros.transport.inprocess import run_inprocess
+from lq_ros.wire import messages as m
+
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
+
+SEED = 7
+CAMERAS = ("agentview", "robot0_eye_in_hand")
+
+
+def _physics(data) -> np.ndarray:
+    """Everything the next substep depends on, and what an episode records."""
+    return np.concatenate(
+        [data.qpos, data.qvel, data.act, data.qacc_warmstart, data.ctrl, data.actuator_force, data.sensordata]
+    )
+
+
+def _observations(obs: dict) -> dict[str, np.ndarray]:
+    return {key: np.array(value) for key, value in obs.items() if not key.endswith("_image")}
+
+
+def _ours(suite, task, actions=None, policy=None, ticks=0, cameras=()):
+    """Ticks of LiberoEnv (its fast tick in use) under fixed ``actions`` or a closed-loop ``policy``: the actions,
+    and per tick the MuJoCo state, robosuite's observations and (with cameras) the frames."""
+    env = LiberoEnv(suite, task, camera_names=cameras, camera_size=128)
+    try:
+        assert env._fast_tick is not None, "LIBERO's configuration takes the fast tick"
+        state = env.reset(0, SEED)
+        if policy is not None:
+            policy.reset(env.task, SEED)
+        done, physics, observations, frames = [], [], [], []
+        while len(done) < ticks and not state.success:
+            chunk = actions[len(done) : len(done) + 8] if policy is None else policy.infer(env.observe(False))[:8]
+            for action in chunk:
+                state = env.step(action)
+                done.append(np.asarray(action, dtype=np.float64))
+                physics.append(_physics(env._data))
+                observations.append(_observations(env._obs))
+                if cameras:
+                    frames.append(env.observe(with_images=True).images)
+                if state.success or len(done) == ticks:
+                    break
+        return done, physics, observations, frames, state.success
+    finally:
+        env.close()
+
+
+def _assert_libero_s_own_env_agrees(suite, task, actions, physics, observations, frames=(), cameras=()):
+    """LIBERO's own env (ControlEnv; OffScreenRenderEnv with cameras), reset as LIBERO's evaluations reset it and
+    stepped with ``actions``, gives the same MuJoCo state, observations and frames at every tick."""
+    from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
+
+    _, bddl, init_states = load_task(suite, task)
+    if cameras:
+        stock = OffScreenRenderEnv(
+            bddl_file_name=str(bddl), camera_names=list(cameras), camera_heights=128, camera_widths=128
+        )
+    else:
+        stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+    try:
+        stock.seed(SEED)
+        np.random.seed(SEED)
+        stock.reset()
+        stock.set_init_state(init_states[0])
+        for _ in range(NUM_WAIT_STEPS):
+            stock.step(np.asarray(DUMMY_ACTION))
+        for tick, action in enumerate(actions):
+            obs, _, _, _ = stock.step(action)
+            assert np.array_equal(_physics(stock.env.sim.data._data), physics[tick]), f"MuJoCo state, tick {tick + 1}"
+            ours = observations[tick]
+            theirs = _observations(obs)
+            assert ours.keys() == theirs.keys()
+            for key in ours:
+                assert np.array_equal(ours[key], theirs[key]), f"{key}, tick {tick + 1}"
+            for cam in cameras:
+                assert np.array_equal(frames[tick][cam][::-1], obs[f"{cam}_image"]), f"{cam} frame, tick {tick + 1}"
+    finally:
+        stock.close()
+
+
+def _random_actions(n: int, seed: int = 3) -> list[np.ndarray]:
+    """Seeded arm deltas with the gripper switched every 6 ticks (it integrates its command: both directions)."""
+    rng = np.random.default_rng(seed)
+    return [np.concatenate([rng.uniform(-0.7, 0.7, 6), [1.0 if (i // 6) % 2 else -1.0]]) for i in range(n)]
+
+
+@pytest.mark.parametrize(
+    ("suite", "task"),
+    [("libero_spatial", 0), ("libero_object", 1), ("libero_goal", 1), ("libero_10", 2), ("libero_90", 6)],
+)
+def test_every_suite_ticks_as_libero_s_own_env(suite, task):
+    actions = _random_actions(30)
+    done, physics, observations, _, _ = _ours(suite, task, actions=actions, ticks=len(actions))
+    _assert_libero_s_own_env_agrees(suite, task, done, physics, observations)
+
+
+# Spatial 0: a bowl grasped, carried and placed (the gripper closing, holding and opening); Goal 0: the middle drawer
+# pulled open by its handle; Goal 7: the stove's knob turned. The scripted expert solves each.
+@pytest.mark.parametrize(("suite", "task"), [("libero_spatial", 0), ("libero_goal", 0), ("libero_goal", 7)])
+def test_a_grasp_a_drawer_and_a_knob_tick_as_libero_s_own_env(suite, task):
+    policy = make_policy("scripted", chunk_size=8)
+    done, physics, observations, _, success = _ours(suite, task, policy=policy, ticks=300)
+    assert success, f"{suite} task {task}: the expert's episode succeeds (the object is moved)"
+    _assert_libero_s_own_env_agrees(suite, task, done, physics, observations)
+
+
+def test_with_cameras_the_frames_and_the_state_are_libero_s():
+    actions = _random_actions(12, seed=5)
+    done, physics, observations, frames, _ = _ours("libero_spatial", 0, actions=actions, ticks=12, cameras=CAMERAS)
+    _assert_libero_s_own_env_agrees("libero_spatial", 0, done, physics, observations, frames, cameras=CAMERAS)
+
+
+def test_a_lockstep_bag_s_joint_positions_are_libero_s_for_its_commands(tmp_path):
+    """Async at 0.2 s (commands held while the policy "infers"), scripted: the bag's commands replayed on LIBERO's
+    own env give the bag's joint positions at every tick."""
+    cfg = RunConfig(policy="scripted", mode="async", latency_s=0.2, max_steps=40)
+    outcome = run_inprocess(cfg, tmp_path, env=None)
+    assert outcome.ticks == 40
+    msgs = bag_messages(Path(outcome.bag_path))
+    commands = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in msgs[m.COMMAND.name]]
+    joints = [m.deserialize(raw, m.JOINT_STATES.msgtype) for _, raw in msgs[m.JOINT_STATES.name]]
+    assert [c.tick for c in commands] == list(range(40)) and len(joints) == 41
+    assert {c.source for c in commands} > {0}, "some ticks held a command while the policy inferred"
+    from libero.libero.envs.env_wrapper import ControlEnv
+
+    _, bddl, init_states = load_task("libero_spatial", 0)
+    stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+    try:
+        stock.seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        stock.reset()
+        stock.set_init_state(init_states[cfg.init])
+        for _ in range(NUM_WAIT_STEPS):
+            stock.step(np.asarray(DUMMY_ACTION))
+        robot = stock.env.robots[0]
+        data = stock.env.sim.data._data
+        arm = np.asarray(robot._ref_joint_pos_indexes)
+        assert np.array_equal(np.asarray(joints[0].position), data.qpos[arm]), "tick 0"
+        for command, joint in zip(commands, joints[1:], strict=True):
+            stock.step(np.asarray(command.action, dtype=np.float64))
+            assert np.array_equal(np.asarray(joint.position), data.qpos[arm]), f"tick {command.tick + 1}"
+    finally:
+        stock.close()
+
+
+def test_a_configuration_the_fast_tick_does_not_reproduce_steps_through_robosuite(spatial_env):
+    """An interpolating controller (not LIBERO's) is refused by name; the env then ticks through robosuite's own
+    env.step, as it does with ``fast_tick`` off."""
+    from lq_ros.sim.fast_tick import unsupported
+
+    inner = spatial_env._env.env
+    controller = inner.robots[0].controller
+    assert unsupported(inner) is None
+    saved = controller.interpolator_pos
+    controller.interpolator_pos = object()
+    try:
+        assert unsupported(inner) == "an interpolating controller"
+    finally:
+        controller.interpolator_pos = saved
+    spatial_env.reset(0, SEED)
+    calls = []
+    fast = spatial_env._fast_tick
+    spatial_env._fast_tick.step = lambda action: calls.append(action) or fast.__class__.step(fast, action)
+    try:
+        spatial_env.fast_tick = False
+        spatial_env.step(np.zeros(7))
+        assert calls == []
+        spatial_env.fast_tick = True
+        spatial_env.step(np.zeros(7))
+        assert len(calls) == 1
+    finally:
+        del spatial_env._fast_tick.step
+        spatial_env.fast_tick = True
