@@ -10,8 +10,11 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export MUJOCO_GL ?= egl
 
 LEROBOT_VENV := .venv-lerobot
+# LeRobot 0.6 (SmolVLA, pi0, pi0.5 as published) needs Python >= 3.12: opt-in, not part of `make test`.
+LEROBOT06_VENV := .venv-lerobot06
+PYTHON312 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python) $(shell command -v python3.12))
 
-.PHONY: setup setup-lerobot test test-fast demo lint clean bytecode
+.PHONY: setup setup-lerobot setup-lerobot06 test test-fast demo lint clean bytecode
 
 setup: $(STAMP)/package
 
@@ -22,6 +25,14 @@ $(LEROBOT_VENV)/.stamps/wheels: requirements-lerobot.lock
 	@test -x $(LEROBOT_VENV)/bin/python || $(PYTHON) -m venv $(LEROBOT_VENV)
 	$(LEROBOT_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-lerobot.lock
 	@mkdir -p $(LEROBOT_VENV)/.stamps && touch $@
+
+# LeRobot 0.6's venv on Python 3.12 (docs/guide/lerobot.md, "LeRobot 0.6"); --policy-arg python= selects it.
+setup-lerobot06: $(LEROBOT06_VENV)/.stamps/wheels
+
+$(LEROBOT06_VENV)/.stamps/wheels: requirements-lerobot06.lock
+	@test -x $(LEROBOT06_VENV)/bin/python || $(PYTHON312) -m venv $(LEROBOT06_VENV)
+	$(LEROBOT06_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-lerobot06.lock
+	@mkdir -p $(LEROBOT06_VENV)/.stamps && touch $@
 
 $(STAMP)/wheels: requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -64,4 +75,4 @@ lint: setup
 	$(VENV)/bin/ruff format --check .
 
 clean:
-	rm -rf build $(VENV) $(LEROBOT_VENV) bags/demo
+	rm -rf build $(VENV) $(LEROBOT_VENV) $(LEROBOT06_VENV) bags/demo

@@ -1,7 +1,8 @@
 """A LeRobot checkpoint as a policy of the stack: ``--policy lerobot --policy-arg path=DIR``.
 
-LeRobot 0.4.4 cannot share this environment (it pins torch < 2.11; we pin 2.13), so the checkpoint is
-served from LeRobot's own venv (``make setup-lerobot`` makes ``.venv-lerobot``) by
+LeRobot cannot share this environment (0.4.4 pins torch < 2.11; we pin 2.13), so the checkpoint is
+served from LeRobot's own venv (``make setup-lerobot`` makes ``.venv-lerobot``, LeRobot 0.4.4 on Python 3.11;
+``make setup-lerobot06`` makes ``.venv-lerobot06``, LeRobot 0.6 on Python 3.12, chosen with ``python=``) by
 ``lq_ros/policies/lerobot_server.py``, which this class starts on 127.0.0.1 at the first inference, talks
 to over the openpi websocket protocol (:class:`OpenPIPolicy`'s client: deadlines, byte cap, safe
 decoding) and stops on ``close`` (or when this process dies: the server watches its parent). Every request
@@ -14,10 +15,11 @@ would import and call) is refused unless the user passes ``trust_processors=1``.
 
 The checkpoint directory is checked here, before anything starts, from its ``config.json`` alone (one-line
 refusals): it must be a LeRobot ``save_pretrained`` folder with its saved processor pipelines, take
-LIBERO's cameras under LeRobot's names (``observation.images.image`` = agentview,
-``observation.images.image2`` = wrist) and the 8-D state, act in 7-D, and use one observation per
-inference. The server builds the policy's input with LeRobot's own functions, as ``lerobot-eval`` does; the
-images are sent as robosuite renders them (bottom row first) at LeRobot's LIBERO render size.
+LIBERO's two cameras (under LeRobot's names ``observation.images.image`` = agentview and
+``observation.images.image2`` = wrist, or under other names mapped to them: see :func:`camera_mapping`; images
+``observation.images.empty_camera_<i>`` are padded by the policy itself) and the 8-D state, act in 7-D, and use
+one observation per inference. The server builds the policy's input with LeRobot's own functions, as
+``lerobot-eval`` does; the images are sent as robosuite renders them (bottom row first) at LeRobot's LIBERO render size.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import PolicyError
@@ -58,7 +61,19 @@ HUB_PREFIX = "hub:"
 #: A Hugging Face hub repository id (``org/name``), and how long fetching its config.json may take.
 HUB_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
 HUB_TIMEOUT_S = 120.0
-SETUP_HINT = "run `make setup-lerobot` in the checkout (or pass python=PATH to a Python with lerobot 0.4.4)"
+SETUP_HINT = "run `make setup-lerobot` in the checkout (or pass python=PATH to a Python with lerobot 0.4.4 or 0.6)"
+#: LeRobot's LIBERO env camera names -> our cameras (``observation.images.<name>`` in ``lerobot-eval``).
+ENV_CAMERAS = {"image": AGENTVIEW, "image2": WRIST}
+#: Names a ``rename`` may give a camera: LeRobot's env names and ours.
+CAMERA_NAMES = {"image": "image", "image2": "image2", AGENTVIEW: "image", WRIST: "image2"}
+IMAGE_PREFIX = "observation.images."
+#: Image keys the policy pads itself (SmolVLA's, pi0's and pi0.5's ``empty_cameras``): nothing is sent for them.
+EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
+#: Words in an image key that say which camera it is (automatic mapping, case-insensitive).
+AGENTVIEW_WORDS = ("agentview", "front", "third_person")
+WRIST_WORDS = ("wrist", "eye_in_hand", "hand")
+#: The policy types LeRobot wires its RTC processor into (flow matching): ``--merge rtc``/``rtc_hard`` work with them.
+RTC_TYPES = ("smolvla", "pi0", "pi05")
 
 
 def default_python() -> Path:
@@ -133,7 +148,7 @@ def fetch_hub_config(python: Path, repo_id: str, timeout_s: float = HUB_TIMEOUT_
     return Path(done.stdout.strip().splitlines()[-1])
 
 
-def read_checkpoint(path: Path) -> dict:
+def read_checkpoint(path: Path, rename: dict[str, str] | None = None) -> dict:
     """A local checkpoint's ``config.json``, after every check this side can make; ValueError (one line) if not fit."""
     if not path.is_dir():
         raise ValueError(
@@ -146,11 +161,75 @@ def read_checkpoint(path: Path) -> dict:
             f"lerobot path {str(path)!r} is not a LeRobot >= 0.4 save_pretrained folder: missing {', '.join(missing)} "
             "(a checkpoint without saved processors is migrated by lerobot's migrate_policy_normalization script)"
         )
-    return check_config(path / "config.json", str(path))
+    return check_config(path / "config.json", str(path), rename)
 
 
-def check_config(config_file: Path, where: str) -> dict:
-    """``config_file`` parsed, if it describes a policy for LIBERO as lerobot-eval feeds it; else ValueError."""
+def parse_rename(rename: object) -> dict[str, str]:
+    """``rename`` as ``{image key: env camera}``: a mapping, or text ``KEY:CAMERA,KEY:CAMERA``; keys with or without
+    ``observation.images.``, cameras ``image``/``agentview`` or ``image2``/``wrist``. ValueError (one line)."""
+    if isinstance(rename, str):
+        pairs = [item.partition(":") for item in rename.split(",") if item.strip()]
+        if not pairs or any(not sep for _, sep, _ in pairs):
+            raise ValueError(
+                f"rename {rename!r}: valid: KEY:CAMERA[,KEY:CAMERA] (e.g. camera1:image,camera2:image2), CAMERA one "
+                f"of {sorted(CAMERA_NAMES)}"
+            )
+        rename = {key.strip(): camera.strip() for key, _, camera in pairs}
+    if not isinstance(rename, dict) or not rename:
+        raise ValueError(f"rename {rename!r}: valid: KEY:CAMERA[,KEY:CAMERA] or a JSON object")
+    out = {}
+    for key, camera in rename.items():
+        if camera not in CAMERA_NAMES:
+            raise ValueError(f"rename {key!r}: camera {camera!r}; valid: {sorted(CAMERA_NAMES)}")
+        full = key if str(key).startswith(IMAGE_PREFIX) else IMAGE_PREFIX + str(key)
+        out[full] = CAMERA_NAMES[camera]
+    return out
+
+
+def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str) -> dict[str, str]:
+    """The checkpoint's image keys -> LeRobot's LIBERO env cameras (``image`` agentview, ``image2`` wrist).
+
+    ``rename`` (the user's) wins. Otherwise automatic where unambiguous: LeRobot's own names map to themselves; a
+    key naming its camera (``wrist``, ``eye_in_hand``, ``agentview``, ``front``) maps to it; two keys that differ
+    only in a number (``camera1``/``camera2``, as ``lerobot/smolvla_libero``) map in LIBERO's camera order,
+    agentview first, as LeRobot's own LIBERO evaluation of that checkpoint maps them. Anything else is refused,
+    asking for ``rename``. ValueError (one line).
+    """
+    if rename is not None:
+        unfed, stray = sorted(set(images) - set(rename)), sorted(set(rename) - set(images))
+        if unfed or stray:
+            raise ValueError(
+                f"lerobot path {where!r}: rename must map exactly the image inputs {images} (not mapped: {unfed}; "
+                f"not an input: {stray})"
+            )
+        return dict(rename)
+    mapping: dict[str, str] = {}
+    for key in images:
+        name = key.removeprefix(IMAGE_PREFIX).lower()
+        if name in ENV_CAMERAS:
+            mapping[key] = name
+        elif any(word in name for word in WRIST_WORDS):
+            mapping[key] = "image2"
+        elif any(word in name for word in AGENTVIEW_WORDS):
+            mapping[key] = "image"
+    rest = [key for key in images if key not in mapping]
+    stems = {re.sub(r"\d+$", "", key) for key in rest}
+    numbers = sorted((int(re.search(r"(\d+)$", key).group(1)), key) for key in rest if re.search(r"\d+$", key))
+    if len(rest) == 2 and len(numbers) == 2 and len(stems) == 1 and not mapping:
+        mapping.update({numbers[0][1]: "image", numbers[1][1]: "image2"})
+        rest = []
+    if rest or len(set(mapping.values())) != len(mapping):
+        raise ValueError(
+            f"lerobot path {where!r}: cannot tell which LIBERO camera feeds the image inputs {images}; name them "
+            "with --policy-arg rename=KEY:CAMERA,... (CAMERA: image = agentview, image2 = wrist), e.g. "
+            f"rename={','.join(f'{key.removeprefix(IMAGE_PREFIX)}:image' for key in images[:1])}"
+        )
+    return mapping
+
+
+def check_config(config_file: Path, where: str, rename: dict[str, str] | None = None) -> dict:
+    """``config_file`` parsed, if it describes a policy for LIBERO as lerobot-eval feeds it; else ValueError.
+    Its image keys -> env cameras are added as ``config["lq_cameras"]`` (see :func:`camera_mapping`)."""
     try:
         config = json.loads(config_file.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -160,14 +239,14 @@ def check_config(config_file: Path, where: str) -> dict:
     inputs, outputs = config.get("input_features"), config.get("output_features")
     if not isinstance(inputs, dict) or not isinstance(outputs, dict):
         raise ValueError(f"lerobot path {where!r}: config.json has no input_features/output_features")
-    images = [key for key in inputs if key.startswith("observation.images.")]
-    unknown = sorted(set(images) - set(LEROBOT_CAMERAS))
-    others = sorted(set(inputs) - set(images) - {LEROBOT_STATE_KEY})
-    if unknown or others or not images:
+    images = [key for key in inputs if key.startswith(IMAGE_PREFIX) and not key.startswith(EMPTY_CAMERA_PREFIX)]
+    others = sorted(set(inputs) - {key for key in inputs if key.startswith(IMAGE_PREFIX)} - {LEROBOT_STATE_KEY})
+    if others or not images or len(images) > len(ENV_CAMERAS):
         raise ValueError(
             f"lerobot path {where!r}: inputs {sorted(inputs)} are not LIBERO's as lerobot-eval gives them; "
-            f"valid: one or both of {sorted(LEROBOT_CAMERAS)} and optionally {LEROBOT_STATE_KEY!r}"
+            f"valid: one or two camera images (see rename), empty cameras, and optionally {LEROBOT_STATE_KEY!r}"
         )
+    config["lq_cameras"] = camera_mapping(images, rename, where)
     state_shape = (inputs.get(LEROBOT_STATE_KEY) or {}).get("shape", [LEROBOT_STATE_DIM])
     action_shape = (outputs.get("action") or {}).get("shape")
     if list(state_shape) != [LEROBOT_STATE_DIM] or action_shape is None or list(action_shape) != [ACTION_DIM]:
@@ -190,11 +269,18 @@ class LeRobotPolicy(OpenPIPolicy):
     Parameters: ``path`` (checkpoint folder, or ``hub:org/name``), ``python`` (LeRobot's venv Python),
     ``device`` (torch device of the server), ``threads`` (torch intra-op threads in the server; 0: torch's
     default), ``timeout_s`` (one inference), ``startup_timeout_s`` (loading the policy), ``prompt`` (instead of
-    the task's language), ``trust_processors`` (load processor steps given by class path: runs their code).
+    the task's language), ``trust_processors`` (load processor steps given by class path: runs their code),
+    ``rename`` (image key -> LIBERO camera, see :func:`parse_rename`; default: automatic), ``n_action_steps``
+    (actions per chunk instead of the checkpoint's), ``full_chunk`` (answer with the whole chunk of
+    ``predict_action_chunk``), ``clip`` (default true: actions clipped to [-1, 1] as robosuite's controller clips
+    what ``lerobot-eval`` passes to the env; false: an action outside is refused by the executor as out of range).
     """
 
     name = "lerobot"
     render_size = LEROBOT_LIBERO_RENDER_SIZE
+    #: SmolVLA, pi0 and pi0.5 take the executing prefix (LeRobot's RTC); :meth:`check_merge` refuses the others once
+    #: the checkpoint is known (a class-level check cannot see it).
+    supports_prefix = True
     #: ``python`` is a program to run and the checkpoint's processor files name classes LeRobot imports.
     args_run_code = True
 
@@ -208,9 +294,18 @@ class LeRobotPolicy(OpenPIPolicy):
         startup_timeout_s: float = 300.0,
         prompt: str | None = None,
         trust_processors: bool = False,
+        rename: object = None,
+        n_action_steps: int | None = None,
+        full_chunk: bool = False,
+        clip: bool = True,
     ) -> None:
-        super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt)
+        super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt, clip=clip)
         self.trust_processors = flag("trust_processors", trust_processors)
+        self.full_chunk = flag("full_chunk", full_chunk)
+        self.n_action_steps = (
+            None if n_action_steps is None else int(positive_number("n_action_steps", n_action_steps, integer=True))
+        )
+        self.rename = None if rename is None else parse_rename(rename)
         self.python = Path(python) if python else default_python()
         if not self.python.is_file():
             raise ValueError(f"lerobot: no Python at {self.python} for LeRobot's environment; {SETUP_HINT}")
@@ -218,16 +313,25 @@ class LeRobotPolicy(OpenPIPolicy):
         if repo is not None:  # LeRobot's venv fetches it (config now, the rest when the server loads it)
             self.path = str(path)
             config_file = fetch_hub_config(self.python, repo)
-            self.config = check_config(config_file, str(path))
+            self.config = check_config(config_file, str(path), self.rename)
         else:
             folder = Path(str(path)).expanduser()
-            self.config = read_checkpoint(folder)
+            self.config = read_checkpoint(folder, self.rename)
             if not self.trust_processors:
                 check_processor_steps(folder, str(path))
             self.path = str(folder.resolve())  # the server may run elsewhere: never a relative path
             config_file = folder / "config.json"
-        self.image_keys = [key for key in self.config["input_features"] if key in LEROBOT_CAMERAS]
-        self.camera_names = tuple(LEROBOT_CAMERAS[key] for key in self.image_keys)
+        #: The checkpoint's image key -> LeRobot's env camera that feeds it (``image``, ``image2``).
+        self.cameras: dict[str, str] = self.config.pop("lq_cameras")
+        self.env_cameras = sorted(set(self.cameras.values()))
+        self.camera_names = tuple(ENV_CAMERAS[camera] for camera in self.env_cameras)
+        chunk_size = self.config.get("chunk_size", self.config.get("horizon"))
+        if self.n_action_steps is not None and isinstance(chunk_size, int) and self.n_action_steps > chunk_size:
+            raise ValueError(
+                f"n_action_steps {self.n_action_steps}: valid: 1 to the checkpoint's chunk size, {chunk_size}"
+            )
+        # The instance's own merge check (a LeRobot checkpoint takes a prefix only if LeRobot wires RTC into it).
+        self.check_merge = self._check_merge_for_checkpoint
         self.device = str(device)
         try:
             self.threads = int(threads)
@@ -242,8 +346,25 @@ class LeRobotPolicy(OpenPIPolicy):
         self._token = ""
         self._episode_start = False
         self._seed = 0
+        self._prefix: ActionPrefix | None = None
 
     # -- Policy interface -------------------------------------------------------------------
+    def _check_merge_for_checkpoint(self, merge: str) -> None:
+        """Real-time chunking merges only for the policy types LeRobot wires its RTC processor into."""
+        if Merge(merge) in PREFIX_STRATEGIES and self.config["type"] not in RTC_TYPES:
+            raise ValueError(
+                f"merge {merge!r} (real-time chunking): LeRobot's RTC is wired into {', '.join(RTC_TYPES)}; this "
+                f"checkpoint is {self.config['type']!r}. Use another merge strategy"
+            )
+
+    def infer(self, obs: Observation, prefix: ActionPrefix | None = None) -> np.ndarray:
+        """A chunk from the server; with ``prefix`` (merge rtc/rtc_hard) LeRobot's RTC guides it towards it."""
+        self._prefix = prefix
+        try:
+            return super().infer(obs)
+        finally:
+            self._prefix = None
+
     def reset(self, task: TaskInfo, seed: int) -> None:
         super().reset(task, seed)
         self._episode_start = True
@@ -252,10 +373,8 @@ class LeRobotPolicy(OpenPIPolicy):
     def observation_payload(self, obs: Observation) -> dict:
         """Cameras as robosuite renders them (our images are upright: undo the row flip), state unprocessed."""
         request: dict = {
-            f"observation/images/{key.removeprefix('observation.images.')}": np.ascontiguousarray(
-                camera_image(obs, LEROBOT_CAMERAS[key])[::-1]
-            )
-            for key in self.image_keys
+            f"observation/images/{camera}": np.ascontiguousarray(camera_image(obs, ENV_CAMERAS[camera])[::-1])
+            for camera in self.env_cameras
         }
         request.update(
             {
@@ -270,6 +389,10 @@ class LeRobotPolicy(OpenPIPolicy):
             }
         )
         self._episode_start = False
+        if self._prefix is not None:
+            request["prefix/actions"] = np.asarray(self._prefix.actions, dtype=np.float64)
+            request["prefix/delay"] = int(self._prefix.delay)
+            request["prefix/schedule"] = str(self._prefix.schedule)
         return request
 
     def params(self) -> dict:
@@ -277,7 +400,11 @@ class LeRobotPolicy(OpenPIPolicy):
             "path": str(self.path),
             "policy_type": self.config["type"],
             "config_sha256": self.config_sha256,
-            "n_action_steps": self.config.get("n_action_steps"),
+            "n_action_steps": self.n_action_steps or self.config.get("n_action_steps"),
+            "n_action_steps_override": self.n_action_steps,
+            "full_chunk": self.full_chunk,
+            "clip": self.clip,
+            "cameras": self.cameras,
             "chunk_size": self.config.get("chunk_size", self.config.get("horizon")),
             "device": self.device,
             "threads": self.threads,
@@ -312,6 +439,9 @@ class LeRobotPolicy(OpenPIPolicy):
         command = [str(self.python), str(SERVER_SCRIPT), "--path", str(self.path), "--device", self.device]
         command += ["--threads", str(self.threads), "--port", "0", "--parent-pid", str(os.getpid())]
         command += ["--trust-processors"] if self.trust_processors else []
+        command += ["--cameras", json.dumps(self.cameras)]
+        command += ["--n-action-steps", str(self.n_action_steps)] if self.n_action_steps is not None else []
+        command += ["--full-chunk"] if self.full_chunk else []
         try:
             self._server = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log,

@@ -1,10 +1,11 @@
 """Serve a LeRobot checkpoint to the stack over the openpi websocket protocol (runs in LeRobot's own venv).
 
-LeRobot 0.4.4 pins torch < 2.11 and this project pins torch 2.13, so LeRobot lives in a separate
-environment (``make setup-lerobot`` makes ``.venv-lerobot``) and this file runs there, started and stopped
-by :class:`lq_ros.policies.lerobot_client.LeRobotPolicy` on 127.0.0.1 only. It imports nothing from
-``lq_ros`` (the package is not installed in that venv): stdlib, numpy, torch, lerobot, websockets and
-openpi-client's msgpack-numpy.
+LeRobot pins its own torch (0.4.4: < 2.11; this project pins 2.13), so LeRobot lives in a separate
+environment (``make setup-lerobot``: LeRobot 0.4.4 on Python 3.11, ``.venv-lerobot``; ``make setup-lerobot06``:
+LeRobot 0.6 on Python 3.12, ``.venv-lerobot06``) and this file runs there, started and stopped by
+:class:`lq_ros.policies.lerobot_client.LeRobotPolicy` on 127.0.0.1 only. The same file serves both LeRobot
+versions. It imports nothing from ``lq_ros`` (the package is not installed in that venv): stdlib, numpy, torch,
+lerobot, websockets and msgpack.
 
 What the policy sees is built by LeRobot's own code, step by step as ``lerobot-eval`` builds it
 (``lerobot/scripts/lerobot_eval.py: rollout``): the raw observation dict of ``lerobot.envs.libero.LiberoEnv``
@@ -13,17 +14,29 @@ the task string, the LIBERO env processor (``make_env_pre_post_processors``: 180
 8-D state with LeRobot's float32 axis-angle), the checkpoint's saved pre-processor, the policy, its saved
 post-processor and the env post-processor, action by action.
 
-One chunk per request: the request clears the policy's action queue and calls ``select_action`` once, as
-``lerobot-eval`` does on the tick its queue runs dry, then takes the rest of the refilled queue, so the
-chunk is exactly the ``n_action_steps`` actions ``lerobot-eval`` would execute from that observation. A
-policy that keeps no action queue (ACT with temporal ensembling) answers with a chunk of one.
+One chunk per request. By default the request clears the policy's action queue and calls ``select_action``
+once, as ``lerobot-eval`` does on the tick its queue runs dry, then takes the rest of the refilled queue, so
+the chunk is exactly the ``n_action_steps`` actions ``lerobot-eval`` would execute from that observation
+(``--n-action-steps`` overrides the checkpoint's). With ``--full-chunk``, and always for a policy that keeps no
+action queue (ACT with temporal ensembling: the stack's executor merges the chunks instead), the answer is the
+whole chunk of ``predict_action_chunk``. A request that carries a prefix (``--merge rtc``/``rtc_hard``) is
+answered by ``predict_action_chunk`` with LeRobot's own RTC processor guiding the chunk towards that prefix
+(SmolVLA, pi0, pi0.5: the flow-matching policies LeRobot wires RTC into).
+
+Cameras: the checkpoint's image keys are fed from LIBERO's two cameras through a mapping (``--cameras``, JSON
+``{"observation.images.camera1": "image", ...}``, made by the client from the checkpoint's config or the user's
+``rename``), applied where ``lerobot-eval --env.camera_name_mapping`` applies it: to the env's pixel keys.
+Image keys ``observation.images.empty_camera_<i>`` (SmolVLA's and pi0's ``empty_cameras``) are not sent: the
+policy pads them itself, as under ``lerobot-eval``.
 
 Protocol (openpi ``websocket_policy_server``): a metadata frame, then one msgpack-numpy request, one reply.
 Request keys: ``token`` (this run's secret, see below), ``observation/images/<lerobot image key>`` (uint8
 H x W x 3 as robosuite renders it, bottom row first), ``observation/eef_pos``, ``observation/eef_quat``
 (x y z w), ``observation/gripper_qpos``, ``observation/joint_pos``, ``observation/joint_vel`` (float),
 ``prompt``, ``reset`` (true on an episode's first request: the policy and processors are reset) and ``seed``
-(with ``reset``). Reply: ``actions`` (n, 7) float32 and ``policy_timing.infer_ms``. A failure is sent as one
+(with ``reset``); optionally ``prefix/actions`` (L x 7, the executor's plan in the env's action space),
+``prefix/delay`` (d, ticks) and ``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``). Reply:
+``actions`` (n, 7) float32 and ``policy_timing.infer_ms``. A failure is sent as one
 text line (the exception's type and message, no traceback), then the socket closes.
 
 Any local process can reach a loopback port, so the server trusts no peer:
@@ -45,7 +58,8 @@ files name the steps LeRobot builds; a step is taken only from LeRobot's registr
 and its ``state_file`` only from the checkpoint folder, unless ``--trust-processors`` (the user's explicit
 ``trust_processors=1``).
 
-Usage: ``python lerobot_server.py --path DIR|hub:ORG/NAME [--device cpu] [--threads N] [--port 0]``; prints one
+Usage: ``python lerobot_server.py --path DIR|hub:ORG/NAME [--device cpu] [--threads N] [--port 0] [--cameras JSON]
+[--n-action-steps N] [--full-chunk]``; prints one
 JSON line ``{"ready": true, "port": ..., "token": ...}`` on stdout once the policy is loaded, or one ``error:``
 line on stderr and exits 2.
 """
@@ -85,6 +99,16 @@ MAX_PROMPT_CHARS = 4096
 STATE_FIELDS = {"eef_pos": 3, "eef_quat": 4, "gripper_qpos": 2, "joint_pos": None, "joint_vel": None}
 #: Longest error line sent to the client, characters.
 MAX_ERROR_CHARS = 300
+#: The camera names LeRobot's LIBERO env gives its pixel keys (``observation.images.<name>``).
+ENV_CAMERAS = ("image", "image2")
+#: Image keys a policy pads itself (SmolVLA's, pi0's and pi0.5's ``empty_cameras``): never sent.
+EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
+#: Longest prefix accepted, rows; the prefix schedules of lq_ros.core.merge.ActionPrefix and LeRobot's names for
+#: them (``hard``: only the d executing rows guide, LeRobot's ZEROS schedule with start = d).
+MAX_PREFIX_ROWS = 1024
+PREFIX_SCHEDULES = {"exp": "EXP", "linear": "LINEAR", "hard": "ZEROS", "ones": "ONES"}
+#: Config fields a config.json may carry beyond its class's (``type`` names the class).
+CONFIG_EXTRA_FIELDS = {"type"}
 #: How a checkpoint on the Hugging Face hub is named (anything else is a local folder).
 HUB_PREFIX = "hub:"
 #: The processor pipelines a LeRobot >= 0.4 checkpoint saves (lerobot.utils.constants), and the largest read.
@@ -209,7 +233,34 @@ def checked_request(request: object, image_keys: list[str]) -> dict:
     ):
         raise RequestError(f"seed: valid: a whole number 0 to 2**32-1; got {_what(seed)}")
     out.update(prompt=prompt, reset=bool(reset), seed=None if seed is None else int(seed))
+    out["prefix"] = checked_prefix(request)
     return out
+
+
+def checked_prefix(request: dict) -> dict | None:
+    """The request's RTC prefix (``prefix/actions``, ``prefix/delay``, ``prefix/schedule``), checked; None if absent."""
+    import numpy as np
+
+    actions = request.get("prefix/actions")
+    if actions is None:
+        return None
+    if (
+        not isinstance(actions, np.ndarray) or actions.dtype.kind not in "fiu" or actions.ndim != 2
+        or actions.shape[1] != 7 or actions.shape[0] > MAX_PREFIX_ROWS
+    ):  # fmt: skip
+        raise RequestError(
+            f"prefix/actions: valid: a numeric L x 7 array, L <= {MAX_PREFIX_ROWS}; got {_what(actions)}"
+        )
+    actions = np.array(actions, dtype=np.float64)
+    if not np.all(np.isfinite(actions)):
+        raise RequestError("prefix/actions: valid: finite values")
+    delay = request.get("prefix/delay")
+    if not isinstance(delay, int | np.integer) or isinstance(delay, bool) or not 0 <= int(delay) <= MAX_PREFIX_ROWS:
+        raise RequestError(f"prefix/delay: valid: a whole number 0-{MAX_PREFIX_ROWS}; got {_what(delay)}")
+    schedule = request.get("prefix/schedule", "exp")
+    if schedule not in PREFIX_SCHEDULES:
+        raise RequestError(f"prefix/schedule: valid: {', '.join(PREFIX_SCHEDULES)}; got {_what(schedule)}")
+    return {"actions": actions, "delay": int(delay), "schedule": schedule}
 
 
 def _what(value: object) -> str:
@@ -227,11 +278,54 @@ def error_line(exc: BaseException) -> str:
     return line if len(line) <= MAX_ERROR_CHARS else line[: MAX_ERROR_CHARS - 3] + "..."
 
 
+def check_config_fields(config_file: Path) -> str:
+    """The policy type of ``config_file``, after refusing (ValueError, one line) fields this LeRobot's config class
+    does not know: a config written by a newer LeRobot (0.6 writes ``pretrained_revision``; pi0/pi0.5 of 0.5.1 on
+    ``use_relative_actions``), which draccus would refuse with a long message."""
+    import dataclasses
+
+    import lerobot
+    import lerobot.policies  # noqa: F401 - registers the policy config classes
+    from lerobot.configs.policies import PreTrainedConfig
+
+    try:
+        config = json.loads(config_file.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise ValueError(f"config.json is not JSON ({type(exc).__name__})") from None
+    kind = config.get("type") if isinstance(config, dict) else None
+    try:
+        config_class = PreTrainedConfig.get_choice_class(str(kind))
+    except KeyError:
+        raise ValueError(
+            f"config.json names policy type {str(kind)[:60]!r}, unknown to LeRobot {lerobot.__version__}"
+        ) from None
+    unknown = sorted(set(config) - {f.name for f in dataclasses.fields(config_class)} - CONFIG_EXTRA_FIELDS)
+    if unknown:
+        raise ValueError(
+            f"config.json has fields LeRobot {lerobot.__version__} does not know ({', '.join(unknown)[:200]}): it was "
+            "written by a newer LeRobot; serve it from LeRobot 0.6's environment (make setup-lerobot06, then "
+            "--policy-arg python=.venv-lerobot06/bin/python)"
+        )
+    return str(kind)
+
+
 class LeRobotServer:
-    """A loaded LeRobot policy with its processors, answering observation dicts with action chunks."""
+    """A loaded LeRobot policy with its processors, answering observation dicts with action chunks.
+
+    ``cameras``: the policy's image key -> the LIBERO env camera (``image`` agentview, ``image2`` wrist) that feeds
+    it (default: the keys ``observation.images.image``/``image2`` themselves); ``n_action_steps`` overrides the
+    checkpoint's; ``full_chunk`` answers with ``predict_action_chunk``'s whole chunk.
+    """
 
     def __init__(
-        self, path: str, device: str = "cpu", suite: str = "libero_spatial", trust_processors: bool = False
+        self,
+        path: str,
+        device: str = "cpu",
+        suite: str = "libero_spatial",
+        trust_processors: bool = False,
+        cameras: dict[str, str] | None = None,
+        n_action_steps: int | None = None,
+        full_chunk: bool = False,
     ) -> None:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
@@ -243,6 +337,11 @@ class LeRobotServer:
         path, local = checkpoint_source(path)
         if local:  # nothing fetched for a local checkpoint (LeRobot would try the hub for a missing state file)
             os.environ["HF_HUB_OFFLINE"] = "1"
+            check_config_fields(Path(path) / "config.json")
+        else:
+            from huggingface_hub import hf_hub_download
+
+            check_config_fields(Path(hf_hub_download(path, "config.json")))
         config = PreTrainedConfig.from_pretrained(path)
         config.device = device
         n_obs_steps = int(getattr(config, "n_obs_steps", 1) or 1)
@@ -251,8 +350,21 @@ class LeRobotServer:
                 f"n_obs_steps is {n_obs_steps}: the stack sends one observation per request, so a policy that stacks "
                 "an observation history is not supported (n_obs_steps must be 1)"
             )
+        self.chunk_size = int(getattr(config, "chunk_size", None) or getattr(config, "horizon", None) or 1)
+        if n_action_steps is not None:
+            if not 1 <= n_action_steps <= self.chunk_size:
+                raise ValueError(f"n_action_steps {n_action_steps}: valid: 1 to the chunk size, {self.chunk_size}")
+            config.n_action_steps = int(n_action_steps)
+        self.cameras = self._camera_map(config, cameras)
+        self.config = config
         self.policy = get_policy_class(config.type).from_pretrained(path, config=config)
         self.policy.eval()
+        self.full_chunk = bool(full_chunk) or self._action_queue() is None
+        if self.full_chunk and config.type in ("diffusion", "vqbet"):
+            raise ValueError(
+                f"full_chunk: a {config.type} policy's chunk is its n_action_steps from the current step; "
+                "set n_action_steps instead"
+            )
         # The policy type's own processor steps register when its processor module is imported: import it (LeRobot's
         # code) before checking that every saved step is a registered one.
         with contextlib.suppress(ImportError):
@@ -269,8 +381,25 @@ class LeRobotServer:
         self.env_preprocessor, self.env_postprocessor = make_env_pre_post_processors(
             env_cfg=LiberoEnvConfig(task=suite), policy_cfg=config
         )
-        self.config = config
-        self.image_keys = [key for key in config.input_features if key.startswith("observation.images.")]
+        #: The request's image keys, in LeRobot's env names (``observation.images.image``/``image2``).
+        self.image_keys = sorted({f"observation.images.{camera}" for camera in self.cameras.values()})
+
+    @staticmethod
+    def _camera_map(config, cameras: dict[str, str] | None) -> dict[str, str]:
+        """The policy's image key -> env camera, every non-empty image key fed (ValueError, one line)."""
+        images = [key for key in config.input_features if key.startswith("observation.images.")]
+        wanted = [key for key in images if not key.startswith(EMPTY_CAMERA_PREFIX)]
+        if cameras is None:
+            cameras = {key: key.removeprefix("observation.images.") for key in wanted}
+        unfed = sorted(set(wanted) - set(cameras))
+        stray = sorted(set(cameras) - set(wanted))
+        bad = sorted(key for key, camera in cameras.items() if camera not in ENV_CAMERAS)
+        if unfed or stray or bad:
+            raise ValueError(
+                f"cameras {cameras}: every image input {wanted} needs one of LIBERO's cameras {list(ENV_CAMERAS)} "
+                f"(not fed: {unfed}; not an input: {stray}; not a camera: {bad})"
+            )
+        return dict(cameras)
 
     # -- metadata ---------------------------------------------------------------------------
     def metadata(self) -> dict:
@@ -282,23 +411,26 @@ class LeRobotServer:
             "torch_version": self.torch.__version__,
             "policy_type": self.config.type,
             "n_action_steps": int(getattr(self.config, "n_action_steps", 1) or 1),
-            "chunk_size": int(getattr(self.config, "chunk_size", getattr(self.config, "horizon", 1)) or 1),
+            "chunk_size": self.chunk_size,
             "image_keys": self.image_keys,
+            "cameras": self.cameras,
+            "full_chunk": self.full_chunk,
             "action_queue": self._action_queue() is not None,
+            "rtc": self.supports_rtc(),
         }
 
     # -- one request --------------------------------------------------------------------------
     def raw_observation(self, request: dict) -> dict:
-        """The dict ``lerobot.envs.libero.LiberoEnv`` returns (``obs_type=pixels_agent_pos``), batch of one."""
+        """The dict ``lerobot.envs.libero.LiberoEnv`` returns (``obs_type=pixels_agent_pos``), batch of one, its
+        pixel keys renamed as ``--env.camera_name_mapping`` renames them."""
         import numpy as np
 
         def batched(name: str) -> np.ndarray:
             return np.asarray(request[f"observation/{name}"])[None]
 
         pixels = {}
-        for key in self.image_keys:
-            short = key.removeprefix("observation.images.")
-            pixels[short] = np.asarray(request[f"observation/images/{short}"])[None]
+        for key, camera in self.cameras.items():
+            pixels[key.removeprefix("observation.images.")] = np.asarray(request[f"observation/images/{camera}"])[None]
         return {
             "pixels": pixels,
             "robot_state": {
@@ -313,29 +445,81 @@ class LeRobotServer:
         from lerobot.envs.utils import preprocess_observation
 
         observation = preprocess_observation(self.raw_observation(request))
-        observation["task"] = [str(request.get("prompt", ""))]  # lerobot.envs.utils.add_envs_task
+        observation["task"] = [str(request.get("prompt", ""))]  # lerobot-eval: the env's task_description
         observation = self.env_preprocessor(observation)
         return self.preprocessor(observation)
 
-    def chunk(self, batch: dict):
-        """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick."""
+    def postprocessed(self, actions):
+        """(n, 7) float32: each (1, A) action through the saved post-processor and the env post-processor."""
         import numpy as np
         from lerobot.utils.constants import ACTION
 
+        out = []
+        for action in actions:
+            action = self.postprocessor(action)
+            action = self.env_postprocessor({ACTION: action})[ACTION]
+            out.append(action.to("cpu").numpy()[0])
+        return np.stack(out).astype(np.float32)
+
+    def chunk(self, batch: dict, prefix: dict | None = None):
+        """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick."""
+        if prefix is not None:
+            return self.rtc_chunk(batch, prefix)
         queue = self._action_queue()
         with self.torch.inference_mode():
-            if queue is not None:
-                queue.clear()
+            if self.full_chunk:
+                chunk = self.policy.predict_action_chunk(batch)  # (1, H, A)
+                return self.postprocessed(chunk.transpose(0, 1))
+            queue.clear()
             actions = [self.policy.select_action(batch)]
-            if queue is not None:
-                actions += list(queue)
-                queue.clear()
-            out = []
-            for action in actions:
-                action = self.postprocessor(action)
-                action = self.env_postprocessor({ACTION: action})[ACTION]
-                out.append(action.to("cpu").numpy()[0])
-        return np.stack(out).astype(np.float32)
+            actions += list(queue)
+            queue.clear()
+            return self.postprocessed(actions)
+
+    # -- real-time chunking ----------------------------------------------------------------------
+    def supports_rtc(self) -> bool:
+        """LeRobot wires its RTC processor into this policy (SmolVLA, pi0, pi0.5) and the env adds no action step."""
+        supports = getattr(self.policy, "supports_rtc", None)
+        relative = bool(getattr(self.config, "use_relative_actions", False))
+        return callable(supports) and bool(supports()) and not relative and not self.env_postprocessor.steps
+
+    def rtc_chunk(self, batch: dict, prefix: dict):
+        """The whole chunk, guided by LeRobot's RTC processor towards ``prefix`` (rows d.. of the executor's plan
+        weighted by its schedule). The prefix arrives in the env's action space and is normalized with the
+        checkpoint's own action statistics (the inverse of the post-processor's unnormalization) first."""
+        if not self.supports_rtc():
+            raise ValueError(
+                f"merge rtc: LeRobot's RTC is wired into SmolVLA, pi0 and pi0.5 (absolute actions); this checkpoint is "
+                f"{self.config.type}; use another merge strategy"
+            )
+        from lerobot.configs.types import RTCAttentionSchedule
+        from lerobot.policies.rtc.configuration_rtc import RTCConfig
+
+        torch = self.torch
+        rows = prefix["actions"]
+        if self.policy.rtc_processor is None:
+            self.config.rtc_config = RTCConfig(enabled=True, execution_horizon=self.chunk_size)
+            self.policy.init_rtc_processor()
+        rtc_config = self.policy.rtc_processor.rtc_config
+        rtc_config.prefix_attention_schedule = RTCAttentionSchedule[PREFIX_SCHEDULES[prefix["schedule"]]]
+        rtc_config.execution_horizon = max(len(rows), 1)
+        left_over = None
+        if len(rows):
+            actions = torch.as_tensor(rows, dtype=torch.float32)[None].to(self.config.device)
+            left_over = self._action_normalizer()._normalize_action(actions, inverse=False)
+        # No inference_mode: RTC's guidance differentiates through the denoiser (it enables grad itself).
+        with torch.no_grad():
+            chunk = self.policy.predict_action_chunk(
+                batch, inference_delay=prefix["delay"], prev_chunk_left_over=left_over
+            )
+        return self.postprocessed(chunk.transpose(0, 1))
+
+    def _action_normalizer(self):
+        """The post-processor's unnormalizer step (its statistics turn the model's actions into the env's)."""
+        for step in self.postprocessor.steps:
+            if hasattr(step, "_normalize_action"):
+                return step
+        raise ValueError("the checkpoint's post-processor has no unnormalizer step: the prefix cannot be normalized")
 
     def reset(self, seed: int | None) -> None:
         """A new episode: the policy's queues and the processors reset; torch, numpy and random seeded as
@@ -353,7 +537,7 @@ class LeRobotServer:
         if request.get("reset"):
             self.reset(request.get("seed"))
         started = time.perf_counter()
-        actions = self.chunk(self.policy_batch(request))
+        actions = self.chunk(self.policy_batch(request), request.get("prefix"))
         return {"actions": actions, "policy_timing": {"infer_ms": (time.perf_counter() - started) * 1000.0}}
 
     def _action_queue(self):
@@ -371,19 +555,32 @@ class LeRobotServer:
         return None
 
 
+def pack_numpy(obj: object) -> object:
+    """msgpack ``default`` for openpi's msgpack-numpy encoding (what the client's safe hook decodes)."""
+    import numpy as np
+
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind not in "biuf":
+            raise TypeError(f"cannot send an array of dtype {obj.dtype}")
+        return {b"__ndarray__": True, b"data": obj.tobytes(), b"dtype": obj.dtype.str, b"shape": obj.shape}
+    if isinstance(obj, np.generic):
+        return {b"__npgeneric__": True, b"data": obj.item(), b"dtype": obj.dtype.str}
+    raise TypeError(f"cannot send {type(obj).__name__}")
+
+
 def serve(server, host: str, port: int, ready_out, token: str | None = None) -> None:
     """Answer one authenticated connection at a time until the process is stopped (see the module docstring).
 
     ``server`` has ``image_keys``, ``metadata()`` and ``answer(request)``; ``token`` (default: a fresh random
     one) is printed in the ready line on ``ready_out``.
     """
-    from openpi_client import msgpack_numpy
+    import msgpack
     from websockets.exceptions import ConnectionClosed
     from websockets.sync.server import serve as websocket_serve
 
     wire = load_wire()
     token = token or secrets.token_urlsafe(32)
-    packer = msgpack_numpy.Packer()  # packs our own replies; requests are never unpacked by openpi-client
+    packer = msgpack.Packer(default=pack_numpy)  # our replies; requests are decoded by the project's safe hook
     metadata = server.metadata()
     serving = threading.Lock()
     pending = threading.BoundedSemaphore(MAX_PENDING)
@@ -479,6 +676,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--trust-processors", action="store_true", help="load processor steps by class path (runs their code)"
     )
+    parser.add_argument("--cameras", default=None, help='JSON: image key -> env camera ("image" or "image2")')
+    parser.add_argument("--n-action-steps", type=int, default=None, help="actions per chunk (default: the config's)")
+    parser.add_argument("--full-chunk", action="store_true", help="answer with predict_action_chunk's whole chunk")
     args = parser.parse_args(argv)
     # stdout carries the ready line alone: anything LeRobot prints ("Loading weights ...") goes to stderr.
     ready_out, sys.stdout = sys.stdout, sys.stderr
@@ -492,7 +692,15 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.threads > 0:
             torch.set_num_threads(args.threads)
-        server = LeRobotServer(args.path, device=args.device, suite=args.suite, trust_processors=args.trust_processors)
+        cameras = json.loads(args.cameras) if args.cameras else None
+        if cameras is not None and not (
+            isinstance(cameras, dict) and all(isinstance(k, str) and isinstance(v, str) for k, v in cameras.items())
+        ):
+            raise ValueError(f"--cameras {args.cameras[:100]!r}: valid: a JSON object of image key -> camera name")
+        server = LeRobotServer(
+            args.path, device=args.device, suite=args.suite, trust_processors=args.trust_processors, cameras=cameras,
+            n_action_steps=args.n_action_steps, full_chunk=args.full_chunk,
+        )  # fmt: skip
     except Exception as exc:  # noqa: BLE001 - one line for the client to show
         print(f"error: cannot load a LeRobot policy from {args.path}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2

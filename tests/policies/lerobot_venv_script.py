@@ -2,6 +2,9 @@
 
 Subcommands (each writes an .npz or folders and prints one JSON line):
   make OUT                          tiny ACT and diffusion checkpoints made with LeRobot's own classes
+  make-flow OUT                     a tiny random-weight SmolVLA (LeRobot >= 0.5) as lerobot/smolvla_libero is laid
+                                    out (cameras camera1/camera2, one empty camera), its backbone config and a toy
+                                    tokenizer made here: no hub
   lerobot-obs CKPT SUITE TASK OUT   LeRobot's LiberoEnv reset (init state 0) -> what the policy is handed
   server-obs CKPT PAYLOAD OUT       our server's conversion of a request payload -> what the policy is handed
   eval-loop CKPT SUITE TASK STEPS SEED OUT
@@ -115,6 +118,84 @@ def make(out: Path) -> dict:
     return made
 
 
+#: Words of the toy tokenizer: enough for the test prompts (anything else is <unk>).
+TOY_WORDS = "pick up the black bowl and place it on plate between cabinet stove put push open close turn"
+#: The special tokens SmolVLM's processor and LeRobot's SmolVLA look up by name.
+SMOLVLM_SPECIAL = {
+    "fake_image_token": "<fake_token_around_image>",
+    "global_image_token": "<global-img>",
+    "image_token": "<image>",
+    "end_of_utterance_token": "<end_of_utterance>",
+}
+FLOW_IMAGE_SIDE = 64
+
+
+def tiny_smolvlm(folder: Path) -> Path:
+    """A SmolVLM backbone folder LeRobot's SmolVLA builds from (``vlm_model_name``, ``load_vlm_weights=False``):
+    a two-layer config and a word-level toy tokenizer, with the processor SmolVLA reads its image tokens from."""
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast, SmolVLMConfig, SmolVLMImageProcessor, SmolVLMProcessor
+    from transformers.models.smolvlm.video_processing_smolvlm import SmolVLMVideoProcessor
+
+    tokens = ["<pad>", "<unk>", "<|im_start|>", *SMOLVLM_SPECIAL.values(), "<video>", *TOY_WORDS.split()]
+    tokens += [f"<row_{r}_col_{c}>" for r in range(1, 7) for c in range(1, 7)]
+    vocab = {token: i for i, token in enumerate(dict.fromkeys(tokens))}
+    word_level = Tokenizer(models.WordLevel(vocab=vocab, unk_token="<unk>"))
+    word_level.pre_tokenizer = pre_tokenizers.Whitespace()
+    tokenizer = PreTrainedTokenizerFast(
+        tokenizer_object=word_level, pad_token="<pad>", unk_token="<unk>", bos_token="<|im_start|>",
+        eos_token="<end_of_utterance>", extra_special_tokens=SMOLVLM_SPECIAL,
+    )  # fmt: skip
+    text = {"model_type": "llama", "vocab_size": len(vocab), "hidden_size": 64, "intermediate_size": 128,
+            "num_hidden_layers": 2, "num_attention_heads": 4, "num_key_value_heads": 2, "head_dim": 16,
+            "max_position_embeddings": 512, "pad_token_id": 0}  # fmt: skip
+    vision = {"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 1, "num_attention_heads": 2,
+              "image_size": FLOW_IMAGE_SIDE, "patch_size": 16}  # fmt: skip
+    config = SmolVLMConfig(
+        text_config=text, vision_config=vision, scale_factor=2, image_token_id=vocab["<image>"], vocab_size=len(vocab)
+    )
+    config.save_pretrained(folder)
+    edge = {"longest_edge": FLOW_IMAGE_SIDE}
+    SmolVLMProcessor(
+        image_processor=SmolVLMImageProcessor(size=edge, max_image_size=edge),
+        tokenizer=tokenizer,
+        video_processor=SmolVLMVideoProcessor(),
+        image_seq_len=4,
+    ).save_pretrained(folder)
+    return folder
+
+
+def make_flow(out: Path) -> dict:
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    backbone = tiny_smolvlm(out / "tiny_smolvlm")
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, FLOW_IMAGE_SIDE, FLOW_IMAGE_SIDE))
+    inputs = {
+        "observation.images.camera1": image,
+        "observation.images.camera2": image,
+        "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(8,)),
+    }
+    config = SmolVLAConfig(
+        input_features=inputs, output_features=features()[1], device="cpu", vlm_model_name=str(backbone),
+        load_vlm_weights=False, num_vlm_layers=2, num_expert_layers=2, resize_imgs_with_padding=(64, 64),
+        tokenizer_max_length=16, chunk_size=10, n_action_steps=5, num_steps=4, empty_cameras=1, max_state_dim=16,
+        max_action_dim=16,
+    )  # fmt: skip
+    torch.manual_seed(0)
+    policy = SmolVLAPolicy(config)
+    stats = dataset_stats()
+    stats["observation.images.camera1"] = stats.pop("observation.images.image")
+    stats["observation.images.camera2"] = stats.pop("observation.images.image2")
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    folder = out / "smolvla"
+    for part in (policy, pre, post):
+        part.save_pretrained(folder)
+    return {"smolvla": str(folder)}
+
+
 def batch_arrays(batch: dict) -> dict[str, np.ndarray]:
     return {key: value.detach().cpu().numpy() for key, value in batch.items() if isinstance(value, torch.Tensor)}
 
@@ -204,6 +285,8 @@ def main(argv: list[str]) -> None:
     command, args = argv[0], argv[1:]
     if command == "make":
         result = make(Path(args[0]))
+    elif command == "make-flow":
+        result = make_flow(Path(args[0]))
     elif command == "lerobot-obs":
         result = lerobot_obs(args[0], args[1], int(args[2]), Path(args[3]))
     elif command == "server-obs":
