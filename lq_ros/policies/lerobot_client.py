@@ -41,11 +41,9 @@ from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import PolicyError
 from lq_ros.policies.openpi_remote import AGENTVIEW, WRIST, OpenPIPolicy, camera_image, flag, positive_number
 
-#: LeRobot's image keys (``lerobot.envs.libero.LiberoEnv.camera_name_mapping``) -> our camera names.
-LEROBOT_CAMERAS = {"observation.images.image": AGENTVIEW, "observation.images.image2": WRIST}
-#: ``lerobot-eval --env.type=libero`` renders 256 x 256: ``lerobot.envs.libero.LiberoEnv``'s default in LeRobot
-#: 0.4.4 (its env config declares 360, but does not pass the size to the env; a test checks both against LeRobot's
-#: code). ``--camera-size`` overrides it.
+#: ``lerobot-eval`` 0.4.4 renders LIBERO at 256 x 256: ``lerobot.envs.libero.LiberoEnv``'s default (its env config
+#: declares 360, but does not pass the size to the env; a test checks both against LeRobot's code). 0.6 passes it
+#: (360): ``--camera-size 360`` renders as 0.6 does.
 LEROBOT_LIBERO_RENDER_SIZE = 256
 #: The LIBERO state LeRobot's env processor builds: EE position, axis-angle, gripper finger qpos.
 LEROBOT_STATE_KEY = "observation.state"
@@ -64,8 +62,8 @@ HUB_TIMEOUT_S = 120.0
 SETUP_HINT = "run `make setup-lerobot` in the checkout (or pass python=PATH to a Python with lerobot 0.4.4 or 0.6)"
 #: LeRobot's LIBERO env camera names -> our cameras (``observation.images.<name>`` in ``lerobot-eval``).
 ENV_CAMERAS = {"image": AGENTVIEW, "image2": WRIST}
-#: Names a ``rename`` may give a camera: LeRobot's env names and ours.
-CAMERA_NAMES = {"image": "image", "image2": "image2", AGENTVIEW: "image", WRIST: "image2"}
+#: Names a ``rename`` may give a camera: LeRobot's env names, ours, and ``wrist``.
+CAMERA_NAMES = {"image": "image", "image2": "image2", AGENTVIEW: "image", WRIST: "image2", "wrist": "image2"}
 IMAGE_PREFIX = "observation.images."
 #: Image keys the policy pads itself (SmolVLA's, pi0's and pi0.5's ``empty_cameras``): nothing is sent for them.
 EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"

@@ -1,0 +1,81 @@
+"""What the LeRobot client reads from a checkpoint's config.json before anything starts (no LeRobot needed):
+which of LIBERO's cameras feeds each image input, renames, empty cameras, and the one-line refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from lq_ros.policies.lerobot_client import camera_mapping, check_config, parse_rename
+
+IMAGE = {"type": "VISUAL", "shape": [3, 256, 256]}
+STATE = {"observation.state": {"type": "STATE", "shape": [8]}}
+ACTION = {"action": {"type": "ACTION", "shape": [7]}}
+
+
+def config_file(tmp_path: Path, images: list[str], **fields) -> Path:
+    inputs = {f"observation.images.{name}": IMAGE for name in images} | STATE
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({"type": "smolvla", "input_features": inputs, "output_features": ACTION, **fields}))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("names", "expected"),
+    [
+        (["image", "image2"], {"image": "image", "image2": "image2"}),
+        (["image"], {"image": "image"}),
+        (["camera1", "camera2"], {"camera1": "image", "camera2": "image2"}),  # lerobot/smolvla_libero
+        (["cam_2", "cam_1"], {"cam_1": "image", "cam_2": "image2"}),
+        (["front", "wrist"], {"front": "image", "wrist": "image2"}),
+        (["agentview_rgb", "eye_in_hand_rgb"], {"agentview_rgb": "image", "eye_in_hand_rgb": "image2"}),
+    ],
+)
+def test_unambiguous_cameras_map_automatically(names, expected):
+    images = [f"observation.images.{name}" for name in names]
+    mapping = camera_mapping(images, None, "ckpt")
+    assert mapping == {f"observation.images.{key}": camera for key, camera in expected.items()}
+
+
+@pytest.mark.parametrize("names", [["top", "side"], ["camera1"], ["wrist", "hand_cam"], ["base", "camera2"]])
+def test_ambiguous_cameras_ask_for_rename(names):
+    with pytest.raises(ValueError, match="--policy-arg rename=KEY:CAMERA") as refused:
+        camera_mapping([f"observation.images.{name}" for name in names], None, "ckpt")
+    assert "\n" not in str(refused.value)
+
+
+def test_rename_names_the_cameras(tmp_path):
+    rename = parse_rename("top:wrist, side:image")
+    assert rename == {"observation.images.top": "image2", "observation.images.side": "image"}
+    config = check_config(config_file(tmp_path, ["top", "side"]), "ckpt", rename)
+    assert config["lq_cameras"] == rename
+    assert parse_rename({"observation.images.top": "agentview"}) == {"observation.images.top": "image"}
+    for bad, message in [
+        ("top=image", "valid: KEY:CAMERA"),
+        ("top:left", "camera 'left'; valid"),
+        ({}, "valid: KEY:CAMERA"),
+        (7, "valid: KEY:CAMERA"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            parse_rename(bad)
+    with pytest.raises(ValueError, match=r"not mapped: \['observation.images.side'\]"):
+        check_config(config_file(tmp_path, ["top", "side"]), "ckpt", parse_rename("top:image"))
+
+
+def test_empty_cameras_are_the_policys_and_newer_fields_pass(tmp_path):
+    """smolvla_libero's config: camera1, camera2, an empty camera, and fields of LeRobot 0.6."""
+    path = config_file(
+        tmp_path, ["camera1", "camera2", "empty_camera_0"], empty_cameras=1, pretrained_revision=None,
+        use_relative_actions=False,
+    )  # fmt: skip
+    config = check_config(path, "ckpt")
+    assert config["lq_cameras"] == {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
+
+
+def test_inputs_beyond_libero_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="not LIBERO's"):
+        check_config(config_file(tmp_path, ["image", "image2", "image3"]), "ckpt")
+    with pytest.raises(ValueError, match="not LIBERO's"):
+        check_config(config_file(tmp_path, ["empty_camera_0"]), "ckpt")
