@@ -10,7 +10,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export MUJOCO_GL ?= egl
 
 LEROBOT_VENV := .venv-lerobot
-# LeRobot 0.6 (SmolVLA, pi0, pi0.5 as published) needs Python >= 3.12: opt-in, not part of `make test`.
+# LeRobot 0.6 (SmolVLA, pi0, pi0.5 as published) needs Python >= 3.12 (pyenv's, or PYTHON312=...).
 LEROBOT06_VENV := .venv-lerobot06
 PYTHON312 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python) $(shell command -v python3.12))
 
@@ -30,6 +30,7 @@ $(LEROBOT_VENV)/.stamps/wheels: requirements-lerobot.lock
 setup-lerobot06: $(LEROBOT06_VENV)/.stamps/wheels
 
 $(LEROBOT06_VENV)/.stamps/wheels: requirements-lerobot06.lock
+	@test -n "$(PYTHON312)" || { echo "setup-lerobot06: no Python 3.12 (pyenv's or python3.12); set PYTHON312=PATH"; false; }
 	@test -x $(LEROBOT06_VENV)/bin/python || $(PYTHON312) -m venv $(LEROBOT06_VENV)
 	$(LEROBOT06_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-lerobot06.lock
 	@mkdir -p $(LEROBOT06_VENV)/.stamps && touch $@
@@ -61,10 +62,10 @@ $(STAMP)/package: $(STAMP)/msgs setup.py setup.cfg package.xml
 bytecode: setup
 	$(PY) -m compileall -q lq_ros nodes
 
-test: setup setup-lerobot bytecode
+test: setup setup-lerobot setup-lerobot06 bytecode
 	$(PY) -m pytest -q
 
-test-fast: setup setup-lerobot bytecode
+test-fast: setup setup-lerobot setup-lerobot06 bytecode
 	$(PY) -m pytest -q -m "not slow"
 
 demo: setup bytecode

@@ -97,8 +97,8 @@ class FastTick:
         self._data = sim.data._data
         self._jacp = np.zeros((3, model.nv))
         self._jacr = np.zeros((3, model.nv))
-        self._full_mass = np.ndarray(shape=(model.nv, model.nv), dtype=np.float64, order="C")
         self._mujoco = mujoco
+        self._arm_mass_index = None  # made at the first tick, from the controller's joints
 
     def step(self, action: np.ndarray) -> tuple[dict, bool]:
         """robosuite's ``env.step(action)`` as LIBERO's env runs it; returns the observations and LIBERO's done."""
@@ -127,27 +127,31 @@ class FastTick:
         robot = env.robots[0]
         controller, gripper = robot.controller, robot.gripper
         sid = model.site(controller.eef_name).id
-        qpos_index, qvel_index = controller.qpos_index, controller.qvel_index
+        # Index arrays, not robosuite's lists: the same elements, without converting a list at every use.
+        qpos_index = np.asarray(controller.qpos_index, dtype=np.intp)
+        qvel_index = np.asarray(controller.qvel_index, dtype=np.intp)
+        mass_index = self._mass_index(qvel_index)
         goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
         kp, kd, initial_joint = controller.kp, controller.kd, controller.initial_joint
         kp_pos, kp_ori, kd_pos, kd_ori = np.array(kp[0:3]), np.array(kp[3:6]), kd[0:3], kd[3:6]
         torque_low, torque_high = robot.torque_limits
-        arm_actuators = robot._ref_joint_actuator_indexes
-        gripper_actuators = [model.actuator(name).id for name in gripper.actuators]
+        arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
+        gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
         ctrl_range = model.actuator_ctrlrange[gripper_actuators]
         grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
         gripper_action = action[controller.control_dim :]
         grip_increment = np.array([-1.0, 1.0]) * gripper.speed * np.sign(gripper_action)
         grip = gripper.current_action
-        jacp, jacr, full_mass = self._jacp, self._jacr, self._full_mass
-        site_xpos, site_xmat, qpos, qvel, qfrc_bias, ctrl = (
+        jacp, jacr = self._jacp, self._jacr
+        site_xpos, site_xmat, qpos, qvel, qfrc_bias, ctrl, qm = (
             data.site_xpos,
             data.site_xmat,
             data.qpos,
             data.qvel,
             data.qfrc_bias,
             data.ctrl,
+            data.qM,
         )
         for _ in range(int(env.control_timestep / env.model_timestep) - 1):
             forward()  # the env loop's
@@ -159,11 +163,12 @@ class FastTick:
             ee_ori_vel = np.dot(jacr, qvel)
             joint_pos = qpos[qpos_index]
             joint_vel = qvel[qvel_index]
-            j_pos = np.array(jacp[:, qvel_index])
-            j_ori = np.array(jacr[:, qvel_index])
-            j_full = np.array(np.vstack([j_pos, j_ori]))
-            mujoco.mj_fullM(model, full_mass, data.qM)
-            mass_matrix = full_mass[qvel_index, :][:, qvel_index]
+            # robosuite copies these once more (np.array keeps the memory layout: Fortran order, as numba's
+            # compiled functions were specialised for).
+            j_pos = jacp[:, qvel_index]
+            j_ori = jacr[:, qvel_index]
+            j_full = np.vstack([j_pos, j_ori])
+            mass_matrix = qm[mass_index].T  # mj_fullM's arm block, gathered from qM (same elements, Fortran order)
 
             ori_error = orientation_error(goal_ori, ee_ori_mat)
             desired_force = np.multiply(goal_pos - ee_pos, kp_pos) + np.multiply(-ee_pos_vel, kd_pos)
@@ -173,8 +178,8 @@ class FastTick:
             torques = np.dot(j_full.T, wrench) + qfrc_bias[qvel_index]
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
-            clipped = np.clip(torques, torque_low, torque_high)
-            grip = np.clip(grip + grip_increment, -1.0, 1.0)
+            clipped = _clip(torques, torque_low, torque_high)  # np.clip's ufunc, without its Python wrappers
+            grip = _clip(grip + grip_increment, -1.0, 1.0)
             ctrl[gripper_actuators] = grip_bias + grip_weight * grip
             ctrl[arm_actuators] = clipped
             sim_step()
@@ -197,6 +202,34 @@ class FastTick:
         env._post_process()
         observations = env._get_observations()
         return observations, env._check_success()
+
+    def _mass_index(self, dofs: np.ndarray) -> np.ndarray:
+        """Where each element of the arm's block of the full mass matrix is in MuJoCo's sparse ``qM``, transposed
+        (``qM[index].T`` is robosuite's ``mass_matrix``: mj_fullM copies each element of ``qM`` to its two symmetric
+        places, so the block is symmetric bit for bit and its transpose equals it)."""
+        if self._arm_mass_index is None or not np.array_equal(self._arm_mass_index[0], dofs):
+            mujoco, model = self._mujoco, self._model
+            full = np.zeros((model.nv, model.nv))
+            # qM holding 1..nM: mj_fullM then writes each element's position (+1), 0 where qM has nothing.
+            mujoco.mj_fullM(model, full, np.arange(1.0, model.nM + 1.0))
+            block = full[np.ix_(dofs, dofs)]
+            if not np.all(block > 0):
+                raise RuntimeError("the arm's mass matrix has elements outside qM: not a serial chain")
+            # C order: a fancy index's result takes its index's layout, and its transpose must be Fortran-ordered.
+            self._arm_mass_index = (dofs.copy(), np.ascontiguousarray(block.T - 1, dtype=np.intp))
+        return self._arm_mass_index[1]
+
+
+def _ufunc_clip():
+    try:
+        from numpy._core import umath  # NumPy >= 2
+    except ImportError:
+        from numpy.core import umath
+    return umath.clip
+
+
+#: The ufunc np.clip calls for float arrays with array or scalar bounds.
+_clip = _ufunc_clip()
 
 
 class _ObservableClock:

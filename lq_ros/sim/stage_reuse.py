@@ -36,7 +36,7 @@ import mujoco
 import numpy as np
 
 #: MuJoCo's warnings raised by ``mj_checkPos`` / ``mj_checkVel`` when they reset a diverged state.
-_RESET_WARNINGS = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+_RESET_WARNINGS = (int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQVEL))
 
 
 class StageReuse:
@@ -94,10 +94,12 @@ class StageReuse:
         current, self._stages_current = self._stages_current, False
         if current and self._positions_settled():
             # mj_step's checks first: if one resets a diverged state, the stages no longer match it.
-            warnings = [data.warning[w].number for w in _RESET_WARNINGS]
+            counts = data.warning.number
+            warnings = [int(counts[w]) for w in _RESET_WARNINGS]
             mujoco.mj_checkPos(model, data)
             mujoco.mj_checkVel(model, data)
-            if [data.warning[w].number for w in _RESET_WARNINGS] == warnings:
+            counts = data.warning.number
+            if [int(counts[w]) for w in _RESET_WARNINGS] == warnings:
                 mujoco.mj_step2(model, data)
                 self.reused_passes += 1
                 return
