@@ -133,11 +133,16 @@ class EpisodeView:
     switch_ticks: list[int] = field(default_factory=list)
     rejected_ticks: list[int] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: (tick, goal predicate, "true" | "undone") from the task state, and the episode's failure mode (None: no
+    #: task state in the bag).
+    predicate_events: list[tuple[int, str, str]] = field(default_factory=list)
+    failure_mode: str | None = None
 
 
 def load_episode_view(bag: Path) -> EpisodeView:
     """Read one bag folder into an EpisodeView (the scorer's reader for poses and joints)."""
-    from lq_ros.scoring.bag_scorer import read_episode
+    from lq_ros.scoring import failure_modes
+    from lq_ros.scoring.bag_scorer import read_episode, task_series
 
     bag = Path(bag)
     data = read_episode(bag)
@@ -159,6 +164,14 @@ def load_episode_view(bag: Path) -> EpisodeView:
     except ReplayRefused as exc:
         commands, switches, rejected = [], [], []
         warnings.append(str(exc))
+    series, _ = task_series(data, t0, t1)
+    events, mode = [], None
+    if series is not None:
+        outcome = {"success": "success", "timeout": "failure"}.get(
+            m.EventKind.NAMES.get(terminal[0][0], "") if terminal else "", "error"
+        )
+        analysis = failure_modes.classify(series, outcome)
+        events, mode = analysis.predicate_events, analysis.failure_mode
     return EpisodeView(
         name=bag.name,
         metadata=data.metadata,
@@ -177,6 +190,8 @@ def load_episode_view(bag: Path) -> EpisodeView:
         switch_ticks=switches,
         rejected_ticks=rejected,
         warnings=warnings,
+        predicate_events=events,
+        failure_mode=mode,
     )
 
 
@@ -254,6 +269,7 @@ def episode_figure(view: EpisodeView) -> plt.Figure:
                         color="black" if i == 6 else None, linestyle="--" if i == 6 else "-")  # fmt: skip
         for k, tick in enumerate(view.switch_ticks):
             ax_act.axvline(tick, color="0.35", linestyle=":", linewidth=0.9, label="chunk switch" if k == 0 else None)
+        _mark_predicates(ax_act, view)
         if view.rejected_ticks:
             ax_act.plot(view.rejected_ticks, [1.05] * len(view.rejected_ticks), "x", color="purple", markersize=8,
                         label="chunk rejected")  # fmt: skip
@@ -306,6 +322,18 @@ def episode_figure(view: EpisodeView) -> plt.Figure:
     return fig
 
 
+def _mark_predicates(ax, view: EpisodeView) -> None:
+    """A goal predicate becoming true (green) or undone (red, dashed) at its tick, named at the panel's top."""
+    labelled = set()
+    for tick, name, change in view.predicate_events:
+        colour, style = ("tab:green", "-") if change == "true" else ("tab:red", "--")
+        label = f"goal predicate {change}" if change not in labelled else None
+        labelled.add(change)
+        ax.axvline(tick, color=colour, linestyle=style, linewidth=1.4, label=label)
+        ax.annotate(name, (tick, 1.0), xycoords=("data", "axes fraction"), rotation=90, fontsize=6, color=colour,
+                    ha="right", va="top")  # fmt: skip
+
+
 def _title(view: EpisodeView) -> str:
     cfg = view.metadata.get("config") or {}
     parts = [str(cfg.get(k)) for k in ("policy", "mode") if cfg.get(k) is not None]
@@ -314,6 +342,8 @@ def _title(view: EpisodeView) -> str:
     if cfg.get("suite") is not None:
         parts.append(f"{cfg['suite']} task {cfg.get('task')} init {cfg.get('init')} seed {cfg.get('seed')}")
     end = f"{view.status}" + (f" at tick {view.end_tick}" if view.end_tick is not None else "")
+    if view.failure_mode not in (None, "none"):
+        end += f" · failure mode: {view.failure_mode.replace('_', ' ')}"
     return f"{view.name}\n{' · '.join(parts + [end])}"
 
 

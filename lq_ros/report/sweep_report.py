@@ -26,6 +26,7 @@ import pandas as pd  # noqa: E402
 
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
+from lq_ros.report.failure_figures import fig_failure_modes  # noqa: E402
 from lq_ros.report.figures import ENERGY_PARTS, FIGURE_KEYS, FIGURES, make_figures  # noqa: E402
 from lq_ros.report.plot_rules import never_moved  # noqa: E402
 from lq_ros.report.prose import INTRO, NOTES, comparison_sentences, paired_sentences  # noqa: E402
@@ -38,7 +39,7 @@ from lq_ros.report.tables import (  # noqa: E402
     summary_table,
 )
 from lq_ros.scoring import aggregate as agg  # noqa: E402
-from lq_ros.scoring import intervals, labels, paired_tests  # noqa: E402
+from lq_ros.scoring import failure_aggregate, intervals, labels, paired_tests  # noqa: E402
 from lq_ros.scoring.attribution import decompose, decomposition_table  # noqa: E402
 
 # -- data ------------------------------------------------------------------------------------
@@ -223,10 +224,22 @@ def _link(bag, prefix: str) -> str:
     return f"{prefix}{bag}/" if isinstance(bag, str) and bag else ""
 
 
+FAILURE_FIGURE = "fig10_failure_modes"
+FAILURE_TITLE = "Failure modes by latency"
+FAILURE_NOTE = (
+    "How each failed episode failed, read from its bag's task state (docs/guide/failure_modes.md); fractions of a "
+    "cell's episodes with task state, with task-clustered 95% intervals in failure_modes.csv. The sentences say where "
+    "the extra failures at a latency went; whether the rise in failures is more than chance is the paired tests' "
+    "call above."
+)
+
+
 def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: dict, episodes: pd.DataFrame,
                    prefix: str, paired: pd.DataFrame | None = None,
                    comparisons: pd.DataFrame | None = None,
-                   attribution: pd.DataFrame | None = None) -> None:  # fmt: skip
+                   attribution: pd.DataFrame | None = None,
+                   failures: list[str] | None = None) -> None:  # fmt: skip
+    """``failures``: the failure-mode sentences, given when the failure-mode figure was drawn."""
     lines = ["# LIBERO-LQ sweep report", ""]
     lines += [INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
     if comparisons is not None and not comparisons.empty:
@@ -236,6 +249,9 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
         lines += ["## Latency effects (paired against 0 s)", ""] + [f"- {s}" for s in paired_sentences(paired)] + [""]
     for name, title in FIGURES.items():
         lines += [f"## {title}", "", f"![{title}]({name}.png)", ""]
+    if failures is not None:
+        lines += [f"## {FAILURE_TITLE}", "", FAILURE_NOTE, ""] + [f"- {sentence}" for sentence in failures]
+        lines += ["", f"![{FAILURE_TITLE}]({FAILURE_FIGURE}.png)", ""]
     lines += ["## Summary", "", summary.to_markdown(index=False), ""]
     if paired is not None and not paired.empty:
         lines += ["## Paired changes against 0 s", "", paired_table(paired).to_markdown(index=False), ""]
@@ -272,7 +288,8 @@ def _bold_html(markdown: str) -> str:
 
 def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: dict, episodes: pd.DataFrame,
                prefix: str, paired: pd.DataFrame | None = None,
-               comparisons: pd.DataFrame | None = None, attribution: pd.DataFrame | None = None) -> None:  # fmt: skip
+               comparisons: pd.DataFrame | None = None, attribution: pd.DataFrame | None = None,
+               failures: list[str] | None = None) -> None:  # fmt: skip
     e = html.escape
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>LIBERO-LQ sweep report</title>",
              f"<style>{_CSS}</style></head><body><h1>LIBERO-LQ sweep report</h1>",
@@ -289,6 +306,10 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
         parts.append("</ul>")
     for name, title in FIGURES.items():
         parts.append(f"<h2>{e(title)}</h2><img src='{name}.png' alt='{e(title)}'>")
+    if failures is not None:
+        parts.append(f"<h2>{e(FAILURE_TITLE)}</h2><p>{e(FAILURE_NOTE)}</p><ul>")
+        parts += [f"<li>{e(sentence)}</li>" for sentence in failures]
+        parts.append(f"</ul><img src='{FAILURE_FIGURE}.png' alt='{e(FAILURE_TITLE)}'>")
     parts.append("<h2>Summary</h2>" + summary.to_html(index=False, na_rep="–"))
     if has_paired:
         parts.append("<h2>Paired changes against 0 s</h2>" + paired_table(paired).to_html(index=False, na_rep="–"))
@@ -360,7 +381,17 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
         attribution_csv = out_dir / "attribution.csv"
         attribution.to_csv(attribution_csv, index=False)
         files[attribution_csv.name] = attribution_csv
+    fractions = failure_aggregate.mode_fractions(episodes, FIGURE_KEYS, n_boot=n_boot, seed=seed)
+    failures = None
+    if not fractions.empty:
+        fractions_csv = out_dir / "failure_modes.csv"
+        fractions.to_csv(fractions_csv, index=False)
+        files[fractions_csv.name] = fractions_csv
     figures = make_figures(pooled, episodes) | report_async.make_boundary_figures(episodes, n_boot=n_boot, seed=seed)
+    failure_figure = fig_failure_modes(fractions)
+    if failure_figure is not None:
+        figures[FAILURE_FIGURE] = failure_figure
+        failures = failure_aggregate.shift_sentences(fractions, ("suite", "policy", "mode"))
     for name, fig in figures.items():
         path = out_dir / f"{name}.png"
         fig.savefig(path, dpi=110)
@@ -375,8 +406,8 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     files["report.md"] = out_dir / "report.md"
     attribution_view = decomposition_table(attribution)
     write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix, paired,
-                   comparisons, attribution_view)  # fmt: skip
+                   comparisons, attribution_view, failures)  # fmt: skip
     files["report.html"] = out_dir / "report.html"
     write_html(files["report.html"], summary, per_task_view(per_task), prov, episodes, prefix, paired, comparisons,
-               attribution_view)  # fmt: skip
+               attribution_view, failures)  # fmt: skip
     return Report(out_dir, files, episodes, pooled, figures if keep_figures else {}, media_warnings, paired)

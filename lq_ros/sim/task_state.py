@@ -53,16 +53,21 @@ class TaskStateProbe:
         self._data = sim.data._data
         gripper = env.robots[0].gripper
 
-        def geom_ids(names) -> np.ndarray:
-            return np.array(sorted({model.geom_name2id(n) for n in names}), dtype=np.int64)
+        ngeom = self._model.ngeom
 
-        self._gripper_geoms = geom_ids(gripper.contact_geoms)
-        self._pad_geoms = (
-            geom_ids(gripper.important_geoms["left_fingerpad"]),
-            geom_ids(gripper.important_geoms["right_fingerpad"]),
+        def geom_mask(names) -> np.ndarray:
+            mask = np.zeros(ngeom, dtype=bool)
+            mask[[model.geom_name2id(n) for n in names]] = True
+            return mask
+
+        # Geom-membership masks: a tick's contacts are then classified by indexing, for every object at once.
+        self._gripper_mask = geom_mask(gripper.contact_geoms)
+        self._pad_masks = (
+            geom_mask(gripper.important_geoms["left_fingerpad"]),
+            geom_mask(gripper.important_geoms["right_fingerpad"]),
         )
         self._kinds: list[tuple[str, int]] = []  # ("body" | "site", id) per object
-        self._object_geoms: list[np.ndarray] = []
+        object_masks = []
         for name in self.object_names:
             state = env.object_states_dict[name]
             if getattr(state, "object_state_type", "object") == "site":
@@ -71,7 +76,8 @@ class TaskStateProbe:
             else:
                 self._kinds.append(("body", env.obj_body_id[name]))
                 owner = env.get_object(name)
-            self._object_geoms.append(geom_ids(owner.contact_geoms))
+            object_masks.append(geom_mask(owner.contact_geoms))
+        self._object_masks = np.array(object_masks).reshape(len(self.object_names), ngeom)  # (K, ngeom)
         self._bound_to = self._model
 
     def sample(self) -> TaskStateSample:
@@ -99,9 +105,10 @@ class TaskStateProbe:
         contact = np.zeros(k, dtype=bool)
         grasped = np.zeros(k, dtype=bool)
         if ncon:
-            for i, geoms in enumerate(self._object_geoms):
-                contact[i] = _touch(geom1, geom2, geoms, self._gripper_geoms)
-                grasped[i] = all(_touch(geom1, geom2, geoms, pads) for pads in self._pad_geoms)
+            objects1, objects2 = self._object_masks[:, geom1], self._object_masks[:, geom2]  # (K, ncon)
+            contact = _touch(objects1, objects2, self._gripper_mask[geom1], self._gripper_mask[geom2])
+            grasped = _touch(objects1, objects2, self._pad_masks[0][geom1], self._pad_masks[0][geom2])
+            grasped &= _touch(objects1, objects2, self._pad_masks[1][geom1], self._pad_masks[1][geom2])
         values = np.array([bool(env._eval_predicate(state)) for state in self._goal], dtype=bool)
         return TaskStateSample(
             object_names=self.object_names,
@@ -114,9 +121,8 @@ class TaskStateProbe:
         )
 
 
-def _touch(geom1: np.ndarray, geom2: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
-    """Some active contact pairs a geom of ``a`` with a geom of ``b`` (either order), as robosuite's
-    ``check_contact`` decides it."""
-    in_a1, in_a2 = np.isin(geom1, a), np.isin(geom2, a)
-    in_b1, in_b2 = np.isin(geom1, b), np.isin(geom2, b)
-    return bool(np.any((in_a1 & in_b2) | (in_b1 & in_a2)))
+def _touch(objects1: np.ndarray, objects2: np.ndarray, other1: np.ndarray, other2: np.ndarray) -> np.ndarray:
+    """Per object: some active contact pairs one of its geoms with a geom of the other group, in either order (as
+    robosuite's ``check_contact`` decides it). ``objects1``/``objects2``: (K, ncon) membership of each contact's
+    first and second geom; ``other1``/``other2``: (ncon,) the other group's."""
+    return ((objects1 & other2) | (objects2 & other1)).any(axis=1)

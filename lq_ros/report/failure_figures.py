@@ -1,0 +1,84 @@
+"""Failure modes by latency (fig10_failure_modes.png): one panel per suite and policy (rows) and protocol
+(columns); at each latency a bar stacks the cell's failure modes as fractions of its episodes, so the bar's
+height is the cell's failure rate. Suites are never pooled. A cell of fewer than MIN_JOIN_N classified episodes
+gets no bar (a hatched outline says so); n is printed above every bar."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a display
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+from lq_ros.report.plot_rules import MIN_JOIN_N  # noqa: E402
+from lq_ros.scoring import failure_modes  # noqa: E402
+
+#: One colour per failure mode (colour-blind-safe tab10 order; grey for stalled).
+MODE_COLOURS = dict(zip(failure_modes.FAILURE_MODES, [
+    "#9467bd", "#2ca02c", "#8c564b", "#1f77b4", "#ff7f0e", "#d62728", "#e377c2", "#7f7f7f",
+], strict=True))  # fmt: skip
+PROTOCOLS = ("sync", "async")
+
+
+def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
+    """The figure from failure_aggregate.mode_fractions per FIGURE_KEYS (constant latencies), or None without
+    classified episodes."""
+    if fractions.empty:
+        return None
+    frame = fractions
+    if "latency_dist" in frame:
+        frame = frame[frame["latency_dist"].fillna("constant").eq("constant")]
+    if frame.empty:
+        return None
+    rows = sorted({(s, p) for s, p in zip(frame["suite"], frame["policy"], strict=True)}, key=str)
+    protocols = [p for p in PROTOCOLS if p in set(frame["mode"])]
+    latencies = sorted(frame["latency_s"].dropna().unique())
+    fig, axes = plt.subplots(len(rows), len(protocols), figsize=(4.2 * len(protocols) + 1.8, 2.3 * len(rows) + 0.9),
+                             squeeze=False, sharex=True, sharey=True)  # fmt: skip
+    x = np.arange(len(latencies))
+    small = False
+    for r, (suite, policy) in enumerate(rows):
+        for c, protocol in enumerate(protocols):
+            ax = axes[r, c]
+            cells = frame[(frame["suite"] == suite) & (frame["policy"] == policy) & (frame["mode"] == protocol)]
+            for i, latency in enumerate(latencies):
+                cell = cells[cells["latency_s"] == latency]
+                if cell.empty:
+                    continue
+                n = int(cell["n"].iloc[0])
+                if n < MIN_JOIN_N:
+                    ax.bar(i, 1.0, width=0.7, fill=False, hatch="//", edgecolor="#bbbbbb", linewidth=0.5)
+                    ax.text(i, 1.02, f"n={n}", ha="center", va="bottom", fontsize=7)
+                    small = True
+                    continue
+                bottom = 0.0
+                by_mode = cell.set_index("failure_mode")["fraction"]
+                for mode in failure_modes.FAILURE_MODES:
+                    height = float(by_mode.get(mode, 0.0))
+                    if height > 0:
+                        ax.bar(i, height, bottom=bottom, width=0.7, color=MODE_COLOURS[mode], edgecolor="white",
+                               linewidth=0.4)  # fmt: skip
+                        bottom += height
+                ax.text(i, bottom + 0.02, f"n={n}", ha="center", va="bottom", fontsize=7)
+            ax.set_ylim(0, 1.12)
+            ax.set_xticks(x, [f"{v:g}" for v in latencies])
+            ax.grid(axis="y", alpha=0.3)
+            if r == 0:
+                ax.set_title(protocol, fontsize=10)
+            if c == 0:
+                ax.set_ylabel(f"{suite}\n{policy}\nfraction of episodes", fontsize=8)
+            if r == len(rows) - 1:
+                ax.set_xlabel("Δt_sim (s)")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=MODE_COLOURS[m]) for m in failure_modes.FAILURE_MODES]
+    fig.legend(handles, [m.replace("_", " ") for m in failure_modes.FAILURE_MODES], loc="center right",
+               fontsize=8, frameon=False, title="failure mode", title_fontsize=8)  # fmt: skip
+    note = "Bar height: the cell's failure rate; its parts: the failure modes (docs/guide/failure_modes.md)."
+    if small:
+        note += f" Hatched outline: fewer than {MIN_JOIN_N} classified episodes, no bar."
+    fig.text(0.01, 0.005, note, fontsize=7, va="bottom")
+    fig.suptitle("Failure modes by latency", fontsize=11)
+    fig.tight_layout(rect=(0, 0.03, 0.83, 0.97))
+    return fig

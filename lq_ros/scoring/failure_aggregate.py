@@ -1,0 +1,93 @@
+"""Failure modes per cell: the fraction of a cell's episodes that ended in each mode, with task-clustered intervals.
+
+A cell's fractions are over its episodes with an outcome (success or failure) whose bag holds task state, so the
+failure modes of a cell add up to its failure rate. Episodes without task state (older bags, a robot without
+object poses) are counted apart (``n_unavailable``), never as ``none``; errors are counted apart too (``n_error``).
+Each interval is the task-cluster interval of the success rate (intervals.clustered_success_ci) applied to the
+episode's 0/1 indicator of the mode: episodes of one task are not independent.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+
+from lq_ros.scoring import failure_modes
+from lq_ros.scoring.intervals import clustered_success_ci
+
+
+def mode_fractions(
+    episodes: pd.DataFrame, by: Sequence[str], *, n_boot: int = 2000, seed: int = 0, confidence: float = 0.95
+) -> pd.DataFrame:
+    """One row per (cell, failure mode): ``n`` classified episodes, ``count``, ``fraction`` and its interval
+    (``ci_lo``/``ci_hi``), ``n_tasks``, and the cell's ``n_unavailable`` and ``n_error``. Empty without
+    ``failure_mode``."""
+    columns = [*by, "failure_mode", "n", "count", "fraction", "ci_lo", "ci_hi", "n_tasks", "n_unavailable", "n_error"]
+    if "failure_mode" not in episodes or episodes.empty:
+        return pd.DataFrame(columns=columns)
+    rows = []
+    for key, group in episodes.groupby(list(by), dropna=False, sort=True):
+        cell = dict(zip(by, key if isinstance(key, tuple) else (key,), strict=True))
+        mode = group["failure_mode"].fillna("unavailable")
+        outcome = group["status"].isin(["success", "failure"])
+        classified = group[outcome & (mode != "unavailable")]
+        n_unavailable = int((outcome & (mode == "unavailable")).sum())
+        n_error = int((~outcome).sum())
+        if classified.empty:
+            continue
+        by_task = [g for _, g in classified.groupby("task", sort=True)] if "task" in classified else [classified]
+        for name in failure_modes.FAILURE_MODES:
+            clusters = [(g["failure_mode"] == name).to_numpy(dtype=np.float64) for g in by_task]
+            count = int(sum(c.sum() for c in clusters))
+            low, high = clustered_success_ci(clusters, n_boot=n_boot, seed=seed, confidence=confidence)
+            rows.append({**cell, "failure_mode": name, "n": len(classified), "count": count,
+                         "fraction": count / len(classified), "ci_lo": low, "ci_hi": high, "n_tasks": len(by_task),
+                         "n_unavailable": n_unavailable, "n_error": n_error})  # fmt: skip
+    return pd.DataFrame(rows, columns=columns)
+
+
+def shift_sentences(fractions: pd.DataFrame, series_keys: Sequence[str], *, min_extra: int = 5) -> list[str]:
+    """Where latency added failures: per series (e.g. suite, policy, protocol) and latency above 0 s with at least
+    ``min_extra`` more failures than at 0 s, which modes the extra failures went to (counts, and the mode's
+    share of the cell with its interval). Descriptive: the paired tests of the success rate say whether the rise
+    itself is more than chance."""
+    if fractions.empty or "latency_s" not in fractions:
+        return []
+    out = []
+    constant = fractions[fractions.get("latency_dist", pd.Series("constant", index=fractions.index))
+                         .fillna("constant").eq("constant")]  # fmt: skip
+    for key, series in constant.groupby(list(series_keys), dropna=False, sort=True):
+        names = dict(zip(series_keys, key if isinstance(key, tuple) else (key,), strict=True))
+        base = series[series["latency_s"] == 0.0]
+        if base.empty:
+            continue
+        base_counts = base.set_index("failure_mode")["count"]
+        base_n = int(base["n"].iloc[0])
+        for latency, cell in series[series["latency_s"] > 0].groupby("latency_s", sort=True):
+            counts = cell.set_index("failure_mode")["count"]
+            n = int(cell["n"].iloc[0])
+            # Compare counts at the same n only (a cell with fewer episodes would read as fewer failures).
+            if n != base_n:
+                continue
+            extra = int(counts.sum() - base_counts.sum())
+            if extra < min_extra:
+                continue
+            rises = (counts - base_counts.reindex(counts.index, fill_value=0)).sort_values(ascending=False)
+            top, top_rise = rises.index[0], int(rises.iloc[0])
+            share = "mostly" if top_rise > extra / 2 else "most often"
+            row = cell.set_index("failure_mode").loc[top]
+            label = ", ".join(str(v) for v in names.values())
+            interval = (
+                f" ({row['fraction']:.0%} of the cell, 95% CI {row['ci_lo']:.0%}-{row['ci_hi']:.0%})"
+                if not math.isnan(row["ci_lo"])
+                else ""
+            )
+            out.append(
+                f"{label} at {latency:g} s: {int(counts.sum())} of {n} episodes failed against "
+                f"{int(base_counts.sum())} of {base_n} at 0 s; the {extra} extra failures are {share} "
+                f"{top.replace('_', ' ')} (+{top_rise}){interval}."
+            )
+    return out

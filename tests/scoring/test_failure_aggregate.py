@@ -1,0 +1,125 @@
+"""Failure modes in the scorer's rows (bag_scorer), per cell (failure_aggregate) and in the figure: task state read
+from a bag our writer made, an old bag without it, a damaged task-state message, fractions and their sentences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lq_ros.core.types import TaskStateSample
+from lq_ros.recording.episode_bag import EpisodeBagWriter
+from lq_ros.report.failure_figures import fig_failure_modes
+from lq_ros.scoring import failure_modes
+from lq_ros.scoring.bag_scorer import score_bag
+from lq_ros.scoring.failure_aggregate import mode_fractions, shift_sentences
+from lq_ros.wire import messages as m
+from tests.scoring.test_bag_scorer import write_episode_bag
+
+NAMES = ("bowl", "plate", "other_bowl")
+
+
+def sample(tick: int, *, grasped: bool, bowl_xyz, on: bool) -> TaskStateSample:
+    pos = np.array([bowl_xyz, (0.3, 0.0, 0.9), (0.0, 0.2, 0.9)], dtype=np.float64)
+    return TaskStateSample(
+        object_names=NAMES,
+        object_pos=pos,
+        object_quat_xyzw=np.tile([0.0, 0.0, 0.0, 1.0], (3, 1)),
+        gripper_contact=np.array([grasped, False, False]),
+        grasped=np.array([grasped, False, False]),
+        predicate_names=("(on bowl plate)",),
+        predicate_values=np.array([on]),
+    )
+
+
+def episode_with_task_state(path, *, drop_at: int | None, extra: bytes | None = None):
+    """write_episode_bag's episode (400 ticks, ends in a timeout) plus a task state per tick: the bowl grasped at
+    tick 50 and carried towards the plate; released at ``drop_at`` (falls where it was) or never."""
+    bag = write_episode_bag(path, end_kind=m.EventKind.TIMEOUT)
+    # Rewrite it with the task topics: our writer appends nothing to a closed bag, so write a second one.
+    from lq_ros.recording.bag_compare import bag_messages
+
+    messages = bag_messages(bag)
+    out = path.with_name(path.name + "_task")
+    writer = EpisodeBagWriter(out, [*m.CORE_TOPICS, *m.TASK_TOPICS])
+    from lq_ros.recording.episode_bag import read_run_metadata
+
+    writer.set_run_metadata(read_run_metadata(bag))
+    for topic in m.CORE_TOPICS:
+        for t_ns, raw in messages.get(topic.name, []):
+            writer.write(topic, t_ns, raw)
+    ee = messages[m.EE_POSE.name]
+    for tick, (t_ns, _) in enumerate(ee):
+        held = 50 <= tick and (drop_at is None or tick < drop_at)
+        x = min(0.25, 0.002 * max(0, min(tick, drop_at or 10**6) - 50))
+        for topic, ts, data in m.task_state_msgs(t_ns, tick, sample(tick, grasped=held, bowl_xyz=(x, 0.0, 0.95),
+                                                                    on=False)):  # fmt: skip
+            writer.write(topic, ts, data)
+    if extra is not None:
+        writer.write(m.TASK_STATE, ee[10][0], extra)
+    writer.close()
+    return out
+
+
+def test_a_bag_with_task_state_gets_its_failure_mode(tmp_path):
+    row = score_bag(episode_with_task_state(tmp_path / "drop", drop_at=100))
+    assert row["status"] == "failure"
+    assert (row["failure_mode"], row["furthest_phase"], row["progress"]) == ("dropped_in_transit", "moved", 0.0)
+    assert row["unmet_predicate"] == "(on bowl plate)" and row["predicate_events"] == []
+
+
+def test_an_old_bag_is_unavailable_never_none(tmp_path):
+    row = score_bag(write_episode_bag(tmp_path / "old"))
+    assert row["status"] == "success" and row["failure_mode"] == "unavailable"
+    assert row["progress"] is None and "no /lq/task/state records" in row["null_reasons"]["failure_mode"]
+
+
+def test_a_damaged_task_state_message_is_skipped_as_damage(tmp_path):
+    good = m.task_state_msgs(0, 10, sample(10, grasped=False, bowl_xyz=(0, 0, 0.9), on=False))[1][2]
+    bad = good[:-12]  # cut: its arrays run past the end
+    row = score_bag(episode_with_task_state(tmp_path / "cut", drop_at=None, extra=bad))
+    assert row["failure_mode"] in failure_modes.FAILURE_MODES and row["partial"] is True
+    assert any("undecodable /lq/task/state" in w for w in row["warnings"]), row["warnings"]
+
+
+def episodes_frame() -> pd.DataFrame:
+    """Six tasks x 10 episodes per latency; at 0.2 s four more failures per task, all dropped in transit."""
+    rows = []
+    for latency, drops in ((0.0, 1), (0.2, 5)):
+        for task in range(6):
+            for i in range(10):
+                mode = "dropped_in_transit" if i < drops else ("never_reached" if i == 9 else "none")
+                status = "success" if mode == "none" else "failure"
+                cell = {"policy": "flow", "mode": "async", "latency_s": latency, "latency_dist": "constant"}
+                rows.append({**cell, "suite": "libero_object", "task": task, "status": status, "failure_mode": mode})
+    rows.append({**rows[0], "status": "failure", "failure_mode": "unavailable"})  # an old bag: counted apart
+    rows.append({**rows[0], "status": "error", "failure_mode": "error"})
+    return pd.DataFrame(rows)
+
+
+def test_fractions_per_cell_add_up_to_the_failure_rate_with_clustered_intervals():
+    fractions = mode_fractions(episodes_frame(), ("policy", "mode", "latency_s", "latency_dist", "suite"), n_boot=200)
+    cell = fractions[fractions["latency_s"] == 0.2].set_index("failure_mode")
+    assert set(cell.index) == set(failure_modes.FAILURE_MODES)
+    assert cell.loc["dropped_in_transit", "count"] == 30 and cell["n"].iloc[0] == 60
+    assert cell["fraction"].sum() == pytest.approx(36 / 60)
+    low, high = cell.loc["dropped_in_transit", ["ci_lo", "ci_hi"]]
+    assert low < 0.5 < high and cell["n_tasks"].iloc[0] == 6
+    zero = fractions[fractions["latency_s"] == 0.0]
+    assert zero["n_unavailable"].iloc[0] == 1 and zero["n_error"].iloc[0] == 1 and zero["n"].iloc[0] == 60
+
+
+def test_the_sentence_says_where_the_extra_failures_went():
+    fractions = mode_fractions(episodes_frame(), ("policy", "mode", "latency_s", "latency_dist", "suite"), n_boot=200)
+    (sentence,) = shift_sentences(fractions, ("suite", "policy", "mode"))
+    assert sentence.startswith("libero_object, flow, async at 0.2 s: 36 of 60 episodes failed against 12 of 60 at 0 s")
+    assert "24 extra failures are mostly dropped in transit (+24) (50% of the cell, 95% CI" in sentence
+
+
+def test_the_figure_stacks_the_modes_per_protocol():
+    fractions = mode_fractions(episodes_frame(), ("policy", "mode", "latency_s", "latency_dist", "suite"), n_boot=200)
+    fig = fig_failure_modes(fractions)
+    (ax,) = fig.axes[:1]
+    heights = sorted(round(p.get_height(), 3) for p in ax.patches if p.get_height() > 0)
+    assert heights == [0.1, 0.1, 0.1, 0.5]  # 0 s: never reached, dropped; 0.2 s: never reached, dropped
+    assert fig_failure_modes(mode_fractions(pd.DataFrame(), ("policy",))) is None
