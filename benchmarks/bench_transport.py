@@ -9,19 +9,24 @@ state cycles over 0..9 so consecutive episodes differ. Then the reset of one env
 the MjSim) against soft (LiberoEnv's default after the first reset), both including LIBERO's 10 wait
 steps, alternated in the same process.
 
-The floor: the same scene's stock robosuite ``env.step`` per tick (LIBERO's ControlEnv with MjSim's own forward
-and step: no wrapper, no energy integration, no messages, no bag) and the MuJoCo calls it makes (per substep two
-``mj_forward`` and an ``mj_step``: the rest of env.step is robosuite's Python); the same calls with their repeated
-position and velocity stages skipped (lq_ros.sim.stage_reuse, bit-identical) and ``LiberoEnv.step``, which uses
-them; raw ``mj_step`` x 25 (the physics alone); and the in-process tick's ratio to each (target: within 1.3x of
-robosuite's env.step). Where (b)'s time goes: the CPU seconds each
+The floor (CPU time per tick, loops interleaved, median of 5 rounds): the same scene's stock robosuite ``env.step``
+(LIBERO's ControlEnv with MjSim's own forward and step: no wrapper, no energy integration, no messages, no bag) and
+the MuJoCo calls it makes (per substep two ``mj_forward`` and an ``mj_step``: the rest of env.step is robosuite's
+Python); the same calls with their repeated position and velocity stages skipped (lq_ros.sim.stage_reuse,
+bit-identical); ``LiberoEnv.step`` (the fast tick of lq_ros.sim.fast_tick over those calls; target <= 2x raw
+``mj_step`` x 25) and the same without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the physics
+alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
+one worker; start-up, resets, bags, scoring included), without and with the fast tick, against its ticks through
+robosuite's stock ``env.step`` (target <= 0.55x). Where (b)'s time goes: the CPU seconds each
 of its node processes used per episode (episodes 2.., from /proc), against (a)'s wall per episode. A slow policy: with
 ``--slow-policy S`` the scripted expert sleeps S wall seconds per inference at Δt_sim 0.2 s, in process and
 through the long-lived stack, where the policy node's inference overlaps the simulation of the ticks that do not
 wait for it.
 
     .venv/bin/python benchmarks/bench_transport.py [--policy scripted] [--episodes 10] [--resets 5]
-        [--floor-ticks 200] [--slow-policy 0.15]
+        [--floor-ticks 200] [--sweep-inits 8] [--slow-policy 0.15]
+
+``--episodes 0 --resets 0 --slow-policy 0`` prints the floor and the sweep only.
 """
 
 from __future__ import annotations
@@ -48,13 +53,14 @@ from lq_ros.transport.ros.stack import RosStack  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--policy", default="scripted")
-    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--episodes", type=int, default=10, help="episodes of (a), (b), (c) each (0: skip)")
     parser.add_argument("--mode", default="async")
     parser.add_argument("--latency", type=float, default=0.2)
     parser.add_argument("--max-steps", type=int, default=220)
     parser.add_argument("--resets", type=int, default=5, help="hard and soft resets each (0: skip)")
     parser.add_argument("--floor-ticks", type=int, default=200, help="ticks of bare env.step and mj_step (0: skip)")
     parser.add_argument("--slow-policy", type=float, default=0.15, help="sleep per inference, s (0: skip)")
+    parser.add_argument("--sweep-inits", type=int, default=8, help="init states of the sweep vs stock (0: skip)")
     args = parser.parse_args()
     out = Path(tempfile.mkdtemp(prefix="lq_bench_"))
     try:
@@ -66,6 +72,43 @@ def main() -> None:
 def measure(args: argparse.Namespace, out: Path) -> None:
     """Run and print every figure; ``out`` holds the episodes' bags."""
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    times: dict[str, list[float]] = {"inprocess": []}
+    ticks: dict[str, list[int]] = {"inprocess": []}
+    if args.episodes:
+        times, ticks = compare_transports(args, out)
+    if args.floor_ticks:
+        # The in-process tick over the episodes after the first (which builds the env): wall per tick.
+        floor = floor_per_tick(args.floor_ticks)
+        step_s = floor.robosuite_step_s
+        print(f"floor per tick (CPU time, median of 5 interleaved rounds): robosuite's env.step {1000 * step_s:.2f} "
+              f"ms, of which its MuJoCo calls ((2 mj_forward + mj_step) x 25) {1000 * floor.robosuite_mujoco_s:.2f} "
+              f"ms and its Python around them {100 * (1 - floor.robosuite_mujoco_s / step_s):.0f} %")  # fmt: skip
+        print(f"  the same calls with repeated stages skipped (StageReuse) {1000 * floor.reused_mujoco_s:.2f} ms "
+              f"({floor.reused_mujoco_s / floor.robosuite_mujoco_s:.2f}x); raw mj_step x 25 "
+              f"{1000 * floor.mj_step_s:.2f} ms")  # fmt: skip
+        print(f"  LiberoEnv.step {1000 * floor.env_step_s:.2f} ms = {floor.env_step_s / floor.mj_step_s:.2f}x raw "
+              f"mj_step x 25 (target <= 2), {floor.env_step_s / step_s:.2f}x robosuite's env.step; without the fast "
+              f"tick (LQ_FAST_TICK=off) {1000 * floor.env_step_robosuite_s:.2f} ms "
+              f"({floor.env_step_robosuite_s / floor.mj_step_s:.2f}x mj_step x 25)")  # fmt: skip
+        if len(times["inprocess"]) > 1:
+            tick_s = statistics.median(
+                t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True)
+            )
+            print(f"  in-process tick {1000 * tick_s:.2f} ms wall (median, episodes 2..) = {tick_s / step_s:.2f}x "
+                  f"robosuite's env.step, {tick_s / floor.env_step_s:.2f}x LiberoEnv.step")  # fmt: skip
+        if args.sweep_inits:
+            sweep_against_stock(floor, args.sweep_inits)
+    if args.slow_policy:
+        slow(args.slow_policy, out)
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+    if args.resets:
+        hard, soft = reset_times(args.resets)
+        print(f"reset of one env (10 wait steps included): hard {hard:.3f} s, soft {soft:.3f} s, "
+              f"hard / soft {hard / soft:.1f}  (target soft <= 0.3 s)")  # fmt: skip
+
+
+def compare_transports(args: argparse.Namespace, out: Path) -> tuple[dict[str, list[float]], dict[str, list[int]]]:
+    """(a), (b) and (c): wall seconds and ticks of each episode, printed with their ratios."""
     cfgs = [
         RunConfig(policy=args.policy, mode=args.mode, latency_s=args.latency, max_steps=args.max_steps, init=i % 10)
         for i in range(args.episodes)
@@ -119,29 +162,7 @@ def measure(args: argparse.Namespace, out: Path) -> None:
         print(f"(b) CPU per episode (episodes 2..): {per_node}; all nodes {sum(stack_cpu.values()) / later:.2f} s, "
               f"the sim alone {stack_cpu['sim'] / later / base_later:.2f}x (a)'s wall per episode "
               f"({base_later:.2f} s)")  # fmt: skip
-    if args.floor_ticks:
-        # The in-process tick over the episodes after the first (which builds the env): wall per tick.
-        tick_s = statistics.median(t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True))
-        floor = floor_per_tick(args.floor_ticks)
-        step_s = floor.robosuite_step_s
-        print(f"floor per tick: robosuite's env.step {1000 * step_s:.2f} ms, of which its MuJoCo calls "
-              f"((2 mj_forward + mj_step) x 25) {1000 * floor.robosuite_mujoco_s:.2f} ms and its Python around them "
-              f"{100 * (1 - floor.robosuite_mujoco_s / step_s):.0f} %")  # fmt: skip
-        print(f"  the same calls with repeated stages skipped (StageReuse) {1000 * floor.reused_mujoco_s:.2f} ms "
-              f"({floor.reused_mujoco_s / floor.robosuite_mujoco_s:.2f}x); "
-              f"LiberoEnv.step {1000 * floor.env_step_s:.2f} ms ({floor.env_step_s / step_s:.2f}x robosuite's "
-              f"env.step); raw mj_step x 25 "
-              f"{1000 * floor.mj_step_s:.2f} ms")  # fmt: skip
-        print(f"  in-process tick {1000 * tick_s:.2f} ms (median, episodes 2..) = {tick_s / step_s:.2f}x robosuite's "
-              f"env.step (target <= 1.3), {tick_s / floor.env_step_s:.2f}x LiberoEnv.step, "
-              f"{tick_s / floor.mj_step_s:.2f}x mj_step")  # fmt: skip
-    if args.slow_policy:
-        slow(args.slow_policy, out)
-    print(f"load average after: {os.getloadavg()[0]:.2f}")
-    if args.resets:
-        hard, soft = reset_times(args.resets)
-        print(f"reset of one env (10 wait steps included): hard {hard:.3f} s, soft {soft:.3f} s, "
-              f"hard / soft {hard / soft:.1f}  (target soft <= 0.3 s)")  # fmt: skip
+    return times, ticks
 
 
 def cpu_seconds(pid: int) -> float:
@@ -152,17 +173,21 @@ def cpu_seconds(pid: int) -> float:
 
 @dataclass(frozen=True)
 class Floor:
-    """Wall seconds per tick on one scene (no cameras), all from the same start state with the same action."""
+    """CPU seconds per tick on one scene (no cameras), all from the same start state with the same action."""
 
     robosuite_step_s: float  #: robosuite's own env.step (LIBERO's ControlEnv, MjSim's own forward and step)
-    env_step_s: float  #: LiberoEnv.step: the same physics through StageReuse, energy integrated, tick state built
+    env_step_s: float  #: LiberoEnv.step: the fast tick (lq_ros.sim.fast_tick), StageReuse, energy, tick state
+    env_step_robosuite_s: float  #: LiberoEnv.step with LQ_FAST_TICK=off: robosuite's env.step through StageReuse
     robosuite_mujoco_s: float  #: the MuJoCo calls of robosuite's step: (mj_forward x 2 + mj_step) x 25
     reused_mujoco_s: float  #: the same three passes through StageReuse (repeated stages skipped) x 25
     mj_step_s: float  #: raw mj_step x 25: the physics alone
 
 
-def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -> Floor:
-    """The simulation floor of a tick (:class:`Floor`), each loop timed for ``n_ticks`` ticks."""
+def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, repetitions: int = 5) -> Floor:
+    """The simulation floor of a tick (:class:`Floor`): each loop runs ``n_ticks`` ticks in ``repetitions`` rounds,
+    the loops interleaved within each round (a change of machine load hits them alike), each round from the same
+    start state. Per loop, the median over rounds of the process's CPU seconds per tick: on a machine shared with
+    other work, CPU time varies less than wall time."""
     import mujoco
     import numpy as np
 
@@ -177,22 +202,15 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
     model, start_data = sim.model._model, copy.copy(sim.data._data)
     action = np.zeros(7)
     action[-1] = -1.0
-
-    def per_tick(step: Callable[[], object]) -> float:
-        start = time.perf_counter()
-        for _ in range(n_ticks):
-            step()
-        return (time.perf_counter() - start) / n_ticks
-
-    wrapped = sim.forward, sim.step
-    del sim.forward, sim.step  # robosuite's own MjSim methods for the stock loop
-    try:
-        robosuite_s = per_tick(lambda: control_env.step(action))
-    finally:
-        sim.forward, sim.step = wrapped
+    ticks = max(1, n_ticks // repetitions)
+    env.step(action)
     ctrl = sim.data._data.ctrl.copy()  # the raw loops below hold these controls
-    env.reset(0, 7)  # soft: the same start state again (tests/sim/test_libero_env.py)
-    env_step_s = per_tick(lambda: env.step(action))
+
+    def cpu_per_tick(step: Callable[[], object]) -> float:
+        start = time.process_time()
+        for _ in range(ticks):
+            step()
+        return (time.process_time() - start) / ticks
 
     def start() -> mujoco.MjData:
         """A copy of the start state holding those controls."""
@@ -200,33 +218,106 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0) -
         data.ctrl[:] = ctrl
         return data
 
+    def stock() -> float:
+        env.reset(0, 7)  # soft: the same start state again (tests/sim/test_libero_env.py)
+        wrapped = sim.forward, sim.step
+        del sim.forward, sim.step  # robosuite's own MjSim methods for the stock loop
+        try:
+            return cpu_per_tick(lambda: control_env.step(action))
+        finally:
+            sim.forward, sim.step = wrapped
+
+    def libero_env(fast: bool) -> float:
+        env.fast_tick = fast
+        env.reset(0, 7)
+        try:
+            return cpu_per_tick(lambda: env.step(action))
+        finally:
+            env.fast_tick = True
+
     def raw(calls_per_substep: Callable[[mujoco.MjData], None]) -> float:
         data = start()
-        return per_tick(lambda: [calls_per_substep(data) for _ in range(SUBSTEPS_PER_TICK)])
+        return cpu_per_tick(lambda: [calls_per_substep(data) for _ in range(SUBSTEPS_PER_TICK)])
 
     def robosuite_calls(data: mujoco.MjData) -> None:
         mujoco.mj_forward(model, data)
         mujoco.mj_forward(model, data)
         mujoco.mj_step(model, data)
 
-    stages = StageReuse(model, start())
+    def reused() -> float:
+        stages = StageReuse(model, start())
 
-    def reused_tick() -> None:
-        with stages.tick():
-            for _ in range(SUBSTEPS_PER_TICK):
-                stages.forward()
-                stages.forward()
-                stages.step()
+        def tick() -> None:
+            with stages.tick():
+                for _ in range(SUBSTEPS_PER_TICK):
+                    stages.forward()
+                    stages.forward()
+                    stages.step()
 
-    floor = Floor(
-        robosuite_step_s=robosuite_s,
-        env_step_s=env_step_s,
-        robosuite_mujoco_s=raw(robosuite_calls),
-        reused_mujoco_s=per_tick(reused_tick),
-        mj_step_s=raw(lambda data: mujoco.mj_step(model, data)),
-    )
+        return cpu_per_tick(tick)
+
+    loops: dict[str, Callable[[], float]] = {
+        "robosuite_step_s": stock,
+        "env_step_s": lambda: libero_env(True),
+        "env_step_robosuite_s": lambda: libero_env(False),
+        "robosuite_mujoco_s": lambda: raw(robosuite_calls),
+        "reused_mujoco_s": reused,
+        "mj_step_s": lambda: raw(lambda data: mujoco.mj_step(model, data)),
+    }
+    rounds: dict[str, list[float]] = {name: [] for name in loops}
+    for _ in range(repetitions):
+        for name, loop in loops.items():
+            rounds[name].append(loop())
     env.close()
-    return floor
+    return Floor(**{name: statistics.median(values) for name, values in rounds.items()})
+
+
+def sweep_against_stock(floor: Floor, inits: int = 8) -> None:
+    """The whole in-process sweep of a paper cell (scripted, async 0.2 s, LIBERO-Spatial task 0, ``inits`` init
+    states, one worker: start-up, env creation, resets, bags, scoring and the store included), with the fast tick
+    and without it (LQ_FAST_TICK=off), against its ticks through robosuite's stock env.step (``floor``, measured in
+    the same run): the worker's CPU seconds and the sweep's wall seconds over ticks x stock step."""
+    from lq_ros.core.suite_constants import NUM_WAIT_STEPS
+    from lq_ros.run import sweep as sw
+
+    raw = {
+        "name": "bench_cell",
+        "transport": "inprocess",
+        "tasks": [0],
+        "inits": list(range(inits)),
+        "policies": [{"name": "scripted", "args": {}}],
+        "latencies_s": [0.2],
+        "modes": ["async"],
+    }
+    spec = sw.expand_spec(raw)
+    saved = os.environ.get("LQ_FAST_TICK")
+    results: dict[str, tuple[float, float, int]] = {}
+    try:
+        for setting in ("off", "on"):
+            os.environ["LQ_FAST_TICK"] = setting  # read by the worker's LiberoEnv
+            out = Path(tempfile.mkdtemp(prefix="lq_bench_cell_"))
+            cpu_before = sum(os.times()[2:4])
+            start = time.perf_counter()
+            summary = sw.run_sweep(spec, out, workers=1)
+            wall = time.perf_counter() - start
+            cpu = sum(os.times()[2:4]) - cpu_before
+            rows = [r["row"] for r in sw.ResultStore(out).records()]
+            ticks = sum(int(r.get("action_ticks") or 0) + int(r.get("hold_ticks") or 0) + NUM_WAIT_STEPS for r in rows)
+            assert summary.ran == inits, summary
+            results[setting] = (cpu, wall, ticks)
+            shutil.rmtree(out, ignore_errors=True)
+    finally:
+        if saved is None:
+            os.environ.pop("LQ_FAST_TICK", None)
+        else:
+            os.environ["LQ_FAST_TICK"] = saved
+    assert results["on"][2] == results["off"][2], results  # the same episodes, tick for tick
+    stock_s = results["on"][2] * floor.robosuite_step_s
+    for setting, label in (("off", "without the fast tick"), ("on", "with it")):
+        cpu, wall, ticks = results[setting]
+        print(f"  in-process sweep, {label}: {inits} episodes, {ticks} ticks (wait steps included): worker CPU "
+              f"{cpu:.1f} s = {cpu / stock_s:.2f}x, wall {wall:.1f} s = {wall / stock_s:.2f}x the same ticks through "
+              f"robosuite's stock env.step ({stock_s:.1f} s; target <= 0.55)")  # fmt: skip
 
 
 def slow(sleep_s: float, out: Path, episodes: int = 3) -> None:

@@ -21,14 +21,27 @@ scene, each keeping its own clock). Around MuJoCo's own cost that Python is abou
   LIBERO's ``step`` evaluates again afterwards (the result ``done`` comes from), and nothing here reads the reward.
 
 Anything else (another controller, robot, gripper or observable delay, a subclass overriding one of these methods)
-is refused by :func:`unsupported` and the env steps through robosuite's own ``env.step``. The trajectory is bit
+is refused by :func:`unsupported` and the env steps through robosuite's own ``env.step``, as it does with the
+environment variable ``LQ_FAST_TICK=off``. The trajectory is bit
 for bit that of LIBERO's own env: tests/sim/test_parity.py compares joint positions, the whole MuJoCo state and the
 observations tick by tick against LIBERO's conventional loop on every suite.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
+
 import numpy as np
+
+
+def enabled(environ: Mapping[str, str] = os.environ) -> bool:
+    """``LQ_FAST_TICK``: ``on`` (the default) or ``off`` (every tick through robosuite's own ``env.step``, e.g. to
+    compare); ValueError naming the valid values otherwise."""
+    value = environ.get("LQ_FAST_TICK", "").strip().lower() or "on"
+    if value not in ("on", "off"):
+        raise ValueError(f"LQ_FAST_TICK={value!r}: expected on or off")
+    return value == "on"
 
 
 def unsupported(env) -> str | None:

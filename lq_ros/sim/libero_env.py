@@ -269,9 +269,11 @@ class LiberoEnv:
                 use_camera_obs=False,
             )
         self._mujoco = mujoco
+        from lq_ros.sim import fast_tick
+
         #: Tick through :class:`lq_ros.sim.fast_tick.FastTick` where it applies; False: robosuite's own ``env.step``
-        #: (the same trajectory, bit for bit; for comparisons).
-        self.fast_tick = True
+        #: (the same trajectory, bit for bit; for comparisons). Default: ``LQ_FAST_TICK`` (``on`` unless ``off``).
+        self.fast_tick = fast_tick.enabled()
         self._substeps: list[tuple[np.ndarray, ...]] = []
         self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
         #: The simulator's data when robosuite last sampled its observations (cameras render from it).
