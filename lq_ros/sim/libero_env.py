@@ -33,6 +33,21 @@ from lq_ros.core.types import EnergyIntegrals, Observation, PhysicsSamples, Task
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 ARM_JOINTS = 7
+
+
+def unread_observable(name: str) -> bool:
+    """A robosuite observable nothing here reads: an Observation holds the arm's joint positions and velocities, the
+    end effector's pose, the gripper's joint positions and each object's pose (:meth:`LiberoEnv.observe`), not the
+    joints' cosines and sines, the gripper's joint velocities, or poses relative to the gripper. With the fast tick
+    on they are not computed (robosuite's own switch: a disabled observable is not updated and not in the
+    observations). Sensors only read the simulation, so nothing else changes."""
+    return (
+        name == "world_pose_in_gripper"
+        or "_to_" in name
+        or name.endswith(("_joint_pos_cos", "_joint_pos_sin", "_gripper_qvel"))
+    )
+
+
 #: Compiled MuJoCo models this process keeps, by their XML (a few MB each; a sweep worker visits a few tasks).
 COMPILED_MODELS_KEPT = 8
 _compiled_models: OrderedDict[tuple[str, bool], object] = OrderedDict()  # by (XML, with textures)
@@ -471,6 +486,19 @@ class LiberoEnv:
         from lq_ros.sim.fast_tick import FastTick, unsupported
 
         self._fast_tick = FastTick(self._env.env) if unsupported(self._env.env) is None else None
+        self._skip_unread_observables()
+
+    def _skip_unread_observables(self) -> None:
+        """With the fast tick on, robosuite's observables nothing here reads are disabled (robosuite re-creates them
+        enabled at a hard reset); with it off, all are enabled, each clock set to that of one always enabled."""
+        observables = self._env.env._observables
+        clock = observables["robot0_joint_pos"]
+        for name, observable in observables.items():
+            enabled = not (self.fast_tick and unread_observable(name))
+            if enabled and not observable._enabled:
+                observable._time_since_last_sample = clock._time_since_last_sample
+                observable._sampled, observable._current_delay = clock._sampled, clock._current_delay
+            observable._enabled = enabled
 
     def _wrap_observables(self) -> None:
         """Keep a copy of the simulator's data whenever robosuite samples its observables.
