@@ -10,6 +10,8 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   eval-loop CKPT SUITE TASK STEPS SEED OUT
                                     lerobot-eval's rollout() on LeRobot's LiberoEnv: the actions it executed
   defaults                          LeRobot's LIBERO defaults our client copies (render size, camera keys)
+  full-state CKPT [CAMERAS]         the policy's input from a request, and from the same observation with the fields
+                                    LeRobot >= 0.6's LiberoEnv adds (EE rotation matrix, finger velocities): equal?
 """
 
 from __future__ import annotations
@@ -281,6 +283,32 @@ def defaults() -> dict:
     }
 
 
+def full_state(ckpt: str, cameras: dict[str, str] | None) -> dict:
+    """Our server's input to the policy, with and without the state fields the stack does not send."""
+    from lerobot.envs.utils import preprocess_observation
+
+    server = lerobot_server.LeRobotServer(ckpt, cameras=cameras)
+    rng = np.random.default_rng(0)
+    request = {f"observation/images/{key.removeprefix('observation.images.')}": rng.integers(0, 256, (64, 64, 3),
+               dtype=np.uint8) for key in server.image_keys}  # fmt: skip
+    quat = np.array([0.1, 0.9, 0.05, 0.4]) / np.linalg.norm([0.1, 0.9, 0.05, 0.4])
+    request.update({
+        "observation/eef_pos": np.array([-0.2, 0.01, 1.17]), "observation/eef_quat": quat,
+        "observation/gripper_qpos": np.array([0.039, -0.039]), "observation/joint_pos": rng.normal(size=7),
+        "observation/joint_vel": rng.normal(size=7), "prompt": "pick up the black bowl",
+    })  # fmt: skip
+    sent = server.policy_batch(request)
+    raw = server.raw_observation(request)
+    raw["robot_state"]["eef"]["mat"] = rng.normal(size=(1, 3, 3))  # any values: nothing downstream may read them
+    raw["robot_state"]["gripper"]["qvel"] = rng.normal(size=(1, 2))
+    observation = preprocess_observation(raw)
+    observation["task"] = [request["prompt"]]
+    full = server.preprocessor(server.env_preprocessor(observation))
+    ours, theirs = batch_arrays(sent), batch_arrays(full)
+    equal = sorted(ours) == sorted(theirs) and all(np.array_equal(ours[k], theirs[k]) for k in ours)
+    return {"equal": bool(equal), "keys": sorted(ours)}
+
+
 def main(argv: list[str]) -> None:
     command, args = argv[0], argv[1:]
     if command == "make":
@@ -293,6 +321,8 @@ def main(argv: list[str]) -> None:
         result = server_obs(args[0], Path(args[1]), Path(args[2]))
     elif command == "eval-loop":
         result = eval_loop(args[0], args[1], int(args[2]), int(args[3]), int(args[4]), Path(args[5]))
+    elif command == "full-state":
+        result = full_state(args[0], json.loads(args[1]) if len(args) > 1 else None)
     elif command == "defaults":
         result = defaults()
     else:
