@@ -5,6 +5,9 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   make-flow OUT                     a tiny random-weight SmolVLA (LeRobot >= 0.5) as lerobot/smolvla_libero is laid
                                     out (cameras camera1/camera2, one empty camera), its backbone config and a toy
                                     tokenizer made here: no hub
+  pi-configs OUT                    config.json of pi0 and pi0.5 for LIBERO as this LeRobot writes them (no weights:
+                                    their backbones are fixed at Gemma 300M/2B with a SigLIP tower, ~1e9 parameters)
+  config-fields CONFIG...           what our server's config check says of each CONFIG here (null: accepted)
   lerobot-obs CKPT SUITE TASK OUT   LeRobot's LiberoEnv reset (init state 0) -> what the policy is handed
   server-obs CKPT PAYLOAD OUT       our server's conversion of a request payload -> what the policy is handed
   eval-loop CKPT SUITE TASK STEPS SEED OUT
@@ -198,6 +201,31 @@ def make_flow(out: Path) -> dict:
     return {"smolvla": str(folder)}
 
 
+def pi_configs(out: Path) -> dict:
+    from lerobot.policies.pi0.configuration_pi0 import PI0Config
+    from lerobot.policies.pi05.configuration_pi05 import PI05Config
+
+    inputs, outputs = features()
+    made = {}
+    for name, config_class in (("pi0", PI0Config), ("pi05", PI05Config)):
+        folder = out / name
+        folder.mkdir(parents=True, exist_ok=True)
+        config_class(input_features=inputs, output_features=outputs, device="cpu")._save_pretrained(folder)
+        made[name] = str(folder / "config.json")
+    return made
+
+
+def config_fields(configs: list[str]) -> dict:
+    errors = {}
+    for config in configs:
+        try:
+            lerobot_server.check_config_fields(Path(config))
+            errors[config] = None
+        except ValueError as exc:
+            errors[config] = str(exc)
+    return errors
+
+
 def batch_arrays(batch: dict) -> dict[str, np.ndarray]:
     return {key: value.detach().cpu().numpy() for key, value in batch.items() if isinstance(value, torch.Tensor)}
 
@@ -321,6 +349,10 @@ def main(argv: list[str]) -> None:
         result = server_obs(args[0], Path(args[1]), Path(args[2]))
     elif command == "eval-loop":
         result = eval_loop(args[0], args[1], int(args[2]), int(args[3]), int(args[4]), Path(args[5]))
+    elif command == "pi-configs":
+        result = pi_configs(Path(args[0]))
+    elif command == "config-fields":
+        result = config_fields(args)
     elif command == "full-state":
         result = full_state(args[0], json.loads(args[1]) if len(args) > 1 else None)
     elif command == "defaults":

@@ -21,7 +21,7 @@ from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.policies.lerobot_client import default_python
+from lq_ros.policies.lerobot_client import RTC_TYPES, check_config, default_python
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
@@ -44,12 +44,12 @@ def python06() -> Path:
     return PYTHON06
 
 
-def in_venv06(*args: object) -> dict:
+def in_venv06(*args: object, python: Path | None = None) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["HF_HUB_OFFLINE"] = "1"  # everything is made here: nothing may come from a hub
     done = subprocess.run(
-        [str(python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600, env=env,
-        check=False,
+        [str(python or python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600,
+        env=env, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -93,6 +93,20 @@ def test_state_fields_the_stack_does_not_send_change_nothing(checkpoints, kind):
     cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
     result = in_venv06("full-state", checkpoints[kind], *([json.dumps(cameras)] if kind == "smolvla" else []))
     assert result["equal"] and "observation.state" in result["keys"], result
+
+
+def test_pi0_and_pi05_configs_of_lerobot_06(tmp_path):
+    """pi0 and pi0.5 are not built here: LeRobot fixes their backbones at Gemma 300M or 2B with a SigLIP tower (about
+    1e9 random parameters, 4 GB) and their tokenizer at a hub repository. Their configs, as LeRobot 0.6 writes them,
+    pass our client and LeRobot 0.6's field check; LeRobot 0.4.4's check names the fields it does not know."""
+    configs = in_venv06("pi-configs", tmp_path)
+    for kind, config_file in configs.items():
+        config = check_config(Path(config_file), kind)
+        assert config["type"] in RTC_TYPES and config["n_action_steps"] == 50
+    assert in_venv06("config-fields", *configs.values()) == dict.fromkeys(configs.values())
+    if default_python().is_file():
+        for refused in in_venv06("config-fields", *configs.values(), python=default_python()).values():
+            assert "LeRobot 0.4.4 does not know" in refused and "use_relative_actions" in refused, refused
 
 
 def test_act_saved_by_06_answers_its_queue_a_full_chunk_or_n_action_steps(checkpoints):
