@@ -17,16 +17,19 @@ bit-identical); ``LiberoEnv.step`` (the fast tick of lq_ros.sim.fast_tick over t
 ``mj_step`` x 25) and the same without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the physics
 alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
 one worker; start-up, resets, bags, scoring included), without and with the fast tick, against its ticks through
-robosuite's stock ``env.step`` (target <= 0.55x). Where (b)'s time goes: the CPU seconds each
+robosuite's stock ``env.step`` (target <= 0.55x). Where an in-process episode's time goes (``--where N``): each
+part's CPU time, exclusive of the parts it calls, from timers around MuJoCo's calls, robosuite's numba maths,
+LiberoEnv's step, reset and tick state, the task state, robosuite's observables, its policy-step substep, LIBERO's
+success check, bag writing, scoring and the policy. Where (b)'s time goes: the CPU seconds each
 of its node processes used per episode (episodes 2.., from /proc), against (a)'s wall per episode. A slow policy: with
 ``--slow-policy S`` the scripted expert sleeps S wall seconds per inference at Δt_sim 0.2 s, in process and
 through the long-lived stack, where the policy node's inference overlaps the simulation of the ticks that do not
 wait for it.
 
     .venv/bin/python benchmarks/bench_transport.py [--policy scripted] [--episodes 10] [--resets 5]
-        [--floor-ticks 200] [--sweep-inits 8] [--slow-policy 0.15]
+        [--floor-ticks 200] [--sweep-inits 8] [--where 3] [--slow-policy 0.15]
 
-``--episodes 0 --resets 0 --slow-policy 0`` prints the floor and the sweep only.
+``--episodes 0 --resets 0 --slow-policy 0`` prints the floor, the sweep and the time breakdown only.
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ def main() -> None:
     parser.add_argument("--floor-ticks", type=int, default=200, help="ticks of bare env.step and mj_step (0: skip)")
     parser.add_argument("--slow-policy", type=float, default=0.15, help="sleep per inference, s (0: skip)")
     parser.add_argument("--sweep-inits", type=int, default=8, help="init states of the sweep vs stock (0: skip)")
+    parser.add_argument("--where", type=int, default=3, help="episodes of the time breakdown (0: skip)")
     args = parser.parse_args()
     out = Path(tempfile.mkdtemp(prefix="lq_bench_"))
     try:
@@ -98,6 +102,8 @@ def measure(args: argparse.Namespace, out: Path) -> None:
                   f"robosuite's env.step, {tick_s / floor.env_step_s:.2f}x LiberoEnv.step")  # fmt: skip
         if args.sweep_inits:
             sweep_against_stock(floor, args.sweep_inits)
+    if args.where:
+        where_the_time_goes(args.where, out)
     if args.slow_policy:
         slow(args.slow_policy, out)
     print(f"load average after: {os.getloadavg()[0]:.2f}")
@@ -318,6 +324,92 @@ def sweep_against_stock(floor: Floor, inits: int = 8) -> None:
         print(f"  in-process sweep, {label}: {inits} episodes, {ticks} ticks (wait steps included): worker CPU "
               f"{cpu:.1f} s = {cpu / stock_s:.2f}x, wall {wall:.1f} s = {wall / stock_s:.2f}x the same ticks through "
               f"robosuite's stock env.step ({stock_s:.1f} s; target <= 0.55)")  # fmt: skip
+
+
+def where_the_time_goes(episodes: int, out: Path) -> None:
+    """Where an in-process episode's time goes (scripted, async 0.2 s, LIBERO-Spatial task 0, init states 1..N after
+    one that builds the env): CPU seconds of each part, exclusive of the parts it calls, from timers wrapped around
+    the functions below (each adds about a microsecond per call, counted in its caller)."""
+    import mujoco
+    import robosuite.utils.control_utils as control
+
+    from lq_ros.recording.episode_bag import EpisodeBagWriter
+    from lq_ros.run import episode as episode_module
+    from lq_ros.sim.libero_env import LiberoEnv
+    from lq_ros.sim.task_state import TaskStateProbe
+
+    totals: dict[str, float] = {}
+    calls: dict[str, int] = {}
+    stack: list[list[float]] = []  # per open timer: [start, time spent in timed callees]
+
+    def timed(label: str, function: Callable) -> Callable:
+        def wrapper(*args, **kwargs):
+            stack.append([time.process_time(), 0.0])
+            try:
+                return function(*args, **kwargs)
+            finally:
+                start, inner = stack.pop()
+                spent = time.process_time() - start
+                totals[label] = totals.get(label, 0.0) + spent - inner
+                calls[label] = calls.get(label, 0) + 1
+                if stack:
+                    stack[-1][1] += spent
+
+        return wrapper
+
+    patches: list[tuple[object, str, object]] = []
+
+    def patch(owner: object, name: str, label: str) -> None:
+        patches.append((owner, name, getattr(owner, name)))
+        setattr(owner, name, timed(label, getattr(owner, name)))
+
+    for name in ("mj_forward", "mj_forwardSkip", "mj_step", "mj_step2", "mj_checkPos", "mj_checkVel", "mj_kinematics"):
+        patch(mujoco, name, "MuJoCo")
+    for name in ("opspace_matrices", "nullspace_torques", "orientation_error"):
+        patch(control, name, "robosuite's numba maths (LAPACK)")
+    patch(LiberoEnv, "step", "LiberoEnv.step: the fast tick's Python, StageReuse, energy")
+    patch(LiberoEnv, "reset", "resets (the 10 wait steps' Python)")
+    patch(LiberoEnv, "_tick_state", "tick state (exact EE pose)")
+    patch(TaskStateProbe, "sample", "task state (object poses, contacts, predicates)")
+    patch(EpisodeBagWriter, "write", "bag writing")
+    patch(EpisodeBagWriter, "close", "bag writing")
+    patch(episode_module, "scored_row", "scoring")
+    patch(episode_module, "run_episode", "episode: executor, messages, the rest")
+    worker = EpisodeWorker("inprocess", out / "where")
+    try:
+        cfgs = [RunConfig(policy="scripted", mode="async", latency_s=0.2, init=i) for i in range(episodes + 1)]
+        env, policy = worker._env_policy(cfgs[0])
+        episode_module.run_episode(cfgs[0], out / "where", "inprocess", env=env, policy=policy)
+        inner = env._env.env
+        for name, label in (
+            ("_update_observables", "robosuite observables (sampled once per tick)"),
+            ("_pre_action", "robosuite's policy-step substep (1 of 25)"),
+            ("_check_success", "LIBERO's success check"),
+        ):
+            setattr(inner, name, timed(label, getattr(inner, name)))
+        policy.infer = timed("policy (scripted expert)", policy.infer)
+        totals.clear()
+        calls.clear()
+        ticks = 0
+        cpu = time.process_time()
+        for cfg in cfgs[1:]:
+            outcome, _ = episode_module.run_episode(cfg, out / "where", "inprocess", env=env, policy=policy)
+            ticks += outcome.ticks
+        cpu = time.process_time() - cpu
+        for name in ("_update_observables", "_pre_action", "_check_success"):
+            delattr(inner, name)
+        del policy.infer
+    finally:
+        for owner, name, original in reversed(patches):
+            setattr(owner, name, original)
+        worker.close()
+    total = sum(totals.values())
+    print(f"where the time goes: {episodes} in-process episodes (scripted, async 0.2 s, Spatial task 0), {ticks} "
+          f"ticks, CPU {total:.2f} s ({1000 * total / ticks:.2f} ms per tick; the process: {cpu:.2f} s); per part, "
+          f"exclusive of the parts it calls:")  # fmt: skip
+    for label, seconds in sorted(totals.items(), key=lambda item: -item[1]):
+        print(f"  {100 * seconds / total:5.1f} %  {1000 * seconds / ticks:6.2f} ms per tick  {label} "
+              f"({calls[label]} calls)")  # fmt: skip
 
 
 def slow(sleep_s: float, out: Path, episodes: int = 3) -> None:
