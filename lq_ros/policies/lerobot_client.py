@@ -328,6 +328,11 @@ class LeRobotPolicy(OpenPIPolicy):
             raise ValueError(
                 f"n_action_steps {self.n_action_steps}: valid: 1 to the checkpoint's chunk size, {chunk_size}"
             )
+        if self.full_chunk and self.config["type"] in ("diffusion", "vqbet"):
+            raise ValueError(
+                f"full_chunk: a {self.config['type']} policy's chunk is its n_action_steps from the current step; "
+                "set n_action_steps instead"
+            )
         # The instance's own merge check (a LeRobot checkpoint takes a prefix only if LeRobot wires RTC into it).
         self.check_merge = self._check_merge_for_checkpoint
         self.device = str(device)

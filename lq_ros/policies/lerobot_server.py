@@ -465,6 +465,7 @@ class LeRobotServer:
         """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick."""
         if prefix is not None:
             return self.rtc_chunk(batch, prefix)
+        self._enable_rtc(False)  # LeRobot's select_action refuses to run with RTC on
         queue = self._action_queue()
         with self.torch.inference_mode():
             if self.full_chunk:
@@ -498,8 +499,9 @@ class LeRobotServer:
         torch = self.torch
         rows = prefix["actions"]
         if self.policy.rtc_processor is None:
-            self.config.rtc_config = RTCConfig(enabled=True, execution_horizon=self.chunk_size)
+            self.policy.config.rtc_config = RTCConfig(enabled=True, execution_horizon=self.chunk_size)
             self.policy.init_rtc_processor()
+        self._enable_rtc(True)
         rtc_config = self.policy.rtc_processor.rtc_config
         rtc_config.prefix_attention_schedule = RTCAttentionSchedule[PREFIX_SCHEDULES[prefix["schedule"]]]
         rtc_config.execution_horizon = max(len(rows), 1)
@@ -513,6 +515,12 @@ class LeRobotServer:
                 batch, inference_delay=prefix["delay"], prev_chunk_left_over=left_over
             )
         return self.postprocessed(chunk.transpose(0, 1))
+
+    def _enable_rtc(self, enabled: bool) -> None:
+        """Switch the policy's RTC on (a request with a prefix) or off (one without) if it has an RTC config."""
+        rtc_config = getattr(self.policy.config, "rtc_config", None)
+        if rtc_config is not None:
+            rtc_config.enabled = enabled
 
     def _action_normalizer(self):
         """The post-processor's unnormalizer step (its statistics turn the model's actions into the env's)."""

@@ -123,6 +123,8 @@ def test_act_saved_by_06_answers_its_queue_a_full_chunk_or_n_action_steps(checkp
     assert answers["queue"].shape == answers["full"].shape == (8, 7)  # n_action_steps = chunk_size = 8
     assert answers["three"].shape == (3, 7)
     np.testing.assert_allclose(answers["three"], answers["queue"][:3], atol=1e-6)
+    with pytest.raises(ValueError, match="full_chunk: a diffusion policy's chunk is its n_action_steps"):
+        policy06(checkpoints["diffusion"], full_chunk=1)
     with pytest.raises(ValueError, match="n_action_steps 9: valid: 1 to the checkpoint's chunk size, 8"):
         policy06(checkpoints["act"], n_action_steps=9)
 
@@ -163,6 +165,8 @@ def test_rtc_guided_chunk_follows_the_prefix(checkpoints):
         guided = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay))
         policy.reset(TASK_INFO, 5)
         hard = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay, schedule="hard"))
+        policy.reset(TASK_INFO, 5)
+        plain = policy.infer(obs)  # no prefix after RTC ran: select_action's queue, RTC off again
     finally:
         policy.close()
     assert unguided.shape == guided.shape == hard.shape == (SMOLVLA_CHUNK, 7)
@@ -171,6 +175,7 @@ def test_rtc_guided_chunk_follows_the_prefix(checkpoints):
     assert near < 0.05 < 0.2 < far, (near, far)
     assert np.abs(hard[:delay] - prefix[:delay]).mean() < 0.05
     assert not np.allclose(guided[delay:], hard[delay:])  # exp guides rows d..7 too, hard only the first d
+    np.testing.assert_allclose(plain, unguided[:SMOLVLA_STEPS], atol=1e-5)
 
 
 def test_rtc_is_refused_for_act(checkpoints):
