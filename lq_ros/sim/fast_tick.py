@@ -7,9 +7,11 @@ scene, each keeping its own clock). Around MuJoCo's own cost that Python is abou
 
 :class:`FastTick` runs the same tick with the same arithmetic in the same order:
 
-- the first substep (the policy step: the controller's new goal, robosuite's buffers of recent values) is
-  robosuite's own ``_pre_action``;
-- the other substeps run the controller's update and ``run_controller`` for the configuration LIBERO uses
+- at the first substep (the policy step) robosuite's own ``set_goal`` gives the controller its new goal; robosuite's
+  buffers of recent values (``recent_qpos``, ``recent_ee_acc``, ...), which nothing here or in LIBERO reads, are not
+  filled (right after a reset, when robosuite's controller works from the state it kept, the substep is robosuite's
+  own ``_pre_action``);
+- every substep runs the controller's update and ``run_controller`` for the configuration LIBERO uses
   (OSC_POSE, fixed impedance, no interpolator, position and orientation uncoupled) inline: the same MuJoCo calls
   (``mj_jacSite``, ``mj_fullM``), the same NumPy operations on arrays of the same shapes and memory layouts, and
   robosuite's own numba functions (``opspace_matrices``, ``nullspace_torques``, ``orientation_error``), so each
@@ -129,14 +131,8 @@ class FastTick:
         clock = _ObservableClock(env)
         dt = env.model_timestep
 
-        # Substep 1: the policy step, robosuite's own code (the controller's goal, the robot's recent-value buffers).
-        forward()
-        env._pre_action(action, True)
-        sim_step()
-        clock.advance(dt)
-
-        # Substeps 2..: the controller's update and run_controller, inline (robosuite's controllers/osc.py and
-        # base_controller.py, robots/single_arm.py control(), grippers/panda_gripper.py format_action()).
+        # The controller's update and run_controller, inline (robosuite's controllers/osc.py and base_controller.py,
+        # robots/single_arm.py control(), grippers/panda_gripper.py format_action()).
         robot = env.robots[0]
         controller, gripper = robot.controller, robot.gripper
         sid = model.site(controller.eef_name).id
@@ -144,7 +140,6 @@ class FastTick:
         qpos_index = np.asarray(controller.qpos_index, dtype=np.intp)
         qvel_index = np.asarray(controller.qvel_index, dtype=np.intp)
         mass_index = self._mass_index(qvel_index)
-        goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
         kp, kd, initial_joint = controller.kp, controller.kd, controller.initial_joint
         kp_pos, kp_ori, kd_pos, kd_ori = np.array(kp[0:3]), np.array(kp[3:6]), kd[0:3], kd[3:6]
         torque_low, torque_high = robot.torque_limits
@@ -153,7 +148,7 @@ class FastTick:
         ctrl_range = model.actuator_ctrlrange[gripper_actuators]
         grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
-        gripper_action = action[controller.control_dim :]
+        arm_action, gripper_action = action[: controller.control_dim], action[controller.control_dim :]
         grip_increment = np.array([-1.0, 1.0]) * gripper.speed * np.sign(gripper_action)
         grip = gripper.current_action
         jacp, jacr = self._jacp, self._jacr
@@ -166,9 +161,25 @@ class FastTick:
             data.ctrl,
             data.qM,
         )
-        for _ in range(int(env.control_timestep / env.model_timestep) - 1):
+        inline = False  # whether a substep ran inline
+        for substep in range(int(env.control_timestep / env.model_timestep)):
             forward()  # the env loop's
-            forward()  # the controller update's
+            if substep == 0 and not controller.new_update:
+                # After a reset robosuite's update does not run at the policy step (the controller works from the
+                # state it kept then): robosuite's own code for this substep.
+                env._pre_action(action, True)
+                grip, goal_pos, goal_ori = gripper.current_action, controller.goal_pos, controller.goal_ori
+                sim_step()
+                clock.advance(dt)
+                continue
+            if substep == 0:
+                # The policy step: robosuite's own set_goal (its update runs the controller's forward pass). Not
+                # filled: the robot's buffers of recent values (recent_qpos, recent_ee_acc, ...), which nothing
+                # here or in LIBERO reads.
+                controller.set_goal(arm_action)
+                goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
+            else:
+                forward()  # the controller update's
             ee_pos = site_xpos[sid]
             ee_ori_mat = site_xmat[sid].reshape([3, 3])
             mujoco.mj_jacSite(model, data, jacp, jacr, sid)
@@ -197,7 +208,8 @@ class FastTick:
             ctrl[arm_actuators] = clipped
             sim_step()
             clock.advance(dt)
-        if int(env.control_timestep / env.model_timestep) > 1:
+            inline = True
+        if inline:
             # What robosuite leaves behind after a substep (the next policy step's update re-reads the state).
             gripper.current_action = grip
             controller.torques, robot.torques = torques, clipped
