@@ -377,3 +377,28 @@ def test_chunk_length_options_and_temporal_ensembling(checkpoints, tmp_path):
     assert answers["three"].shape == (3, 7)
     np.testing.assert_allclose(answers["three"], answers["queue"][:3], atol=1e-6)
     np.testing.assert_allclose(answers["ensembled"], answers["full"], atol=1e-6)  # same weights, same chunk
+
+
+@pytest.mark.slow
+def test_act_temporal_ensembling_in_async_is_lerobot_evals(checkpoints, tmp_path):
+    """ACT with temporal ensembling answers its whole chunk; async at 0 s with --merge temporal_ensemble (a request
+    every tick, chunks weighed exp(-m i)) commands what lerobot-eval's rollout executes with ACT's own ensembler.
+    Equal to float rounding (LeRobot averages float32 normalized actions, the executor float64 unnormalized ones),
+    which the simulator then carries: the tolerance grows with the tick."""
+    config = json.loads((checkpoints["act"] / "config.json").read_text())
+    ensembled = copy_checkpoint(checkpoints["act"], tmp_path / "ensembled")
+    (ensembled / "config.json").write_text(json.dumps({**config, "temporal_ensemble_coeff": 0.01, "n_action_steps": 1}))
+    reference = tmp_path / "eval.npz"
+    in_lerobot_venv("eval-loop", ensembled, SUITE, TASK, PARITY_STEPS, 0, reference)
+    executed = np.load(reference)["actions"].astype(np.float64)
+    cfg = RunConfig(
+        suite=SUITE, task=TASK, init=0, seed=0, mode="async", latency_s=0.0, merge="temporal_ensemble",
+        policy="lerobot", policy_args={"path": str(ensembled), "threads": 1}, max_steps=PARITY_STEPS,
+    )  # fmt: skip
+    outcome, _ = run_episode(cfg, tmp_path / "ours", "inprocess")
+    sent = commands(outcome.bag_path)
+    assert all(c.source == SOURCE_CHUNK for c in sent)
+    ours = np.array([c.action for c in sent])
+    assert ours.shape == executed.shape
+    difference = np.abs(ours - executed).max(axis=1)
+    assert difference[0] == 0 and np.all(difference[1:4] < 1e-6) and np.all(difference < 1e-2), difference
