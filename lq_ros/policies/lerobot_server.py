@@ -30,13 +30,14 @@ Image keys ``observation.images.empty_camera_<i>`` (SmolVLA's and pi0's ``empty_
 policy pads them itself, as under ``lerobot-eval``.
 
 Protocol (openpi ``websocket_policy_server``): a metadata frame, then one msgpack-numpy request, one reply.
-Request keys: ``token`` (this run's secret, see below), ``observation/images/<lerobot image key>`` (uint8
-H x W x 3 as robosuite renders it, bottom row first), ``observation/eef_pos``, ``observation/eef_quat``
-(x y z w), ``observation/gripper_qpos``, ``observation/joint_pos``, ``observation/joint_vel`` (float),
-``prompt``, ``reset`` (true on an episode's first request: the policy and processors are reset) and ``seed``
-(with ``reset``); optionally ``prefix/actions`` (L x 7, the executor's plan in the env's action space),
-``prefix/delay`` (d, ticks) and ``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``). Reply:
-``actions`` (n, 7) float32 and ``policy_timing.infer_ms``. A failure is sent as one
+Request keys: ``token`` (this run's secret, see below); ``observation/images/image`` and ``.../image2`` (the
+cameras the mapping uses: uint8 H x W x 3 as robosuite renders them, bottom row first);
+``observation/eef_pos``, ``observation/eef_quat`` (x y z w), ``observation/gripper_qpos``,
+``observation/joint_pos``, ``observation/joint_vel`` (float); ``prompt``; ``reset`` (true on an episode's
+first request: the policy and processors are reset) and ``seed`` (with ``reset``); optionally
+``prefix/actions`` (L x 7, the executor's plan in the env's action space), ``prefix/delay`` (d, ticks) and
+``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``). Reply: ``actions`` (n, 7) float32 and
+``policy_timing.infer_ms``. A failure is sent as one
 text line (the exception's type and message, no traceback), then the socket closes.
 
 Any local process can reach a loopback port, so the server trusts no peer:
