@@ -70,6 +70,12 @@ EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
 #: Words in an image key that say which camera it is (automatic mapping, case-insensitive).
 AGENTVIEW_WORDS = ("agentview", "front", "third_person")
 WRIST_WORDS = ("wrist", "eye_in_hand", "hand")
+#: Policy types whose LIBERO evaluation needs what the stack does not send, and why.
+UNSUPPORTED_TYPES = {
+    "xvla": "X-VLA's LIBERO processor needs the end-effector rotation matrix in its state (20-D) and absolute "
+    "control; the stack sends LeRobot's 8-D LIBERO state and runs delta control (supported types: act, diffusion, "
+    "smolvla, pi0, pi05, ...)",
+}
 #: The policy types LeRobot wires its RTC processor into (flow matching): ``--merge rtc``/``rtc_hard`` work with them.
 RTC_TYPES = ("smolvla", "pi0", "pi05")
 
@@ -234,6 +240,8 @@ def check_config(config_file: Path, where: str, rename: dict[str, str] | None = 
         raise ValueError(f"lerobot path {where!r}: config.json is not JSON ({exc})") from None
     if not isinstance(config, dict) or not isinstance(config.get("type"), str):
         raise ValueError(f"lerobot path {where!r}: config.json has no policy 'type'")
+    if config["type"] in UNSUPPORTED_TYPES:
+        raise ValueError(f"lerobot path {where!r}: {UNSUPPORTED_TYPES[config['type']]}")
     inputs, outputs = config.get("input_features"), config.get("output_features")
     if not isinstance(inputs, dict) or not isinstance(outputs, dict):
         raise ValueError(f"lerobot path {where!r}: config.json has no input_features/output_features")

@@ -79,3 +79,9 @@ def test_inputs_beyond_libero_are_refused(tmp_path):
         check_config(config_file(tmp_path, ["image", "image2", "image3"]), "ckpt")
     with pytest.raises(ValueError, match="not LIBERO's"):
         check_config(config_file(tmp_path, ["empty_camera_0"]), "ckpt")
+
+
+def test_xvla_is_refused_with_its_reason(tmp_path):
+    with pytest.raises(ValueError, match="X-VLA's LIBERO processor needs the end-effector rotation matrix") as refused:
+        check_config(config_file(tmp_path, ["image", "image2"], type="xvla"), "ckpt")
+    assert "\n" not in str(refused.value)
