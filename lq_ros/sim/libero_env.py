@@ -323,7 +323,11 @@ class LiberoEnv:
         np.random.seed(seed)
         # hard: a new MjSim (from the compiled model); soft: mj_resetData
         with compiled_once(textures=bool(self.camera_names)), robosuite_collection_skipped():
-            self._reset_robosuite()
+            if hard:
+                self._reset_robosuite()
+            else:
+                with self._soft_reset_as_new():
+                    self._reset_robosuite()
         self._bind_sim()
         if not hard:
             for robot in self._env.env.robots:
@@ -339,6 +343,25 @@ class LiberoEnv:
         self._tick = 0
         self._success = False
         return self._tick_state()
+
+    @contextlib.contextmanager
+    def _soft_reset_as_new(self):
+        """robosuite's soft reset (``sim.reset``: mj_resetData) followed by the forward pass robosuite's
+        ``_initialize_sim`` runs on a new MjSim, so the data goes through what a hard reset's does. Without it the
+        constraint solver's warm start (``qacc_warmstart``) differed in its last bits, and so, from the first wait
+        step, did the episode: a sweep worker's second episode of a task was not its first-episode self."""
+        sim = self._env.env.sim
+        reset = sim.reset
+
+        def reset_as_new() -> None:
+            reset()
+            sim.forward()
+
+        sim.reset = reset_as_new
+        try:
+            yield
+        finally:
+            del sim.reset  # the class's own again
 
     def _reset_robosuite(self) -> None:
         """robosuite's reset, retried only when object placement failed.
