@@ -2,12 +2,15 @@
 
 Input: the per-tick task state the simulator records (``/lq/task/state`` and ``/lq/task/object_poses``:
 object poses, gripper contact and grasp per object, each goal predicate's truth) and the end-effector pose.
-The taxonomy (docs/guide/failure_modes.md), checked in this order for an episode that ran out of budget:
+The taxonomy (docs/guide/failure_modes.md), checked in this order for an episode that ran out of budget (the
+first that applies):
 
 - ``undone``: a goal predicate held at some tick and no longer holds at the end (placed, then knocked off).
 - ``budget_out_progressing``: the arm was still making progress on the unmet predicate when the budget ran out
   (its furthest phase was first reached in the last :data:`PROGRESS_WINDOW_TICKS`, or the held object kept
   closing on its destination, or the articulated object kept moving).
+- ``stalled``: the object is still held (or the articulated object touched in the last window) at the end, without
+  that progress: stalled or oscillating.
 - ``wrong_object_disturbed``: the unmet predicate's object was never engaged, while another movable object was
   grasped or displaced.
 - ``never_reached``: the gripper never came near the unmet predicate's object.
@@ -16,8 +19,6 @@ The taxonomy (docs/guide/failure_modes.md), checked in this order for an episode
 - ``dropped_in_transit``: the object was lifted or moved while held and released away from its destination.
 - ``placed_off_target``: the object was released near its destination (or an articulated object was moved and
   let go) with the predicate unmet.
-- ``stalled``: the object is still held (or the articulated object touched) at the end, with no progress in the
-  last window: stalled or oscillating.
 
 A success is ``none``; a broken run is ``error``; a bag without task state is ``unavailable`` (an older bag,
 a robot that publishes no object poses), never ``none``.

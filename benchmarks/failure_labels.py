@@ -1,0 +1,197 @@
+"""The failure-mode classifier against labels made by reading the taxonomy and watching replays.
+
+Four steps; the labelled set they make is committed under tests/data/failure_labels/ (its check is
+tests/scoring/test_failure_labels.py):
+
+    select     pick failed episodes of a sweep, stratified by suite, protocol, latency and policy (seeded), and
+               write their list (episodes.json). The classifier's output is not used to pick them.
+    render     re-simulate each picked bag's commands (checked against its recorded EE poses) and render 20 ticks
+               of the front and wrist cameras into a contact sheet (sheets/<episode>.png): the labeller's view of
+               the replay. The sheets carry no classifier output.
+    extract    copy what the classifier reads (events, EE pose, task state; metadata) of each picked bag into a
+               small bag under tests/data/failure_labels/bags/, so the check runs without the sweep.
+    agreement  score the small bags and print the confusion matrix of labels.csv against the classifier, the
+               raw agreement and Cohen's kappa, each with the labelled count.
+
+    .venv/bin/python benchmarks/failure_labels.py select bags/sweeps/failure_modes --n 48
+    .venv/bin/python benchmarks/failure_labels.py render bags/sweeps/failure_modes --sheets /tmp/sheets
+    .venv/bin/python benchmarks/failure_labels.py extract bags/sweeps/failure_modes
+    .venv/bin/python benchmarks/failure_labels.py agreement
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import random
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO / "tests/data/failure_labels"
+STRATA = ("suite", "mode", "latency_s", "policy")
+
+
+def _rows(sweep: Path) -> list[dict]:
+    return [json.loads(p.read_text())["row"] for p in sorted((sweep / "results").glob("*.json"))]
+
+
+def select(sweep: Path, n: int, seed: int) -> None:
+    """Round-robin over the strata (sorted), a seeded random failed episode of each in turn, until ``n``."""
+    failed = [r for r in _rows(sweep) if r.get("status") == "failure"]
+    strata: dict[tuple, list[str]] = defaultdict(list)
+    for row in failed:
+        strata[tuple(row.get(k) for k in STRATA)].append(row["episode"])
+    rng = random.Random(seed)
+    for names in strata.values():
+        names.sort()
+        rng.shuffle(names)
+    picked: list[str] = []
+    keys = sorted(strata, key=str)
+    while len(picked) < n and any(strata[k] for k in keys):
+        for key in keys:
+            if strata[key] and len(picked) < n:
+                picked.append(strata[key].pop())
+    DATA.mkdir(parents=True, exist_ok=True)
+    out = {"sweep": sweep.name, "seed": seed, "strata": list(STRATA), "episodes": sorted(picked)}
+    (DATA / "episodes.json").write_text(json.dumps(out, indent=1) + "\n")
+    print(f"{len(picked)} of {len(failed)} failed episodes in {len(keys)} strata -> {DATA / 'episodes.json'}")
+
+
+def _picked() -> list[str]:
+    return json.loads((DATA / "episodes.json").read_text())["episodes"]
+
+
+def render(sweep: Path, sheets: Path, frames: int = 20, columns: int = 4, size_px: int = 224) -> None:
+    """Re-simulate each picked bag's commands and render ``frames`` ticks (evenly spaced, the last included) from
+    the front camera and the wrist camera into one contact sheet; the replayed EE pose must equal the bag's at
+    every rendered tick (else the sheet would show another episode)."""
+    from PIL import Image, ImageDraw
+
+    from lq_ros.report.replay import check_replayable, read_recording
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    sheets.mkdir(parents=True, exist_ok=True)
+    envs: dict[tuple[str, int], LiberoEnv] = {}
+    cameras = ("agentview", "robot0_eye_in_hand")
+    for name in _picked():
+        out = sheets / f"{name}.png"
+        if out.exists():
+            continue
+        rec = read_recording(sweep / "bags" / name)
+        cfg = check_replayable(rec)
+        key = (cfg.suite, cfg.task)
+        if key not in envs:
+            for env in envs.values():
+                env.close()
+            envs = {key: LiberoEnv(cfg.suite, cfg.task, camera_names=cameras, camera_size=size_px)}
+        env = envs[key]
+        env.reset(cfg.init, cfg.seed)
+        picks = set(np.linspace(0, rec.ticks, frames).round().astype(int).tolist())
+        tiles = []
+        for tick in range(rec.ticks + 1):
+            if tick in picks:
+                obs = env.observe(with_images=True)
+                recorded = rec.poses.get(tick)
+                if recorded is not None and not np.array_equal(env._tick_state().eef_pos, recorded[0]):
+                    raise SystemExit(f"{name}: the replay left the recorded trajectory at tick {tick}")
+                tiles.append((tick, np.hstack([obs.images[c] for c in cameras])))
+            if tick < rec.ticks:
+                env.step(rec.commands[tick].action)
+        h, w = tiles[0][1].shape[:2]
+        rows = -(-len(tiles) // columns)
+        sheet = Image.new("RGB", (columns * w, rows * (h + 16)), "white")
+        draw = ImageDraw.Draw(sheet)
+        for i, (tick, image) in enumerate(tiles):
+            x, y = (i % columns) * w, (i // columns) * (h + 16)
+            sheet.paste(Image.fromarray(image), (x, y + 16))
+            draw.text(
+                (x + 3, y + 2), f"tick {tick} of {rec.ticks}  (left: front camera, right: wrist camera)", fill="black"
+            )
+        sheet.save(out)
+        print(f"{name}: {out}")
+    for env in envs.values():
+        env.close()
+
+
+def extract(sweep: Path) -> None:
+    from lq_ros.recording.bag_compare import bag_messages
+    from lq_ros.recording.episode_bag import EpisodeBagWriter, read_run_metadata
+    from lq_ros.wire import messages as m
+
+    topics = [m.EPISODE_EVENTS, m.EE_POSE, m.TASK_STATE, m.TASK_OBJECT_POSES]
+    for name in _picked():
+        source = sweep / "bags" / name
+        target = DATA / "bags" / name
+        if target.exists():
+            continue
+        messages = bag_messages(source)
+        writer = EpisodeBagWriter(target, topics)
+        writer.set_run_metadata(read_run_metadata(source))
+        for topic in topics:
+            for t_ns, raw in messages.get(topic.name, []):
+                writer.write(topic, t_ns, raw)
+        writer.close()
+    size = sum(p.stat().st_size for p in (DATA / "bags").rglob("*") if p.is_file())
+    print(f"{len(_picked())} bags, {size / 1e6:.1f} MB in {DATA / 'bags'}")
+
+
+def agreement(quiet: bool = False) -> dict:
+    """Labels against the classifier: confusion matrix (rows: label, columns: classifier), agreement, kappa."""
+    import csv
+
+    from lq_ros.scoring.bag_scorer import score_bag
+    from lq_ros.scoring.failure_modes import FAILURE_MODES
+
+    with (DATA / "labels.csv").open() as f:
+        labels = {r["episode"]: r["label"] for r in csv.DictReader(f)}
+    predicted = {name: score_bag(DATA / "bags" / name)["failure_mode"] for name in labels}
+    modes = [m for m in FAILURE_MODES if m in labels.values() or m in predicted.values()]
+    matrix = np.zeros((len(modes), len(modes)), dtype=int)
+    for name, label in labels.items():
+        matrix[modes.index(label), modes.index(predicted[name])] += 1
+    n = int(matrix.sum())
+    observed = float(np.trace(matrix)) / n
+    expected = float((matrix.sum(axis=1) * matrix.sum(axis=0)).sum()) / n**2
+    kappa = (observed - expected) / (1 - expected) if expected < 1 else float("nan")
+    if not quiet:
+        width = max(len(m) for m in modes)
+        print(f"{n} labelled failed episodes; rows: label, columns: classifier")
+        print(" " * width + " " + " ".join(f"{i:>3}" for i in range(len(modes))))
+        for i, mode in enumerate(modes):
+            print(f"{mode:>{width}} " + " ".join(f"{v:>3}" for v in matrix[i]) + f"   ({i})")
+        print(f"agreement {observed:.1%} ({int(np.trace(matrix))} of {n}), Cohen's kappa {kappa:.2f}")
+        for name in sorted(labels):
+            if labels[name] != predicted[name]:
+                print(f"  {name}: label {labels[name]}, classifier {predicted[name]}")
+    return {"n": n, "agreement": observed, "kappa": kappa, "matrix": matrix, "modes": modes}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="step", required=True)
+    p = sub.add_parser("select")
+    p.add_argument("sweep", type=Path)
+    p.add_argument("--n", type=int, default=48)
+    p.add_argument("--seed", type=int, default=0)
+    p = sub.add_parser("render")
+    p.add_argument("sweep", type=Path)
+    p.add_argument("--sheets", type=Path, required=True)
+    p = sub.add_parser("extract")
+    p.add_argument("sweep", type=Path)
+    sub.add_parser("agreement")
+    args = parser.parse_args()
+    if args.step == "select":
+        select(args.sweep, args.n, args.seed)
+    elif args.step == "render":
+        render(args.sweep, args.sheets)
+    elif args.step == "extract":
+        extract(args.sweep)
+    else:
+        agreement()
+
+
+if __name__ == "__main__":
+    main()
