@@ -16,8 +16,9 @@ Python); the same calls with their repeated position and velocity stages skipped
 bit-identical); ``LiberoEnv.step`` (the fast tick of lq_ros.sim.fast_tick over those calls; target <= 2x raw
 ``mj_step`` x 25) and the same without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the physics
 alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
-one worker; start-up, resets, bags, scoring included), without and with the fast tick, against its ticks through
-robosuite's stock ``env.step`` (target <= 0.55x). Where an in-process episode's time goes (``--where N``): each
+one worker; start-up, resets, bags, scoring included), without and with the fast tick, against the same ticks
+through LIBERO's stock ``env.step`` (each bag's commands replayed, its joint positions checked bit for bit; the
+CPU of the steps alone; target <= 0.55x). Where an in-process episode's time goes (``--where N``): each
 part's CPU time, exclusive of the parts it calls, from timers around MuJoCo's calls, robosuite's numba maths,
 LiberoEnv's step, reset and tick state, the task state, robosuite's observables, its policy-step substep, LIBERO's
 success check, bag writing, scoring and the policy. Where (b)'s time goes: the CPU seconds each
@@ -307,23 +308,78 @@ def sweep_against_stock(floor: Floor, inits: int = 8) -> None:
             summary = sw.run_sweep(spec, out, workers=1)
             wall = time.perf_counter() - start
             cpu = sum(os.times()[2:4]) - cpu_before
-            rows = [r["row"] for r in sw.ResultStore(out).records()]
+            records = sw.ResultStore(out).records()
+            rows = [r["row"] for r in records]
             ticks = sum(int(r.get("action_ticks") or 0) + int(r.get("hold_ticks") or 0) + NUM_WAIT_STEPS for r in rows)
             assert summary.ran == inits, summary
             results[setting] = (cpu, wall, ticks)
+            if setting == "on":
+                stock_cpu, stock_ticks = replay_through_stock([out / r["bag"] for r in records])
             shutil.rmtree(out, ignore_errors=True)
     finally:
         if saved is None:
             os.environ.pop("LQ_FAST_TICK", None)
         else:
             os.environ["LQ_FAST_TICK"] = saved
-    assert results["on"][2] == results["off"][2], results  # the same episodes, tick for tick
-    stock_s = results["on"][2] * floor.robosuite_step_s
+    assert results["on"][2] == results["off"][2] == stock_ticks, (results, stock_ticks)  # the same ticks
+    print(f"  the cell's ticks replayed through LIBERO's stock env.step (each bag's commands, its joint positions "
+          f"checked bit for bit): {stock_ticks} ticks, CPU {stock_cpu:.1f} s ({1000 * stock_cpu / stock_ticks:.2f} ms "
+          f"per tick; the floor's static scene: {1000 * floor.robosuite_step_s:.2f} ms)")  # fmt: skip
     for setting, label in (("off", "without the fast tick"), ("on", "with it")):
         cpu, wall, ticks = results[setting]
         print(f"  in-process sweep, {label}: {inits} episodes, {ticks} ticks (wait steps included): worker CPU "
-              f"{cpu:.1f} s = {cpu / stock_s:.2f}x, wall {wall:.1f} s = {wall / stock_s:.2f}x the same ticks through "
-              f"robosuite's stock env.step ({stock_s:.1f} s; target <= 0.55)")  # fmt: skip
+              f"{cpu:.1f} s = {cpu / stock_cpu:.2f}x, wall {wall:.1f} s = {wall / stock_cpu:.2f}x the stock steps' "
+              f"CPU (target <= 0.55)")  # fmt: skip
+
+
+def replay_through_stock(bags: list[Path]) -> tuple[float, int]:
+    """Each bag's commands through LIBERO's own env (ControlEnv; reset as LIBERO's evaluations reset it, then the
+    10 wait steps): the CPU seconds of its env.step calls alone and their count. Every tick's joint positions must
+    equal the bag's (else AssertionError)."""
+    import numpy as np
+    from libero.libero.envs.env_wrapper import ControlEnv
+
+    from lq_ros.core.suite_constants import DUMMY_ACTION, NUM_WAIT_STEPS
+    from lq_ros.recording.bag_compare import bag_messages
+    from lq_ros.recording.episode_bag import read_run_metadata
+    from lq_ros.sim.libero_env import load_task
+    from lq_ros.wire import messages as m
+
+    cpu, ticks = 0.0, 0
+    stock, scene = None, None
+    try:
+        for bag in bags:
+            config = read_run_metadata(bag)["config"]
+            _, bddl, init_states = load_task(config["suite"], config["task"])
+            if scene != (config["suite"], config["task"]):
+                if stock is not None:
+                    stock.close()
+                stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+                scene = (config["suite"], config["task"])
+            msgs = bag_messages(bag)
+            commands = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in msgs[m.COMMAND.name]]
+            joints = [m.deserialize(raw, m.JOINT_STATES.msgtype) for _, raw in msgs[m.JOINT_STATES.name]]
+            stock.seed(config["seed"])
+            np.random.seed(config["seed"])
+            stock.reset()
+            stock.set_init_state(init_states[config["init"]])
+            actions = [np.asarray(DUMMY_ACTION)] * NUM_WAIT_STEPS + [
+                np.asarray(c.action, dtype=np.float64) for c in commands
+            ]
+            arm = np.asarray(stock.env.robots[0]._ref_joint_pos_indexes)
+            qpos = stock.env.sim.data._data.qpos
+            for i, action in enumerate(actions):
+                start = time.process_time()
+                stock.step(action)
+                cpu += time.process_time() - start
+                if i >= NUM_WAIT_STEPS:
+                    position = np.asarray(joints[i - NUM_WAIT_STEPS + 1].position)
+                    assert np.array_equal(position, qpos[arm]), f"{bag.name}: tick {i - NUM_WAIT_STEPS + 1}"
+            ticks += len(actions)
+    finally:
+        if stock is not None:
+            stock.close()
+    return cpu, ticks
 
 
 def where_the_time_goes(episodes: int, out: Path) -> None:
@@ -383,7 +439,7 @@ def where_the_time_goes(episodes: int, out: Path) -> None:
         inner = env._env.env
         for name, label in (
             ("_update_observables", "robosuite observables (sampled once per tick)"),
-            ("_pre_action", "robosuite's policy-step substep (1 of 25)"),
+            ("_pre_action", "robosuite's own policy-step substep (a reset's first tick)"),
             ("_check_success", "LIBERO's success check"),
         ):
             setattr(inner, name, timed(label, getattr(inner, name)))
