@@ -76,7 +76,8 @@ class TaskStateProbe:
             else:
                 self._kinds.append(("body", env.obj_body_id[name]))
                 owner = env.get_object(name)
-            object_masks.append(geom_mask(owner.contact_geoms))
+            # A region whose parent LIBERO cannot name (or a model without contact geoms) has no contact to test.
+            object_masks.append(geom_mask(getattr(owner, "contact_geoms", None) or ()))
         self._object_masks = np.array(object_masks).reshape(len(self.object_names), ngeom)  # (K, ngeom)
         self._bound_to = self._model
 
