@@ -111,6 +111,9 @@ def render(sweep: Path, sheets: Path, frames: int = 20, columns: int = 4, size_p
                 (x + 3, y + 2), f"tick {tick} of {rec.ticks}  (left: front camera, right: wrist camera)", fill="black"
             )
         sheet.save(out)
+        goal = " and ".join("(" + " ".join(g) + ")" for g in env.task.goal)
+        with (sheets / "index.csv").open("a") as index:  # what the labeller is told: the task, nothing scored
+            index.write(f'{name},"{env.task.instruction}","{goal}"\n')
         print(f"{name}: {out}")
     for env in envs.values():
         env.close()
@@ -138,35 +141,28 @@ def extract(sweep: Path) -> None:
     print(f"{len(_picked())} bags, {size / 1e6:.1f} MB in {DATA / 'bags'}")
 
 
-def agreement(quiet: bool = False) -> dict:
+def agreement() -> dict:
     """Labels against the classifier: confusion matrix (rows: label, columns: classifier), agreement, kappa."""
     import csv
 
     from lq_ros.scoring.bag_scorer import score_bag
-    from lq_ros.scoring.failure_modes import FAILURE_MODES
+    from lq_ros.scoring.failure_aggregate import label_agreement
 
     with (DATA / "labels.csv").open() as f:
         labels = {r["episode"]: r["label"] for r in csv.DictReader(f)}
     predicted = {name: score_bag(DATA / "bags" / name)["failure_mode"] for name in labels}
-    modes = [m for m in FAILURE_MODES if m in labels.values() or m in predicted.values()]
-    matrix = np.zeros((len(modes), len(modes)), dtype=int)
-    for name, label in labels.items():
-        matrix[modes.index(label), modes.index(predicted[name])] += 1
-    n = int(matrix.sum())
-    observed = float(np.trace(matrix)) / n
-    expected = float((matrix.sum(axis=1) * matrix.sum(axis=0)).sum()) / n**2
-    kappa = (observed - expected) / (1 - expected) if expected < 1 else float("nan")
-    if not quiet:
-        width = max(len(m) for m in modes)
-        print(f"{n} labelled failed episodes; rows: label, columns: classifier")
-        print(" " * width + " " + " ".join(f"{i:>3}" for i in range(len(modes))))
-        for i, mode in enumerate(modes):
-            print(f"{mode:>{width}} " + " ".join(f"{v:>3}" for v in matrix[i]) + f"   ({i})")
-        print(f"agreement {observed:.1%} ({int(np.trace(matrix))} of {n}), Cohen's kappa {kappa:.2f}")
-        for name in sorted(labels):
-            if labels[name] != predicted[name]:
-                print(f"  {name}: label {labels[name]}, classifier {predicted[name]}")
-    return {"n": n, "agreement": observed, "kappa": kappa, "matrix": matrix, "modes": modes}
+    out = label_agreement(labels, predicted)
+    modes, matrix = out["modes"], out["matrix"]
+    width = max(len(m) for m in modes)
+    print(f"{out['n']} labelled failed episodes; rows: label, columns: classifier (numbered as the rows)")
+    print(" " * width + "      " + " ".join(f"{i:>3}" for i in range(len(modes))))
+    for i, mode in enumerate(modes):
+        print(f"{mode:>{width}} ({i}) " + " ".join(f"{v:>3}" for v in matrix[i]))
+    print(f"agreement {out['agreement']:.1%} ({out['agreed']} of {out['n']}), Cohen's kappa {out['kappa']:.2f}")
+    for name in sorted(labels):
+        if labels[name] != predicted[name]:
+            print(f"  {name}: label {labels[name]}, classifier {predicted[name]}")
+    return out
 
 
 def main() -> None:

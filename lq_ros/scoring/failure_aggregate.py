@@ -91,3 +91,18 @@ def shift_sentences(fractions: pd.DataFrame, series_keys: Sequence[str], *, min_
                 f"{top.replace('_', ' ')} (+{top_rise}){interval}."
             )
     return out
+
+
+def label_agreement(labels: dict[str, str], predicted: dict[str, str]) -> dict:
+    """A labelled set against the classifier: ``matrix`` (rows: label, columns: classifier, over ``modes``), ``n``,
+    ``agreed``, ``agreement`` (raw) and Cohen's ``kappa`` (NaN when chance agreement is 1)."""
+    modes = [m for m in failure_modes.MODES if m in labels.values() or m in predicted.values()]
+    matrix = np.zeros((len(modes), len(modes)), dtype=int)
+    for name, label in labels.items():
+        matrix[modes.index(label), modes.index(predicted[name])] += 1
+    n = int(matrix.sum())
+    agreed = int(np.trace(matrix))
+    observed = agreed / n if n else math.nan
+    expected = float((matrix.sum(axis=1) * matrix.sum(axis=0)).sum()) / n**2 if n else math.nan
+    kappa = (observed - expected) / (1 - expected) if n and expected < 1 else math.nan
+    return {"modes": modes, "matrix": matrix, "n": n, "agreed": agreed, "agreement": observed, "kappa": kappa}
