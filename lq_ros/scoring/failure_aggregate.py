@@ -77,18 +77,16 @@ def shift_sentences(fractions: pd.DataFrame, series_keys: Sequence[str], *, min_
                 continue
             rises = (counts - base_counts.reindex(counts.index, fill_value=0)).sort_values(ascending=False)
             top, top_rise = rises.index[0], int(rises.iloc[0])
-            share = "mostly" if top_rise > extra / 2 else "most often"
+            lead = "Most of the rise is" if top_rise > extra / 2 else "The largest rise is"
             row = cell.set_index("failure_mode").loc[top]
             label = ", ".join(str(v) for v in names.values())
             interval = (
-                f" ({row['fraction']:.0%} of the cell, 95% CI {row['ci_lo']:.0%}-{row['ci_hi']:.0%})"
-                if not math.isnan(row["ci_lo"])
-                else ""
+                f", 95% CI {row['ci_lo']:.0%}-{row['ci_hi']:.0%}" if not math.isnan(row["ci_lo"]) else ", no interval"
             )
             out.append(
-                f"{label} at {latency:g} s: {int(counts.sum())} of {n} episodes failed against "
-                f"{int(base_counts.sum())} of {base_n} at 0 s; the {extra} extra failures are {share} "
-                f"{top.replace('_', ' ')} (+{top_rise}){interval}."
+                f"{label} at {latency:g} s: {int(counts.sum())} of {n} episodes failed, against "
+                f"{int(base_counts.sum())} of {base_n} at 0 s. {lead} {top.replace('_', ' ')} "
+                f"(+{top_rise}; {row['fraction']:.0%} of the cell{interval})."
             )
     return out
 
