@@ -5,6 +5,8 @@ gets no bar (a hatched outline says so); n is printed above every bar."""
 
 from __future__ import annotations
 
+import textwrap
+
 import matplotlib
 
 matplotlib.use("Agg")  # files only, never a display
@@ -39,7 +41,7 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
     fig, axes = plt.subplots(len(rows), len(protocols), figsize=(4.2 * len(protocols) + 1.8, 2.3 * len(rows) + 0.9),
                              squeeze=False, sharex=True, sharey=True)  # fmt: skip
     x = np.arange(len(latencies))
-    small = False
+    small = found_degenerate = False
     for r, (suite, policy) in enumerate(rows):
         for c, protocol in enumerate(protocols):
             ax = axes[r, c]
@@ -62,8 +64,12 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
                         ax.bar(i, height, bottom=bottom, width=0.7, color=MODE_COLOURS[mode], edgecolor="white",
                                linewidth=0.4)  # fmt: skip
                         bottom += height
-                ax.text(i, bottom + 0.02, f"n={n}", ha="center", va="bottom", fontsize=7)
-            ax.set_ylim(0, 1.12)
+                degenerate = int(cell["n_degenerate"].iloc[0]) if "n_degenerate" in cell else 0
+                ax.text(i, bottom + 0.02, f"n={n}" + (f"\n{degenerate} degenerate" if degenerate else ""),
+                        ha="center", va="bottom", fontsize=7, color="tab:red" if degenerate else "black")  # fmt: skip
+                found_degenerate |= bool(degenerate)
+            ax.set_ylim(0, 1.3)
+            ax.set_yticks([0, 0.2, 0.4, 0.6, 0.8, 1.0])
             ax.set_xticks(x, [f"{v:g}" for v in latencies])
             ax.grid(axis="y", alpha=0.3)
             if r == 0:
@@ -78,7 +84,9 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
     note = "Bar height: the cell's failure rate; its parts: the failure modes (docs/guide/failure_modes.md)."
     if small:
         note += f" Hatched outline: fewer than {MIN_JOIN_N} classified episodes, no bar."
-    fig.text(0.01, 0.005, note, fontsize=7, va="bottom")
+    if found_degenerate:
+        note += " Red: episodes of a degenerate async protocol (chunks no longer than N: the arm never moves)."
+    fig.text(0.01, 0.005, textwrap.fill(note, 170), fontsize=7, va="bottom")
     fig.suptitle("Failure modes by latency", fontsize=11)
-    fig.tight_layout(rect=(0, 0.03, 0.83, 0.97))
+    fig.tight_layout(rect=(0, 0.05, 0.83, 0.97))
     return fig

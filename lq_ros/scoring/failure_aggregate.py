@@ -23,9 +23,10 @@ def mode_fractions(
     episodes: pd.DataFrame, by: Sequence[str], *, n_boot: int = 2000, seed: int = 0, confidence: float = 0.95
 ) -> pd.DataFrame:
     """One row per (cell, failure mode): ``n`` classified episodes, ``count``, ``fraction`` and its interval
-    (``ci_lo``/``ci_hi``), ``n_tasks``, and the cell's ``n_unavailable`` and ``n_error``. Empty without
-    ``failure_mode``."""
-    columns = [*by, "failure_mode", "n", "count", "fraction", "ci_lo", "ci_hi", "n_tasks", "n_unavailable", "n_error"]
+    (``ci_lo``/``ci_hi``), ``n_tasks``, and the cell's ``n_unavailable``, ``n_error`` and ``n_degenerate`` (episodes
+    of a degenerate async protocol). Empty without ``failure_mode``."""
+    columns = [*by, "failure_mode", "n", "count", "fraction", "ci_lo", "ci_hi", "n_tasks", "n_unavailable", "n_error",
+               "n_degenerate"]  # fmt: skip
     if "failure_mode" not in episodes or episodes.empty:
         return pd.DataFrame(columns=columns)
     rows = []
@@ -38,6 +39,9 @@ def mode_fractions(
         n_error = int((~outcome).sum())
         if classified.empty:
             continue
+        # Async chunks no longer than N: no fresh action ever ran (lq_ros/scoring/bag_scorer.py), the arm never moved.
+        degenerate = classified.get("degenerate_protocol", pd.Series(False, index=classified.index))
+        n_degenerate = int(degenerate.fillna(False).astype(bool).sum())
         by_task = [g for _, g in classified.groupby("task", sort=True)] if "task" in classified else [classified]
         for name in failure_modes.FAILURE_MODES:
             clusters = [(g["failure_mode"] == name).to_numpy(dtype=np.float64) for g in by_task]
@@ -45,7 +49,7 @@ def mode_fractions(
             low, high = clustered_success_ci(clusters, n_boot=n_boot, seed=seed, confidence=confidence)
             rows.append({**cell, "failure_mode": name, "n": len(classified), "count": count,
                          "fraction": count / len(classified), "ci_lo": low, "ci_hi": high, "n_tasks": len(by_task),
-                         "n_unavailable": n_unavailable, "n_error": n_error})  # fmt: skip
+                         "n_unavailable": n_unavailable, "n_error": n_error, "n_degenerate": n_degenerate})  # fmt: skip
     return pd.DataFrame(rows, columns=columns)
 
 
