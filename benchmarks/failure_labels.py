@@ -7,7 +7,7 @@ tests/scoring/test_failure_labels.py):
                write their list (episodes.json). The classifier's output is not used to pick them.
     render     re-simulate each picked bag's commands (checked against its recorded EE poses) and render 20 ticks
                of the front and wrist cameras into a contact sheet (sheets/<episode>.png): the labeller's view of
-               the replay. The sheets carry no classifier output.
+               the replay. The sheets carry no classifier output; index.csv names each episode's task and goal.
     extract    copy what the classifier reads (events, EE pose, task state; metadata) of each picked bag into a
                small bag under tests/data/failure_labels/bags/, so the check runs without the sweep.
     agreement  score the small bags and print the confusion matrix of labels.csv against the classifier, the
@@ -27,6 +27,11 @@ import random
 from collections import defaultdict
 from pathlib import Path
 
+# lq_ros first: it pins OpenBLAS's kernels before numpy loads them (lq_ros/__init__.py); imported after numpy,
+# the replays here would run other kernels than the sweep did and leave its trajectories in the last bits.
+import lq_ros  # noqa: F401
+
+# isort: split
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
@@ -65,58 +70,69 @@ def _picked() -> list[str]:
 
 
 def render(sweep: Path, sheets: Path, frames: int = 20, columns: int = 4, size_px: int = 224) -> None:
-    """Re-simulate each picked bag's commands and render ``frames`` ticks (evenly spaced, the last included) from
-    the front camera and the wrist camera into one contact sheet; the replayed EE pose must equal the bag's at
-    every rendered tick (else the sheet would show another episode)."""
+    """Re-simulate each picked bag's commands (an env without cameras, as the bag was recorded: its EE pose must
+    equal the bag's at every rendered tick) and render ``frames`` ticks (evenly spaced, the last included) from the
+    front and wrist cameras into one contact sheet. The pictures come from a second env of the task with cameras,
+    set to the replay's positions at each picked tick: an env with cameras steps differently in the last bits
+    (robosuite's render context runs a forward pass at reset), so it only draws."""
+    import mujoco
     from PIL import Image, ImageDraw
 
     from lq_ros.report.replay import check_replayable, read_recording
     from lq_ros.sim.libero_env import LiberoEnv
 
     sheets.mkdir(parents=True, exist_ok=True)
-    envs: dict[tuple[str, int], LiberoEnv] = {}
     cameras = ("agentview", "robot0_eye_in_hand")
+    by_task: dict[tuple[str, int], list] = defaultdict(list)
     for name in _picked():
-        out = sheets / f"{name}.png"
-        if out.exists():
-            continue
-        rec = read_recording(sweep / "bags" / name)
-        cfg = check_replayable(rec)
-        key = (cfg.suite, cfg.task)
-        if key not in envs:
-            for env in envs.values():
-                env.close()
-            envs = {key: LiberoEnv(cfg.suite, cfg.task, camera_names=cameras, camera_size=size_px)}
-        env = envs[key]
-        env.reset(cfg.init, cfg.seed)
-        picks = set(np.linspace(0, rec.ticks, frames).round().astype(int).tolist())
-        tiles = []
-        for tick in range(rec.ticks + 1):
-            if tick in picks:
-                obs = env.observe(with_images=True)
-                recorded = rec.poses.get(tick)
-                if recorded is not None and not np.array_equal(env._tick_state().eef_pos, recorded[0]):
-                    raise SystemExit(f"{name}: the replay left the recorded trajectory at tick {tick}")
-                tiles.append((tick, np.hstack([obs.images[c] for c in cameras])))
-            if tick < rec.ticks:
-                env.step(rec.commands[tick].action)
-        h, w = tiles[0][1].shape[:2]
-        rows = -(-len(tiles) // columns)
-        sheet = Image.new("RGB", (columns * w, rows * (h + 16)), "white")
-        draw = ImageDraw.Draw(sheet)
-        for i, (tick, image) in enumerate(tiles):
-            x, y = (i % columns) * w, (i // columns) * (h + 16)
-            sheet.paste(Image.fromarray(image), (x, y + 16))
-            draw.text(
-                (x + 3, y + 2), f"tick {tick} of {rec.ticks}  (left: front camera, right: wrist camera)", fill="black"
-            )
-        sheet.save(out)
+        if not (sheets / f"{name}.png").exists():
+            rec = read_recording(sweep / "bags" / name)
+            cfg = check_replayable(rec)
+            by_task[(cfg.suite, cfg.task)].append((name, rec, cfg))
+    for (suite, task), episodes in sorted(by_task.items()):
+        # First every replay of the task, in an env without cameras (created first: the states to draw)...
+        env = LiberoEnv(suite, task)
+        states = {}
+        for name, rec, cfg in episodes:
+            env.reset(cfg.init, cfg.seed)
+            picks = set(np.linspace(0, rec.ticks, frames).round().astype(int).tolist())
+            states[name] = []
+            for tick in range(rec.ticks + 1):
+                if tick in picks:
+                    recorded = rec.poses.get(tick)
+                    if recorded is not None and not np.array_equal(env._tick_state().eef_pos, recorded[0]):
+                        raise SystemExit(f"{name}: the replay left the recorded trajectory at tick {tick}")
+                    states[name].append((tick, env._data.qpos.copy(), env._data.qvel.copy()))
+                if tick < rec.ticks:
+                    env.step(rec.commands[tick].action)
         goal = " and ".join("(" + " ".join(g) + ")" for g in env.task.goal)
-        with (sheets / "index.csv").open("a") as index:  # what the labeller is told: the task, nothing scored
-            index.write(f'{name},"{env.task.instruction}","{goal}"\n')
-        print(f"{name}: {out}")
-    for env in envs.values():
+        instruction = env.task.instruction
         env.close()
+        # ... then the pictures, from an env with cameras set to those states.
+        painter = LiberoEnv(suite, task, camera_names=cameras, camera_size=size_px)
+        painter.reset(0, 0)
+        for name, rec, _ in episodes:
+            tiles = []
+            for tick, qpos, qvel in states[name]:
+                painter._data.qpos[:] = qpos
+                painter._data.qvel[:] = qvel
+                mujoco.mj_forward(painter._model, painter._data)
+                images = [painter._sim.render(camera_name=c, width=size_px, height=size_px)[::-1] for c in cameras]
+                tiles.append((tick, np.hstack(images)))
+            out = sheets / f"{name}.png"
+            h, w = tiles[0][1].shape[:2]
+            rows = -(-len(tiles) // columns)
+            sheet = Image.new("RGB", (columns * w, rows * (h + 16)), "white")
+            draw = ImageDraw.Draw(sheet)
+            for i, (tick, image) in enumerate(tiles):
+                x, y = (i % columns) * w, (i // columns) * (h + 16)
+                sheet.paste(Image.fromarray(np.ascontiguousarray(image)), (x, y + 16))
+                draw.text((x + 3, y + 2), f"tick {tick} of {rec.ticks}  (left: front, right: wrist)", fill="black")
+            sheet.save(out)
+            with (sheets / "index.csv").open("a") as index:  # what the labeller is told: the task, nothing scored
+                index.write(f'{name},"{instruction}","{goal}"\n')
+            print(f"{name}: {out}")
+        painter.close()
 
 
 def extract(sweep: Path) -> None:
