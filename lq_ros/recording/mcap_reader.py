@@ -303,9 +303,12 @@ class StreamingMcapReader:
     ended properly. Damage never raises: everything readable has been yielded.
     """
 
-    def __init__(self, path: Path, topics: Collection[str] | None) -> None:
+    def __init__(self, path: Path, topics: Collection[str] | None, optional: Collection[str] = ()) -> None:
         self.path = Path(path)
         self.topics = None if topics is None else set(topics)  # None: every topic
+        # Wanted topics a bag may lack (newer ones, e.g. the task state): their absence alone never makes a chunk
+        # without wanted messages worth decompressing.
+        self.optional = frozenset(optional)
         self.channels: dict[int, Channel] = {}
         self._schemas: dict[int, str] = {}
         #: topic -> how many known channels carry it (kept as channels are defined: never rebuilt per chunk)
@@ -462,7 +465,9 @@ class StreamingMcapReader:
 
     def _all_wanted_known(self) -> bool:
         """Every wanted topic has a known channel (else an unread chunk might hold its definition)."""
-        return self.topics is not None and all(topic in self._known_topics for topic in self.topics)
+        return self.topics is not None and all(
+            topic in self._known_topics for topic in self.topics if topic not in self.optional
+        )
 
     def _wanted(self, channel_id: int) -> bool:
         channel = self.channels.get(channel_id)

@@ -155,7 +155,7 @@ def read_episode(
         roles[m.EE_POSE_PHYSICS.name] = ("ee_physics", m.EE_POSE_PHYSICS.msgtype)
         roles[m.JOINT_STATES_PHYSICS.name] = ("joints_physics", m.JOINT_STATES_PHYSICS.msgtype)
     for file in files:
-        reader = StreamingMcapReader(file, roles)
+        reader = StreamingMcapReader(file, roles, optional=(m.TASK_STATE.name, m.TASK_OBJECT_POSES.name))
         checked: set[int] = set()
         pending = _PendingBulk(data, reader, roles)
         try:
