@@ -53,6 +53,7 @@ from statistics import NormalDist
 
 import numpy as np
 
+from lq_ros.core.bounded_file import FileRefused, read_regular_file
 from lq_ros.core.suite_constants import CONTROL_DT_S, latency_ticks
 
 KINDS = ("constant", "uniform", "normal", "lognormal", "trace", "empirical")
@@ -110,36 +111,10 @@ def _bounded(value: float, what: str, spec: str) -> float:
 def _read_trace(path: Path, spec: str) -> tuple[tuple[float, ...], str]:
     """The values of a trace file and the sha256 of the bytes they were read from: a regular text file of at most
     MAX_TRACE_BYTES (never a device or pipe), read once (a file swapped between two reads cannot differ)."""
-    import os
-    import stat
-
     try:
-        # Non-blocking open and fstat of what was opened: a FIFO or device is refused without reading from it.
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    except OSError as exc:
-        raise LatencyError(f"latency {spec!r}: cannot read {path} ({exc.strerror})") from None
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise LatencyError(f"latency {spec!r}: {path} is not a regular file (a trace is a text file of seconds)")
-        if info.st_size > MAX_TRACE_BYTES:
-            raise LatencyError(
-                f"latency {spec!r}: {path} has {info.st_size} bytes; a trace has at most {MAX_TRACE_BYTES}"
-            )
-        chunks, size = [], 0
-        while size <= MAX_TRACE_BYTES:
-            chunk = os.read(fd, MAX_TRACE_BYTES + 1 - size)
-            if not chunk:
-                break
-            chunks.append(chunk)
-            size += len(chunk)
-        data = b"".join(chunks)
-    except OSError as exc:
-        raise LatencyError(f"latency {spec!r}: cannot read {path} ({exc.strerror})") from None
-    finally:
-        os.close(fd)
-    if len(data) > MAX_TRACE_BYTES:
-        raise LatencyError(f"latency {spec!r}: {path} grew beyond {MAX_TRACE_BYTES} bytes while read")
+        data = read_regular_file(path, MAX_TRACE_BYTES, "trace")
+    except FileRefused as exc:
+        raise LatencyError(f"latency {spec!r}: {exc} (a trace is a text file of seconds)") from None
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:

@@ -5,8 +5,7 @@
 spec's checks ran past a minute); an alias inside its own anchor builds a cycle (RecursionError); a 5000-digit
 integer raises a ValueError; ``"\\ud800"`` gives a lone surrogate that fails when it is printed or written. Here:
 
-- :func:`read_text_file`: a regular file only (a FIFO would block, ``/dev/zero`` never ends), opened
-  non-blocking and checked on the open descriptor, at most ``max_bytes``, UTF-8.
+- :func:`read_text_file`: a regular file of at most ``max_bytes`` (lq_ros.core.bounded_file), UTF-8.
 - :func:`load_yaml`: at most :data:`MAX_DEPTH` levels of nesting, no alias inside its own anchor, and the data
   with every alias expanded at most :data:`MAX_VALUES` values (counted on the node graph, without expanding it);
   integers of at most :data:`MAX_INT_DIGITS` digits; no lone surrogate in any string.
@@ -16,11 +15,11 @@ Every refusal is a :class:`YamlRefused` (a ValueError) with one line naming the 
 
 from __future__ import annotations
 
-import os
-import stat
 from pathlib import Path
 
 import yaml
+
+from lq_ros.core.bounded_file import FileRefused, read_regular_file
 
 #: Most levels of nesting (mappings and lists inside each other) a document may have.
 MAX_DEPTH = 64
@@ -36,24 +35,10 @@ class YamlRefused(ValueError):
 
 def read_text_file(path: Path | str, max_bytes: int, what: str = "file") -> str:
     """The UTF-8 text of ``path`` if it is a regular file of at most ``max_bytes`` (YamlRefused otherwise)."""
-    path = Path(path)
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO or device: refused, never read
-    except OSError as exc:
-        raise YamlRefused(f"{what} {path}: cannot read ({exc.strerror})") from None
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise YamlRefused(f"{what} {path}: not a regular file (a {what} is a YAML text file)")
-        if info.st_size > max_bytes:
-            raise YamlRefused(f"{what} {path}: {info.st_size} bytes; at most {max_bytes}")
-        data = os.read(fd, max_bytes + 1)  # the size may change after fstat: the read is bounded anyway
-    except OSError as exc:
-        raise YamlRefused(f"{what} {path}: cannot read ({exc.strerror})") from None
-    finally:
-        os.close(fd)
-    if len(data) > max_bytes:
-        raise YamlRefused(f"{what} {path}: more than {max_bytes} bytes")
+        data = read_regular_file(path, max_bytes, what)
+    except FileRefused as exc:
+        raise YamlRefused(str(exc)) from None
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:

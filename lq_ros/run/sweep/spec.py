@@ -5,16 +5,14 @@ from __future__ import annotations
 import itertools
 import json
 import math
-import os
 import re
-import stat
 from dataclasses import dataclass
 from pathlib import Path
 
 from lq_ros.core.latency import MAX_LATENCY_S, LatencyError, parse_latency
 from lq_ros.core.redact import redact_value
 from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, PROTOCOL_FIELDS, RunConfig
-from lq_ros.core.safe_yaml import YamlRefused, load_yaml
+from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.validation import did_you_mean, num_tasks
@@ -519,25 +517,9 @@ def load_spec(path: Path) -> SweepSpec:
     """Read and expand a sweep spec file; SpecError names the file."""
     path = Path(path)
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO or device is refused, never read
-        try:
-            info = os.fstat(fd)
-            if not stat.S_ISREG(info.st_mode):
-                raise SpecError(f"{path}: not a regular file (a spec is a YAML file)")
-            if info.st_size > MAX_SPEC_BYTES:
-                raise SpecError(f"{path}: {info.st_size} bytes; a spec has at most {MAX_SPEC_BYTES}")
-            data = os.read(fd, MAX_SPEC_BYTES + 1)
-        finally:
-            os.close(fd)
-    except OSError as exc:
-        raise SpecError(f"{path}: cannot read ({exc.strerror})") from exc
-    if len(data) > MAX_SPEC_BYTES:
-        raise SpecError(f"{path}: more than {MAX_SPEC_BYTES} bytes; a spec has at most {MAX_SPEC_BYTES}")
-    try:
-        # Aliases, nesting, integer digits and lone surrogates bounded (lq_ros.core.safe_yaml), one-line refusals.
-        raw = load_yaml(data.decode("utf-8"), str(path))
-    except UnicodeDecodeError as exc:
-        raise SpecError(f"{path}: not a text file ({exc.reason} at byte {exc.start})") from exc
+        # A regular file only, bounded; aliases, nesting, integer digits and lone surrogates bounded too
+        # (lq_ros.core.safe_yaml), each refusal one line.
+        raw = load_yaml(read_text_file(path, MAX_SPEC_BYTES, "spec"), str(path))
     except YamlRefused as exc:
         raise SpecError(str(exc)) from None
     try:
