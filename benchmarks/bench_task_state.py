@@ -18,6 +18,10 @@ import argparse
 import statistics
 import time
 
+import lq_ros  # noqa: F401 - first: it pins OpenBLAS's kernels before numpy loads them (lq_ros/__init__.py)
+
+# isort: split
+
 import numpy as np
 
 from lq_ros.sim.libero_env import LiberoEnv

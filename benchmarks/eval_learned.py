@@ -39,6 +39,10 @@ import sys
 import time
 from pathlib import Path
 
+import lq_ros  # noqa: F401 - first: it pins OpenBLAS's kernels before numpy loads them (lq_ros/__init__.py)
+
+# isort: split
+
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

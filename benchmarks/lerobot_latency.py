@@ -22,6 +22,10 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+import lq_ros  # noqa: F401 - first: it pins OpenBLAS's kernels before numpy loads them (lq_ros/__init__.py)
+
+# isort: split
+
 import numpy as np
 
 from lq_ros.core.run_config import RunConfig

@@ -5,6 +5,7 @@ rclpy node programs in ``nodes/`` only wire them to topics.
 """
 
 import os as _os
+import sys as _sys
 
 
 def _pin_openblas_kernels() -> None:
@@ -23,6 +24,16 @@ def _pin_openblas_kernels() -> None:
     flags = read_cpuinfo()["flags"]
     if "avx2" in flags and "fma" in flags:
         _os.environ["OPENBLAS_CORETYPE"] = "Haswell"
+        if "numpy" in _sys.modules:  # OpenBLAS read its kernel choice when numpy loaded: too late to pin
+            import warnings
+
+            warnings.warn(
+                "numpy was imported before lq_ros, so OpenBLAS kept the kernels it chose for this CPU and results "
+                "may differ in their last bits from `lq run`'s (the result's versions say which kernels ran); "
+                "import lq_ros first, or set OPENBLAS_CORETYPE=Haswell before starting Python",
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
 
 _pin_openblas_kernels()
