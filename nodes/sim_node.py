@@ -26,6 +26,7 @@ starts the episode once every peer is connected; deactivate stops stepping.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import traceback
 
@@ -33,6 +34,7 @@ import numpy as np
 from std_msgs.msg import String
 
 from lq_ros.core.executor_protocol import Source, stop_hold
+from lq_ros.core.observation_history import ObservationHistory
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import DUMMY_ACTION, sim_time_of_tick
 from lq_ros.sim.libero_env import LiberoEnv, import_simulator_in_background
@@ -64,6 +66,9 @@ class SimNode(EpisodeNode):
         # What the policy needs rendered (the launcher asks the policy).
         self.declare_parameter("cameras", [""])
         self.declare_parameter("camera_size_px", self.cfg.camera_size_for(None))
+        # Ticks of observations the policy conditions on (Policy.observation_history_ticks; the launcher asks it):
+        # above 1 every tick's observation is captured and the ticks before a request go with its observation.
+        self.declare_parameter("history_ticks", 1)
         # Subscribers each topic needs before the episode starts (so no node misses tick 0): any, and on the
         # episode events (every node must hear STARTED; real time: its tick0) and on /clock (lockstep) the peers
         # the launcher started (events: policy, executor, recorder + this node; /clock: the recorder).
@@ -103,7 +108,11 @@ class SimNode(EpisodeNode):
         if self.reset_for != (cfg.init, cfg.seed):  # (the first episode after configure starts from its reset)
             self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
         self.reset_for = None
+        self.history = ObservationHistory(self.get_parameter("history_ticks").value)
+        self.history.capture(self.env.observe)  # tick 0
         state_topics = (m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, *m.TASK_TOPICS, m.OBSERVATION, m.EPISODE_EVENTS)
+        if self.history.active:
+            state_topics += (m.OBSERVATION_HISTORY, m.OBSERVATION_HISTORY_IMAGES)
         if not self.realtime:
             state_topics = (m.CLOCK, *state_topics, m.OBSERVATION_REQUEST_QUEUED) + (
                 (m.JOINT_STATES_PHYSICS, m.EE_POSE_PHYSICS) if self.physics_rate else ()
@@ -170,11 +179,14 @@ class SimNode(EpisodeNode):
     def observe(self, req) -> None:
         """Publish the observation of the current tick for ``req``."""
         try:
-            obs = self.env.observe(with_images=True)
+            obs = self.history.attach(self.env.observe(with_images=True))
         except Exception as exc:  # noqa: BLE001 - any env failure ends the episode as an error
             return self.fail(f"observation failed: {exc}", traceback.format_exc())
         if self.realtime:
             obs.sim_time_s = self.clock.tick_ns(obs.tick) / 1e9  # the tick's scheduled wall time
+            obs.history = tuple(
+                dataclasses.replace(past, sim_time_s=self.clock.tick_ns(past.tick) / 1e9) for past in obs.history
+            )
         publish_observation(self.pubs, obs, req.request_id)
 
     def on_command(self, cmd) -> None:
@@ -242,6 +254,7 @@ class SimNode(EpisodeNode):
         started, when it was scheduled), wall ns, for the overrun count."""
         try:
             self.state = self.env.step(action)
+            self.history.capture(self.env.observe)
             if started_ns is not None and self.step_delay_s:
                 time.sleep(self.step_delay_s)
         except Exception as exc:  # noqa: BLE001

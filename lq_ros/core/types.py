@@ -124,3 +124,7 @@ class Observation:
     objects: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     #: camera name -> upright HxWx3 uint8 image (row 0 is the top of the picture)
     images: dict[str, np.ndarray] = field(default_factory=dict)
+    #: The observations of the ticks before this one, oldest first, for a policy that conditions on them
+    #: (``Policy.observation_history_ticks`` n > 1: ticks ``tick - n + 1 .. tick - 1``, those before tick 0 as
+    #: tick 0's); empty for every other policy (lq_ros.core.observation_history).
+    history: tuple[Observation, ...] = ()

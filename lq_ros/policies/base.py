@@ -37,6 +37,9 @@ class Policy(abc.ABC):
     #: import): like ``package.module:Class``, such a policy is built only with the arguments the launching user
     #: chose, never from a runtime parameter change (nodes/policy_node.py).
     args_run_code: bool = False
+    #: Ticks of observations each ``infer`` conditions on: 1, the request's tick only; n > 1, also the n - 1 ticks
+    #: before it, in ``Observation.history`` (captured by the simulator every tick, lq_ros.core.observation_history).
+    observation_history_ticks: int = 1
 
     @abc.abstractmethod
     def reset(self, task: TaskInfo, seed: int) -> None:

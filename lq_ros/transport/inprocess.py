@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from lq_ros.core.executor_protocol import ExecutorCore, Source, TickDriver
+from lq_ros.core.observation_history import ObservationHistory
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.policies import Policy, make_policy
@@ -107,6 +108,10 @@ def run_inprocess(
     try:
         state = env.reset(cfg.init, cfg.seed)
         policy.reset(env.task.for_init(cfg.init), cfg.seed)
+        with_images = bool(policy.camera_names)
+        # The ticks before each request, for a policy that conditions on them (as the sim node captures them).
+        history = ObservationHistory(policy.observation_history_ticks)
+        history.capture(lambda: env.observe(with_images=with_images))
         rec.event(m.EventKind.STARTED, 0, "", m.started_detail(env.task, cfg.init, cfg.seed, env_versions))
         for topic, t_ns, data in m.tick_state_msgs(state, cfg.physics_rate):
             rec.put_at(topic, t_ns, data)
@@ -117,10 +122,11 @@ def run_inprocess(
             """Observe tick req.tick and run the policy; returns the serialized chunk."""
             t_ns = m.to_ns(sim_time_of_tick(req.tick))
             rec.put_at(m.OBSERVATION_REQUEST, t_ns, m.request_msg(t_ns, req))
-            obs = env.observe(with_images=bool(policy.camera_names))
+            obs = env.observe(with_images=with_images)
             for cam, image in obs.images.items():
                 rec.put_at(m.camera_topic(cam), t_ns, m.image_msg(t_ns, cam, image))
             rec.put_at(m.OBSERVATION, t_ns, m.observation_msg(obs, req.request_id))
+            obs = history.attach(obs)
             started = time.perf_counter()
             actions = policy.infer(obs) if req.prefix is None else policy.infer(obs, prefix=req.prefix)
             inference_s = time.perf_counter() - started
@@ -169,6 +175,7 @@ def run_inprocess(
                 t_ns = m.to_ns(sim_time_of_tick(step.tick))
                 rec.put_at(m.COMMAND, t_ns, m.command_msg(t_ns, step))
                 self.state = state = env.step(step.action)
+                history.capture(lambda: env.observe(with_images=with_images))
                 self.action_ticks += step.source is Source.CHUNK
                 self.spent = None if state.success else cfg.budget_spent(step.tick + 1, self.action_ticks)
                 for topic, ts, data in m.tick_state_msgs(

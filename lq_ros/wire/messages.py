@@ -51,6 +51,12 @@ EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
 ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
 #: Executor -> policy, merge rtc/rtc_hard only (not recorded: the commands that follow contain it).
 ACTION_PREFIX = Topic("/lq/action_prefix", "lq_msgs/msg/ActionPrefix")
+#: Sim -> policy, only for a policy that conditions on the ticks before its request (Policy.observation_history_ticks
+#: n > 1): with each observation, those of its n - 1 ticks before (Observation.history; the request's id, each stamped
+#: with its own tick's time) and their camera images (frame_id: the camera). Not recorded: the bag has every tick's
+#: state, and the images of the inference ticks.
+OBSERVATION_HISTORY = Topic("/lq/observation_history", "lq_msgs/msg/Observation")
+OBSERVATION_HISTORY_IMAGES = Topic("/lq/observation_history/images", "sensor_msgs/msg/Image")
 #: The task's state per tick (sim only): object poses, in the order of TASK_STATE's object_names at the same stamp,
 #: and the goal predicates' truth with the gripper's contacts (lq_ros.sim.task_state).
 TASK_OBJECT_POSES = Topic("/lq/task/object_poses", "geometry_msgs/msg/PoseArray")

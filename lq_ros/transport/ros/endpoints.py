@@ -72,6 +72,11 @@ class ChunkServer:
         self.images: dict[int, dict[str, np.ndarray]] = {}  # stamp ns -> camera -> image
         self.outbox: list[tuple[int, bytes]] = []  # (due time ns, chunk bytes)
         self.prefixes: dict[int, object] = {}  # request id -> ActionPrefix (merge rtc/rtc_hard)
+        # A policy that conditions on the ticks before its request gets them from the sim with each observation (a
+        # robot's bridge sends none: the policy is handed none and says so).
+        self.history_ticks = 0 if cfg.robot else policy.observation_history_ticks - 1
+        self.history: dict[int, list] = {}  # request id -> Observation messages of the ticks before it
+        self.history_images: dict[tuple[int, str], list[np.ndarray]] = {}  # (stamp ns, camera) -> images
 
     def subscribe(self, subscribe: Subscribe) -> None:
         """The inputs: episode events, observations, the policy's cameras and (rtc) the executing prefix."""
@@ -81,6 +86,9 @@ class ChunkServer:
             subscribe(m.ACTION_PREFIX, self.on_prefix)
         for cam in self.policy.camera_names:
             subscribe(m.camera_topic(cam), self.on_image)
+        if self.history_ticks:
+            subscribe(m.OBSERVATION_HISTORY, self.on_history)
+            subscribe(m.OBSERVATION_HISTORY_IMAGES, self.on_history_image)
 
     # -- inputs ----------------------------------------------------------------------------------------
     def on_event(self, event) -> None:
@@ -105,6 +113,15 @@ class ChunkServer:
         self.pending_obs.append(msg)
         self.try_infer()
 
+    def on_history(self, msg) -> None:
+        self.history.setdefault(msg.request_id, []).append(msg)
+        self.try_infer()
+
+    def on_history_image(self, msg) -> None:
+        # A tick's images come again with every request whose history holds it: identical copies, taken in turn.
+        self.history_images.setdefault((m.stamp_ns(msg), msg.header.frame_id), []).append(m.image_from_msg(msg))
+        self.try_infer()
+
     def on_prefix(self, msg) -> None:
         self.prefixes[msg.request_id] = m.prefix_from_msg(msg)
         self.try_infer()
@@ -119,12 +136,34 @@ class ChunkServer:
                 return  # images still in flight
             if self.wants_prefix and msg.request_id not in self.prefixes:
                 return  # the executing prefix still in flight
+            if not self.history_arrived(msg.request_id):
+                return  # the ticks before it still in flight
             self.pending_obs.pop(0)
             self.images.pop(stamp, None)
-            self.infer(msg, images, self.prefixes.pop(msg.request_id, None))
+            self.infer(msg, images, self.prefixes.pop(msg.request_id, None), self.take_history(msg.request_id))
 
-    def infer(self, msg, images: dict[str, np.ndarray], prefix=None) -> None:
+    def history_arrived(self, request_id: int) -> bool:
+        past = self.history.get(request_id, [])
+        if len(past) < self.history_ticks:
+            return False
+        return all(self.history_images.get((m.stamp_ns(p), cam)) for p in past for cam in p.camera_names)
+
+    def take_history(self, request_id: int) -> tuple:
+        """The observations of the ticks before request ``request_id``, oldest first (their messages consumed)."""
+        out = []
+        for past in sorted(self.history.pop(request_id, []), key=lambda p: p.tick):
+            images = {}
+            for cam in past.camera_names:
+                key = (m.stamp_ns(past), cam)
+                images[cam] = self.history_images[key].pop(0)
+                if not self.history_images[key]:
+                    del self.history_images[key]
+            out.append(m.observation_from_msg(past, images))
+        return tuple(out)
+
+    def infer(self, msg, images: dict[str, np.ndarray], prefix=None, history: tuple = ()) -> None:
         obs = m.observation_from_msg(msg, images)
+        obs.history = history
         n_ticks, latency_s = request_latency(self.latency, self.latency_stream, msg.request_id)
         started = time.perf_counter()
         actions, error = None, self.reset_error
@@ -213,6 +252,11 @@ def publish_observation(pubs: dict, obs: Observation, request_id: int) -> None:
     The stamp is rounded through seconds once, here, for both: a wall-clock stamp (~1.7e18 ns) does not
     survive ``to_ns(t_ns / 1e9)`` exactly, so images stamped with the unrounded value never matched.
     """
+    for past in obs.history:  # the ticks before it (a policy with observation history): first, on their own topics
+        past_ns = m.to_ns(past.sim_time_s)
+        for cam, image in past.images.items():
+            pubs[m.OBSERVATION_HISTORY_IMAGES.name].publish(m.image_msg(past_ns, cam, image))
+        pubs[m.OBSERVATION_HISTORY.name].publish(m.observation_msg(past, request_id))
     t_ns = m.to_ns(obs.sim_time_s)
     for cam, image in obs.images.items():
         pubs[m.camera_topic(cam).name].publish(m.image_msg(t_ns, cam, image))

@@ -277,6 +277,7 @@ def node_parameters(
     policy_params: dict,
     robot: RobotConfig | None = None,
     requirements: Requirements | None = None,
+    history_ticks: int = 1,
 ) -> dict:
     """The params file: the run's parameters once for every node (``/**``, with ``use_sim_time`` on in lockstep),
     then what only one node needs (derived from the policy: its cameras and render size, its parameters for the
@@ -290,7 +291,8 @@ def node_parameters(
     }
     params = {"/**": {**cfg.ros_parameters(), "use_sim_time": cfg.clock == "lockstep"}}
     if robot is None:
-        params[NODE_NAMES["sim"]] = {"cameras": list(cams), "camera_size_px": camera_size_px}
+        params[NODE_NAMES["sim"]] = {"cameras": list(cams), "camera_size_px": camera_size_px,
+                                     "history_ticks": history_ticks}  # fmt: skip
         recorder.update(SIM_RECORDER_PARAMETERS)
     else:
         needs_objects = bool(requirements and requirements.objects)
@@ -362,7 +364,7 @@ class RosStack:
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
         self._replies = b""
         self._keys: dict[str, tuple] | None = None  # configure_keys of the configured nodes
-        self._probe: tuple | None = None  # (policy key, cameras, params, render size, requirements) of the last policy
+        self._probe: tuple | None = None  # (policy key, cameras, params, render size, requirements, history ticks)
         self.roles: tuple[str, ...] = stack_roles(robot=False)  # the managed nodes, in activation order
         self.episodes = 0
         self.restarts: dict[str, int] = {}
@@ -539,14 +541,17 @@ class RosStack:
             # kept while the policy stays the same (a learned policy loads its weights to answer).
             probe = make_policy(cfg.policy, **cfg.policy_args)
             self._probe = (
-                policy_key(cfg), probe.camera_names, probe.params(), probe.render_size, Requirements.of(probe)
+                policy_key(cfg), probe.camera_names, probe.params(), probe.render_size, Requirements.of(probe),
+                probe.observation_history_ticks,
             )  # fmt: skip
             probe.close()
-        _, cameras, policy_params, render_size, requirements = self._probe
+        _, cameras, policy_params, render_size, requirements, history_ticks = self._probe
         robot = check_robot(cfg.robot, requirements, cfg.policy) if cfg.robot else None
         camera_size_px = cfg.camera_size_for(render_size)
         timeout_s = timeout_s or episode_timeout_s(cfg)
-        params = node_parameters(cfg, bag_path, cameras, camera_size_px, policy_params, robot, requirements)
+        params = node_parameters(
+            cfg, bag_path, cameras, camera_size_px, policy_params, robot, requirements, history_ticks
+        )
         for node, extra in (node_parameters_extra or {}).items():
             params[node] = {**params.get(node, {}), **extra}
         self._write_params(params)  # what a (re)started node starts with

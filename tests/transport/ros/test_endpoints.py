@@ -129,6 +129,55 @@ def test_wall_clock_observation_matches_its_images() -> None:
     assert len(out.sent) == 1 and policy.seen[0].images["agentview"].shape == (4, 4, 3)
 
 
+def test_the_ticks_before_an_observation_reach_the_policy_in_order_whatever_arrives_first() -> None:
+    """A policy with observation history: the sim publishes the past ticks (their own topics) before the observation;
+    the policy infers only once all have arrived, and gets them oldest first with their own images. Two requests whose
+    histories share a tick each get it (the sim sends it with both)."""
+    cams = ("agentview",)
+    policy = Fixed(cameras=cams)
+    policy.observation_history_ticks = 3
+    srv, out = server(policy, None, [0])
+    srv.on_event(started())
+    sent = []
+    for request_id, tick in ((1, 4), (2, 5)):
+        pubs = {t.name: Recorder(t) for t in (m.OBSERVATION, m.OBSERVATION_HISTORY, m.OBSERVATION_HISTORY_IMAGES)}
+        pubs[m.camera_topic("agentview").name] = Recorder(m.camera_topic("agentview"))
+        obs = observation(tick * 50_000_000, tick, cams)
+        obs.history = tuple(observation(t * 50_000_000, t, cams) for t in (tick - 2, tick - 1))
+        for i, past in enumerate(obs.history):
+            past.images["agentview"][:] = 10 * past.tick
+            past.eef_pos[:] = past.tick + i
+        publish_observation(pubs, obs, request_id)
+        sent.append(pubs)
+    for pubs in sent:  # observations and current images first: nothing can be inferred yet
+        srv.on_observation(pubs[m.OBSERVATION.name].sent[0])
+        srv.on_image(pubs[m.camera_topic("agentview").name].sent[0])
+    for pubs in sent:
+        srv.on_history_image(pubs[m.OBSERVATION_HISTORY_IMAGES.name].sent[1])
+        for msg in reversed(pubs[m.OBSERVATION_HISTORY.name].sent):
+            srv.on_history(msg)
+        assert out.sent == []  # request 1 waits for tick 2's image, request 2 (in order) for request 1
+    for pubs in sent:
+        srv.on_history_image(pubs[m.OBSERVATION_HISTORY_IMAGES.name].sent[0])
+    assert len(out.sent) == 2 and [o.tick for o in policy.seen] == [4, 5]
+    for obs in policy.seen:
+        assert [p.tick for p in obs.history] == [obs.tick - 2, obs.tick - 1]
+        assert [int(p.images["agentview"][0, 0, 0]) for p in obs.history] == [10 * p.tick for p in obs.history]
+        assert [float(p.eef_pos[0]) for p in obs.history] == [obs.tick - 2.0, obs.tick]
+    assert srv.history == {} and srv.history_images == {}
+
+
+def test_a_robot_episode_waits_for_no_history() -> None:
+    """The bridge captures no past ticks: the policy is handed none (and says what it lacks), it never hangs."""
+    policy = Fixed()
+    policy.observation_history_ticks = 2
+    cfg = RunConfig(policy="sine", robot="standin", clock="realtime", latency_s=0.0)
+    srv = ChunkServer(policy, cfg, Recorder(m.ACTION_CHUNK).publish, Log(), now_ns=lambda: 0, hold_from="inference_end")
+    srv.on_event(started())
+    srv.on_observation(observation_msgs(0)[0])
+    assert len(policy.seen) == 1 and policy.seen[0].history == ()
+
+
 def link(mode: str = "sync") -> tuple[ExecutorLink, dict[str, Recorder], Log]:
     pubs: dict[str, Recorder] = {}
 
