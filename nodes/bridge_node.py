@@ -13,6 +13,15 @@ TIMEOUT once the step budget's wall time has passed. Ticks run on this machine's
 (``tick0_wall_ns``); every episode event is stamped with the robot's latest EE-pose stamp (the robot's
 clock), so the recorded pose series spans the episode exactly.
 
+Task state for the bag (what the failure modes read): from STARTED on, at each control tick (when its wall time
+starts), a ``geometry_msgs/PoseArray`` on /lq/task/object_poses of the latest pose of each object (not the pose
+nearest the tick: only earlier samples exist then), stamped with the robot's latest EE-pose stamp, in the order
+of the STARTED event's ``object_names``: the objects the robot's task state names, else every object with a pose
+at the start. A robot that publishes its task state (``task_state`` in its YAML: lq_msgs/TaskState) has each
+message relayed unchanged, at its own stamp, to /lq/task/state; the episode then starts only once a task state
+and a pose of every object it names have arrived. The scorer matches each tick to the task state of the nearest
+stamp (lq_ros.scoring.bag_scorer.task_series).
+
 The robot's clock is the YAML's ``clock``: ``wall`` (its stamps are wall-clock time) or ``sim`` (it stamps
 in simulated time and publishes it on /clock, which this node then waits for and stamps its targets
 with). The terminal event's ``robot_time_factor`` is robot-clock seconds per wall second over the episode:
@@ -30,7 +39,7 @@ import json
 import time
 
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
@@ -39,11 +48,16 @@ from std_msgs.msg import Bool, Float64MultiArray
 from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.robot.delta_to_target import DeltaToTarget
-from lq_ros.robot.observation_builder import ObservationBuilder, Requirements, missing_task_objects
+from lq_ros.robot.observation_builder import (
+    ObservationBuilder,
+    Requirements,
+    missing_task_objects,
+    scene_only_objects,
+)
 from lq_ros.robot.robot_config import load_robot_config
 from lq_ros.sim.libero_env import load_task
 from lq_ros.transport.ros.endpoints import publish_observation
-from lq_ros.transport.ros.rclpy_helpers import START_CHECK_PERIOD_S, EpisodeNode, run_managed
+from lq_ros.transport.ros.rclpy_helpers import START_CHECK_PERIOD_S, EpisodeNode, msg_class, run_managed
 from lq_ros.transport.ros.wall_clock import PERIOD_NS, START_DELAY_S, TickClock
 from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
@@ -85,7 +99,11 @@ class BridgeNode(EpisodeNode):
         if cfg.clock != "realtime" or not cfg.robot:
             raise ValueError("the bridge runs robot episodes (clock realtime and a robot)")
         self.robot = load_robot_config(cfg.robot)
-        self.task, _, _ = load_task(cfg.suite, cfg.task)
+        self.task, bddl, _ = load_task(cfg.suite, cfg.task)
+        from libero.libero.envs.bddl_utils import robosuite_parse_problem
+
+        # The task's fixtures and regions: their poses go to the bag, never into the policy's observation.
+        self.scene_only = scene_only_objects(robosuite_parse_problem(str(bddl)))
         gc = self.robot.gripper_command
         self.converter = DeltaToTarget(*((gc.open_width_m, gc.closed_width_m) if gc else ()))
         self.get_logger().info(f"robot {self.robot.name!r} ({self.robot.source}) for {cfg.suite} task {cfg.task}")
@@ -95,7 +113,7 @@ class BridgeNode(EpisodeNode):
         self.req = Requirements(cameras=cams, objects=bool(self.get_parameter("needs_object_poses").value))
         self.min_event_subs = self.get_parameter("min_event_subscribers").value
         self.start_deadline = time.monotonic() + self.get_parameter("start_timeout_s").value
-        self.builder = ObservationBuilder(self.robot, self.req)
+        self.builder = ObservationBuilder(self.robot, self.req, hidden=self.scene_only)
 
         r = self.robot
         self.robot_subscription(JointState, r.joint_states.topic, self.on_joints, SENSOR_QOS)
@@ -111,15 +129,30 @@ class BridgeNode(EpisodeNode):
             # Reliable: an operator's single `true` must not be lost (ros2 topic pub is reliable by default).
             self.robot_subscription(Bool, r.success.topic, self.on_success, COMMAND_QOS)
         self.object_subs: dict[str, object] = {}
-        if self.req.objects and r.objects and r.objects.names:
+        if r.objects and r.objects.names:  # (for the bag's object poses, whether the policy reads them or not)
             for name in r.objects.names:
                 self._subscribe_object(name)
+        self.task_state: tuple[bytes, tuple[str, ...]] | None = None  # the robot's latest: serialized, object names
+        if r.task_state:
+            # Reliable and deep: every sample is relayed to the bag.
+            task_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.VOLATILE)  # fmt: skip
+            self._episode_entities.append(
+                self.create_subscription(
+                    msg_class(r.task_state.type), r.task_state.topic, self.on_task_state, task_qos, raw=True
+                )  # fmt: skip
+            )
+        self.object_names: tuple[str, ...] = ()  # the order of the bag's object poses (fixed at STARTED)
+        self.poses_tick = -1  # the last tick whose object poses were published
         gc = r.gripper_command
         self.target_pub = self.create_publisher(PoseStamped, r.ee_target.topic, COMMAND_QOS)
         self.gripper_pub = self.create_publisher(Float64MultiArray, gc.topic, COMMAND_QOS) if gc else None
         self._episode_entities += [p for p in (self.target_pub, self.gripper_pub) if p is not None]
 
-        self.pubs = {t.name: self.episode_publisher(t) for t in (m.OBSERVATION, m.EPISODE_EVENTS)}
+        self.pubs = {
+            t.name: self.episode_publisher(t)
+            for t in (m.OBSERVATION, m.EPISODE_EVENTS, m.TASK_OBJECT_POSES, m.TASK_STATE)
+        }
         self.pubs.update({m.camera_topic(c).name: self.episode_publisher(m.camera_topic(c)) for c in cams})
         self.request_sub = self.episode_subscription(m.OBSERVATION_REQUEST, self.on_request)
         self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
@@ -165,6 +198,35 @@ class BridgeNode(EpisodeNode):
         )
         self._episode_entities.append(self.object_subs[name])
 
+    def on_task_state(self, data: bytes) -> None:
+        """The robot's task state: kept (the episode starts once one has come) and relayed unchanged to the bag."""
+        names = tuple(m.deserialize(data, m.TASK_STATE.msgtype).object_names)
+        if self.task_state is None and self.robot.objects:
+            for name in names:  # the poses of every object it names (names: auto or not)
+                if name not in self.object_subs:
+                    self._subscribe_object(name)
+        self.task_state = (data, names)
+        if self.clock is not None and not self.finished:
+            self.pubs[m.TASK_STATE.name].publish(data)
+
+    def publish_object_poses(self, tick: int) -> None:
+        """Tick ``tick``'s object poses: the latest of each, stamped with the latest EE stamp (the robot's clock)."""
+        self.poses_tick = tick
+        if not self.object_names or any(n not in self.builder.objects for n in self.object_names):
+            return
+        msg = PoseArray()
+        t_ns = self.builder.ee.stamp_ns
+        msg.header.stamp.sec, msg.header.stamp.nanosec = t_ns // 1_000_000_000, t_ns % 1_000_000_000
+        msg.header.frame_id = self.robot.frame_id
+        for name in self.object_names:
+            pos, quat = self.builder.objects[name].values
+            pose = Pose()
+            pose.position.x, pose.position.y, pose.position.z = (float(v) for v in pos)
+            o = pose.orientation
+            o.x, o.y, o.z, o.w = (float(v) for v in quat)
+            msg.poses.append(pose)
+        self.pubs[m.TASK_OBJECT_POSES.name].publish(msg)
+
     def on_recorder_hears(self, msg) -> None:
         self.recorder_hears.update(str(t) for t in json.loads(msg.data)["topics"])  # (a bad one is logged, ignored)
 
@@ -183,7 +245,7 @@ class BridgeNode(EpisodeNode):
     def discover_objects(self) -> None:
         """``names: auto``: subscribe to every <prefix>/<name>/pose topic on the graph."""
         objects = self.robot.objects
-        if not (self.req.objects and objects and objects.names is None):
+        if not (objects and objects.names is None):
             return
         for topic, _types in self.get_topic_names_and_types():
             name = objects.name_of(topic)
@@ -199,6 +261,11 @@ class BridgeNode(EpisodeNode):
             waiting += [
                 self.robot.objects.topic(n) for n in missing_task_objects(self.task.goal, set(self.builder.objects))
             ]
+        if self.robot.task_state:  # the robot publishes its task state: the failure modes need it and its poses
+            if self.task_state is None:
+                waiting.append(self.robot.task_state.topic)
+            elif self.robot.objects:
+                waiting += [self.robot.objects.topic(n) for n in self.task_state[1] if n not in self.builder.objects]
         # The series the score needs from the first tick on: the recorder must be receiving them, not only subscribed.
         state = [s.topic for s in (self.robot.joint_states, self.robot.ee_pose, self.robot.gripper_state) if s]
         waiting += [f"{t} at the recorder" for t in state if t not in self.recorder_hears]
@@ -233,6 +300,9 @@ class BridgeNode(EpisodeNode):
         detail = m.started_detail(self.task, self.cfg.init, self.cfg.seed, self.versions)
         detail.update(tick0_wall_ns=self.clock.tick0_ns, clock="realtime", robot=self.robot.to_dict())
         detail["robot_clock_offset_ms"] = round((now - ee_ns) / 1e6, 3)
+        # The order of /lq/task/object_poses: the task state's objects, else those with a pose now.
+        self.object_names = self.task_state[1] if self.task_state else tuple(sorted(self.builder.objects))
+        detail["object_names"] = list(self.object_names)
         self.started_at = (now, ee_ns)  # wall and robot clock at STARTED: robot_time_factor at the end
         self.publish_event(t0_robot_ns, m.EventKind.STARTED, 0, "", detail)
         self.get_logger().info(f"episode started (robot {self.robot.name!r}): {detail['robot_clock_offset_ms']} ms "
@@ -272,6 +342,8 @@ class BridgeNode(EpisodeNode):
         if self.clock is None or self.finished:
             return
         ticks = self.clock.tick_at(time.time_ns())  # ticks whose wall time has fully passed
+        if ticks > self.poses_tick:
+            self.publish_object_poses(ticks)  # (the tick that just started)
         spent = self.cfg.budget_spent(ticks, self.action_ticks)
         if spent:
             self.timeout_tick = min(ticks, self.cfg.tick_limit)

@@ -76,7 +76,7 @@ ROBOT_QOS = QoSProfile(
 )  # fmt: skip
 #: Types whose first field is a std_msgs/Header or a Time (log time = its stamp); others: receive time.
 _STAMPED_TYPES = {"sensor_msgs/msg/JointState", "geometry_msgs/msg/PoseStamped", m.IMAGE_MSGTYPE,
-                  "rosgraph_msgs/msg/Clock"}  # fmt: skip
+                  "rosgraph_msgs/msg/Clock", m.TASK_OBJECT_POSES.msgtype}  # fmt: skip
 #: Wall seconds after the terminal event the recorder waits at most for every node's message counts.
 COUNTS_WAIT_S = 2.0
 #: Wall seconds after the terminal event the recorder waits at most for a robot's /clock to reach the event's stamp.

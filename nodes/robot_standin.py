@@ -1,14 +1,17 @@
 """A robot stand-in: a LIBERO scene in MuJoCo, paced by the wall clock, speaking only standard topics.
 
-Not our sim node: no lq_msgs, no episode events, no lockstep. It behaves like a robot with a
+Not our sim node: no episode events, no lockstep, no lq_msgs but the task state. It behaves like a robot with a
 Cartesian impedance controller (lq_ros/sim/standin_robot.py): the physics runs one 2 ms substep after another in
 step with the wall clock, and it publishes, at its own rates and with the names of a robot YAML
 (``robot_config``, default config/robots/standin.yaml):
 
 - arm ``sensor_msgs/JointState`` (positions, velocities, efforts) at ``joint_states.rate_hz`` (500 Hz: every substep),
 - the end-effector ``geometry_msgs/PoseStamped`` and the finger ``JointState`` at ``ee_pose.rate_hz`` (100 Hz),
-- one ``PoseStamped`` per object (``<prefix>/<name>/pose``) and the task's goal check (``std_msgs/Bool``) at
-  ``objects.rate_hz`` (20 Hz),
+- one ``PoseStamped`` per object (``<prefix>/<name>/pose``: the scene's movable objects and the fixtures and
+  regions the task state names) and the task's goal check (``std_msgs/Bool``) at ``objects.rate_hz`` (20 Hz),
+- the task's state (``lq_msgs/TaskState``: gripper contact and grasp per object, each goal predicate's truth, from
+  lq_ros.sim.task_state.TaskStateProbe as in the sim node; ``tick`` counts its samples) on ``task_state.topic``
+  at ``task_state.rate_hz`` (20 Hz) when the YAML names one, stamped like the object poses of the same substep,
 - camera ``sensor_msgs/Image`` s (rgb8, upright) at each camera's ``rate_hz`` when the YAML lists cameras
   (LIBERO names: agentview, robot0_eye_in_hand; rendering costs 50-125 ms per image on a CPU).
 
@@ -45,7 +48,8 @@ from lq_ros.core.suite_constants import PHYSICS_DT_S
 from lq_ros.robot.delta_to_target import width_to_gripper_action
 from lq_ros.robot.robot_config import CLOCK_TOPIC, load_robot_config
 from lq_ros.sim.standin_robot import StandinRobot
-from lq_ros.transport.ros.rclpy_helpers import run
+from lq_ros.transport.ros.rclpy_helpers import msg_class, run
+from lq_ros.wire import messages as m
 from lq_ros.wire.node_names import NODE_NAMES
 
 #: What a robot driver typically offers: reliable, volatile (no history for late joiners).
@@ -92,14 +96,24 @@ class RobotStandin(Node):
         )
         self.object_pubs = {}
         if rc.objects is not None:
-            names = rc.objects.names if rc.objects.names is not None else tuple(self.robot.object_poses())
+            # auto: the movable objects, then the fixtures and regions the task state names (a tracker of them all).
+            auto = dict.fromkeys([*self.robot.object_poses(), *self.robot.task_objects()])
+            names = rc.objects.names if rc.objects.names is not None else tuple(auto)
             self.object_pubs = {n: self.create_publisher(PoseStamped, rc.objects.topic(n), ROBOT_QOS) for n in names}
         self.success_pub = self.create_publisher(Bool, rc.success.topic, ROBOT_QOS) if rc.success else None
+        self.task_pub = (
+            self.create_publisher(msg_class(rc.task_state.type), rc.task_state.topic, ROBOT_QOS)
+            if rc.task_state
+            else None
+        )
+        self.task_samples = 0
         self.camera_pubs = {c: self.create_publisher(Image, s.topic, ROBOT_QOS) for c, s in rc.cameras.items()}
         # Publishing periods in substeps, from the YAML's rates (500 Hz: every substep).
         self.joints_every = _every(rc.joint_states.rate_hz)
         self.pose_every = _every(rc.ee_pose.rate_hz)
         self.slow_every = _every(rc.objects.rate_hz if rc.objects else 20.0)
+        task_rate_hz = (rc.task_state.rate_hz if rc.task_state else 0.0) or (rc.objects.rate_hz if rc.objects else 20.0)
+        self.task_every = _every(task_rate_hz)  # (no rate given: with the object poses)
         self.camera_every = {c: _every(spec.rate_hz or 5.0) for c, spec in rc.cameras.items()}
         self.create_subscription(PoseStamped, rc.ee_target.topic, self.on_target, ROBOT_QOS)
         self.gripper_cmd = rc.gripper_command
@@ -145,6 +159,8 @@ class RobotStandin(Node):
                 self.publish_pose(t_ns)
             if k % self.slow_every == 0:
                 self.publish_slow(t_ns)
+            if self.task_pub is not None and k % self.task_every == 0:
+                self.publish_task_state(t_ns)
             for cam, every in self.camera_every.items():
                 if k % every == 0:
                     self.publish_image(cam, t_ns)
@@ -182,11 +198,22 @@ class RobotStandin(Node):
 
     def publish_slow(self, t_ns: int) -> None:
         poses = self.robot.object_poses()
+        if len(poses) < len(self.object_pubs):  # fixtures and regions: from the task state's probe
+            task = self.robot.task_state()
+            for name, pos, quat in zip(task.object_names, task.object_pos, task.object_quat_xyzw, strict=True):
+                poses.setdefault(name, (pos, quat))
         for name, pub in self.object_pubs.items():
             if name in poses:
                 pub.publish(self._pose(t_ns, *poses[name]))
         if self.success_pub is not None:
             self.success_pub.publish(Bool(data=self.robot.success()))
+
+    def publish_task_state(self, t_ns: int) -> None:
+        """The task's state at this substep, serialized as the sim node's (lq_ros.wire.messages.task_state_msgs)."""
+        (_, _, data) = next(msg for msg in m.task_state_msgs(t_ns, self.task_samples, self.robot.task_state())
+                            if msg[0] == m.TASK_STATE)  # fmt: skip
+        self.task_pub.publish(data)
+        self.task_samples += 1
 
     def publish_image(self, cam: str, t_ns: int) -> None:
         img = self.robot.render(cam)

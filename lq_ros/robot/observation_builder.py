@@ -5,8 +5,11 @@ The robot publishes at its own rates; :class:`ObservationBuilder` keeps the late
 the executor asks, assembles the same :class:`lq_ros.core.types.Observation` the simulator would give, stamped
 with the robot's EE-pose stamp. The EE orientation is turned into the frame the policy's observations
 use (``ee_pose.observation_rotation_xyzw``; LIBERO reports robosuite's hand body, 90 deg about z from the
-grip site that OSC and the bridge work in). :func:`check_requirements` refuses, when a run is configured, a policy
-that needs something the robot does not publish (cameras, object poses, finger state), naming it.
+grip site that OSC and the bridge work in). Object poses of the task's fixtures and regions (a robot that
+tracks them for its task state, as the stand-in does) are kept but not given to the policy: the simulator's
+observations hold the movable objects only (:func:`scene_only_objects`). :func:`check_requirements` refuses,
+when a run is configured, a policy that needs something the robot does not publish (cameras, object poses,
+finger state), naming it.
 """
 
 from __future__ import annotations
@@ -86,6 +89,12 @@ def missing_task_objects(goal: list[list[str]], available: set[str]) -> list[str
     return sorted(n for n in named if n not in available)
 
 
+def scene_only_objects(parsed_problem: dict) -> frozenset[str]:
+    """The fixtures and regions of a task's BDDL (LIBERO's parsed problem): never in a simulated observation."""
+    fixtures = {name for names in parsed_problem.get("fixtures", {}).values() for name in names}
+    return frozenset(fixtures | set(parsed_problem.get("regions", {})))
+
+
 @dataclass
 class _Latest:
     stamp_ns: int = -1
@@ -103,6 +112,8 @@ class ObservationBuilder:
     gripper: _Latest = field(default_factory=_Latest)
     objects: dict[str, _Latest] = field(default_factory=dict)
     images: dict[str, _Latest] = field(default_factory=dict)
+    #: Object names kept (for the bag's task state) but left out of the policy's observation.
+    hidden: frozenset[str] = frozenset()
 
     # -- updates from decoded messages -----------------------------------------------------------
     def on_joint_state(self, msg, stamp_ns: int) -> None:
@@ -162,7 +173,9 @@ class ObservationBuilder:
             gripper_qpos=np.asarray(gripper, dtype=np.float64).copy(),
             joint_pos=pos.copy(),
             joint_vel=vel.copy(),
-            objects={n: (s.values[0].copy(), s.values[1].copy()) for n, s in self.objects.items()}
+            objects={
+                n: (s.values[0].copy(), s.values[1].copy()) for n, s in self.objects.items() if n not in self.hidden
+            }
             if self.req.objects
             else {},
             images={c: self.images[c].values[0] for c in self.req.cameras},

@@ -1,11 +1,13 @@
 """The robot interface: every topic name, type, rate and frame the stack uses to talk to a robot, from one YAML.
 
-A robot (real, or the stand-in in nodes/robot_standin.py) publishes standard topics only: arm
+A robot (real, or the stand-in in nodes/robot_standin.py) publishes standard topics: arm
 ``sensor_msgs/JointState`` (positions, velocities, efforts), an end-effector ``geometry_msgs/PoseStamped``,
-optionally finger joint states, camera ``sensor_msgs/Image`` topics, object poses from a tracker and a
-success flag; it takes an absolute EE target ``PoseStamped`` and a gripper width
-``std_msgs/Float64MultiArray``. Its stamps are wall-clock time (``clock: wall``) or simulated time it
-publishes on ``/clock`` (``clock: sim``, e.g. a simulator). Examples: config/robots/standin.yaml,
+optionally finger joint states, camera ``sensor_msgs/Image`` topics, object poses from a tracker, a success
+flag and, the one stack type, the task's state (``task_state``: lq_msgs/msg/TaskState, the goal predicates'
+truth and the gripper's contacts, which the failure modes need; the stand-in publishes it, a real robot usually
+does not). It takes an absolute EE target ``PoseStamped`` and a gripper width ``std_msgs/Float64MultiArray``.
+Its stamps are wall-clock time (``clock: wall``) or simulated time it publishes on ``/clock`` (``clock: sim``,
+e.g. a simulator). Examples: config/robots/standin.yaml,
 config/robots/franka_ros2.yaml.
 A bad file is refused with one line naming the entry and the valid values (:class:`RobotConfigError`): only a
 regular file of at most :data:`MAX_ROBOT_BYTES` is read (YAML bounded by lq_ros.core.safe_yaml), every rate and
@@ -30,6 +32,8 @@ IMAGE = "sensor_msgs/msg/Image"
 BOOL = "std_msgs/msg/Bool"
 FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 CLOCK = "rosgraph_msgs/msg/Clock"
+#: The one stack type a robot may publish: its task's state (the same message the simulator records).
+TASK_STATE = m.TASK_STATE.msgtype
 #: Where a robot on simulated time (``clock: sim``) publishes its clock (the ROS convention, use_sim_time).
 CLOCK_TOPIC = "/clock"
 #: Shipped configurations, by name (``--robot standin`` = config/robots/standin.yaml, shipped with the package).
@@ -107,6 +111,9 @@ class RobotConfig:
     ee_target: StreamSpec = StreamSpec("/equilibrium_pose", POSE_STAMPED)
     gripper_command: GripperCommandSpec | None = None
     success: StreamSpec | None = None
+    #: The task's state (goal predicates, gripper contacts) if the robot computes it; the bridge relays it to
+    #: /lq/task/state. Its objects' poses come from the ``objects`` topics.
+    task_state: StreamSpec | None = None
     source: str = ""
 
     @property
@@ -126,6 +133,8 @@ class RobotConfig:
             out["success"] = self.success.topic
         if self.clock_stream:
             out["clock"] = self.clock_stream.topic
+        if self.task_state:
+            out["task_state"] = self.task_state.topic
         if self.objects:
             out["objects"] = self.objects.topic("<name>")
         out.update({f"camera/{c}": s.topic for c, s in self.cameras.items()})
@@ -234,7 +243,7 @@ def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
     if not isinstance(raw, dict):
         raise RobotConfigError(f"{where}: expected a mapping of robot interface entries")
     known = {"name", "frame_id", "clock", "joint_states", "ee_pose", "gripper_state", "objects", "cameras",
-             "command", "success"}  # fmt: skip
+             "command", "success", "task_state"}  # fmt: skip
     unknown = sorted(set(raw) - known)
     if unknown:
         raise RobotConfigError(f"{where}: unknown entries {unknown}; valid: {', '.join(sorted(known))}")
@@ -306,8 +315,9 @@ def parse_robot_config(raw: object, where: str = "robot config") -> RobotConfig:
             raise RobotConfigError(f"{where}: 'command.gripper' needs open_width_m > closed_width_m >= 0")
         gripper_command = GripperCommandSpec(g.topic, g.type, open_w, closed_w)
     success = _stream(raw, "success", BOOL, where) if "success" in raw else None
+    task_state = _stream(raw, "task_state", TASK_STATE, where) if raw.get("task_state") is not None else None
     return RobotConfig(
         name=str(raw.get("name", "robot")), frame_id=str(raw.get("frame_id", "world")), clock=clock,
         joint_states=joint_states, ee_pose=ee_pose, gripper_state=gripper_state, objects=objects, cameras=cameras,
-        ee_target=ee_target, gripper_command=gripper_command, success=success, source=where,
+        ee_target=ee_target, gripper_command=gripper_command, success=success, task_state=task_state, source=where,
     )  # fmt: skip

@@ -5,7 +5,9 @@ stand-in advances one 2 ms physics substep at a time, the way a robot's controll
 an *absolute* end-effector target at any moment: robosuite's OSC_POSE controller is switched to absolute
 goals (``control_delta`` off) after LIBERO's wait steps, so a target set here is the goal a delta action
 would have produced from the same measured pose (lq_ros/robot/delta_to_target.py). The gripper takes LIBERO's action
-sign (close > 0, open < 0), derived from a width command. Success is the task's own goal check.
+sign (close > 0, open < 0), derived from a width command. Success is the task's own goal check; the task's state
+(goal predicates, gripper contacts, the poses of the objects, fixtures and regions they name) is the simulator's
+own, read by :class:`lq_ros.sim.task_state.TaskStateProbe` as in the sim node.
 """
 
 from __future__ import annotations
@@ -16,7 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lq_ros.core.suite_constants import DUMMY_ACTION, NUM_WAIT_STEPS, PHYSICS_DT_S
+from lq_ros.core.types import TaskStateSample
 from lq_ros.sim.libero_env import compiled_once, load_task
+from lq_ros.sim.task_state import TaskStateProbe
 
 
 @dataclass
@@ -44,6 +48,7 @@ class StandinRobot:
         self._new_target = False
         self._gripper_action = DUMMY_ACTION[-1]
         self.substeps = 0
+        self._probe = TaskStateProbe(self._env.env)  # (rebinds itself to a new MjSim after a hard reset)
 
     def reset(self, init_index: int, seed: int) -> None:
         """LIBERO's start: init state, 10 wait steps with the dummy action; then absolute targets."""
@@ -139,6 +144,15 @@ class StandinRobot:
             w, x, y, z = self._data.xquat[body]
             out[name] = (self._data.xpos[body].copy(), np.array([x, y, z, w]))
         return out
+
+    def task_state(self) -> TaskStateSample:
+        """The task's state now: its objects' poses, gripper contact and grasp per object, each goal predicate's
+        truth (the simulator's, as the sim node records it; nothing in the simulation changes)."""
+        return self._probe.sample()
+
+    def task_objects(self) -> tuple[str, ...]:
+        """The objects the task state names (objects of interest, the goal's arguments, the movable objects)."""
+        return self._probe.object_names
 
     def success(self) -> bool:
         return bool(self._env.env._check_success())

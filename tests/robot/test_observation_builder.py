@@ -11,6 +11,7 @@ from lq_ros.robot.observation_builder import (
     check_requirements,
     missing_task_objects,
     needs_object_poses,
+    scene_only_objects,
 )
 from lq_ros.robot.robot_config import ROBOTS_DIR, load_robot_config
 from lq_ros.wire import messages as m
@@ -42,6 +43,26 @@ def test_build_from_latest_samples() -> None:
     assert np.allclose(obs.joint_pos, np.arange(7.0)) and np.allclose(obs.joint_vel, 1.0)
     assert np.allclose(obs.gripper_qpos, [0.03, -0.02])  # the YAML's finger order
     assert np.allclose(obs.eef_pos, [0.1, 0.2, 0.3]) and "plate_1" in obs.objects
+
+
+def test_fixtures_and_regions_are_kept_but_not_observed() -> None:
+    """A robot that tracks the task's fixtures and regions for its task state (the stand-in): the policy sees the
+    movable objects only, as in the simulator; the poses are still there for the bag and the start check."""
+    parsed = {"fixtures": {"table": ["main_table"], "flat_stove": ["flat_stove_1"]},
+              "regions": {"basket_1_contain_region": {}}, "objects": {"plate": ["plate_1"]}}  # fmt: skip
+    hidden = scene_only_objects(parsed)
+    assert hidden == {"main_table", "flat_stove_1", "basket_1_contain_region"}
+    b = ObservationBuilder(load_robot_config("standin"), Requirements(objects=True, gripper=False), hidden=hidden)
+    t = 1_000_000
+    pose = m.deserialize(m.ee_pose_msg(t, [0.1, 0.2, 0.3], [0, 0, 0, 1]), "geometry_msgs/msg/PoseStamped")
+    js = m.deserialize(m.joint_state_msg(t, np.zeros(7), np.zeros(7), np.zeros(7)), "sensor_msgs/msg/JointState")
+    b.on_joint_state(js, t)
+    b.on_ee_pose(pose, t)
+    for name in ("plate_1", "basket_1_contain_region", "flat_stove_1"):
+        b.on_object_pose(name, pose, t)
+    assert set(b.objects) == {"plate_1", "basket_1_contain_region", "flat_stove_1"}
+    assert missing_task_objects([["in", "plate_1", "basket_1_contain_region"]], set(b.objects)) == []
+    assert set(b.build(0).objects) == {"plate_1"}
 
 
 def test_joint_state_of_another_group_ignored() -> None:

@@ -30,6 +30,11 @@ def test_shipped_configs_load() -> None:
     assert franka.ee_target.topic == "/cartesian_impedance_example_controller/equilibrium_pose"
     assert franka.joint_states.joints[0] == "fr3_joint1" and "agentview" in franka.cameras
     assert franka.objects is not None and franka.objects.names == ()
+    # The task state: the stand-in computes it (with its object poses' rate), a real arm names none.
+    assert standin.task_state is not None and standin.task_state.topic == "/robot/task_state"
+    assert standin.task_state.type == "lq_msgs/msg/TaskState" and standin.task_state.rate_hz == standin.objects.rate_hz
+    assert standin.topic_map()["task_state"] == "/robot/task_state"
+    assert franka.task_state is None and "task_state" not in franka.topic_map()
 
 
 def test_object_topic_names() -> None:
@@ -50,6 +55,9 @@ def test_object_topic_names() -> None:
         (lambda d: d["command"]["gripper"].update(closed_width_m=0.1), "open_width_m > closed_width_m"),
         (lambda d: d["objects"].update(names="all"), "'objects.names'"),
         (lambda d: d["ee_pose"].update(observation_rotation_xyzw=[0, 0, 1, 1]), "unit quaternion"),
+        (lambda d: d["task_state"].update(type="std_msgs/msg/String"), "the stack reads lq_msgs/msg/TaskState there"),
+        (lambda d: d.update(task_state={"type": "lq_msgs/msg/TaskState"}), "'task_state' needs 'topic'"),
+        (lambda d: d.update(task_state="/robot/task_state"), "'task_state' needs 'topic'"),
     ],
 )
 def test_mistakes_are_one_line(change, needle) -> None:
@@ -134,6 +142,8 @@ def test_deep_nesting_and_alias_bombs_are_one_line(tmp_path) -> None:
         (lambda d: d["objects"].update(names=["cup/../x"]), "'objects.names' must be auto or a list of names"),
         (lambda d: d.update(cameras={"1cam": {"topic": "/c"}}), "camera name '1cam'"),
         (lambda d: d["objects"].update(topic_prefix="/robot//objects"), "'objects.topic_prefix' must be an absolute"),
+        (lambda d: d["task_state"].update(topic="/robot/task state"), "'task_state.topic' must be an absolute ROS"),
+        (lambda d: d["task_state"].update(rate_hz=float("nan")), "'task_state.rate_hz' must be a finite number"),
     ],
 )
 def test_numbers_and_names_are_checked(change, needle) -> None:
@@ -152,3 +162,11 @@ def test_topic_names_follow_ros_rules(topic) -> None:
     raw["ee_pose"]["topic"] = topic
     with pytest.raises(RobotConfigError, match="'ee_pose.topic' must be an absolute ROS topic name"):
         parse_robot_config(raw, "x.yaml")
+
+
+def test_task_state_is_optional() -> None:
+    raw = _standin()
+    raw.pop("task_state")
+    assert parse_robot_config(raw, "x.yaml").task_state is None
+    raw["task_state"] = None  # an empty entry (``task_state:``) is absent too
+    assert parse_robot_config(raw, "x.yaml").task_state is None
