@@ -23,22 +23,34 @@ programs' (lq_ros.transport.processes.exit_uncollected), from the process's last
 scene's compile alone: with its image textures (what an env with cameras does), without them (1x1 flat
 textures: an env that renders nothing), and its compiled model loaded from the cache's MJB file, alternated.
 
+Every figure is printed twice: wall seconds, and CPU seconds (user + system of the command's whole process tree:
+the node processes and what they start included). On a machine other jobs load, the wall figures grow with the
+load and the CPU figures far less, so compare CPU there; the targets are wall seconds on idle cores.
+
+``--baseline REV`` runs every phase also with the package of git revision REV of the repository the command runs
+in (extracted into the benchmark's temporary folder and put first on PYTHONPATH; the same Python, packages and
+model cache), the two alternated in every repetition, and prints the differences: an A/B of a change in one run,
+both sides under the same load. "This tree" is the lq_ros that Python imports (PYTHONPATH's, else the installed).
+
 Default episode: the scripted expert, async, Δt_sim 0.2 s, LIBERO-Spatial task 0, init state 0 (164 ticks).
 Targets: in process <= 4 s; through ROS <= in process + 1.5 s (2 idle cores).
 
-    .venv/bin/python benchmarks/bench_first_episode.py [--repeats 3]
+    .venv/bin/python benchmarks/bench_first_episode.py [--repeats 3] [--baseline REV]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import statistics
 import subprocess
 import sys
+import tarfile
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 RUN_ARGS = ["--suite", "libero_spatial", "--task", "0", "--init", "0", "--mode", "async", "--latency", "0.2",
@@ -52,6 +64,19 @@ PHASES = {
     "episode": [sys.executable, "-m", "lq_ros.cli", "run", *RUN_ARGS, "--transport", "inprocess"],
     "ROS": [sys.executable, "-m", "lq_ros.cli", "run", *RUN_ARGS, "--transport", "ros"],
 }
+#: Target seconds (wall, 2 idle cores): the first episode in process; what ROS may add to it.
+TARGET_INPROCESS_S, TARGET_ROS_EXTRA_S = 4.0, 1.5
+
+
+@dataclass
+class Samples:
+    """One phase's runs: wall and CPU seconds of each."""
+
+    wall: list[float] = field(default_factory=list)
+    cpu: list[float] = field(default_factory=list)
+
+    def median(self) -> tuple[float, float]:
+        return statistics.median(self.wall), statistics.median(self.cpu)
 
 
 def run_checked(argv: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
@@ -62,63 +87,122 @@ def run_checked(argv: list[str], env: dict[str, str]) -> subprocess.CompletedPro
     return proc
 
 
-def wall_s(argv: list[str], out: Path, cache: str) -> tuple[float, float | None]:
-    """Wall seconds of the command, and of its end: from the episode's score file being written (the recorder
-    writes one through ROS) to the command's exit; None without a score file."""
-    start = time.perf_counter()
-    argv = [*argv, "--out", str(out), "--overwrite"] if "run" in argv else argv
+def children_cpu_s() -> float:
+    """User + system seconds of this process's waited-for children (and theirs, once those waited for them)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def timed(argv: list[str], out: Path, cache: str, pythonpath: str | None) -> tuple[float, float, float | None]:
+    """Wall and CPU seconds of the command, and of its end: from the episode's score file being written (the
+    recorder writes one through ROS) to the command's exit; None without a score file. ``out`` is emptied first
+    (unmeasured), so `lq run` starts without an earlier bag to replace, as a first run does."""
+    shutil.rmtree(out, ignore_errors=True)
+    argv = [*argv, "--out", str(out)] if "run" in argv else argv
     env = {**os.environ, "LQ_MODEL_CACHE": cache,
            "ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")}  # fmt: skip
+    if pythonpath:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))
+    cpu0, start = children_cpu_s(), time.perf_counter()
     run_checked(argv, env)
-    elapsed, ended = time.perf_counter() - start, time.time()
+    elapsed, ended, cpu = time.perf_counter() - start, time.time(), children_cpu_s() - cpu0
     scores = list(out.glob("*/score.json"))
-    return elapsed, (ended - scores[0].stat().st_mtime if scores else None)
+    return elapsed, cpu, (ended - scores[0].stat().st_mtime if scores else None)
+
+
+def extract_revision(rev: str, into: Path) -> Path:
+    """The source tree of git revision ``rev`` in ``into``, importable as lq_ros and lq_ros_nodes (the node
+    programs' package) from PYTHONPATH; its bytecode is compiled by the unmeasured first run."""
+    archive = into.with_suffix(".tar")
+    with open(archive, "wb") as f:
+        subprocess.run(["git", "archive", "--format=tar", rev], stdout=f, check=True)
+    with tarfile.open(archive) as tar:
+        tar.extractall(into, filter="data")
+    archive.unlink()
+    (into / "lq_ros_nodes").symlink_to(into / "nodes", target_is_directory=True)
+    return into
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--baseline", metavar="REV", help="also run every phase with git revision REV, alternated")
     args = parser.parse_args()
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     out = Path(tempfile.mkdtemp(prefix="lq_bench_first_"))
     try:
-        measure(args.repeats, out)
+        variants = {"": None}
+        if args.baseline:
+            rev = subprocess.run(["git", "rev-parse", "--short", args.baseline], text=True, capture_output=True,
+                                 check=True).stdout.strip()  # fmt: skip
+            variants[f"baseline {rev}"] = str(extract_revision(args.baseline, out / "baseline"))
+        measure(args.repeats, out, variants)
     finally:
         shutil.rmtree(out, ignore_errors=True)  # its bags and compiled models (about 80 MB)
 
 
-def measure(repeats: int, out: Path) -> None:
-    """Run and print every figure; ``out`` holds the commands' bags and the model cache."""
+def measure(repeats: int, out: Path, variants: dict[str, str | None]) -> None:
+    """Run and print every figure; ``out`` holds the commands' bags and the model cache. ``variants``: label ->
+    PYTHONPATH entry of the package to run ("" -> None: the installed one)."""
     cache = str(out / "models")
-    wall_s(PHASES["env"], out, cache)  # fills the cache (unmeasured)
+    for pythonpath in variants.values():  # fills the cache and compiles a baseline's bytecode (unmeasured)
+        timed(PHASES["episode"], out / "warm-up", cache, pythonpath)
     runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
             **{f"{name} (cold)": (PHASES[name], None) for name in ("episode", "ROS")}}  # fmt: skip
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    ends: list[float] = []  # the ROS commands' ends (score file written -> exit), warm and cold
+    samples = {(label, name): Samples() for label in variants for name in runs}
+    ends: dict[str, list[float]] = {label: [] for label in variants}  # the ROS commands' ends, warm and cold
     for _ in range(repeats):
-        for name, (argv, warm_cache) in runs.items():  # (a cold run: an empty cache folder of its own)
-            run_cache = warm_cache or tempfile.mkdtemp(prefix="models_", dir=out)
-            elapsed, end = wall_s(argv, out / name.replace(" ", "_").strip("()"), run_cache)
-            if warm_cache is None:
-                shutil.rmtree(run_cache)
-            times[name].append(elapsed)
-            if name.startswith("ROS") and end is not None:
-                ends.append(end)
-    median = {name: statistics.median(t) for name, t in times.items()}
-    previous = 0.0
-    print("warm (the task's compiled model in the cache):")
+        for name, (argv, warm_cache) in runs.items():
+            for label, pythonpath in variants.items():  # alternated: a change of load hits both alike
+                run_cache = warm_cache or tempfile.mkdtemp(prefix="models_", dir=out)  # cold: an empty cache
+                wall, cpu, end = timed(argv, out / "bags", run_cache, pythonpath)
+                if warm_cache is None:
+                    shutil.rmtree(run_cache)
+                samples[label, name].wall.append(wall)
+                samples[label, name].cpu.append(cpu)
+                if name.startswith("ROS") and end is not None:
+                    ends[label].append(end)
+    for label in variants:
+        report(label, {name: samples[label, name].median() for name in runs}, ends[label], repeats)
+    if len(variants) == 2:
+        (new, base) = variants
+        print(f"this tree against {base} (medians of {repeats}; negative: this tree is faster):")
+        for name in runs:
+            (wall, cpu), (wall0, cpu0) = samples[new, name].median(), samples[base, name].median()
+            print(f"  {name:18s} wall {wall - wall0:+6.2f} s ({wall:5.2f} vs {wall0:5.2f}), "
+                  f"CPU {cpu - cpu0:+6.2f} s ({cpu:5.2f} vs {cpu0:5.2f})")  # fmt: skip
+    if "" in variants:
+        print_exit_and_compile(repeats, cache)
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+def report(label: str, median: dict[str, tuple[float, float]], ends: list[float], repeats: int) -> None:
+    """The phases' medians (wall and CPU, cumulative and what each adds), the ROS end and the targets."""
+    print(f"{label or 'this tree'}, warm (the task's compiled model in the cache), medians of {repeats}:")
+    print(f"  {'phase':12s} {'wall':>8s} {'(adds)':>9s}   {'CPU':>7s} {'(adds)':>9s}")
+    previous = (0.0, 0.0)
     for name in ("interpreter", "imports", "env", "first reset", "episode"):
-        print(f"  {name:12s} {median[name]:6.2f} s cumulative  (+{median[name] - previous:5.2f} s)")
-        previous = median[name]
-    print(f"  {'ROS':12s} {median['ROS']:6.2f} s  (+{median['ROS'] - median['episode']:5.2f} s over in process)")
-    print(
-        f"  of which the end (the recorder's score file written -> the command exited): median "
-        f"{statistics.median(ends):.2f} s, longest {max(ends):.2f} s over {len(ends)} fresh stacks (warm and cold)"
-    )
-    for label, suffix in (("warm", ""), ("cold", " (cold)")):
-        episode, ros = median[f"episode{suffix}"], median[f"ROS{suffix}"]
-        print(f"targets, {label}: in process {episode:.2f} s <= 4 s; ROS {ros:.2f} s <= in process + 1.5 s = "
-              f"{episode + 1.5:.2f} s (+{ros - episode:.2f} s)  (medians of {repeats})")  # fmt: skip
+        wall, cpu = median[name]
+        print(f"  {name:12s} {wall:6.2f} s (+{wall - previous[0]:5.2f}) {cpu:7.2f} s (+{cpu - previous[1]:5.2f})")
+        previous = (wall, cpu)
+    (wall, cpu), (wall_in, cpu_in) = median["ROS"], median["episode"]
+    print(f"  {'ROS':12s} {wall:6.2f} s (+{wall - wall_in:5.2f}) {cpu:7.2f} s (+{cpu - cpu_in:5.2f})  over in process")
+    if ends:
+        print(f"  of which the end (the recorder's score file written -> the command exited): median "
+              f"{statistics.median(ends):.2f} s, longest {max(ends):.2f} s over {len(ends)} fresh stacks "
+              "(warm and cold)")  # fmt: skip
+    for kind, suffix in (("warm", ""), ("cold", " (cold)")):
+        (wall_in, cpu_in), (wall_ros, cpu_ros) = median[f"episode{suffix}"], median[f"ROS{suffix}"]
+        verdict_in = "met" if wall_in <= TARGET_INPROCESS_S else "NOT met"
+        verdict_ros = "met" if wall_ros - wall_in <= TARGET_ROS_EXTRA_S else "NOT met"
+        print(f"  targets, {kind}: in process {wall_in:.2f} s wall <= {TARGET_INPROCESS_S:g} s: {verdict_in} "
+              f"(CPU {cpu_in:.2f} s); ROS {wall_ros:.2f} s wall <= in process + {TARGET_ROS_EXTRA_S:g} s = "
+              f"{wall_in + TARGET_ROS_EXTRA_S:.2f} s: {verdict_ros} (+{wall_ros - wall_in:.2f} s; CPU {cpu_ros:.2f} s, "
+              f"+{cpu_ros - cpu_in:.2f} s over in process)")  # fmt: skip
+    print("  (the targets are wall seconds on idle cores: under load, read the CPU figures)")
+
+
+def print_exit_and_compile(repeats: int, cache: str) -> None:
     normal, uncollected = exit_times(repeats, cache)
     print(f"exit of a process with the task's env (median of {repeats}, from its last statement to its end): "
           f"the interpreter's normal exit {normal:.2f} s, lq_ros.transport.processes.exit_uncollected "
@@ -128,7 +212,6 @@ def measure(repeats: int, out: Path) -> None:
     print(f"scene (median of {repeats}): compiled with image textures {textured:.2f} s, without "
           f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
           f"{cached:.2f} s (its file: {size_mb:.1f} MB)")  # fmt: skip
-    print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 
 def exit_times(repeats: int, cache: str) -> tuple[float, float]:

@@ -848,8 +848,8 @@ def main() -> int:
         console.print(f"[red]error:[/red] {exc}", soft_wrap=True, highlight=False)
         return 2
     _importable_current_directory()
-    if not sys.stdout.isatty() and "TERMINAL_WIDTH" not in os.environ:
-        import typer.rich_utils
+    if not sys.stdout.isatty() and "TERMINAL_WIDTH" not in os.environ and may_print_help(sys.argv[1:]):
+        import typer.rich_utils  # (with rich's markdown renderer: imported only for help, not for every command)
 
         typer.rich_utils.MAX_WIDTH = PIPED_WIDTH  # --help piped: no option name cut short
     from lq_ros.run.quiet import quiet_simulator_banners
@@ -874,6 +874,11 @@ def main() -> int:
     except typer.Abort:
         console.print("Aborted!")
         return 1
+
+
+def may_print_help(args: list[str]) -> bool:
+    """Whether ``lq ARGS`` may print a help text: ``--help`` anywhere, or no command (``lq`` alone shows it)."""
+    return not args or "--help" in args
 
 
 def _importable_current_directory() -> None:

@@ -63,6 +63,10 @@ SERVICE_WAIT_S, CONFIGURE_S, CALL_S = 300.0, 600.0, 60.0
 #: Wall seconds between two looks at the recorder's state during an episode when no transition event of it was
 #: heard (a missed event costs at most this); between get_state attempts.
 POLL_PERIOD_S, RETRY_S = 0.5, 2.0
+#: Wall seconds between two looks for a node's service that is not there yet (a fresh stack's nodes appear while
+#: the manager waits for them). rclpy's ``Client.wait_for_service`` looks every 0.25 s, so a node that appeared
+#: just after a look was configured up to 0.25 s late; a look is a query of the local graph cache.
+SERVICE_LOOK_S = 0.005
 #: Wall seconds a manage_nodes call waits for its operation (queued behind others, configuring every node).
 MANAGE_ANSWER_S = 3600.0
 #: The node that does the calls to the managed nodes: hidden (a leading underscore), the service node is the face.
@@ -116,7 +120,7 @@ class LifecycleManager(Node):
         return [f.result() for f in futures]
 
     def _ready(self, node: str, client, what: str, wait_s: float) -> None:
-        if not client.wait_for_service(timeout_sec=wait_s):
+        if not wait_for_service(client, wait_s):
             raise TransitionFailed(node, what, f"service {client.srv_name} not available within {wait_s:.0f} s")
 
     def state(self, node: str, wait_s: float = SERVICE_WAIT_S) -> str:
@@ -302,6 +306,17 @@ class LifecycleManager(Node):
                 failed.append(str(TransitionFailed(node, "shutdown", why)))
                 self.get_logger().error(failed[-1])
         return failed
+
+
+def wait_for_service(client, timeout_s: float, look_s: float = SERVICE_LOOK_S) -> bool:
+    """Whether ``client``'s service is there, waiting up to ``timeout_s`` for it (rclpy's
+    ``Client.wait_for_service``, looking every ``look_s`` instead of every 0.25 s)."""
+    deadline = time.monotonic() + timeout_s
+    while not client.service_is_ready():
+        if not client.context.ok() or time.monotonic() >= deadline:
+            return client.service_is_ready()
+        time.sleep(look_s)
+    return True
 
 
 def _all(futures):
