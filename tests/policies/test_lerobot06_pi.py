@@ -1,0 +1,150 @@
+"""pi0 and pi0.5 of LeRobot 0.6 (``make setup-lerobot06``), built offline at tiny sizes and served like published ones.
+
+``make test`` builds ``.venv-lerobot06``; run by hand without it, every test here is skipped, saying why (in CI a
+missing venv fails).
+
+LeRobot fixes pi0's and pi0.5's sizes in code, not in the checkpoint's config: ``get_gemma_config`` knows only
+``gemma_2b`` and ``gemma_300m``, and ``PaliGemmaWithExpertModel`` builds transformers' default SigLIP tower (27
+layers, 1152 wide), a 2048-wide projection and a 257152-row vocabulary (about 3e9 parameters in all). So the
+helper script and the server run with a TEST-ONLY shim, ``pi_tiny_sizes/sitecustomize.py``, on ``PYTHONPATH``
+(given to the server through a two-line wrapper passed as ``python=``; the product never loads it). It replaces
+sizes only: what the two variant names mean (64 and 32 wide, 2 layers), the vision tower's width, depth, heads,
+MLP width and patch size, the projection (the language model's width) and the vocabulary (512 rows). Every
+class, forward pass, processor and RTC step is LeRobot's; the configs name ``gemma_2b``/``gemma_300m`` as LeRobot
+writes them. The processors name the hub tokenizer ``google/paligemma-3b-pt-224``: the helper makes a word-level
+toy tokenizer and the saved preprocessor's ``tokenizer_name`` points at its folder, so nothing comes from a hub.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lq_ros.core.merge import ActionPrefix
+from lq_ros.core.run_config import RunConfig
+from lq_ros.core.types import TaskInfo
+from lq_ros.policies import make_policy
+from lq_ros.policies.lerobot_client import RTC_TYPES, check_config, check_processor_steps
+from lq_ros.recording.bag_compare import bag_messages
+from lq_ros.run.episode import run_episode
+from lq_ros.wire import messages as m
+from tests.standin_servers import standin_observation
+
+HERE = Path(__file__).parent
+SCRIPT = HERE / "lerobot_pi_script.py"
+SHIM = HERE / "pi_tiny_sizes"
+PYTHON06 = Path(__file__).resolve().parents[2] / ".venv-lerobot06" / "bin" / "python"
+TASK_INFO = TaskInfo("libero_spatial", 0, "t", "pick up the black bowl", [], 220, 50)
+SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK
+CHUNK, STEPS = 10, 5  # as lerobot_pi_script.py makes them
+KINDS = ["pi0", "pi05"]
+
+pytestmark = [pytest.mark.sim]
+
+
+def python06() -> Path:
+    if not PYTHON06.is_file():
+        if os.environ.get("CI"):
+            pytest.fail(f"LeRobot 0.6's venv is missing ({PYTHON06}): `make test` makes it with `make setup-lerobot06`")
+        pytest.skip("LeRobot 0.6's venv is not installed (make setup-lerobot06)")
+    return PYTHON06
+
+
+def in_venv06_with_shim(*args: object) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env.update(PYTHONPATH=str(SHIM), HF_HUB_OFFLINE="1")  # the size shim; nothing may come from a hub
+    done = subprocess.run(
+        [str(python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600, env=env,
+        check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory) -> dict:
+    """The checkpoints, and a wrapper Python that starts LeRobot 0.6's venv with the size shim, offline."""
+    out = tmp_path_factory.mktemp("lerobot06_pi")
+    result = in_venv06_with_shim("make", out)
+    wrapper = out / "python-with-tiny-pi-sizes"
+    wrapper.write_text(
+        f'#!/bin/sh\nPYTHONPATH={shlex.quote(str(SHIM))} HF_HUB_OFFLINE=1 exec {shlex.quote(str(python06()))} "$@"\n'
+    )
+    wrapper.chmod(0o755)
+    return {**result, "python": str(wrapper)}
+
+
+def policy_pi(made: dict, kind: str, **args):
+    return make_policy("lerobot", path=made[kind], python=made["python"], threads=1, **args)
+
+
+def chunk_rows(bag: Path) -> int:
+    commands = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in bag_messages(bag).get(m.COMMAND.name, [])]
+    return sum(c.source == SOURCE_CHUNK for c in commands)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_tiny_checkpoint_is_laid_out_as_lerobot_writes_it_and_loads_as_saved(made, kind):
+    """The config keeps LeRobot's variant names and passes the client's checks; the server's policy holds the saved
+    tensors (LeRobot's pi ``from_pretrained`` only prints a warning and keeps random weights when they do not fit)."""
+    folder = Path(made[kind])
+    config = check_config(folder / "config.json", kind)
+    check_processor_steps(folder, kind)
+    assert config["type"] == kind and kind in RTC_TYPES
+    assert (config["paligemma_variant"], config["action_expert_variant"]) == ("gemma_2b", "gemma_300m")
+    assert config["lq_cameras"] == {"observation.images.image": "image", "observation.images.image2": "image2"}
+    steps = json.loads((folder / "policy_preprocessor.json").read_text())["steps"]
+    names = [step["config"].get("tokenizer_name") for step in steps if step["registry_name"] == "tokenizer_processor"]
+    assert names == [str(folder.parent / "toy_paligemma_tokenizer")]
+    assert made["parameters"][kind] < 1_000_000  # tiny: the shim took effect when it was built
+    loaded = in_venv06_with_shim("load-check", folder)
+    assert loaded["same"] and loaded["type"] == kind, loaded
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_rtc_guided_chunk_follows_the_prefix(made, kind):
+    """The executor's prefix and delay reach LeRobot's RTC processor in pi0 and pi0.5: the guided chunk's first d
+    rows follow the prefix; the unguided chunk from the same observation and noise does not."""
+    policy = policy_pi(made, kind)
+    obs = standin_observation(64, 3)
+    prefix = np.tile([0.4, -0.3, 0.2, 0.1, -0.1, 0.3, -1.0], (8, 1))
+    delay = 3
+    try:
+        policy.check_merge("rtc")
+        policy.reset(TASK_INFO, 5)
+        unguided = policy.infer(obs, prefix=ActionPrefix(np.zeros((0, 7)), delay=0))  # no rows: nothing guides
+        policy.reset(TASK_INFO, 5)
+        guided = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay))
+        policy.reset(TASK_INFO, 5)
+        hard = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay, schedule="hard"))
+        policy.reset(TASK_INFO, 5)
+        plain = policy.infer(obs)  # no prefix after RTC ran: select_action's queue, RTC off again
+        assert policy.server_metadata["policy_type"] == kind and policy.server_metadata["lerobot_version"] == "0.6.1"
+    finally:
+        policy.close()
+    assert unguided.shape == guided.shape == hard.shape == (CHUNK, 7)
+    far = np.abs(unguided[:delay] - prefix[:delay]).mean()
+    near = np.abs(guided[:delay] - prefix[:delay]).mean()
+    assert near < 0.05 < 0.2 < far, (near, far)
+    assert np.abs(hard[:delay] - prefix[:delay]).mean() < 0.05
+    assert not np.allclose(guided[delay:], hard[delay:])  # exp guides rows d..7 too, hard only the first d
+    np.testing.assert_allclose(plain, unguided[:STEPS], atol=1e-5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+def test_async_episode_with_rtc(made, kind, tmp_path):
+    cfg = RunConfig(
+        suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge="rtc", policy="lerobot",
+        policy_args={"path": made[kind], "python": made["python"], "threads": 1}, max_steps=30,
+    )  # fmt: skip
+    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess")
+    assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
+    assert chunk_rows(outcome.bag_path) > 0
+    assert row["latency_real_mean_s"] > 0
