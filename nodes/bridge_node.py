@@ -54,7 +54,7 @@ from lq_ros.robot.observation_builder import (
     missing_task_objects,
     scene_only_objects,
 )
-from lq_ros.robot.robot_config import load_robot_config
+from lq_ros.robot.robot_config import TOKEN, load_robot_config
 from lq_ros.sim.libero_env import load_task
 from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import START_CHECK_PERIOD_S, EpisodeNode, msg_class, run_managed
@@ -72,6 +72,10 @@ COMMAND_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )  # fmt: skip
+
+
+#: The most objects a robot's task state may name (each is a pose topic the bridge subscribes to).
+MAX_TASK_OBJECTS = 256
 
 
 def _ns(header) -> int:
@@ -137,11 +141,14 @@ class BridgeNode(EpisodeNode):
             # Reliable and deep: every sample is relayed to the bag.
             task_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
                                   durability=DurabilityPolicy.VOLATILE)  # fmt: skip
+
+            def on_task(data: bytes) -> None:  # (an undecodable message is logged, never the bridge's end)
+                self.guarded(f"a message on {r.task_state.topic}", self.on_task_state, data)
+
             self._episode_entities.append(
-                self.create_subscription(
-                    msg_class(r.task_state.type), r.task_state.topic, self.on_task_state, task_qos, raw=True
-                )  # fmt: skip
+                self.create_subscription(msg_class(r.task_state.type), r.task_state.topic, on_task, task_qos, raw=True)
             )
+        self.task_state_problem = ""  # why the robot's task state cannot be used (its object names), if it cannot
         self.object_names: tuple[str, ...] = ()  # the order of the bag's object poses (fixed at STARTED)
         self.poses_tick = -1  # the last tick whose object poses were published
         gc = r.gripper_command
@@ -201,8 +208,19 @@ class BridgeNode(EpisodeNode):
     def on_task_state(self, data: bytes) -> None:
         """The robot's task state: kept (the episode starts once one has come) and relayed unchanged to the bag."""
         names = tuple(m.deserialize(data, m.TASK_STATE.msgtype).object_names)
-        if self.task_state is None and self.robot.objects:
-            for name in names:  # the poses of every object it names (names: auto or not)
+        if self.task_state is None:
+            bad = [n for n in names if not TOKEN.fullmatch(n)]
+            if bad or len(names) > MAX_TASK_OBJECTS:
+                problem = (
+                    f"names {bad[0][:60]!r}: object names must be letters, digits and underscores (topic tokens)"
+                    if bad
+                    else f"names {len(names)} objects, more than {MAX_TASK_OBJECTS}"
+                )
+                if problem != self.task_state_problem:
+                    self.task_state_problem = problem
+                    self.get_logger().error(f"the robot's task state on {self.robot.task_state.topic} {problem}")
+                return  # (not used: the episode waits for a usable one)
+            for name in names if self.robot.objects else ():  # the poses of every object it names (auto or not)
                 if name not in self.object_subs:
                     self._subscribe_object(name)
         self.task_state = (data, names)
@@ -263,7 +281,8 @@ class BridgeNode(EpisodeNode):
             ]
         if self.robot.task_state:  # the robot publishes its task state: the failure modes need it and its poses
             if self.task_state is None:
-                waiting.append(self.robot.task_state.topic)
+                problem = f" (a usable one: the last {self.task_state_problem})" if self.task_state_problem else ""
+                waiting.append(self.robot.task_state.topic + problem)
             elif self.robot.objects:
                 waiting += [self.robot.objects.topic(n) for n in self.task_state[1] if n not in self.builder.objects]
         # The series the score needs from the first tick on: the recorder must be receiving them, not only subscribed.
