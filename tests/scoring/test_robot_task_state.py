@@ -106,6 +106,15 @@ def test_object_poses_without_task_state_are_unavailable_naming_the_missing_topi
     assert row["progress"] is None and row["null_reasons"]["progress"] == reason
 
 
+def test_task_state_without_object_poses_is_unavailable(tmp_path):
+    """A robot with a task state but no object tracker: the bag has no poses, and the reason says so."""
+    bag = robot_bag(tmp_path / "rb")
+    data = read_episode(bag, ee_topic=EE.name)
+    data.task_poses = {}
+    series, why = task_series(data, T0_NS, T0_NS + TICKS * TICK_NS)
+    assert series is None and f"no {m.TASK_OBJECT_POSES.name} records" in why and "robot 'arm'" in why
+
+
 def test_exact_stamps_alone_would_find_nothing(tmp_path):
     """The same bag without the robot's metadata is read as a simulator's (exact stamps): nothing matches, so the
     failure mode above really comes from the nearest-stamp match."""

@@ -33,6 +33,13 @@ def test_absolute_targets_from_deltas_equal_libero_delta_control():
     assert np.abs(quat - state.eef_quat_xyzw).max() < 1e-6
     assert np.abs(sub.joint_pos - state.joint_pos).max() < 1e-5
     assert set(robot.object_poses()) >= {"akita_black_bowl_1", "plate_1"} and not robot.success()
+    # Its task state is the simulator's (the same probe on the same physics): what a stand-in bag is scored on.
+    mine, sims = robot.task_state(), state.task
+    assert mine.object_names == sims.object_names == robot.task_objects()
+    assert mine.predicate_names == sims.predicate_names == ("(on akita_black_bowl_1 plate_1)",)
+    assert np.abs(mine.object_pos - sims.object_pos).max() < 1e-6
+    assert np.array_equal(mine.predicate_values, sims.predicate_values)
+    assert np.array_equal(mine.gripper_contact, sims.gripper_contact) and np.array_equal(mine.grasped, sims.grasped)
     robot.close()
     env.close()
 
