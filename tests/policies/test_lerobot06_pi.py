@@ -5,14 +5,14 @@ missing venv fails).
 
 LeRobot fixes pi0's and pi0.5's sizes in code, not in the checkpoint's config: ``get_gemma_config`` knows only
 ``gemma_2b`` and ``gemma_300m``, and ``PaliGemmaWithExpertModel`` builds transformers' default SigLIP tower (27
-layers, 1152 wide), a 2048-wide projection and a 257152-row vocabulary (about 3e9 parameters in all). So the
-helper script and the server run with a TEST-ONLY shim, ``pi_tiny_sizes/sitecustomize.py``, on ``PYTHONPATH``
-(given to the server through a two-line wrapper passed as ``python=``; the product never loads it). It replaces
-sizes only: what the two variant names mean (64 and 32 wide, 2 layers), the vision tower's width, depth, heads,
-MLP width and patch size, the projection (the language model's width) and the vocabulary (512 rows). Every
-class, forward pass, processor and RTC step is LeRobot's; the configs name ``gemma_2b``/``gemma_300m`` as LeRobot
-writes them. The processors name the hub tokenizer ``google/paligemma-3b-pt-224``: the helper makes a word-level
-toy tokenizer and the saved preprocessor's ``tokenizer_name`` points at its folder, so nothing comes from a hub.
+layers, 1152 wide), a 2048-wide projection and a 257152-row vocabulary: about 4e9 parameters, 16 GB as float32.
+So the helper script and the server run with a TEST-ONLY shim, ``pi_tiny_sizes/sitecustomize.py``, on
+``PYTHONPATH`` (the server gets it through a two-line wrapper passed as ``python=``; the product never loads it).
+It replaces sizes only: what the two variant names mean (64 and 32 wide, 2 layers), the vision tower's width,
+depth, heads, MLP width and patch size, the projection (the language model's width) and the vocabulary (512 rows).
+Every class, forward pass, processor and RTC step is LeRobot's; the configs name ``gemma_2b``/``gemma_300m`` as
+LeRobot writes them. The processors name the hub tokenizer ``google/paligemma-3b-pt-224``: the helper makes a
+word-level toy tokenizer, and the saved preprocessor's ``tokenizer_name`` points at its folder (no hub).
 """
 
 from __future__ import annotations
@@ -89,6 +89,11 @@ def chunk_rows(bag: Path) -> int:
     return sum(c.source == SOURCE_CHUNK for c in commands)
 
 
+def chunk_horizons(bag: Path) -> list[int]:
+    chunks = bag_messages(bag).get(m.ACTION_CHUNK.name, [])
+    return [m.deserialize(raw, m.ACTION_CHUNK.msgtype).horizon for _, raw in chunks]
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_tiny_checkpoint_is_laid_out_as_lerobot_writes_it_and_loads_as_saved(made, kind):
     """The config keeps LeRobot's variant names and passes the client's checks; the server's policy holds the saved
@@ -140,6 +145,8 @@ def test_rtc_guided_chunk_follows_the_prefix(made, kind):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
 def test_async_episode_with_rtc(made, kind, tmp_path):
+    """Every request of the episode went through LeRobot's RTC: each answer is the whole chunk of
+    ``predict_action_chunk`` (10 rows); a request without a prefix gets select_action's 5."""
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge="rtc", policy="lerobot",
         policy_args={"path": made[kind], "python": made["python"], "threads": 1}, max_steps=30,
@@ -147,4 +154,6 @@ def test_async_episode_with_rtc(made, kind, tmp_path):
     outcome, row = run_episode(cfg, tmp_path / kind, "inprocess")
     assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
     assert chunk_rows(outcome.bag_path) > 0
-    assert row["latency_real_mean_s"] > 0
+    horizons = chunk_horizons(outcome.bag_path)
+    assert len(horizons) >= 3 and set(horizons) == {CHUNK}, horizons
+    assert row["latency_real_mean_s"] > 0 and row["merge"] == "rtc"

@@ -9,8 +9,11 @@ When ``lerobot.policies.pi0.modeling_pi0`` or ``lerobot.policies.pi05.modeling_p
 sizes only, in that module's namespace: the two variant names' widths, depths and heads (:data:`TINY_GEMMA`), and
 just before the PaliGemma and expert models are built, the vision tower's width, depth, heads, MLP width and patch
 size, the projection (set to the language model's width, as PaliGemma requires) and the vocabulary
-(:data:`TINY_VISION`, :data:`TINY_VOCAB`). Every class, forward pass, processor and LeRobot's RTC stay LeRobot's.
-Without this shim a checkpoint made with it does not load (its tensors have the tiny shapes).
+(:data:`TINY_VISION`, :data:`TINY_VOCAB`). To do so it rebinds three names in that module: ``get_gemma_config``,
+and ``PaliGemmaForConditionalGenerationWithPiGemma`` and ``PiGemmaForCausalLM`` to functions that change those
+sizes in the config they are given and call LeRobot's classes. Every class, forward pass, processor and LeRobot's
+RTC stay LeRobot's.
+Without this shim LeRobot builds the full sizes (about 4e9 parameters) and cannot load a checkpoint made with it.
 """
 
 from __future__ import annotations
