@@ -17,9 +17,13 @@ The checkpoint directory is checked here, before anything starts, from its ``con
 refusals): it must be a LeRobot ``save_pretrained`` folder with its saved processor pipelines, take
 LIBERO's two cameras (under LeRobot's names ``observation.images.image`` = agentview and
 ``observation.images.image2`` = wrist, or under other names mapped to them: see :func:`camera_mapping`; images
-``observation.images.empty_camera_<i>`` are padded by the policy itself) and the 8-D state, act in 7-D, and use
-one observation per inference. The server builds the policy's input with LeRobot's own functions, as
-``lerobot-eval`` does; the images are sent as robosuite renders them (bottom row first) at LeRobot's LIBERO render size.
+``observation.images.empty_camera_<i>`` are padded by the policy itself) and the 8-D state, act in 7-D, and
+condition on at most :data:`MAX_HISTORY_TICKS` observations (``n_obs_steps``). A policy with ``n_obs_steps`` n > 1
+(diffusion's default 2, VQ-BeT's 5) declares ``observation_history_ticks`` n: the simulator captures every tick's
+observation and each request carries the n - 1 ticks before its own (``Observation.history``; before tick 0, tick
+0's), which the server queues as ``lerobot-eval``'s per-tick ``select_action`` calls would have. The server builds
+the policy's input with LeRobot's own functions, as ``lerobot-eval`` does; the images are sent as robosuite renders
+them (bottom row first) at LeRobot's LIBERO render size.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
+from lq_ros.core.observation_history import MAX_HISTORY_TICKS
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import PolicyError
@@ -260,11 +265,11 @@ def check_config(config_file: Path, where: str, rename: dict[str, str] | None = 
             f"lerobot path {where!r}: state shape {state_shape} and action shape {action_shape}; LIBERO's are "
             f"[{LEROBOT_STATE_DIM}] and [{ACTION_DIM}]"
         )
-    n_obs_steps = config.get("n_obs_steps", 1) or 1
-    if n_obs_steps != 1:
+    n_obs_steps = 1 if config.get("n_obs_steps") is None else config["n_obs_steps"]
+    if not isinstance(n_obs_steps, int) or isinstance(n_obs_steps, bool) or not 1 <= n_obs_steps <= MAX_HISTORY_TICKS:
         raise ValueError(
-            f"lerobot path {where!r}: n_obs_steps is {n_obs_steps}; the stack sends one observation per request, "
-            "so policies that stack an observation history are not supported (valid: n_obs_steps 1)"
+            f"lerobot path {where!r}: n_obs_steps is {n_obs_steps!r}; valid: 1 to {MAX_HISTORY_TICKS} (every past "
+            "tick the policy sees is rendered each tick and sent with each request)"
         )
     return config
 
@@ -329,6 +334,8 @@ class LeRobotPolicy(OpenPIPolicy):
             config_file = folder / "config.json"
         #: The checkpoint's image key -> LeRobot's env camera that feeds it (``image``, ``image2``).
         self.cameras: dict[str, str] = self.config.pop("lq_cameras")
+        #: The checkpoint's n_obs_steps: each request carries the n - 1 ticks before its own (Observation.history).
+        self.observation_history_ticks = int(self.config.get("n_obs_steps", 1) or 1)
         self.env_cameras = sorted(set(self.cameras.values()))
         self.camera_names = tuple(ENV_CAMERAS[camera] for camera in self.env_cameras)
         chunk_size = self.config.get("chunk_size", self.config.get("horizon"))
@@ -381,24 +388,38 @@ class LeRobotPolicy(OpenPIPolicy):
         self._episode_start = True
         self._seed = int(seed)
 
-    def observation_payload(self, obs: Observation) -> dict:
+    def observation_fields(self, obs: Observation) -> dict[str, np.ndarray]:
         """Cameras as robosuite renders them (our images are upright: undo the row flip), state unprocessed."""
-        request: dict = {
+        fields = {
             f"observation/images/{camera}": np.ascontiguousarray(camera_image(obs, ENV_CAMERAS[camera])[::-1])
             for camera in self.env_cameras
         }
-        request.update(
+        fields.update(
             {
                 "observation/eef_pos": np.asarray(obs.eef_pos, dtype=np.float64),
                 "observation/eef_quat": np.asarray(obs.eef_quat_xyzw, dtype=np.float64),
                 "observation/gripper_qpos": np.asarray(obs.gripper_qpos, dtype=np.float64),
                 "observation/joint_pos": np.asarray(obs.joint_pos, dtype=np.float64),
                 "observation/joint_vel": np.asarray(obs.joint_vel, dtype=np.float64),
-                "prompt": str(self._prompt),
-                "reset": bool(self._episode_start),
-                "seed": self._seed,
             }
         )
+        return fields
+
+    def observation_payload(self, obs: Observation) -> dict:
+        """The observation's fields, and (n_obs_steps n > 1) those of the n - 1 ticks before it, each stacked
+        oldest first under ``history/<field>``."""
+        request: dict = self.observation_fields(obs)
+        request.update({"prompt": str(self._prompt), "reset": bool(self._episode_start), "seed": self._seed})
+        past = self.observation_history_ticks - 1
+        if past:
+            if len(obs.history) != past:
+                raise PolicyError(
+                    f"lerobot: the checkpoint's n_obs_steps {self.observation_history_ticks} needs the observations of "
+                    f"the {past} tick(s) before each request; this observation carries {len(obs.history)} (a robot "
+                    "interface does not capture them; the simulator does)"
+                )
+            fields = [self.observation_fields(o) for o in obs.history]
+            request.update({f"history/{key}": np.stack([f[key] for f in fields]) for key in fields[0]})
         self._episode_start = False
         if self._prefix is not None:
             request["prefix/actions"] = np.asarray(self._prefix.actions, dtype=np.float64)
@@ -413,6 +434,7 @@ class LeRobotPolicy(OpenPIPolicy):
             "config_sha256": self.config_sha256,
             "n_action_steps": self.n_action_steps or self.config.get("n_action_steps"),
             "n_action_steps_override": self.n_action_steps,
+            "n_obs_steps": self.observation_history_ticks,
             "full_chunk": self.full_chunk,
             "clip": self.clip,
             "cameras": self.cameras,

@@ -23,6 +23,13 @@ whole chunk of ``predict_action_chunk``. A request that carries a prefix (``--me
 answered by ``predict_action_chunk`` with LeRobot's own RTC processor guiding the chunk towards that prefix
 (SmolVLA, pi0, pi0.5: the flow-matching policies LeRobot wires RTC into).
 
+Observation history (``n_obs_steps`` n > 1: diffusion's default 2, VQ-BeT's 5): ``lerobot-eval`` calls
+``select_action`` every tick, and the policy's observation queue keeps the last n observations (at reset, copies of
+the first). The stack asks only at request ticks, so each request carries the n - 1 ticks before its own (captured by
+the simulator every tick) and the server hands each of them to ``select_action`` first, with a placeholder in the
+action queue for it to pop instead of inferring: the policy's own code queues them, and its queue then holds what
+``lerobot-eval``'s would at that tick.
+
 Cameras: the checkpoint's image keys are fed from LIBERO's two cameras through a mapping (``--cameras``, JSON
 ``{"observation.images.camera1": "image", ...}``, made by the client from the checkpoint's config or the user's
 ``rename``), applied where ``lerobot-eval --env.camera_name_mapping`` applies it: to the env's pixel keys.
@@ -36,7 +43,9 @@ cameras the mapping uses: uint8 H x W x 3 as robosuite renders them, bottom row 
 ``observation/joint_pos``, ``observation/joint_vel`` (float); ``prompt``; ``reset`` (true on an episode's
 first request: the policy and processors are reset) and ``seed`` (with ``reset``); optionally
 ``prefix/actions`` (L x 7, the executor's plan in the env's action space), ``prefix/delay`` (d, ticks) and
-``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``). Reply: ``actions`` (n, 7) float32 and
+``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``); for a policy with ``n_obs_steps`` n > 1,
+``history/<field>`` for each observation field above: the n - 1 ticks before the request's, stacked oldest first
+along a leading axis (ticks before the episode's first are copies of it). Reply: ``actions`` (n, 7) float32 and
 ``policy_timing.infer_ms``. A failure is sent as one
 text line (the exception's type and message, no traceback), then the socket closes.
 
@@ -108,6 +117,8 @@ EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
 #: them (``hard``: only the d executing rows guide, LeRobot's ZEROS schedule with start = d).
 MAX_PREFIX_ROWS = 1024
 PREFIX_SCHEDULES = {"exp": "EXP", "linear": "LINEAR", "hard": "ZEROS", "ones": "ONES"}
+#: The most observations a policy may condition on (``n_obs_steps``; the client's MAX_HISTORY_TICKS).
+MAX_OBS_STEPS = 10
 #: Config fields a config.json may carry beyond its class's (``type`` names the class).
 CONFIG_EXTRA_FIELDS = {"type"}
 #: How a checkpoint on the Hugging Face hub is named (anything else is a local folder).
@@ -194,11 +205,34 @@ def load_wire():
 
 
 def checked_request(request: object, image_keys: list[str]) -> dict:
-    """The request's fields after checking each (dtype, shape, finite values), as writable arrays; RequestError."""
+    """The request's fields after checking each (dtype, shape, finite values), as writable arrays; RequestError.
+    ``history`` is the list of the past ticks' observations, oldest first (empty without ``history/...`` fields)."""
     import numpy as np
 
     if not isinstance(request, dict):
         raise RequestError(f"a request is a dict, got {type(request).__name__}")
+    out: dict = checked_observation(request, image_keys)
+    prompt = request.get("prompt", "")
+    if not isinstance(prompt, str) or len(prompt) > MAX_PROMPT_CHARS:
+        raise RequestError(f"prompt: valid: text of at most {MAX_PROMPT_CHARS} characters; got {_what(prompt)}")
+    reset = request.get("reset", False)
+    if not isinstance(reset, bool | np.bool_):
+        raise RequestError(f"reset: valid: true or false; got {_what(reset)}")
+    seed = request.get("seed")
+    if seed is not None and (
+        not isinstance(seed, int | np.integer) or isinstance(seed, bool) or not 0 <= int(seed) < 2**32
+    ):
+        raise RequestError(f"seed: valid: a whole number 0 to 2**32-1; got {_what(seed)}")
+    out.update(prompt=prompt, reset=bool(reset), seed=None if seed is None else int(seed))
+    out["prefix"] = checked_prefix(request)
+    out["history"] = checked_history(request, image_keys)
+    return out
+
+
+def checked_observation(request: dict, image_keys: list[str]) -> dict:
+    """One observation's camera images and state fields, checked; RequestError."""
+    import numpy as np
+
     out: dict = {}
     for key in image_keys:
         name = f"observation/images/{key.removeprefix('observation.images.')}"
@@ -222,20 +256,32 @@ def checked_request(request: object, image_keys: list[str]) -> dict:
         if not np.all(np.isfinite(value)):
             raise RequestError(f"{name}: valid: finite values; got {value.tolist()}")
         out[name] = value
-    prompt = request.get("prompt", "")
-    if not isinstance(prompt, str) or len(prompt) > MAX_PROMPT_CHARS:
-        raise RequestError(f"prompt: valid: text of at most {MAX_PROMPT_CHARS} characters; got {_what(prompt)}")
-    reset = request.get("reset", False)
-    if not isinstance(reset, bool | np.bool_):
-        raise RequestError(f"reset: valid: true or false; got {_what(reset)}")
-    seed = request.get("seed")
-    if seed is not None and (
-        not isinstance(seed, int | np.integer) or isinstance(seed, bool) or not 0 <= int(seed) < 2**32
-    ):
-        raise RequestError(f"seed: valid: a whole number 0 to 2**32-1; got {_what(seed)}")
-    out.update(prompt=prompt, reset=bool(reset), seed=None if seed is None else int(seed))
-    out["prefix"] = checked_prefix(request)
     return out
+
+
+def checked_history(request: dict, image_keys: list[str]) -> list[dict]:
+    """The past ticks' observations of a request (``history/<field>``: every field stacked oldest first along a
+    leading axis of one length, 1 to MAX_OBS_STEPS - 1), each checked as the request's own; RequestError."""
+    import numpy as np
+
+    stacked = {str(key).removeprefix("history/"): value for key, value in request.items()
+               if str(key).startswith("history/")}  # fmt: skip
+    if not stacked:
+        return []
+    lengths = {v.shape[0] if isinstance(v, np.ndarray) and v.ndim >= 1 else -1 for v in stacked.values()}
+    ticks = next(iter(lengths)) if len(lengths) == 1 else -1
+    if not 1 <= ticks < MAX_OBS_STEPS:
+        raise RequestError(
+            f"history: valid: every field an array of 1-{MAX_OBS_STEPS - 1} past ticks along its first axis, the same "
+            f"number for each; got {sorted(lengths)}"
+        )
+    past = []
+    for i in range(ticks):
+        try:
+            past.append(checked_observation({key: value[i] for key, value in stacked.items()}, image_keys))
+        except RequestError as exc:
+            raise RequestError(f"history[{i}] {exc}") from None
+    return past
 
 
 def checked_prefix(request: dict) -> dict | None:
@@ -345,12 +391,12 @@ class LeRobotServer:
             check_config_fields(Path(hf_hub_download(path, "config.json")))
         config = PreTrainedConfig.from_pretrained(path)
         config.device = device
-        n_obs_steps = int(getattr(config, "n_obs_steps", 1) or 1)
-        if n_obs_steps != 1:
-            raise ValueError(
-                f"n_obs_steps is {n_obs_steps}: the stack sends one observation per request, so a policy that stacks "
-                "an observation history is not supported (n_obs_steps must be 1)"
-            )
+        #: Observations the policy conditions on: each request carries the n_obs_steps - 1 ticks before its own.
+        self.n_obs_steps = int(getattr(config, "n_obs_steps", 1) or 1)
+        #: What the action queue holds while a past tick goes through select_action (popped, never executed).
+        self.past_tick = torch.full((1, 7), float("nan"))
+        if not 1 <= self.n_obs_steps <= MAX_OBS_STEPS:
+            raise ValueError(f"n_obs_steps is {self.n_obs_steps}: valid: 1 to {MAX_OBS_STEPS}")
         self.chunk_size = int(getattr(config, "chunk_size", None) or getattr(config, "horizon", None) or 1)
         if n_action_steps is not None:
             if not 1 <= n_action_steps <= self.chunk_size:
@@ -365,6 +411,11 @@ class LeRobotServer:
             raise ValueError(
                 f"full_chunk: a {config.type} policy's chunk is its n_action_steps from the current step; "
                 "set n_action_steps instead"
+            )
+        if self.full_chunk and self.n_obs_steps > 1:
+            raise ValueError(
+                f"full_chunk with n_obs_steps {self.n_obs_steps}: the past ticks are queued by select_action, which a "
+                "whole-chunk answer does not call; leave full_chunk off"
             )
         # The policy type's own processor steps register when its processor module is imported: import it (LeRobot's
         # code) before checking that every saved step is a registered one.
@@ -462,9 +513,22 @@ class LeRobotServer:
             out.append(action.to("cpu").numpy()[0])
         return np.stack(out).astype(np.float32)
 
-    def chunk(self, batch: dict, prefix: dict | None = None):
-        """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick."""
+    def chunk(self, batch: dict, prefix: dict | None = None, history: list[dict] = ()):
+        """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick.
+
+        ``history``: the policy's input for each of the n_obs_steps - 1 ticks before, oldest first. Each goes through
+        ``select_action`` as lerobot-eval hands it every tick, with a placeholder in the action queue for it to pop
+        instead of inferring: the policy's own code queues it (populate_queues, after the policy's own batch
+        preparation), so its observation queue then holds exactly what lerobot-eval's would at this tick.
+        """
+        if len(history) != self.n_obs_steps - 1:
+            raise ValueError(
+                f"history: n_obs_steps is {self.n_obs_steps}, so a request carries the {self.n_obs_steps - 1} tick(s) "
+                f"before its own; this one carries {len(history)}"
+            )
         if prefix is not None:
+            if history:
+                raise ValueError("merge rtc: LeRobot's RTC is wired into policies of one observation (n_obs_steps 1)")
             return self.rtc_chunk(batch, prefix)
         self._enable_rtc(False)  # LeRobot's select_action refuses to run with RTC on
         queue = self._action_queue()
@@ -472,6 +536,11 @@ class LeRobotServer:
             if self.full_chunk:
                 chunk = self.policy.predict_action_chunk(batch)  # (1, H, A)
                 return self.postprocessed(chunk.transpose(0, 1))
+            for past in history:
+                queue.clear()
+                queue.append(self.past_tick)
+                if self.policy.select_action(past) is not self.past_tick:
+                    raise RuntimeError(f"{self.config.type}'s select_action did not take from its action queue")
             queue.clear()
             actions = [self.policy.select_action(batch)]
             actions += list(queue)
@@ -546,7 +615,9 @@ class LeRobotServer:
         if request.get("reset"):
             self.reset(request.get("seed"))
         started = time.perf_counter()
-        actions = self.chunk(self.policy_batch(request), request.get("prefix"))
+        prompt = request.get("prompt", "")
+        history = [self.policy_batch({**past, "prompt": prompt}) for past in request.get("history", [])]
+        actions = self.chunk(self.policy_batch(request), request.get("prefix"), history)
         return {"actions": actions, "policy_timing": {"infer_ms": (time.perf_counter() - started) * 1000.0}}
 
     def _action_queue(self):

@@ -1,7 +1,8 @@
 """Test helper run by LeRobot's venv Python (``.venv-lerobot``), never imported by pytest.
 
 Subcommands (each writes an .npz or folders and prints one JSON line):
-  make OUT                          tiny ACT and diffusion checkpoints made with LeRobot's own classes
+  make OUT                          tiny ACT and diffusion checkpoints made with LeRobot's own classes (diffusion2:
+                                    n_obs_steps 2, diffusion's default)
   make-flow OUT                     a tiny random-weight SmolVLA (LeRobot >= 0.5) as lerobot/smolvla_libero is laid
                                     out (cameras camera1/camera2, one empty camera), its backbone config and a toy
                                     tokenizer made here: no hub
@@ -13,12 +14,16 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   eval-loop CKPT SUITE TASK STEPS SEED OUT
                                     lerobot-eval's rollout() on LeRobot's LiberoEnv: the actions it executed
   defaults                          LeRobot's LIBERO defaults our client copies (render size, camera keys)
+  queue-parity CKPT TICKS REQUESTS  a policy with n_obs_steps > 1: per-tick observations fed to select_action every
+                                    tick (lerobot-eval) and, at the REQUESTS ticks (JSON list), requests carrying the
+                                    ticks before them to our server: the observation queue the policy predicts from
   full-state CKPT [CAMERAS]         the policy's input from a request, and from the same observation with the fields
                                     LeRobot >= 0.6's LiberoEnv adds (EE rotation matrix, finger velocities): equal?
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -110,6 +115,7 @@ def make(out: Path) -> dict:
             ),
         ),
     }
+    configs["diffusion2"] = (DiffusionPolicy, dataclasses.replace(configs["diffusion"][1], n_obs_steps=2))
     made = {}
     for name, (cls, config) in configs.items():
         torch.manual_seed(0)
@@ -337,6 +343,70 @@ def full_state(ckpt: str, cameras: dict[str, str] | None) -> dict:
     return {"equal": bool(equal), "keys": sorted(ours)}
 
 
+def tick_requests(server, ticks: int) -> list[dict]:
+    """Observation fields of ``ticks`` ticks, as a request carries them (random images and state, seeded)."""
+    rng = np.random.default_rng(1)
+    out = []
+    for _ in range(ticks):
+        request = {f"observation/images/{key.removeprefix('observation.images.')}": rng.integers(
+            0, 256, IMAGE_SHAPE[1:] + (3,), dtype=np.uint8) for key in server.image_keys}  # fmt: skip
+        request.update({
+            "observation/eef_pos": rng.normal(size=3), "observation/eef_quat": np.array([0.0, 0.0, 0.0, 1.0]),
+            "observation/gripper_qpos": rng.normal(size=2) * 0.02, "observation/joint_pos": rng.normal(size=7),
+            "observation/joint_vel": rng.normal(size=7),
+        })  # fmt: skip
+        out.append(request)
+    return out
+
+
+def queue_parity(ckpt: str, ticks: int, requests: list[int]) -> dict:
+    """lerobot-eval's observation queue at each request tick (select_action every tick from a reset) against the one
+    our server's policy predicts from, given requests at those ticks that carry the n_obs_steps - 1 ticks before
+    (before tick 0: tick 0's), as the stack sends them. Equal bit for bit, key by key?"""
+    from lerobot.utils.constants import ACTION
+
+    prompt = "pick up the black bowl"
+    reference = lerobot_server.LeRobotServer(ckpt)
+    observed = tick_requests(reference, ticks)
+    want = {}
+    reference.reset(0)
+    for tick, fields in enumerate(observed):
+        reference.policy.select_action(reference.policy_batch({**fields, "prompt": prompt}))
+        want[tick] = {k: torch.stack(list(q), dim=1) for k, q in reference.policy._queues.items() if k != ACTION}
+
+    ours = lerobot_server.LeRobotServer(ckpt)
+    n = ours.n_obs_steps
+    predicted = []
+    predict = ours.policy.predict_action_chunk
+
+    def recording(batch, **kwargs):
+        predicted.append({k: torch.stack(list(q), dim=1) for k, q in ours.policy._queues.items() if k != ACTION})
+        return predict(batch, **kwargs)
+
+    ours.policy.predict_action_chunk = recording
+    result = {}
+    for i, tick in enumerate(requests):
+        past = [observed[max(t, 0)] for t in range(tick - n + 1, tick)]
+        request = {**observed[tick], "prompt": prompt, "reset": i == 0, "seed": 0, "token": "-"}
+        request.update({f"history/{key}": np.stack([p[key] for p in past]) for key in observed[tick]})
+        actions = ours.answer(lerobot_server.checked_request(request, ours.image_keys))["actions"]
+        got = predicted[-1]
+        result[str(tick)] = {
+            "equal": sorted(got) == sorted(want[tick]) and all(torch.equal(got[k], want[tick][k]) for k in got),
+            "keys": sorted(got),
+            "shapes": [list(v.shape) for v in got.values()],
+            "actions": list(actions.shape),
+        }
+    # Without the past ticks (n_obs_steps 1 as before): another queue, so the test can tell.
+    blind = lerobot_server.LeRobotServer(ckpt)
+    blind.reset(0)
+    last = requests[-1]
+    blind.policy.select_action(blind.policy_batch({**observed[last], "prompt": prompt}))
+    copies = {k: torch.stack(list(q), dim=1) for k, q in blind.policy._queues.items() if k != ACTION}
+    result["without_history_equal"] = all(torch.equal(copies[k], want[last][k]) for k in copies)
+    return result
+
+
 def main(argv: list[str]) -> None:
     command, args = argv[0], argv[1:]
     if command == "make":
@@ -353,6 +423,8 @@ def main(argv: list[str]) -> None:
         result = pi_configs(Path(args[0]))
     elif command == "config-fields":
         result = config_fields(args)
+    elif command == "queue-parity":
+        result = queue_parity(args[0], int(args[1]), json.loads(args[2]))
     elif command == "full-state":
         result = full_state(args[0], json.loads(args[1]) if len(args) > 1 else None)
     elif command == "defaults":

@@ -32,7 +32,8 @@ from tests.standin_servers import standin_observation
 SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
 SUITE, TASK = "libero_spatial", 0
 PARITY_STEPS = 24  # three ACT chunks of 8, six diffusion chunks of 4
-N_ACTION_STEPS = {"act": 8, "diffusion": 4}  # as made by lerobot_venv_script.py; lerobot-eval executes them all
+#: As made by lerobot_venv_script.py (diffusion2: n_obs_steps 2); lerobot-eval executes them all.
+N_ACTION_STEPS = {"act": 8, "diffusion": 4, "diffusion2": 4}
 SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK: the command is a row of a policy chunk
 TASK_INFO = TaskInfo(SUITE, TASK, "t", "pick up the black bowl", [], 220, 50)
 
@@ -112,8 +113,10 @@ def test_policy_input_equals_lerobot_libero_env_bit_for_bit(checkpoints, tmp_pat
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["act", "diffusion"])
+@pytest.mark.parametrize("kind", ["act", "diffusion", "diffusion2"])
 def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind, tmp_path):
+    """diffusion2 (n_obs_steps 2): lerobot-eval's policy sees the tick before each replan from its own per-tick
+    queue, ours from the request's history (the simulator's capture of that tick)."""
     reference = tmp_path / "eval.npz"
     in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, 0, reference)
     executed = np.load(reference)["actions"].astype(np.float64)
@@ -234,12 +237,12 @@ def test_trust_processors_loads_steps_by_class_path(checkpoints, tmp_path):
         policy.close()
 
 
-def test_unsupported_inputs_and_history_are_refused(checkpoints, tmp_path):
+def test_unsupported_inputs_and_too_long_a_history_are_refused(checkpoints, tmp_path):
     config = json.loads((checkpoints["act"] / "config.json").read_text())
     front = {"observation.images.front": {"type": "VISUAL", "shape": [3, 9, 9]}}
     for name, change, message in [
         ("front", {"input_features": {**config["input_features"], **front}}, "not LIBERO's"),
-        ("history", {"n_obs_steps": 2}, "n_obs_steps is 2"),
+        ("history", {"n_obs_steps": 11}, "n_obs_steps is 11; valid: 1 to 10"),
         ("action6", {"output_features": {"action": {"type": "ACTION", "shape": [6]}}}, "action shape"),
     ]:  # fmt: skip
         folder = tmp_path / name

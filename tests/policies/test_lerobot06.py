@@ -2,9 +2,10 @@
 
 ``make test`` builds ``.venv-lerobot06``; run by hand without it, every test here is skipped, saying why (in CI a
 missing venv fails).
-Small policies are made in that venv with LeRobot's own classes and saved with ``save_pretrained``: ACT and
-diffusion, and a random-weight SmolVLA laid out as ``lerobot/smolvla_libero`` (cameras ``camera1``/``camera2``,
-one empty camera) whose two-layer backbone config and word-level tokenizer the helper script writes (no hub).
+Small policies are made in that venv with LeRobot's own classes and saved with ``save_pretrained``: ACT,
+diffusion (``n_obs_steps`` 1, and 2 as diffusion's default), and a random-weight SmolVLA laid out as
+``lerobot/smolvla_libero`` (cameras ``camera1``/``camera2``, one empty camera) whose two-layer backbone config and
+word-level tokenizer the helper script writes (no hub).
 """
 
 from __future__ import annotations
@@ -188,8 +189,37 @@ def test_rtc_is_refused_for_act(checkpoints):
         policy.close()
 
 
+def test_diffusion_with_two_observations_queues_what_lerobot_eval_queues(checkpoints):
+    """n_obs_steps 2: at each request (ticks 0, 2, 3, 7) the observation queue the policy predicts from equals
+    lerobot-eval's after select_action every tick on the same observations, bit for bit (at tick 0: tick 0 twice).
+    Without the past tick the queue differs (the check can fail)."""
+    result = in_venv06("queue-parity", checkpoints["diffusion2"], 8, json.dumps([0, 2, 3, 7]))
+    assert result.pop("without_history_equal") is False
+    assert sorted(result, key=int) == ["0", "2", "3", "7"]
+    for tick, got in result.items():
+        assert got["equal"] and got["keys"] == ["observation.images", "observation.state"], (tick, got)
+        assert [1, 2, 8] in got["shapes"] and got["actions"] == [4, 7]
+
+
+def test_a_policy_of_two_observations_needs_the_tick_before(checkpoints):
+    """The client declares n_obs_steps as its observation history; an observation without it (a robot interface
+    captures none) is one line, never a chunk from a queue of copies."""
+    policy = policy06(checkpoints["diffusion2"])
+    try:
+        assert policy.observation_history_ticks == 2 and policy.params()["n_obs_steps"] == 2
+        policy.reset(TASK_INFO, 0)
+        with pytest.raises(PolicyError, match=r"n_obs_steps 2 needs the observations of the 1 tick\(s\) before") as err:
+            policy.infer(standin_observation(256, 0))
+        assert "\n" not in str(err.value)
+    finally:
+        policy.close()
+    assert policy06(checkpoints["diffusion"]).observation_history_ticks == 1
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize(("kind", "merge"), [("act", "replace"), ("diffusion", "replace"), ("smolvla", "rtc")])
+@pytest.mark.parametrize(
+    ("kind", "merge"), [("act", "replace"), ("diffusion", "replace"), ("diffusion2", "replace"), ("smolvla", "rtc")]
+)
 def test_async_episode(checkpoints, kind, merge, tmp_path):
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge=merge, policy="lerobot",

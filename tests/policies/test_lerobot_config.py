@@ -85,3 +85,17 @@ def test_xvla_is_refused_with_its_reason(tmp_path):
     with pytest.raises(ValueError, match="X-VLA's LIBERO processor needs the end-effector rotation matrix") as refused:
         check_config(config_file(tmp_path, ["image", "image2"], type="xvla"), "ckpt")
     assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize("n_obs_steps", [None, 1, 2, 5, 10])
+def test_an_observation_history_of_up_to_ten_ticks_is_accepted(tmp_path, n_obs_steps):
+    config = check_config(config_file(tmp_path, ["image", "image2"], type="diffusion", n_obs_steps=n_obs_steps), "d")
+    assert config["n_obs_steps"] == n_obs_steps
+
+
+@pytest.mark.parametrize("n_obs_steps", [0, 11, 2.5, True, "2"])
+def test_an_observation_history_beyond_ten_ticks_is_one_line(tmp_path, n_obs_steps):
+    path = config_file(tmp_path, ["image", "image2"], type="vqbet", n_obs_steps=n_obs_steps)
+    with pytest.raises(ValueError, match=r"n_obs_steps is .*; valid: 1 to 10") as refused:
+        check_config(path, "d")
+    assert "\n" not in str(refused.value)

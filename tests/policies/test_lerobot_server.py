@@ -46,6 +46,11 @@ def request(token: str | None, reset: object = False, seed: int = 0, delay_s: fl
     return out
 
 
+def history(ticks: int) -> dict:
+    """A request's past ticks (n_obs_steps > 1): every observation field stacked along a leading axis."""
+    return {f"history/{k}": np.stack([v] * ticks) for k, v in request(None).items() if k.startswith("observation/")}
+
+
 @pytest.fixture
 def server():
     process = subprocess.Popen(
@@ -141,6 +146,13 @@ def test_junk_and_failures_are_one_line(server):
         (PACK.pack({**request(token), "seed": -1}), "seed: valid"),
         (PACK.pack({**request(token), "reset": "yes"}), "reset: valid"),
         (PACK.pack(request(token, prompt="fail")), "RuntimeError: stand-in policy failed on purpose"),
+        (PACK.pack({**request(token), **history(2), "history/observation/eef_pos": np.zeros((3, 3))}), "same number"),
+        (PACK.pack({**request(token), **history(10)}), "history: valid: every field an array of 1-9 past ticks"),
+        (
+            PACK.pack({**request(token), **history(2), "history/observation/eef_pos": np.zeros((2, 5))}),
+            "history[0] observation/eef_pos: valid",
+        ),
+        (PACK.pack({**request(token), "history/observation/eef_pos": 3.0}), "history: valid"),
     ]:
         with open_client(uri) as ws:
             assert expected in refusal(ws, frame)
