@@ -53,6 +53,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import lq_ros  # noqa: F401 - before numpy (compile_times): it pins OpenBLAS's kernels
+
 RUN_ARGS = ["--suite", "libero_spatial", "--task", "0", "--init", "0", "--mode", "async", "--latency", "0.2",
             "--policy", "scripted"]  # fmt: skip
 ENV = "from lq_ros.sim.libero_env import LiberoEnv; env = LiberoEnv('libero_spatial', 0)"
@@ -66,6 +68,8 @@ PHASES = {
 }
 #: Target seconds (wall, 2 idle cores): the first episode in process; what ROS may add to it.
 TARGET_INPROCESS_S, TARGET_ROS_EXTRA_S = 4.0, 1.5
+#: Wall seconds between two looks at the CPU of a command's processes.
+SAMPLE_S = 0.05
 
 
 @dataclass
@@ -93,10 +97,49 @@ def children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def timed(argv: list[str], out: Path, cache: str, pythonpath: str | None) -> tuple[float, float, float | None]:
-    """Wall and CPU seconds of the command, and of its end: from the episode's score file being written (the
-    recorder writes one through ROS) to the command's exit; None without a score file. ``out`` is emptied first
-    (unmeasured), so `lq run` starts without an earlier bag to replace, as a first run does."""
+def process_cpu_s(pid: int) -> tuple[str, float] | None:
+    """(name, user + system seconds) of a live process: its Python module (``-m``) or program; None once gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()  # (the name in parentheses may hold spaces)
+    names = [a.decode() for a in argv if a]
+    name = names[names.index("-m") + 1] if "-m" in names[:-1] else Path(names[0]).name if names else ""
+    return name.removeprefix("lq_ros_nodes."), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_sampled(argv: list[str], env: dict[str, str]) -> dict[str, float]:
+    """Run ``argv`` (a failure stops the benchmark); returns the CPU seconds of it and of each process it started
+    (the node programs), by name, as last seen alive: sampled every SAMPLE_S, each misses at most its last
+    SAMPLE_S (its exit)."""
+    last: dict[int, tuple[str, float]] = {}
+    with tempfile.TemporaryFile() as err:
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err, env=env)
+        while proc.poll() is None:
+            try:
+                children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+            except OSError:
+                children = []
+            for pid in (proc.pid, *map(int, children)):
+                if (sample := process_cpu_s(pid)) is not None:  # (an exited child not yet reaped has no name)
+                    last[pid] = (last[pid][0] if pid in last and not sample[0] else sample[0], sample[1])
+            time.sleep(SAMPLE_S)
+        if proc.returncode != 0:
+            err.seek(0)
+            tail = err.read().decode(errors="replace").strip()[-500:]
+            raise SystemExit(f"{' '.join(argv)} failed ({proc.returncode}): {tail}")
+    return {name: cpu for name, cpu in last.values()}
+
+
+def timed(
+    argv: list[str], out: Path, cache: str, pythonpath: str | None
+) -> tuple[float, float, float | None, dict[str, float]]:
+    """Wall and CPU seconds of the command, of its end (from the episode's score file being written, which the
+    recorder does through ROS, to the command's exit; None without a score file), and the CPU seconds of its
+    processes by name (run_sampled). ``out`` is emptied first (unmeasured), so `lq run` starts without an earlier
+    bag to replace, as a first run does."""
     shutil.rmtree(out, ignore_errors=True)
     argv = [*argv, "--out", str(out)] if "run" in argv else argv
     env = {**os.environ, "LQ_MODEL_CACHE": cache,
@@ -104,10 +147,10 @@ def timed(argv: list[str], out: Path, cache: str, pythonpath: str | None) -> tup
     if pythonpath:
         env["PYTHONPATH"] = os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))
     cpu0, start = children_cpu_s(), time.perf_counter()
-    run_checked(argv, env)
+    processes = run_sampled(argv, env)
     elapsed, ended, cpu = time.perf_counter() - start, time.time(), children_cpu_s() - cpu0
     scores = list(out.glob("*/score.json"))
-    return elapsed, cpu, (ended - scores[0].stat().st_mtime if scores else None)
+    return elapsed, cpu, (ended - scores[0].stat().st_mtime if scores else None), processes
 
 
 def extract_revision(rev: str, into: Path) -> Path:
@@ -151,19 +194,26 @@ def measure(repeats: int, out: Path, variants: dict[str, str | None]) -> None:
             **{f"{name} (cold)": (PHASES[name], None) for name in ("episode", "ROS")}}  # fmt: skip
     samples = {(label, name): Samples() for label in variants for name in runs}
     ends: dict[str, list[float]] = {label: [] for label in variants}  # the ROS commands' ends, warm and cold
+    per_process: dict[str, dict[str, list[float]]] = {label: {} for label in variants}  # warm ROS runs
     for _ in range(repeats):
         for name, (argv, warm_cache) in runs.items():
             for label, pythonpath in variants.items():  # alternated: a change of load hits both alike
                 run_cache = warm_cache or tempfile.mkdtemp(prefix="models_", dir=out)  # cold: an empty cache
-                wall, cpu, end = timed(argv, out / "bags", run_cache, pythonpath)
+                wall, cpu, end, processes = timed(argv, out / "bags", run_cache, pythonpath)
                 if warm_cache is None:
                     shutil.rmtree(run_cache)
                 samples[label, name].wall.append(wall)
                 samples[label, name].cpu.append(cpu)
                 if name.startswith("ROS") and end is not None:
                     ends[label].append(end)
+                if name == "ROS":
+                    for process, seconds in processes.items():
+                        per_process[label].setdefault(process, []).append(seconds)
     for label in variants:
         report(label, {name: samples[label, name].median() for name in runs}, ends[label], repeats)
+        medians = ", ".join(f"{p} {statistics.median(t):.2f} s" for p, t in per_process[label].items())
+        print(f"  CPU of the warm ROS command's processes (medians; each sampled every {SAMPLE_S:g} s while alive, "
+              f"so without its last moments): {medians}")  # fmt: skip
     if len(variants) == 2:
         (new, base) = variants
         print(f"this tree against {base} (medians of {repeats}; negative: this tree is faster):")
@@ -173,6 +223,10 @@ def measure(repeats: int, out: Path, variants: dict[str, str | None]) -> None:
                   f"CPU {cpu - cpu0:+6.2f} s ({cpu:5.2f} vs {cpu0:5.2f})")  # fmt: skip
     if "" in variants:
         print_exit_and_compile(repeats, cache)
+        rclpy_lag, manager_lag = service_lags(out)
+        print(f"a node's service noticed after it appeared (median of {SERVICE_APPEARANCES}, each at a random moment): "
+              f"by rclpy's Client.wait_for_service {rclpy_lag * 1e3:.0f} ms, by the lifecycle manager's "
+              f"wait_for_service {manager_lag * 1e3:.0f} ms")  # fmt: skip
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 
@@ -212,6 +266,54 @@ def print_exit_and_compile(repeats: int, cache: str) -> None:
     print(f"scene (median of {repeats}): compiled with image textures {textured:.2f} s, without "
           f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
           f"{cached:.2f} s (its file: {size_mb:.1f} MB)")  # fmt: skip
+
+
+#: Services made to appear by service_lags, for each of the two waits.
+SERVICE_APPEARANCES = 20
+#: In a process of its own: how long after a service appears each wait returns (seconds, one line per wait).
+SERVICE_LAG_PROGRAM = f"""
+import random, threading, time
+import rclpy
+from lifecycle_msgs.srv import GetState
+from lq_ros_nodes.manager_node import wait_for_service
+
+rclpy.init()
+caller = rclpy.create_node("lq_bench_caller")
+lags, servers = {{"rclpy": [], "manager": []}}, []
+for i in range({SERVICE_APPEARANCES}):
+    for kind, wait in (("rclpy", lambda c: c.wait_for_service(60.0)), ("manager", lambda c: wait_for_service(c, 60.0))):
+        name = f"/lq_bench_{{kind}}_{{i}}/get_state"
+        client = caller.create_client(GetState, name)
+        appeared = []
+
+        def appear():
+            time.sleep(random.uniform(0.05, 0.3))
+            node = rclpy.create_node(f"lq_bench_{{kind}}_{{i}}")
+            appeared.append(time.monotonic())
+            node.create_service(GetState, name, lambda request, response: response)
+            servers.append(node)  # (kept: a node no longer referenced is destroyed, its service with it)
+
+        thread = threading.Thread(target=appear)
+        thread.start()
+        assert wait(client)
+        noticed = time.monotonic()
+        thread.join()
+        lags[kind].append(noticed - appeared[0])
+for kind in ("rclpy", "manager"):
+    print(kind, sorted(lags[kind])[len(lags[kind]) // 2])
+rclpy.shutdown()
+"""
+
+
+def service_lags(work: Path) -> tuple[float, float]:
+    """Median seconds from a service's appearance to a wait for it returning: rclpy's own wait (it looks every
+    0.25 s), then the lifecycle manager's (nodes/manager_node.py, every 5 ms), in a ROS domain of their own."""
+    from lq_ros.transport.ros.stack import child_environment, reserved_domain
+
+    with reserved_domain() as domain:
+        proc = run_checked([sys.executable, "-c", SERVICE_LAG_PROGRAM], child_environment(domain.id, work / "ros_logs"))
+    lags = dict(line.split() for line in proc.stdout.splitlines())
+    return float(lags["rclpy"]), float(lags["manager"])
 
 
 def exit_times(repeats: int, cache: str) -> tuple[float, float]:
