@@ -28,6 +28,7 @@ from lq_ros.core.suite_constants import (
     step_budget,
 )
 from lq_ros.core.types import EnergyIntegrals, Observation, PhysicsSamples, TaskInfo, TickState
+from lq_ros.sim.libero_import import import_libero
 
 # Headless rendering; a user with a display may override it.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -175,6 +176,8 @@ def import_simulator_in_background(then: Callable[[], object] | None = None) -> 
 
     def load() -> None:
         import mujoco  # noqa: F401
+
+        import_libero()  # (its namespace check made cheaper: lq_ros.sim.libero_import)
         from libero.libero import benchmark  # noqa: F401
         from libero.libero.envs.bddl_utils import robosuite_parse_problem  # noqa: F401
         from libero.libero.envs.env_wrapper import ControlEnv  # noqa: F401
@@ -225,6 +228,7 @@ def _after_background_imports() -> None:
     thread = _background_imports
     if thread is not None and thread is not threading.current_thread():
         thread.join()  # (at once when it is done)
+    import_libero()  # before any other import of LIBERO (lq_ros.sim.libero_import)
 
 
 def load_task(suite: str, task_id: int) -> tuple[TaskInfo, Path, np.ndarray]:
