@@ -10,8 +10,9 @@ Each phase is measured as a fresh process that stops after it, so the difference
     episode       `lq run --transport inprocess`: + the ticks, the bag and its scoring (the whole command)
     ROS           `lq run --transport ros`: the same episode through the four node processes (the whole command)
 
-and, of the ROS command, its end: from the recorder's score file being written to the command's exit (the
-nodes' shutdown transitions and the processes' exit).
+and, of the ROS command, its end (from the recorder's score file being written to the command's exit: the
+nodes' shutdown transitions and the processes' exit) and the CPU of each of its processes (the launcher, the
+five node programs).
 
 Every phase runs with the compiled-model cache (lq_ros.sim.model_cache) in a fresh folder that one unmeasured
 run filled first (warm: the task has run on this machine before); `episode` and `ROS` are also measured with
@@ -22,6 +23,9 @@ Then the exit of a process that built and reset the task's env: the interpreter'
 programs' (lq_ros.transport.processes.exit_uncollected), from the process's last statement to its end. Then the
 scene's compile alone: with its image textures (what an env with cameras does), without them (1x1 flat
 textures: an env that renders nothing), and its compiled model loaded from the cache's MJB file, alternated.
+Then two parts of a start-up, each against what it replaced: LIBERO's import with its namespace check on whole
+metadata files and on their headers (lq_ros.sim.libero_import), and how long after a node's service appears
+rclpy's ``Client.wait_for_service`` and the lifecycle manager's wait notice it.
 
 Every figure is printed twice: wall seconds, and CPU seconds (user + system of the command's whole process tree:
 the node processes and what they start included). On a machine other jobs load, the wall figures grow with the
@@ -223,6 +227,10 @@ def measure(repeats: int, out: Path, variants: dict[str, str | None]) -> None:
                   f"CPU {cpu - cpu0:+6.2f} s ({cpu:5.2f} vs {cpu0:5.2f})")  # fmt: skip
     if "" in variants:
         print_exit_and_compile(repeats, cache)
+        whole, headers = libero_import_cpu(5 * repeats)
+        print(f"LIBERO's import (a process's CPU, median of {5 * repeats}, alternated): its namespace check on every "
+              f"distribution's whole metadata {whole:.3f} s, on their headers (lq_ros.sim.libero_import) "
+              f"{headers:.3f} s")  # fmt: skip
         rclpy_lag, manager_lag = service_lags(out)
         print(f"a node's service noticed after it appeared (median of {SERVICE_APPEARANCES}, each at a random moment): "
               f"by rclpy's Client.wait_for_service {rclpy_lag * 1e3:.0f} ms, by the lifecycle manager's "
@@ -266,6 +274,20 @@ def print_exit_and_compile(repeats: int, cache: str) -> None:
     print(f"scene (median of {repeats}): compiled with image textures {textured:.2f} s, without "
           f"{light:.2f} s (the textures' PNG decoding: {textured - light:.2f} s); loaded from the cache "
           f"{cached:.2f} s (its file: {size_mb:.1f} MB)")  # fmt: skip
+
+
+def libero_import_cpu(repeats: int) -> tuple[float, float]:
+    """Median CPU seconds of a process that imports lq_ros and LIBERO: LIBERO's own import (its namespace check
+    parses every installed distribution's whole metadata), then lq_ros.sim.libero_import's (headers only)."""
+    programs = ("import lq_ros, libero", "import lq_ros; from lq_ros.sim.libero_import import import_libero; "
+                "import_libero()")  # fmt: skip
+    times: list[list[float]] = [[], []]
+    for _ in range(repeats):
+        for i, program in enumerate(programs):
+            cpu0 = children_cpu_s()
+            run_checked([sys.executable, "-c", program], dict(os.environ))
+            times[i].append(children_cpu_s() - cpu0)
+    return statistics.median(times[0]), statistics.median(times[1])
 
 
 #: Services made to appear by service_lags, for each of the two waits.
