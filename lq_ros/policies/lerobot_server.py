@@ -356,6 +356,42 @@ def check_config_fields(config_file: Path) -> str:
     return str(kind)
 
 
+def check_weights_loaded(policy, path: str, local: bool) -> None:
+    """Every tensor of the policy is one of the checkpoint's, with its shape (ValueError, one line, otherwise).
+
+    LeRobot loads weights non-strictly, and pi0/pi0.5's ``from_pretrained`` turns a load failure into a printed
+    warning: a checkpoint missing a tensor would serve partly random weights. Names and shapes are read from the
+    file's header, not its data. A tensor the file leaves out because it shares memory with one it holds (tied
+    embeddings) counts as present; a leading ``model.`` is ignored on both sides (pi0's files omit it)."""
+    from safetensors import safe_open
+
+    if local:
+        model_file = Path(path) / "model.safetensors"
+    else:
+        from huggingface_hub import hf_hub_download
+
+        model_file = Path(hf_hub_download(path, "model.safetensors"))
+
+    def bare(name: str) -> str:
+        return name.removeprefix("model.")
+
+    with safe_open(str(model_file), framework="pt") as saved:
+        shapes = {bare(key): tuple(saved.get_slice(key).get_shape()) for key in saved.keys()}  # noqa: SIM118
+    state = policy.state_dict()
+    present = {tensor.data_ptr() for key, tensor in state.items() if bare(key) in shapes and tensor.numel()}
+    missing = [key for key, tensor in state.items() if bare(key) not in shapes and tensor.data_ptr() not in present]
+    unexpected = sorted(set(shapes) - {bare(key) for key in state})
+    wrong = [key for key, tensor in state.items() if bare(key) in shapes and shapes[bare(key)] != tuple(tensor.shape)]
+    for names, problem in (
+        (missing, "lacks {n} of the policy's tensors (e.g. {name})"),
+        (unexpected, "has {n} tensors the policy does not (e.g. {name})"),
+        (wrong, "has {n} of the policy's tensors in another shape (e.g. {name})"),
+    ):
+        if names:
+            detail = problem.format(n=len(names), name=names[0])
+            raise ValueError(f"checkpoint {path}: model.safetensors {detail}: saved from another model, or damaged")
+
+
 class LeRobotServer:
     """A loaded LeRobot policy with its processors, answering observation dicts with action chunks.
 
@@ -406,6 +442,7 @@ class LeRobotServer:
         self.config = config
         self.policy = get_policy_class(config.type).from_pretrained(path, config=config)
         self.policy.eval()
+        check_weights_loaded(self.policy, path, local)
         self.full_chunk = bool(full_chunk) or self._action_queue() is None
         if self.full_chunk and config.type in ("diffusion", "vqbet"):
             raise ValueError(

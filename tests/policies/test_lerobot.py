@@ -218,6 +218,27 @@ def test_processor_classes_are_lerobots_registered_steps_only(checkpoints, tmp_p
     assert not marker.exists()
 
 
+def test_a_checkpoint_missing_a_tensor_is_refused(checkpoints, tmp_path):
+    """LeRobot loads weights non-strictly (pi0/pi0.5 print a warning on a failed load): a checkpoint without one of
+    its tensors would serve partly random weights. The server compares the file's tensors with the policy's."""
+    folder = copy_checkpoint(checkpoints["act"], tmp_path / "short")
+    drop = (
+        "from safetensors.torch import load_file, save_file; import sys; f = sys.argv[1]; t = load_file(f); "
+        "name = sorted(t)[-1]; del t[name]; save_file(t, f); print(name)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    dropped = subprocess.run(
+        [str(lerobot_python()), "-c", drop, str(folder / "model.safetensors")], capture_output=True, text=True,
+        timeout=300, env=env, check=True,
+    ).stdout.strip()  # fmt: skip
+    server = subprocess.run(
+        [str(lerobot_python()), str(SERVER_SCRIPT), "--path", str(folder)], capture_output=True, text=True,
+        timeout=300, env=env,
+    )  # fmt: skip
+    assert server.returncode == 2, server.stderr[-2000:]
+    assert f"model.safetensors lacks 1 of the policy's tensors (e.g. {dropped})" in server.stderr, server.stderr[-2000:]
+
+
 @pytest.mark.slow
 def test_trust_processors_loads_steps_by_class_path(checkpoints, tmp_path):
     """``trust_processors=1``: the user's explicit choice to let the checkpoint name classes (here LeRobot's own)."""
