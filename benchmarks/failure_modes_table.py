@@ -56,7 +56,7 @@ def main() -> None:
     unavailable = int(fractions.drop_duplicates(["suite", "policy", "mode", "latency_s"])["n_unavailable"].sum())
     print(f"\n{len(episodes)} episodes; {errors} errors; {unavailable} without task state")
     print("\nWhere the extra failures went (against 0 s, same protocol):")
-    for sentence in failure_aggregate.shift_sentences(fractions, ("suite", "policy", "mode")):
+    for sentence in failure_aggregate.shift_sentences(fractions, ("suite", "policy", "mode"), episodes=episodes):
         print(f"- {sentence}")
 
 

@@ -391,7 +391,7 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     failure_figure = fig_failure_modes(fractions)
     if failure_figure is not None:
         figures[FAILURE_FIGURE] = failure_figure
-        failures = failure_aggregate.shift_sentences(fractions, ("suite", "policy", "mode"))
+        failures = failure_aggregate.shift_sentences(fractions, ("suite", "policy", "mode"), episodes=episodes)
     for name, fig in figures.items():
         path = out_dir / f"{name}.png"
         fig.savefig(path, dpi=110)

@@ -53,11 +53,43 @@ def mode_fractions(
     return pd.DataFrame(rows, columns=columns)
 
 
-def shift_sentences(fractions: pd.DataFrame, series_keys: Sequence[str], *, min_extra: int = 5) -> list[str]:
+def paired_mode_change(
+    episodes: pd.DataFrame, series: dict, latency_s: float, mode: str, *, n_boot: int = 2000, seed: int = 0
+) -> dict:
+    """The change in the fraction of episodes ending in ``mode`` from 0 s to ``latency_s`` within one series (e.g.
+    suite, policy, protocol: ``series`` maps column to value), over the (task, init, seed) pairs classified at both
+    latencies, with the task-clustered bootstrap interval of the mean paired difference (whole tasks resampled:
+    an init's episodes at two latencies share its task). ``n_pairs``, ``n_tasks``, ``change``, ``ci_lo``,
+    ``ci_hi`` (NaN with too few tasks)."""
+    from lq_ros.scoring.intervals import cluster_bootstrap_ci
+
+    rows = episodes
+    for column, value in series.items():
+        rows = rows[rows[column].astype(str) == str(value)]
+    if "latency_dist" in rows:
+        rows = rows[rows["latency_dist"].fillna("constant").isin(["constant", ""])]
+    rows = rows[rows["status"].isin(["success", "failure"]) & ~rows["failure_mode"].fillna("unavailable").isin(
+        ["unavailable", "error"])]  # fmt: skip
+    latency = pd.to_numeric(rows["latency_s"], errors="coerce").round(9)
+    keys = ["task", "init", "seed"]
+    zero = rows[latency == 0.0].drop_duplicates(keys).set_index(keys)["failure_mode"]
+    cell = rows[latency == round(float(latency_s), 9)].drop_duplicates(keys).set_index(keys)["failure_mode"]
+    both = zero.index.intersection(cell.index)
+    diff = (cell.loc[both] == mode).astype(float) - (zero.loc[both] == mode).astype(float)
+    clusters = [group.to_numpy() for _, group in diff.groupby(level="task", sort=True)]
+    low, high = cluster_bootstrap_ci(clusters, n_boot=n_boot, seed=seed)
+    return {"n_pairs": len(both), "n_tasks": len(clusters), "change": float(diff.mean()) if len(both) else math.nan,
+            "ci_lo": low, "ci_hi": high}  # fmt: skip
+
+
+def shift_sentences(
+    fractions: pd.DataFrame, series_keys: Sequence[str], *, min_extra: int = 5, episodes: pd.DataFrame | None = None
+) -> list[str]:
     """Where latency added failures: per series (e.g. suite, policy, protocol) and latency above 0 s with at least
     ``min_extra`` more failures than at 0 s, which modes the extra failures went to (counts, and the mode's
-    share of the cell with its interval). Descriptive: the paired tests of the success rate say whether the rise
-    itself is more than chance."""
+    share of the cell with its interval). With ``episodes``, the mode's paired change from 0 s over the same
+    (task, init, seed) with its task-clustered interval (:func:`paired_mode_change`), and whether that interval
+    excludes no change; otherwise descriptive only."""
     if fractions.empty or "latency_s" not in fractions:
         return []
     out = []
@@ -83,15 +115,29 @@ def shift_sentences(fractions: pd.DataFrame, series_keys: Sequence[str], *, min_
             top, top_rise = rises.index[0], int(rises.iloc[0])
             lead = "Most of the rise is" if top_rise > extra / 2 else "The largest rise is"
             row = cell.set_index("failure_mode").loc[top]
-            label = ", ".join(str(v) for v in names.values())
+            values = [str(v) for v in names.values()]
+            # A policy label that names its suite ("flow · libero_object") says the suite once.
+            label = ", ".join(v for v in values if not any(v != w and v in w for w in values))
             interval = (
                 f", 95% CI {row['ci_lo']:.0%}-{row['ci_hi']:.0%}" if not math.isnan(row["ci_lo"]) else ", no interval"
             )
-            out.append(
+            sentence = (
                 f"{label} at {latency:g} s: {int(counts.sum())} of {n} episodes failed, against "
                 f"{int(base_counts.sum())} of {base_n} at 0 s. {lead} {top.replace('_', ' ')} "
                 f"(+{top_rise}; {row['fraction']:.0%} of the cell{interval})."
             )
+            if episodes is not None:
+                change = paired_mode_change(episodes, names, latency, top)
+                if math.isnan(change["ci_lo"]):
+                    sentence += f" Paired change from 0 s: {change['change']:+.0%} (too few tasks for an interval)."
+                else:
+                    verdict = "excludes" if change["ci_lo"] > 0 or change["ci_hi"] < 0 else "includes"
+                    sentence += (
+                        f" Paired change from 0 s: {change['change']:+.0%}, 95% CI {change['ci_lo']:+.0%} to "
+                        f"{change['ci_hi']:+.0%} over {change['n_pairs']} pairs in {change['n_tasks']} tasks "
+                        f"({verdict} no change)."
+                    )
+            out.append(sentence)
     return out
 
 

@@ -124,3 +124,51 @@ def test_the_figure_stacks_the_modes_per_protocol():
     heights = sorted(round(p.get_height(), 3) for p in ax.patches if p.get_height() > 0)
     assert heights == [0.1, 0.1, 0.1, 0.5]  # 0 s: never reached, dropped; 0.2 s: never reached, dropped
     assert fig_failure_modes(mode_fractions(pd.DataFrame(), ("policy",))) is None
+
+
+def paired_frame(zero_modes: list[str], cell_modes: list[str], tasks: int) -> pd.DataFrame:
+    """Episodes of one series at 0 s and 0.2 s, one per (task, init): init i of task t at index t * inits + i."""
+    inits = len(zero_modes) // tasks
+    rows = []
+    for latency, modes in ((0.0, zero_modes), (0.2, cell_modes)):
+        for index, mode in enumerate(modes):
+            rows.append({"suite": "s", "policy": "p", "mode": "async", "latency_s": latency,
+                         "latency_dist": "constant", "task": index // inits, "init": index % inits, "seed": 7,
+                         "status": "success" if mode == "none" else "failure", "failure_mode": mode})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def test_paired_mode_change_over_shared_pairs_with_a_task_clustered_interval():
+    from lq_ros.scoring.failure_aggregate import paired_mode_change
+
+    tasks, inits = 10, 5
+    zero = ["none"] * (tasks * inits)
+    # At 0.2 s the first 3 inits of every task miss the grasp: a change of +0.6, the same in every task.
+    cell = ["grasp_missed" if i % inits < 3 else "none" for i in range(tasks * inits)]
+    series = {"suite": "s", "policy": "p", "mode": "async"}
+    out = paired_mode_change(paired_frame(zero, cell, tasks), series, 0.2, "grasp_missed")
+    assert (out["n_pairs"], out["n_tasks"]) == (50, 10)
+    assert out["change"] == pytest.approx(0.6)
+    assert out["ci_lo"] == pytest.approx(0.6) and out["ci_hi"] == pytest.approx(0.6)  # no spread between tasks
+    # All of the change in 3 of 10 tasks: the same mean, but an interval that spans that clustering.
+    cell = ["grasp_missed" if i // inits < 3 else "none" for i in range(tasks * inits)]
+    out = paired_mode_change(paired_frame(zero, cell, tasks), series, 0.2, "grasp_missed")
+    assert out["change"] == pytest.approx(0.3)
+    assert out["ci_lo"] < 0.15 and out["ci_hi"] > 0.45
+    # Pairs classified at only one latency are left out (an error, a bag without task state).
+    frame = paired_frame(zero, cell, tasks)
+    frame.loc[0, "failure_mode"] = "unavailable"
+    frame.loc[1, "status"] = "error"
+    assert paired_mode_change(frame, series, 0.2, "grasp_missed")["n_pairs"] == 48
+
+
+def test_shift_sentences_say_the_paired_change_and_whether_its_interval_excludes_none():
+    tasks, inits = 10, 5
+    zero = ["none"] * (tasks * inits)
+    cell = ["grasp_missed" if i % inits < 3 else "none" for i in range(tasks * inits)]
+    episodes = paired_frame(zero, cell, tasks)
+    fractions = mode_fractions(episodes, ("suite", "policy", "mode", "latency_s", "latency_dist"))
+    (sentence,) = shift_sentences(fractions, ("suite", "policy", "mode"), episodes=episodes)
+    assert "Most of the rise is grasp missed (+30" in sentence
+    expected = "Paired change from 0 s: +60%, 95% CI +60% to +60% over 50 pairs in 10 tasks (excludes no change)"
+    assert expected in sentence
