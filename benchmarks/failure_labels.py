@@ -13,10 +13,13 @@ tests/scoring/test_failure_labels.py):
     agreement  score the small bags and print the confusion matrix of labels.csv against the classifier, the
                raw agreement and Cohen's kappa, each with the labelled count.
 
-    .venv/bin/python benchmarks/failure_labels.py select bags/sweeps/failure_modes --n 48
+    .venv/bin/python benchmarks/failure_labels.py select bags/sweeps/failure_modes --n 48 --inits 0,1,2
     .venv/bin/python benchmarks/failure_labels.py render bags/sweeps/failure_modes --sheets /tmp/sheets
     .venv/bin/python benchmarks/failure_labels.py extract bags/sweeps/failure_modes
     .venv/bin/python benchmarks/failure_labels.py agreement
+
+A second set, picked by the classifier's mode (the rare modes a stratified set of 48 misses), checks each mode's
+precision; its steps take ``--set failure_labels_by_mode`` and ``select --modes A,B --per-mode K``.
 """
 
 from __future__ import annotations
@@ -35,7 +38,10 @@ import lq_ros  # noqa: F401
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+#: The labelled set the steps work on (--set): tests/data/<name>/.
 DATA = REPO / "tests/data/failure_labels"
+#: The stratified set; a set picked by mode leaves its episodes out.
+STRATIFIED_SET = "failure_labels"
 STRATA = ("suite", "mode", "latency_s", "policy")
 
 
@@ -43,9 +49,10 @@ def _rows(sweep: Path) -> list[dict]:
     return [json.loads(p.read_text())["row"] for p in sorted((sweep / "results").glob("*.json"))]
 
 
-def select(sweep: Path, n: int, seed: int) -> None:
-    """Round-robin over the strata (sorted), a seeded random failed episode of each in turn, until ``n``."""
-    failed = [r for r in _rows(sweep) if r.get("status") == "failure"]
+def select(sweep: Path, n: int, seed: int, inits: set[int] | None = None) -> None:
+    """Round-robin over the strata (sorted), a seeded random failed episode of each in turn, until ``n``; only
+    ``inits``' episodes when given (the sweep as it was when a set was picked)."""
+    failed = [r for r in _rows(sweep) if r.get("status") == "failure" and (inits is None or r.get("init") in inits)]
     strata: dict[tuple, list[str]] = defaultdict(list)
     for row in failed:
         strata[tuple(row.get(k) for k in STRATA)].append(row["episode"])
@@ -63,6 +70,26 @@ def select(sweep: Path, n: int, seed: int) -> None:
     out = {"sweep": sweep.name, "seed": seed, "strata": list(STRATA), "episodes": sorted(picked)}
     (DATA / "episodes.json").write_text(json.dumps(out, indent=1) + "\n")
     print(f"{len(picked)} of {len(failed)} failed episodes in {len(keys)} strata -> {DATA / 'episodes.json'}")
+
+
+def select_by_mode(sweep: Path, modes: list[str], per_mode: int, seed: int) -> None:
+    """Up to ``per_mode`` seeded random failed episodes the classifier puts in each of ``modes`` (the rare ones a
+    stratified set misses), none of the stratified set's: a check of each mode's precision (of the episodes the
+    classifier calls X, how many a labeller calls X), not of how often modes occur."""
+    taken = set(json.loads((REPO / "tests/data" / STRATIFIED_SET / "episodes.json").read_text())["episodes"])
+    rows = [r for r in _rows(sweep) if r.get("status") == "failure" and r["episode"] not in taken]
+    rng = random.Random(seed)
+    picked: list[str] = []
+    for mode in modes:
+        names = sorted(r["episode"] for r in rows if r.get("failure_mode") == mode)
+        rng.shuffle(names)
+        picked += names[:per_mode]
+        print(f"{mode}: {min(per_mode, len(names))} of {len(names)}")
+    DATA.mkdir(parents=True, exist_ok=True)
+    out = {"sweep": sweep.name, "seed": seed, "selected_by": "classifier mode", "modes": modes,
+           "per_mode": per_mode, "episodes": sorted(picked)}  # fmt: skip
+    (DATA / "episodes.json").write_text(json.dumps(out, indent=1) + "\n")
+    print(f"{len(picked)} failed episodes -> {DATA / 'episodes.json'}")
 
 
 def _picked() -> list[str]:
@@ -175,6 +202,10 @@ def agreement() -> dict:
     for i, mode in enumerate(modes):
         print(f"{mode:>{width}} ({i}) " + " ".join(f"{v:>3}" for v in matrix[i]))
     print(f"agreement {out['agreement']:.1%} ({out['agreed']} of {out['n']}), Cohen's kappa {out['kappa']:.2f}")
+    for j, mode in enumerate(modes):  # precision: of the episodes the classifier calls a mode, the labeller's share
+        called = int(matrix[:, j].sum())
+        if called:
+            print(f"  classifier {mode}: labeller agrees on {matrix[j, j]} of {called}")
     for name in sorted(labels):
         if labels[name] != predicted[name]:
             print(f"  {name}: label {labels[name]}, classifier {predicted[name]}")
@@ -182,12 +213,17 @@ def agreement() -> dict:
 
 
 def main() -> None:
+    global DATA
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--set", default=STRATIFIED_SET, help="the labelled set: tests/data/<set>/")
     sub = parser.add_subparsers(dest="step", required=True)
     p = sub.add_parser("select")
     p.add_argument("sweep", type=Path)
     p.add_argument("--n", type=int, default=48)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--modes", default="", help="comma-separated: pick by the classifier's mode instead of strata")
+    p.add_argument("--per-mode", type=int, default=6)
+    p.add_argument("--inits", default="", help="comma-separated init states to pick from (default: all)")
     p = sub.add_parser("render")
     p.add_argument("sweep", type=Path)
     p.add_argument("--sheets", type=Path, required=True)
@@ -195,8 +231,11 @@ def main() -> None:
     p.add_argument("sweep", type=Path)
     sub.add_parser("agreement")
     args = parser.parse_args()
-    if args.step == "select":
-        select(args.sweep, args.n, args.seed)
+    DATA = REPO / "tests/data" / args.set
+    if args.step == "select" and args.modes:
+        select_by_mode(args.sweep, args.modes.split(","), args.per_mode, args.seed)
+    elif args.step == "select":
+        select(args.sweep, args.n, args.seed, {int(i) for i in args.inits.split(",")} if args.inits else None)
     elif args.step == "render":
         render(args.sweep, args.sheets)
     elif args.step == "extract":
