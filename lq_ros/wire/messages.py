@@ -57,8 +57,9 @@ ACTION_PREFIX = Topic("/lq/action_prefix", "lq_msgs/msg/ActionPrefix")
 #: state, and the images of the inference ticks.
 OBSERVATION_HISTORY = Topic("/lq/observation_history", "lq_msgs/msg/Observation")
 OBSERVATION_HISTORY_IMAGES = Topic("/lq/observation_history/images", "sensor_msgs/msg/Image")
-#: The task's state per tick (sim only): object poses, in the order of TASK_STATE's object_names at the same stamp,
-#: and the goal predicates' truth with the gripper's contacts (lq_ros.sim.task_state).
+#: The task's state per tick: object poses, in the order of TASK_STATE's object_names at the same stamp, and the goal
+#: predicates' truth with the gripper's contacts (lq_ros.sim.task_state). A robot's bag has them as the bridge relays
+#: them (its per-tick poses and the robot's own task state, each at the robot's stamps; docs/guide/real_robot.md).
 TASK_OBJECT_POSES = Topic("/lq/task/object_poses", "geometry_msgs/msg/PoseArray")
 TASK_STATE = Topic("/lq/task/state", "lq_msgs/msg/TaskState")
 #: Real-time runs (``clock: realtime``): what a node counted over the episode (overrun ticks, missed commands,
