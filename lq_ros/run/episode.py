@@ -76,12 +76,12 @@ def scored_row(bag_path: Path) -> dict:
 
     No bag at all (a node died before recording anything) is an error row naming the episode.
     """
-    from lq_ros.scoring.bag_scorer import score_bag, to_json
-
     score_file = bag_path / SCORE_FILE
-    if score_file.exists():
+    if score_file.exists():  # (through ROS: the launcher, which imports no scorer, reads the recorder's)
         return json.loads(score_file.read_text())
     if (bag_path / "metadata.yaml").exists():
+        from lq_ros.scoring.bag_scorer import score_bag, to_json
+
         return json.loads(to_json(score_bag(bag_path)))
     return {"episode": bag_path.name, "status": "error", "success": None}
 
