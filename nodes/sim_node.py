@@ -15,8 +15,9 @@ camera images only when asked (/lq/observation_request), and episode events. The
 - ``realtime``: tick m is stepped at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` of wall time whatever has
   arrived: the command for tick m if the executor delivered it in time, else the stop hold (zero arm delta,
   the last applied gripper command), and that tick is counted as a missed command. State is stamped with the
-  ticks' scheduled wall times; there is no /clock. Observation requests are answered at once with the current
-  state, whatever tick it is (the observation carries its own tick). A tick whose step started late or ran
+  ticks' scheduled wall times; there is no /clock. An observation request is answered at once with the current
+  state, unless the sim runs late and has not stepped to the request's tick yet: then on reaching it (the
+  observation carries its own tick). A tick whose step started late or ran
   past the period is an overrun; both counts go out on /lq/realtime_stats when the episode ends.
 
 Managed node (lq_ros.transport.ros.rclpy_helpers.EpisodeNode): configure creates the task's env (hard reset);
@@ -99,7 +100,7 @@ class SimNode(EpisodeNode):
         self.realtime = cfg.clock == "realtime"
         self.action_ticks = 0  # ticks whose command came from a chunk (budget_counts action)
         self.queued: dict = {}  # tick -> ActionCommand received ahead of its tick
-        self.requests: dict = {}  # lockstep: tick -> ObservationRequest received ahead of its tick
+        self.requests: dict = {}  # tick -> ObservationRequest received ahead of it (real time: the sim ran late)
         self.min_subscribers = self.get_parameter("min_subscribers").value
         self.min_clock_subscribers = self.get_parameter("min_clock_subscribers").value
         self.min_event_subscribers = self.get_parameter("min_event_subscribers").value
@@ -165,13 +166,21 @@ class SimNode(EpisodeNode):
     def on_request(self, req) -> None:
         if self.finished:
             return
-        if not self.realtime and self.started and self.state.tick < req.tick < self.run_cfg.tick_limit:
+        # Lockstep: asked ahead of its tick. Real time: the sim runs late (a step that took longer than the period)
+        # and has not stepped to the request's tick yet; the policy must see that tick's state, so the answer waits
+        # for it, as the executor and the scorer count the chunk's stale rows from the request's tick.
+        if self.started and self.state.tick < req.tick < self.run_cfg.tick_limit:
             if req.tick in self.requests:
                 self.get_logger().error(f"a second observation request for tick {req.tick} ignored")
             else:
                 self.requests[req.tick] = req  # answered on reaching that tick (step)
-                self.pubs[m.OBSERVATION_REQUEST_QUEUED.name].publish(m.serialize(req, m.OBSERVATION_REQUEST.msgtype))
+                if not self.realtime:  # (the lockstep executor waits for the echo; the wall clock waits for nothing)
+                    self.pubs[m.OBSERVATION_REQUEST_QUEUED.name].publish(
+                        m.serialize(req, m.OBSERVATION_REQUEST.msgtype)
+                    )
             return
+        if self.realtime and req.tick >= self.run_cfg.tick_limit:
+            return  # the wall clock ran past the episode's last tick while the sim catches up: no such state comes
         if not (self.realtime and self.started or self._expect_tick(req.tick, "observation request")):
             return
         self.observe(req)
@@ -269,7 +278,7 @@ class SimNode(EpisodeNode):
             self.end(m.EventKind.SUCCESS, "")
         elif spent:
             self.end(m.EventKind.TIMEOUT, spent)
-        elif self.state.tick in self.requests:  # (lockstep) asked ahead for this tick's observation
+        elif self.state.tick in self.requests:  # asked ahead for this tick's observation (real time: the sim ran late)
             self.observe(self.requests.pop(self.state.tick))
 
     def on_event(self, event) -> None:
