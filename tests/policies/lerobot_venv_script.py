@@ -7,7 +7,7 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
                                     out (cameras camera1/camera2, one empty camera), its backbone config and a toy
                                     tokenizer made here: no hub
   pi-configs OUT                    config.json of pi0 and pi0.5 for LIBERO as this LeRobot writes them (no weights:
-                                    their backbones are fixed at Gemma 300M/2B with a SigLIP tower, ~1e9 parameters)
+                                    about 4e9 parameters; test_lerobot06_pi.py runs them at tiny sizes)
   config-fields CONFIG...           what our server's config check says of each CONFIG here (null: accepted)
   lerobot-obs CKPT SUITE TASK OUT   LeRobot's LiberoEnv reset (init state 0) -> what the policy is handed
   server-obs CKPT PAYLOAD OUT       our server's conversion of a request payload -> what the policy is handed

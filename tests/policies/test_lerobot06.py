@@ -97,9 +97,9 @@ def test_state_fields_the_stack_does_not_send_change_nothing(checkpoints, kind):
 
 
 def test_pi0_and_pi05_configs_of_lerobot_06(tmp_path):
-    """pi0 and pi0.5 are not built here: LeRobot fixes their backbones at Gemma 300M or 2B with a SigLIP tower (about
-    1e9 random parameters, 4 GB) and their tokenizer at a hub repository. Their configs, as LeRobot 0.6 writes them,
-    pass our client and LeRobot 0.6's field check; LeRobot 0.4.4's check names the fields it does not know."""
+    """pi0's and pi0.5's configs at their published sizes, as LeRobot 0.6 writes them (no weights: about 4e9
+    parameters; test_lerobot06_pi.py builds and runs them at tiny sizes), pass our client and LeRobot 0.6's field
+    check; LeRobot 0.4.4's check names the fields it does not know."""
     configs = in_venv06("pi-configs", tmp_path)
     for kind, config_file in configs.items():
         config = check_config(Path(config_file), kind)
