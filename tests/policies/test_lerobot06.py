@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, make_policy
@@ -26,6 +25,7 @@ from lq_ros.policies.lerobot_client import RTC_TYPES, check_config, default_pyth
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
+from tests.policies.rtc_check import check_rtc_follows_the_prefix
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
@@ -152,31 +152,8 @@ def test_smolvla_cameras_are_mapped_and_its_empty_camera_is_not_sent(checkpoints
 
 
 def test_rtc_guided_chunk_follows_the_prefix(checkpoints):
-    """The executor's prefix and delay reach LeRobot's RTC processor: the guided chunk's first d rows follow the
-    prefix; the unguided chunk from the same observation and noise does not."""
-    policy = policy06(checkpoints["smolvla"])
-    obs = standin_observation(64, 3)
-    prefix = np.tile([0.4, -0.3, 0.2, 0.1, -0.1, 0.3, -1.0], (8, 1))
-    delay = 3
-    try:
-        policy.check_merge("rtc")
-        policy.reset(TASK_INFO, 5)
-        unguided = policy.infer(obs, prefix=ActionPrefix(np.zeros((0, 7)), delay=0))  # no rows: nothing guides
-        policy.reset(TASK_INFO, 5)
-        guided = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay))
-        policy.reset(TASK_INFO, 5)
-        hard = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay, schedule="hard"))
-        policy.reset(TASK_INFO, 5)
-        plain = policy.infer(obs)  # no prefix after RTC ran: select_action's queue, RTC off again
-    finally:
-        policy.close()
-    assert unguided.shape == guided.shape == hard.shape == (SMOLVLA_CHUNK, 7)
-    far = np.abs(unguided[:delay] - prefix[:delay]).mean()
-    near = np.abs(guided[:delay] - prefix[:delay]).mean()
-    assert near < 0.05 < 0.2 < far, (near, far)
-    assert np.abs(hard[:delay] - prefix[:delay]).mean() < 0.05
-    assert not np.allclose(guided[delay:], hard[delay:])  # exp guides rows d..7 too, hard only the first d
-    np.testing.assert_allclose(plain, unguided[:SMOLVLA_STEPS], atol=1e-5)
+    """The executor's prefix and delay reach LeRobot's RTC processor (tests/policies/rtc_check.py)."""
+    check_rtc_follows_the_prefix(policy06(checkpoints["smolvla"]), TASK_INFO, SMOLVLA_CHUNK, SMOLVLA_STEPS)
 
 
 def test_rtc_is_refused_for_act(checkpoints):

@@ -23,10 +23,8 @@ import shlex
 import subprocess
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import make_policy
@@ -34,7 +32,7 @@ from lq_ros.policies.lerobot_client import RTC_TYPES, check_config, check_proces
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
-from tests.standin_servers import standin_observation
+from tests.policies.rtc_check import check_rtc_follows_the_prefix
 
 HERE = Path(__file__).parent
 SCRIPT = HERE / "lerobot_pi_script.py"
@@ -114,32 +112,11 @@ def test_tiny_checkpoint_is_laid_out_as_lerobot_writes_it_and_loads_as_saved(mad
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_rtc_guided_chunk_follows_the_prefix(made, kind):
-    """The executor's prefix and delay reach LeRobot's RTC processor in pi0 and pi0.5: the guided chunk's first d
-    rows follow the prefix; the unguided chunk from the same observation and noise does not."""
+    """The executor's prefix and delay reach LeRobot's RTC processor in pi0 and pi0.5 (tests/policies/rtc_check.py),
+    and the server is the policy asked for."""
     policy = policy_pi(made, kind)
-    obs = standin_observation(64, 3)
-    prefix = np.tile([0.4, -0.3, 0.2, 0.1, -0.1, 0.3, -1.0], (8, 1))
-    delay = 3
-    try:
-        policy.check_merge("rtc")
-        policy.reset(TASK_INFO, 5)
-        unguided = policy.infer(obs, prefix=ActionPrefix(np.zeros((0, 7)), delay=0))  # no rows: nothing guides
-        policy.reset(TASK_INFO, 5)
-        guided = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay))
-        policy.reset(TASK_INFO, 5)
-        hard = policy.infer(obs, prefix=ActionPrefix(prefix, delay=delay, schedule="hard"))
-        policy.reset(TASK_INFO, 5)
-        plain = policy.infer(obs)  # no prefix after RTC ran: select_action's queue, RTC off again
-        assert policy.server_metadata["policy_type"] == kind and policy.server_metadata["lerobot_version"] == "0.6.1"
-    finally:
-        policy.close()
-    assert unguided.shape == guided.shape == hard.shape == (CHUNK, 7)
-    far = np.abs(unguided[:delay] - prefix[:delay]).mean()
-    near = np.abs(guided[:delay] - prefix[:delay]).mean()
-    assert near < 0.05 < 0.2 < far, (near, far)
-    assert np.abs(hard[:delay] - prefix[:delay]).mean() < 0.05
-    assert not np.allclose(guided[delay:], hard[delay:])  # exp guides rows d..7 too, hard only the first d
-    np.testing.assert_allclose(plain, unguided[:STEPS], atol=1e-5)
+    check_rtc_follows_the_prefix(policy, TASK_INFO, CHUNK, STEPS)
+    assert policy.server_metadata["policy_type"] == kind and policy.server_metadata["lerobot_version"] == "0.6.1"
 
 
 @pytest.mark.slow
