@@ -124,6 +124,11 @@ class Observation:
     objects: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     #: camera name -> upright HxWx3 uint8 image (row 0 is the top of the picture)
     images: dict[str, np.ndarray] = field(default_factory=dict)
+    #: (3, 3) EE orientation as the arm's operational-space controller last read it: robosuite's
+    #: ``controller.ee_ori_mat``, the grip site's rotation at the start of the tick's last physics substep. It is
+    #: what LeRobot's LIBERO env reports as ``robot_state.eef.mat`` (X-VLA's state is built from it). None where
+    #: no such controller reports it (a robot, a stand-in).
+    eef_rot_mat: np.ndarray | None = None
     #: The observations of the ticks before this one, oldest first, for a policy that conditions on them
     #: (``Policy.observation_history_ticks`` n > 1: ticks ``tick - n + 1 .. tick - 1``, those before tick 0 as
     #: tick 0's); empty for every other policy (lq_ros.core.observation_history).

@@ -449,6 +449,7 @@ class LiberoEnv:
             joint_vel=np.array(obs["robot0_joint_vel"], dtype=np.float64),
             objects=objects,
             images=images,
+            eef_rot_mat=np.array(self._robot.controller.ee_ori_mat, dtype=np.float64).reshape(3, 3),
         )
 
     # -- internals --------------------------------------------------------------------------

@@ -313,6 +313,7 @@ def observation_msg(obs: Observation, request_id: int) -> bytes:
         gripper_qpos=_f64(obs.gripper_qpos),
         joint_pos=_f64(obs.joint_pos),
         joint_vel=_f64(obs.joint_vel),
+        eef_rot_mat=_f64(obs.eef_rot_mat.reshape(-1)) if obs.eef_rot_mat is not None else _f64(()),
         object_names=names,
         object_poses=[_pose(*obs.objects[n]) for n in names],
         camera_names=sorted(obs.images),
@@ -404,6 +405,7 @@ def observation_from_msg(msg, images: dict[str, np.ndarray] | None = None) -> Ob
         joint_vel=np.array(msg.joint_vel),
         objects=objects,
         images=dict(images or {}),
+        eef_rot_mat=np.array(msg.eef_rot_mat).reshape(3, 3) if len(msg.eef_rot_mat) == 9 else None,
     )
 
 

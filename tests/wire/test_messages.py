@@ -45,3 +45,21 @@ def test_leading_stamp_matches_decoded_stamp():
         (m.event_msg(700_000_000, m.EventKind.STARTED, 4, "x"), m.EPISODE_EVENTS.msgtype),
     ]:
         assert m.leading_stamp_ns(data) == m.stamp_ns(m.deserialize(data, msgtype))
+
+
+@pytest.mark.parametrize("with_matrix", [True, False])
+def test_observation_carries_the_controller_rotation_matrix_when_there_is_one(with_matrix):
+    from lq_ros.core.types import Observation
+    from lq_ros.transport.ros.rclpy_helpers import msg_class
+
+    rot = np.arange(9, dtype=np.float64).reshape(3, 3) / 7 if with_matrix else None
+    obs = Observation(3, 0.15, np.ones(3), np.array([0, 0, 0, 1.0]), np.zeros(2), np.zeros(7), np.zeros(7))
+    obs.eef_rot_mat = rot
+    data = m.observation_msg(obs, request_id=4)
+    via_rclpy = rclpy_serialization.deserialize_message(data, msg_class(m.OBSERVATION.msgtype))
+    assert len(via_rclpy.eef_rot_mat) == (9 if with_matrix else 0)
+    back = m.observation_from_msg(m.deserialize(data, m.OBSERVATION.msgtype))
+    if with_matrix:
+        assert back.eef_rot_mat.shape == (3, 3) and np.array_equal(back.eef_rot_mat, rot)  # row-major, bit for bit
+    else:
+        assert back.eef_rot_mat is None
