@@ -184,9 +184,28 @@ def _budget_marks(rows: pd.DataFrame) -> np.ndarray:
     return np.where(degenerate, "", marks)
 
 
+#: Fig. 4's band notes: which 95 % interval a line's band is (lq_ros/scoring/intervals.py).
+CLUSTER_BAND_NOTE = "band: task-clustered 95% interval (whole tasks resampled: speaks for other tasks of the suite)"
+WILSON_BAND_NOTE = (
+    f"hatched band: Wilson 95% interval over episodes, for a line with a cell of fewer than {agg.MIN_N_INTERVAL} "
+    "tasks (no task-clustered interval): it speaks for these tasks only"
+)
+
+
+def _success_band(rows: pd.DataFrame) -> tuple[pd.Series, pd.Series, str]:
+    """A line's band: the task-clustered interval when every cell of the line has one, else the Wilson interval
+    over episodes (one kind per line, so a band never changes meaning along it). Returns (lo, hi, note)."""
+    lo, hi = rows.get("success_cluster_ci_lo"), rows.get("success_cluster_ci_hi")
+    rated = rows["success_rate"].notna()
+    if lo is not None and hi is not None and bool(np.isfinite(lo[rated].to_numpy(dtype=np.float64)).all()):
+        return lo, hi, CLUSTER_BAND_NOTE
+    return rows["success_ci_lo"], rows["success_ci_hi"], WILSON_BAND_NOTE
+
+
 def fig_success(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 4: one panel per protocol, one line per policy (and suite), shaded 95 % Wilson interval; budget marks
-    (hollow: decided by the action-budget twin; dotted ring: the proxy alone) and red rings on degenerate cells."""
+    """Fig. 4: one panel per protocol, one line per policy (and suite), shaded 95 % band (task-clustered where
+    every cell of the line has one, else Wilson, hatched and footnoted: _success_band); budget marks (hollow: decided
+    by the action-budget twin; dotted ring: the proxy alone) and red rings on degenerate cells."""
     modes = [m for m in ("sync", "async") if m in set(pooled["mode"])] + sorted(set(pooled["mode"]) - {"sync", "async"})
     colours = _colours(pooled)
     suites = _suites(pooled)
@@ -204,8 +223,13 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
             colour = colours.get(base, colours[policy])
             label = f"{base} · {BUDGET_LABEL.get(budget, budget)}" if both else policy
             style = ACTION_BUDGET_STYLE if budget == "action" else None
-            _ci_line(ax, rows["latency_s"], rows["success_rate"], rows["success_ci_lo"], rows["success_ci_hi"],
-                     colour=colour, mode=mode, label=label, scale=100.0, style=style)  # fmt: skip
+            lo, hi, band = _success_band(rows)
+            _ci_line(ax, rows["latency_s"], rows["success_rate"], lo, hi, colour=colour, mode=mode, label=label,
+                     scale=100.0, style=style)  # fmt: skip
+            if band == WILSON_BAND_NOTE:  # hatched over its fill: not the interval the other lines' bands are
+                ax.fill_between(rows["latency_s"], 100.0 * lo, 100.0 * hi, facecolor="none", edgecolor=colour,
+                                hatch="///", linewidth=0, alpha=0.45)  # fmt: skip
+            found.add(band)
             if pr.ring_degenerate(ax, rows, rows["success_rate"], 100.0):
                 found.add(pr.DEGENERATE_NOTE)
             found |= _budget_mark_points(ax, rows, colour, mode)
@@ -215,7 +239,8 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
         ax.margins(x=0.12)
         _latency_axis(ax, pooled)
     axes[0][0].set_ylabel("success rate (%) [95% CI]")
-    notes = [BUDGET_FOOTNOTE[k] for k in ("decided", "proxy") if BUDGET_FOOTNOTE[k] in found]
+    notes = [n for n in (CLUSTER_BAND_NOTE, WILSON_BAND_NOTE) if n in found]
+    notes += [BUDGET_FOOTNOTE[k] for k in ("decided", "proxy") if BUDGET_FOOTNOTE[k] in found]
     pr.layout(fig, axes[0], title=FIGURES["fig4_success"], note=pr.footnote(*notes, _notes(found)))
     return fig
 

@@ -116,7 +116,8 @@ INTRO = (
 NOTES = (
     f"Intervals: success carries the Wilson interval over episodes (these tasks, other init states) and, for a cell "
     f"of at least {MIN_N_INTERVAL} tasks, the task-clustered interval (whole tasks resampled, expanded percentile; "
-    "success clusters by task, so this is the one that speaks for other tasks of this kind); the mean of a metric "
+    "success clusters by task, so this is the one that speaks for other tasks of this kind; Fig. 4's band is it "
+    "wherever every cell of a line has it, else the hatched Wilson band); the mean of a metric "
     "carries the Student t interval. Each holds its 95% coverage at these sizes in simulation "
     "(docs/design/scoring.md). Few values: a metric over fewer than "
     f"{MIN_N_INTERVAL} episodes (or pairs) gets no interval; tables print the mean, n and the values, "

@@ -216,3 +216,30 @@ def test_titles_clear_the_panels(close_all):
         for ax in fig.axes:
             if ax.get_visible():
                 assert ax.get_tightbbox(renderer).y1 <= title.y0 + 1, (name, ax.get_ylabel(), ax.get_title())
+
+
+def _band_edges(ax) -> np.ndarray:
+    bands = [c for c in ax.collections if c.get_paths() and len(c.get_paths()[0].vertices) > 2]
+    return np.unique(np.round(np.concatenate([b.get_paths()[0].vertices[:, 1] for b in bands]), 6))
+
+
+@pytest.mark.parametrize("tasks", [6, 3])
+def test_fig4_band_is_task_clustered_when_every_cell_has_that_interval(close_all, tasks):
+    # Success clusters by task (task 0 always fails): the clustered interval is wider than Wilson's.
+    rows = [
+        _row("libero_spatial", mode="sync", latency=lat, task=t, init=i, status="failure" if t == 0 else "success")
+        for lat in (0.0, 0.2) for t in range(tasks) for i in range(4)
+    ]  # fmt: skip
+    pooled = rp.figure_aggregates(_frame(rows), n_boot=200)
+    fig = fg.fig_success(pooled)
+    edges = _band_edges(fig.axes[0])
+    if tasks >= agg.MIN_N_INTERVAL:
+        want = pooled[["success_cluster_ci_lo", "success_cluster_ci_hi"]]
+        assert fg.CLUSTER_BAND_NOTE in _note(fig) and fg.WILSON_BAND_NOTE not in _note(fig)
+        assert (pooled["success_cluster_ci_lo"] < pooled["success_ci_lo"]).all()  # the test can tell them apart
+    else:  # too few tasks: Wilson, with dashed edges and its own note
+        want = pooled[["success_ci_lo", "success_ci_hi"]]
+        assert fg.WILSON_BAND_NOTE in _note(fig) and fg.CLUSTER_BAND_NOTE not in _note(fig)
+        assert [c for c in fig.axes[0].collections if c.get_hatch() == "///"]
+    for bound in 100 * want.to_numpy().ravel():
+        assert np.isclose(edges, bound).any(), bound
