@@ -17,7 +17,9 @@ The checkpoint directory is checked here, before anything starts, from its ``con
 refusals): it must be a LeRobot ``save_pretrained`` folder with its saved processor pipelines, take
 LIBERO's two cameras (under LeRobot's names ``observation.images.image`` = agentview and
 ``observation.images.image2`` = wrist, or under other names mapped to them: see :func:`camera_mapping`; images
-``observation.images.empty_camera_<i>`` are padded by the policy itself) and the 8-D state, act in 7-D, and
+``observation.images.empty_camera_<i>`` are padded by the policy itself) and the 8-D state (X-VLA: the 20-D state
+its LIBERO processor builds from the EE rotation matrix, ``Observation.eef_rot_mat``, sent with every request that has
+one; an observation without it, a robot's, is refused for X-VLA), act in 7-D (X-VLA: what LeRobot decodes to 7-D), and
 condition on at most :data:`MAX_HISTORY_TICKS` observations (``n_obs_steps``). A policy with ``n_obs_steps`` n > 1
 (diffusion's default 2, VQ-BeT's 5) declares ``observation_history_ticks`` n: the simulator captures every tick's
 observation and each request carries the n - 1 ticks before its own (``Observation.history``; before tick 0, tick
@@ -70,17 +72,26 @@ ENV_CAMERAS = {"image": AGENTVIEW, "image2": WRIST}
 #: Names a ``rename`` may give a camera: LeRobot's env names, ours, and ``wrist``.
 CAMERA_NAMES = {"image": "image", "image2": "image2", AGENTVIEW: "image", WRIST: "image2", "wrist": "image2"}
 IMAGE_PREFIX = "observation.images."
+#: The request field carrying ``Observation.eef_rot_mat`` (robosuite's ``controller.ee_ori_mat``), row-major.
+EEF_MAT_FIELD = "observation/eef_mat"
 #: Image keys the policy pads itself (SmolVLA's, pi0's and pi0.5's ``empty_cameras``): nothing is sent for them.
 EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
 #: Words in an image key that say which camera it is (automatic mapping, case-insensitive).
 AGENTVIEW_WORDS = ("agentview", "front", "third_person")
 WRIST_WORDS = ("wrist", "eye_in_hand", "hand")
-#: Policy types whose LIBERO evaluation needs what the stack does not send, and why.
+#: Policy types whose LIBERO evaluation needs what the stack cannot do yet, and why.
 UNSUPPORTED_TYPES = {
-    "xvla": "X-VLA's LIBERO processor needs the end-effector rotation matrix in its state (20-D) and absolute "
-    "control; the stack sends LeRobot's 8-D LIBERO state and runs delta control (supported types: act, diffusion, "
-    "smolvla, pi0, pi05, ...)",
+    "xvla": "X-VLA's LIBERO actions are absolute end-effector poses (lerobot-eval runs it with "
+    "--env.control_mode=absolute); the stack's executor runs relative (delta) control only (supported types: act, "
+    "diffusion, smolvla, pi0, pi05, ...)",
 }
+#: Policy types whose LeRobot LIBERO env processor builds the state from the EE rotation matrix (``eef.mat``, sent as
+#: ``observation/eef_mat``) instead of the 8-D state, and the state shapes their configs may declare (X-VLA's
+#: processor declares 20; a checkpoint trained on LeRobot's LIBERO dataset declares its 8): the policy pads it.
+EEF_MAT_TYPES = {"xvla": ([LEROBOT_STATE_DIM], [20])}
+#: Policy types whose actions LeRobot's LIBERO env post-processor decodes into the env's 7-D action, and the fewest
+#: values it reads (X-VLA: position 3, 6-D rotation 6, gripper 1; its ``ee6d`` actions have 20).
+DECODED_ACTION_TYPES = {"xvla": 10}
 #: The policy types LeRobot wires its RTC processor into (flow matching): ``--merge rtc``/``rtc_hard`` work with them.
 RTC_TYPES = ("smolvla", "pi0", "pi05")
 
@@ -260,10 +271,19 @@ def check_config(config_file: Path, where: str, rename: dict[str, str] | None = 
     config["lq_cameras"] = camera_mapping(images, rename, where)
     state_shape = (inputs.get(LEROBOT_STATE_KEY) or {}).get("shape", [LEROBOT_STATE_DIM])
     action_shape = (outputs.get("action") or {}).get("shape")
-    if list(state_shape) != [LEROBOT_STATE_DIM] or action_shape is None or list(action_shape) != [ACTION_DIM]:
+    states = EEF_MAT_TYPES.get(config["type"], ([LEROBOT_STATE_DIM],))
+    fewest = DECODED_ACTION_TYPES.get(config["type"])
+    if fewest is None:
+        action_fits = action_shape is not None and list(action_shape) == [ACTION_DIM]
+        actions = f"[{ACTION_DIM}]"
+    else:
+        action_fits = isinstance(action_shape, list) and len(action_shape) == 1 and isinstance(action_shape[0], int)
+        action_fits = action_fits and action_shape[0] >= fewest
+        actions = f"[n], n >= {fewest} (decoded to {ACTION_DIM} by LeRobot's LIBERO post-processor)"
+    if list(state_shape) not in [list(shape) for shape in states] or not action_fits:
         raise ValueError(
-            f"lerobot path {where!r}: state shape {state_shape} and action shape {action_shape}; LIBERO's are "
-            f"[{LEROBOT_STATE_DIM}] and [{ACTION_DIM}]"
+            f"lerobot path {where!r}: state shape {state_shape} and action shape {action_shape}; valid for a "
+            f"{config['type']} policy on LIBERO: {' or '.join(map(str, states))} and {actions}"
         )
     n_obs_steps = 1 if config.get("n_obs_steps") is None else config["n_obs_steps"]
     if not isinstance(n_obs_steps, int) or isinstance(n_obs_steps, bool) or not 1 <= n_obs_steps <= MAX_HISTORY_TICKS:
@@ -334,6 +354,8 @@ class LeRobotPolicy(OpenPIPolicy):
             config_file = folder / "config.json"
         #: The checkpoint's image key -> LeRobot's env camera that feeds it (``image``, ``image2``).
         self.cameras: dict[str, str] = self.config.pop("lq_cameras")
+        #: Its LIBERO state is built from the EE rotation matrix: an observation without one is refused.
+        self.needs_eef_rot_mat = self.config["type"] in EEF_MAT_TYPES
         #: The checkpoint's n_obs_steps: each request carries the n - 1 ticks before its own (Observation.history).
         self.observation_history_ticks = int(self.config.get("n_obs_steps", 1) or 1)
         self.env_cameras = sorted(set(self.cameras.values()))
@@ -389,7 +411,8 @@ class LeRobotPolicy(OpenPIPolicy):
         self._seed = int(seed)
 
     def observation_fields(self, obs: Observation) -> dict[str, np.ndarray]:
-        """Cameras as robosuite renders them (our images are upright: undo the row flip), state unprocessed."""
+        """Cameras as robosuite renders them (our images are upright: undo the row flip), state unprocessed, and the
+        EE rotation matrix where the observation has one (row-major, 9 values)."""
         fields = {
             f"observation/images/{camera}": np.ascontiguousarray(camera_image(obs, ENV_CAMERAS[camera])[::-1])
             for camera in self.env_cameras
@@ -403,6 +426,13 @@ class LeRobotPolicy(OpenPIPolicy):
                 "observation/joint_vel": np.asarray(obs.joint_vel, dtype=np.float64),
             }
         )
+        if obs.eef_rot_mat is not None:
+            fields[EEF_MAT_FIELD] = np.asarray(obs.eef_rot_mat, dtype=np.float64).reshape(9)
+        elif self.needs_eef_rot_mat:
+            raise PolicyError(
+                f"lerobot: a {self.config['type']} checkpoint's LIBERO state is built from the end-effector rotation "
+                "matrix, which this observation does not carry (a robot interface reports none; the simulator does)"
+            )
         return fields
 
     def observation_payload(self, obs: Observation) -> dict:

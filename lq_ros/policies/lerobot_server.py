@@ -40,8 +40,10 @@ Protocol (openpi ``websocket_policy_server``): a metadata frame, then one msgpac
 Request keys: ``token`` (this run's secret, see below); ``observation/images/image`` and ``.../image2`` (the
 cameras the mapping uses: uint8 H x W x 3 as robosuite renders them, bottom row first);
 ``observation/eef_pos``, ``observation/eef_quat`` (x y z w), ``observation/gripper_qpos``,
-``observation/joint_pos``, ``observation/joint_vel`` (float); ``prompt``; ``reset`` (true on an episode's
-first request: the policy and processors are reset) and ``seed`` (with ``reset``); optionally
+``observation/joint_pos``, ``observation/joint_vel`` (float); optionally ``observation/eef_mat`` (9 floats: the EE
+rotation matrix of robosuite's controller, row-major; LeRobot's env reports it as ``robot_state.eef.mat``, and X-VLA's
+LIBERO processor builds its state from it: a request for X-VLA without it is refused); ``prompt``; ``reset`` (true on
+an episode's first request: the policy and processors are reset) and ``seed`` (with ``reset``); optionally
 ``prefix/actions`` (L x 7, the executor's plan in the env's action space), ``prefix/delay`` (d, ticks) and
 ``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``); for a policy with ``n_obs_steps`` n > 1,
 ``history/<field>`` for each observation field above: the n - 1 ticks before the request's, stacked oldest first
@@ -107,6 +109,8 @@ MAX_JOINTS = 32
 MAX_PROMPT_CHARS = 4096
 #: Robot-state fields of a request and their lengths (None: 1 to MAX_JOINTS).
 STATE_FIELDS = {"eef_pos": 3, "eef_quat": 4, "gripper_qpos": 2, "joint_pos": None, "joint_vel": None}
+#: The optional field with the EE rotation matrix (robosuite's ``controller.ee_ori_mat``), row-major, 9 values.
+EEF_MAT_FIELD = "observation/eef_mat"
 #: Longest error line sent to the client, characters.
 MAX_ERROR_CHARS = 300
 #: The camera names LeRobot's LIBERO env gives its pixel keys (``observation.images.<name>``).
@@ -256,6 +260,17 @@ def checked_observation(request: dict, image_keys: list[str]) -> dict:
         if not np.all(np.isfinite(value)):
             raise RequestError(f"{name}: valid: finite values; got {value.tolist()}")
         out[name] = value
+    matrix = request.get(EEF_MAT_FIELD)
+    if matrix is not None:
+        if not isinstance(matrix, np.ndarray) or matrix.dtype.kind not in "fiu" or matrix.shape != (9,):
+            raise RequestError(
+                f"{EEF_MAT_FIELD}: valid: a numeric 1-D array of 9 values (the 3 x 3 matrix, row-major); got "
+                f"{_what(matrix)}"
+            )
+        matrix = np.array(matrix, dtype=np.float64)
+        if not np.all(np.isfinite(matrix)):
+            raise RequestError(f"{EEF_MAT_FIELD}: valid: finite values; got {matrix.tolist()}")
+        out[EEF_MAT_FIELD] = matrix
     return out
 
 
@@ -392,6 +407,13 @@ def check_weights_loaded(policy, path: str, local: bool) -> None:
             raise ValueError(f"checkpoint {path}: model.safetensors {detail}: saved from another model, or damaged")
 
 
+def reads_eef_mat(step) -> bool:
+    """Whether a LeRobot env processor step builds the state from ``robot_state.eef.mat`` (X-VLA's LIBERO step)."""
+    from lerobot.policies.xvla.processor_xvla import LiberoProcessorStep as XVLALiberoStep
+
+    return isinstance(step, XVLALiberoStep)
+
+
 class LeRobotServer:
     """A loaded LeRobot policy with its processors, answering observation dicts with action chunks.
 
@@ -472,6 +494,8 @@ class LeRobotServer:
         )
         #: The request's image keys, in LeRobot's env names (``observation.images.image``/``image2``).
         self.image_keys = sorted({f"observation.images.{camera}" for camera in self.cameras.values()})
+        #: LeRobot's env processor for this policy reads the EE rotation matrix (X-VLA's LIBERO state is built from it).
+        self.needs_eef_mat = any(reads_eef_mat(step) for step in self.env_preprocessor.steps)
 
     @staticmethod
     def _camera_map(config, cameras: dict[str, str] | None) -> dict[str, str]:
@@ -506,6 +530,7 @@ class LeRobotServer:
             "full_chunk": self.full_chunk,
             "action_queue": self._action_queue() is not None,
             "rtc": self.supports_rtc(),
+            "state_from_eef_mat": self.needs_eef_mat,
         }
 
     # -- one request --------------------------------------------------------------------------
@@ -520,10 +545,18 @@ class LeRobotServer:
         pixels = {}
         for key, camera in self.cameras.items():
             pixels[key.removeprefix("observation.images.")] = np.asarray(request[f"observation/images/{camera}"])[None]
+        eef = {"pos": batched("eef_pos"), "quat": batched("eef_quat")}
+        if EEF_MAT_FIELD in request:  # (1, 3, 3), as LeRobot 0.6's env stacks the controller's matrix
+            eef["mat"] = np.asarray(request[EEF_MAT_FIELD], dtype=np.float64).reshape(1, 3, 3)
+        elif self.needs_eef_mat:
+            raise ValueError(
+                f"{self.config.type}: LeRobot's LIBERO processor for it builds the state from the end-effector "
+                f"rotation matrix ({EEF_MAT_FIELD}), which this observation does not carry (a robot reports none)"
+            )
         return {
             "pixels": pixels,
             "robot_state": {
-                "eef": {"pos": batched("eef_pos"), "quat": batched("eef_quat")},
+                "eef": eef,
                 "gripper": {"qpos": batched("gripper_qpos")},
                 "joints": {"pos": batched("joint_pos"), "vel": batched("joint_vel")},
             },

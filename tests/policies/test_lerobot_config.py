@@ -82,7 +82,7 @@ def test_inputs_beyond_libero_are_refused(tmp_path):
 
 
 def test_xvla_is_refused_with_its_reason(tmp_path):
-    with pytest.raises(ValueError, match="X-VLA's LIBERO processor needs the end-effector rotation matrix") as refused:
+    with pytest.raises(ValueError, match="X-VLA's LIBERO actions are absolute end-effector poses") as refused:
         check_config(config_file(tmp_path, ["image", "image2"], type="xvla"), "ckpt")
     assert "\n" not in str(refused.value)
 
