@@ -143,6 +143,8 @@ def test_junk_and_failures_are_one_line(server):
         (PACK.pack({**request(token), "observation/eef_pos": np.zeros(5)}), "observation/eef_pos: valid"),
         (PACK.pack({**request(token), "observation/images/image": np.zeros((8, 8, 3))}), "uint8 H x W x 3"),
         (PACK.pack({**request(token), "observation/joint_vel": np.full(7, np.nan)}), "finite values"),
+        (PACK.pack({**request(token), "observation/eef_mat": np.eye(3)}), "observation/eef_mat: valid: a numeric"),
+        (PACK.pack({**request(token), "observation/eef_mat": np.full(9, np.inf)}), "eef_mat: valid: finite"),
         (PACK.pack({**request(token), "seed": -1}), "seed: valid"),
         (PACK.pack({**request(token), "reset": "yes"}), "reset: valid"),
         (PACK.pack(request(token, prompt="fail")), "RuntimeError: stand-in policy failed on purpose"),
