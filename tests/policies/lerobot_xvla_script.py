@@ -237,8 +237,12 @@ def answer(ckpt: str, payload_file: Path) -> dict:
         refusal = None
     except ValueError as exc:
         refusal = lerobot_server.error_line(exc)
+    whole = lerobot_server.LeRobotServer(ckpt, full_chunk=True)
+    chunk = whole.answer(lerobot_server.checked_request(request, whole.image_keys))["actions"]
     return {
         "shape": list(actions.shape),
+        "full_chunk_shape": list(chunk.shape),
+        "full_chunk_starts_as_the_queue": bool(np.array_equal(chunk[: len(actions)], actions)),
         "dtype": str(actions.dtype),
         "finite": bool(np.all(np.isfinite(actions))),
         "gripper": sorted({float(g) for g in actions[:, 6]}),

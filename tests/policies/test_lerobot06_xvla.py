@@ -35,7 +35,7 @@ SCRIPT = HERE / "lerobot_xvla_script.py"
 PYTHON06 = Path(__file__).resolve().parents[2] / ".venv-lerobot06" / "bin" / "python"
 SUITE, TASK = "libero_spatial", 0
 TASK_INFO = TaskInfo(SUITE, TASK, "t", "pick up the black bowl", [], 220, 50)
-STEPS = 4  # n_action_steps, as lerobot_xvla_script.py makes it
+CHUNK, STEPS = 8, 4  # chunk_size and n_action_steps, as lerobot_xvla_script.py makes them
 #: Not a symmetric matrix: row-major and column-major differ.
 MATRIX = np.arange(9.0).reshape(3, 3) / 10 - 0.4
 
@@ -300,6 +300,7 @@ def test_tiny_xvla_answers_a_chunk_through_the_server(served):
     +-1), finite, the same again for the same seed; without the matrix, one line."""
     answer = served["answer"]
     assert answer["shape"] == [STEPS, 7] and answer["dtype"] == "float32" and answer["finite"]
+    assert answer["full_chunk_shape"] == [CHUNK, 7] and answer["full_chunk_starts_as_the_queue"]  # async's full_chunk=1
     assert set(answer["gripper"]) <= {-1.0, 1.0} and answer["repeatable"]
     assert answer["metadata"]["policy_type"] == "xvla" and answer["metadata"]["state_from_eef_mat"]
     assert answer["metadata"]["lerobot_version"] == "0.6.1"
