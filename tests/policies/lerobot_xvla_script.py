@@ -11,6 +11,10 @@ Subcommands (each prints one JSON line):
                            (RAW, .npz: LeRobot's ``LiberoEnv._format_raw_obs`` on it, the vector env's batch axis,
                            ``preprocess_observation``, the X-VLA env and saved pre-processors) against our server's from
                            the client's request (PAYLOAD, .npz): equal, key by key, bit for bit?
+  env-mat SUITE TASK ACTIONS OUT
+                           (LeRobot 0.4.4's venv, which has LIBERO) LeRobot's own ``LiberoEnv``: reset (init state 0,
+                           seed 0), then the ACTIONS (JSON list of 7-D relative actions): its raw observation's
+                           ``robot_state.eef.mat`` at each tick and the simulator state after the reset (.npz)
   answer CKPT PAYLOAD      our server answers the request (PAYLOAD, .npz, as the client sends it): the chunk's shape and
                            whether it is finite; with the matrix left out of the request: the refusal
 """
@@ -279,6 +283,26 @@ def factory_pipeline_error(config, tokenizer: Path) -> str | None:
     return None
 
 
+def env_mat(suite: str, task: int, actions: list[list[float]], out: Path) -> dict:
+    """The EE rotation matrix LeRobot's ``LiberoEnv`` reports (``_format_raw_obs``: the controller's ``ee_ori_mat``)
+    after its reset and after each action, through its vector env as ``lerobot-eval`` runs it."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from lerobot_venv_script import libero_vector_env  # LeRobot's make_env, with that script's one init-state shim
+
+    env = libero_vector_env(suite, task)
+    try:
+        observation, _ = env.reset(seed=[0])
+        state = np.asarray(env.envs[0]._env.sim.get_state().flatten())
+        mats = [observation["robot_state"]["eef"]["mat"][0]]
+        for action in actions:
+            observation, *_ = env.step(np.asarray([action], dtype=np.float64))
+            mats.append(observation["robot_state"]["eef"]["mat"][0])
+    finally:
+        env.close()
+    np.savez(out, mats=np.stack(mats), sim_state=state)
+    return {"ticks": len(mats), "dtype": str(mats[0].dtype)}
+
+
 def main(argv: list[str]) -> None:
     command, args = argv[0], argv[1:]
     if command == "make":
@@ -289,6 +313,8 @@ def main(argv: list[str]) -> None:
         result.update(parity=parity(ckpt, Path(args[1]), Path(args[2])), answer=answer(ckpt, Path(args[2])))
     elif command == "parity":
         result = parity(args[0], Path(args[1]), Path(args[2]))
+    elif command == "env-mat":
+        result = env_mat(args[0], int(args[1]), json.loads(args[2]), Path(args[3]))
     elif command == "answer":
         result = answer(args[0], Path(args[1]))
     else:

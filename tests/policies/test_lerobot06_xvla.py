@@ -213,6 +213,41 @@ def test_the_observed_matrix_is_robosuites_controller_matrix():
     assert not np.array_equal(seen[0], seen[-1])  # the arm turned: the test compares moving values
 
 
+@pytest.mark.slow
+def test_the_observed_matrix_is_lerobots_liberoenv_matrix(tmp_path):
+    """Against LeRobot's own ``LiberoEnv`` (LeRobot 0.4.4's venv has LIBERO; its ``_format_raw_obs`` reports
+    ``eef.mat`` from the same ``controller.ee_ori_mat`` as 0.6.1's): from the same reset (the simulator states are
+    equal) and three relative actions, the matrix it reports at each tick equals ``Observation.eef_rot_mat``."""
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    python = lerobot_client.default_python()
+    if not python.is_file():
+        if os.environ.get("CI"):
+            pytest.fail(f"LeRobot's venv is missing ({python}): `make test` makes it with `make setup-lerobot`")
+        pytest.skip("LeRobot 0.4.4's venv is not installed (make setup-lerobot)")
+    actions = [[0.3, -0.2, 0.1, 0.2, -0.1, 0.3, -1.0], [0.1, 0.2, -0.2, -0.3, 0.2, 0.1, 1.0], [0, 0, 0.3, 0, 0, 0, -1]]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # keeps lq_ros's OPENBLAS_CORETYPE: same kernels
+    done = subprocess.run(
+        [str(python), str(SCRIPT), "env-mat", SUITE, str(TASK), json.dumps(actions), str(tmp_path / "lerobot.npz")],
+        capture_output=True, text=True, timeout=600, env=env, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    lerobot = np.load(tmp_path / "lerobot.npz")
+    ours = LiberoEnv(SUITE, TASK)
+    try:
+        ours.reset(0, seed=0)
+        assert np.array_equal(np.asarray(ours._sim.get_state().flatten()), lerobot["sim_state"]), "resets differ"
+        matrices = [ours.observe(with_images=False).eef_rot_mat]
+        for action in actions:
+            ours.step(np.array(action, dtype=np.float64))
+            matrices.append(ours.observe(with_images=False).eef_rot_mat)
+    finally:
+        ours.close()
+    assert lerobot["mats"].shape == (len(actions) + 1, 3, 3)
+    for tick, (matrix, theirs) in enumerate(zip(matrices, lerobot["mats"], strict=True)):
+        assert np.array_equal(matrix, theirs), tick
+
+
 # -- LeRobot 0.6's own X-VLA ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def request_files(tmp_path_factory) -> dict:
