@@ -50,6 +50,7 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from lq_msgs.srv import ManageNodes
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -481,8 +482,15 @@ def serve_manage_nodes(node: Node, ops: queue.SimpleQueue, wake) -> tuple[Single
 
 
 def _spin_quietly(executor: SingleThreadedExecutor) -> None:
-    with contextlib.suppress(ExternalShutdownException, KeyboardInterrupt):  # ROS shutting down with the process
+    try:
         executor.spin()
+    except (ExternalShutdownException, KeyboardInterrupt):  # ROS shutting down with the process
+        pass
+    except rclpy_implementation.RCLError:
+        # A signal's shutdown between spin's check of the context and its next wait set makes rcl refuse the
+        # wait set (seen under load); only an error while the context is still valid is a failure.
+        if executor.context.ok():
+            raise
 
 
 def main() -> None:
