@@ -14,16 +14,23 @@ LEROBOT_VENV := .venv-lerobot
 LEROBOT06_VENV := .venv-lerobot06
 PYTHON312 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python) $(shell command -v python3.12))
 
-.PHONY: setup setup-lerobot setup-lerobot06 test test-fast demo lint clean bytecode
+.PHONY: setup setup-all setup-lerobot setup-lerobot06 test test-fast demo lint clean bytecode
 
 setup: $(STAMP)/package
 
 # LeRobot's own venv: LeRobot checkpoints are served from it (--policy lerobot; docs/guide/lerobot.md).
 setup-lerobot: $(LEROBOT_VENV)/.stamps/wheels
 
+# pip compiles the bytecode of what it installs on one core; the venvs (about 51,000 files) are installed without
+# it and compiled on every core. pip, too, skips files that do not compile.
+COMPILE_VENV = -c "import compileall, sysconfig; [compileall.compile_dir(sysconfig.get_path(k), quiet=2, workers=0) \
+  for k in sorted({'purelib', 'platlib'})]"
+
 $(LEROBOT_VENV)/.stamps/wheels: requirements-lerobot.lock
 	@test -x $(LEROBOT_VENV)/bin/python || $(PYTHON) -m venv $(LEROBOT_VENV)
-	$(LEROBOT_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-lerobot.lock
+	$(LEROBOT_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-compile \
+	  -r requirements-lerobot.lock
+	$(LEROBOT_VENV)/bin/python $(COMPILE_VENV)
 	@mkdir -p $(LEROBOT_VENV)/.stamps && touch $@
 
 # LeRobot 0.6's venv on Python 3.12 (docs/guide/lerobot.md, "LeRobot 0.6"); --policy-arg python= selects it.
@@ -32,12 +39,15 @@ setup-lerobot06: $(LEROBOT06_VENV)/.stamps/wheels
 $(LEROBOT06_VENV)/.stamps/wheels: requirements-lerobot06.lock
 	@test -n "$(PYTHON312)" || { echo "setup-lerobot06: no Python 3.12 (pyenv's or python3.12); set PYTHON312=PATH"; false; }
 	@test -x $(LEROBOT06_VENV)/bin/python || $(PYTHON312) -m venv $(LEROBOT06_VENV)
-	$(LEROBOT06_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-lerobot06.lock
+	$(LEROBOT06_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-compile \
+	  -r requirements-lerobot06.lock
+	$(LEROBOT06_VENV)/bin/python $(COMPILE_VENV)
 	@mkdir -p $(LEROBOT06_VENV)/.stamps && touch $@
 
 $(STAMP)/wheels: requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.lock
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-compile -r requirements.lock
+	$(PY) $(COMPILE_VENV)
 	@mkdir -p $(STAMP) && touch $@
 
 # Custom messages: rclpy classes generated from msg_schemas (the same files rosbags reads).
@@ -62,10 +72,16 @@ $(STAMP)/package: $(STAMP)/msgs setup.py setup.cfg package.xml
 bytecode: setup
 	$(PY) -m compileall -q lq_ros nodes
 
-test: setup setup-lerobot setup-lerobot06 bytecode
+# The three venvs install side by side: each pip runs on one core and waits on the disk much of the time.
+setup-all:
+	$(MAKE) -j3 setup setup-lerobot setup-lerobot06
+
+test: setup-all
+	$(MAKE) bytecode
 	$(PY) -m pytest -q
 
-test-fast: setup setup-lerobot setup-lerobot06 bytecode
+test-fast: setup-all
+	$(MAKE) bytecode
 	$(PY) -m pytest -q -m "not slow"
 
 demo: setup bytecode
