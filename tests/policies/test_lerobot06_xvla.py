@@ -28,24 +28,16 @@ import pytest
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, lerobot_client, make_policy
 from lq_ros.policies.lerobot_client import EEF_MAT_FIELD, check_config, check_processor_steps
+from tests.policies.test_lerobot06 import python06
 from tests.standin_servers import standin_observation
 
 HERE = Path(__file__).parent
 SCRIPT = HERE / "lerobot_xvla_script.py"
-PYTHON06 = Path(__file__).resolve().parents[2] / ".venv-lerobot06" / "bin" / "python"
 SUITE, TASK = "libero_spatial", 0
 TASK_INFO = TaskInfo(SUITE, TASK, "t", "pick up the black bowl", [], 220, 50)
 CHUNK, STEPS = 8, 4  # chunk_size and n_action_steps, as lerobot_xvla_script.py makes them
 #: Not a symmetric matrix: row-major and column-major differ.
 MATRIX = np.arange(9.0).reshape(3, 3) / 10 - 0.4
-
-
-def python06() -> Path:
-    if not PYTHON06.is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"LeRobot 0.6's venv is missing ({PYTHON06}): `make test` makes it with `make setup-lerobot06`")
-        pytest.skip("LeRobot 0.6's venv is not installed (make setup-lerobot06)")
-    return PYTHON06
 
 
 def in_venv06(*args: object) -> dict:
