@@ -45,6 +45,18 @@ def python06() -> Path:
     return PYTHON06
 
 
+def run_in_venv06(script: Path, *args: object, env: dict[str, str]) -> dict:
+    """Run a test script in LeRobot 0.6's venv (``env`` added to ours, our PYTHONPATH dropped); its last stdout line
+    is JSON."""
+    environ = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | env
+    done = subprocess.run(
+        [str(python06()), str(script), *map(str, args)], capture_output=True, text=True, timeout=600, env=environ,
+        check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def in_venv06(*args: object, python: Path | None = None) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["HF_HUB_OFFLINE"] = "1"  # everything is made here: nothing may come from a hub

@@ -18,9 +18,7 @@ word-level toy tokenizer, and the saved preprocessor's ``tokenizer_name`` points
 from __future__ import annotations
 
 import json
-import os
 import shlex
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -33,6 +31,7 @@ from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
 from tests.policies.rtc_check import check_rtc_follows_the_prefix
+from tests.policies.test_lerobot06 import python06, run_in_venv06
 
 HERE = Path(__file__).parent
 SCRIPT = HERE / "lerobot_pi_script.py"
@@ -46,23 +45,9 @@ KINDS = ["pi0", "pi05"]
 pytestmark = [pytest.mark.sim]
 
 
-def python06() -> Path:
-    if not PYTHON06.is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"LeRobot 0.6's venv is missing ({PYTHON06}): `make test` makes it with `make setup-lerobot06`")
-        pytest.skip("LeRobot 0.6's venv is not installed (make setup-lerobot06)")
-    return PYTHON06
-
-
 def in_venv06_with_shim(*args: object) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    env.update(PYTHONPATH=str(SHIM), HF_HUB_OFFLINE="1")  # the size shim; nothing may come from a hub
-    done = subprocess.run(
-        [str(python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600, env=env,
-        check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    # the size shim; nothing may come from a hub
+    return run_in_venv06(SCRIPT, *args, env={"PYTHONPATH": str(SHIM), "HF_HUB_OFFLINE": "1"})
 
 
 @pytest.fixture(scope="module")

@@ -28,7 +28,7 @@ import pytest
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, lerobot_client, make_policy
 from lq_ros.policies.lerobot_client import EEF_MAT_FIELD, check_config, check_processor_steps
-from tests.policies.test_lerobot06 import python06
+from tests.policies.test_lerobot06 import run_in_venv06
 from tests.standin_servers import standin_observation
 
 HERE = Path(__file__).parent
@@ -41,14 +41,8 @@ MATRIX = np.arange(9.0).reshape(3, 3) / 10 - 0.4
 
 
 def in_venv06(*args: object) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    env.update(HF_HUB_OFFLINE="1", PYTHONNOUSERSITE="1")  # everything is made here: nothing may come from a hub
-    done = subprocess.run(
-        [str(python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600, env=env,
-        check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    # everything is made here: nothing may come from a hub
+    return run_in_venv06(SCRIPT, *args, env={"HF_HUB_OFFLINE": "1", "PYTHONNOUSERSITE": "1"})
 
 
 def server_module():
