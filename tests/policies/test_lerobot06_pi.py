@@ -36,7 +36,6 @@ from tests.policies.test_lerobot06 import python06, run_in_venv06
 HERE = Path(__file__).parent
 SCRIPT = HERE / "lerobot_pi_script.py"
 SHIM = HERE / "pi_tiny_sizes"
-PYTHON06 = Path(__file__).resolve().parents[2] / ".venv-lerobot06" / "bin" / "python"
 TASK_INFO = TaskInfo("libero_spatial", 0, "t", "pick up the black bowl", [], 220, 50)
 SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK
 CHUNK, STEPS = 10, 5  # as lerobot_pi_script.py makes them
