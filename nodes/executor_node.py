@@ -33,6 +33,7 @@ import time
 
 from std_msgs.msg import String
 
+from lq_ros.core.control import ControlStart
 from lq_ros.core.executor_protocol import ExecutorCore, TickDriver
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.suite_constants import sim_time_of_tick
@@ -58,6 +59,7 @@ class ExecutorNode(EpisodeNode):
         self.core = ExecutorCore(cfg.executor_config())
         self.chunk_timeout_s = self.get_parameter("chunk_timeout_s").value
         self.finished = False
+        self.control_started = False
         self.warnings_published = 0
         self.ticks = (WallClockTicks if cfg.clock == "realtime" else LockstepTicks)(self, cfg)
         self.driver = TickDriver(self.core, self.ticks)  # driver.tick: the tick whose command comes next
@@ -69,6 +71,13 @@ class ExecutorNode(EpisodeNode):
         self.ticks.stop()
 
     def on_event(self, event) -> None:
+        if event.kind == m.EventKind.STARTED and not (self.finished or self.control_started):
+            self.control_started = True
+            # The episode's control mode and start command come from the sim (lq_ros.core.control), before tick 0.
+            try:
+                self.core.start(ControlStart.from_detail(json.loads(event.detail_json)))
+            except (ValueError, RuntimeError) as exc:
+                return self.end_with_error(f"cannot start the episode: {exc}")
         self.ticks.on_event(event)
         if event.kind in m.EventKind.TERMINAL and not self.finished:
             self.finish()

@@ -14,7 +14,8 @@ camera images only when asked (/lq/observation_request), and episode events. The
   step, so the echo goes out while the sim steps the ticks before, not once it has stopped at the requested one.
 - ``realtime``: tick m is stepped at ``tick0 + m * 50 ms + SIM_STEP_OFFSET_S`` of wall time whatever has
   arrived: the command for tick m if the executor delivered it in time, else the stop hold (zero arm delta,
-  the last applied gripper command), and that tick is counted as a missed command. State is stamped with the
+  the last applied gripper command; absolute control: the last command), and that tick is counted as a missed
+  command. State is stamped with the
   ticks' scheduled wall times; there is no /clock. An observation request is answered at once with the current
   state, unless the sim runs late and has not stepped to the request's tick yet: then on reaching it (the
   observation carries its own tick). A tick whose step started late or ran
@@ -34,10 +35,11 @@ import traceback
 import numpy as np
 from std_msgs.msg import String
 
+from lq_ros.core.control import ControlMode, parse_control_mode
 from lq_ros.core.executor_protocol import Source, stop_hold
 from lq_ros.core.observation_history import ObservationHistory
 from lq_ros.core.run_config import RunConfig, versions
-from lq_ros.core.suite_constants import DUMMY_ACTION, sim_time_of_tick
+from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.sim.libero_env import LiberoEnv, import_simulator_in_background
 from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import (
@@ -70,6 +72,8 @@ class SimNode(EpisodeNode):
         # Ticks of observations the policy conditions on (Policy.observation_history_ticks; the launcher asks it):
         # above 1 every tick's observation is captured and the ticks before a request go with its observation.
         self.declare_parameter("history_ticks", 1)
+        # How the policy's arm actions are meant (Policy.control_mode; the launcher asks it): relative or absolute.
+        self.declare_parameter("control_mode", "relative")
         # Subscribers each topic needs before the episode starts (so no node misses tick 0): any, and on the
         # episode events (every node must hear STARTED; real time: its tick0) and on /clock (lockstep) the peers
         # the launcher started (events: policy, executor, recorder + this node; /clock: the recorder).
@@ -92,8 +96,13 @@ class SimNode(EpisodeNode):
             cfg.suite, cfg.task, camera_names=cameras, camera_size=self.get_parameter("camera_size_px").value,
             record_physics=self.physics_rate,
         )  # fmt: skip
-        self.state = self.env.reset(cfg.init, cfg.seed)  # the hard reset (MjSim built) belongs to configure
-        self.reset_for = (cfg.init, cfg.seed)  # what the env is reset to and not stepped since
+        mode = self.control_mode()
+        # the hard reset (MjSim built) belongs to configure
+        self.state = self.env.reset(cfg.init, cfg.seed, control_mode=mode)
+        self.reset_for = (cfg.init, cfg.seed, mode)  # what the env is reset to and not stepped since
+
+    def control_mode(self) -> ControlMode:
+        return parse_control_mode(self.get_parameter("control_mode").value, "sim parameter control_mode")
 
     def activate(self, cfg: RunConfig) -> None:
         self.init_index, self.seed, self.run_cfg = cfg.init, cfg.seed, cfg
@@ -106,8 +115,10 @@ class SimNode(EpisodeNode):
         self.min_event_subscribers = self.get_parameter("min_event_subscribers").value
         self.finished = False
         self.started = False
-        if self.reset_for != (cfg.init, cfg.seed):  # (the first episode after configure starts from its reset)
-            self.state = self.env.reset(self.init_index, self.seed)  # soft after the first (lq_ros.sim.libero_env)
+        mode = self.control_mode()
+        if self.reset_for != (cfg.init, cfg.seed, mode):  # (the first episode after configure starts from its reset)
+            # soft after the first (lq_ros.sim.libero_env)
+            self.state = self.env.reset(self.init_index, self.seed, control_mode=mode)
         self.reset_for = None
         self.history = ObservationHistory(self.get_parameter("history_ticks").value)
         self.history.capture(self.env.observe)  # tick 0
@@ -127,7 +138,7 @@ class SimNode(EpisodeNode):
         self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
         if self.realtime:
             self.clock: TickClock | None = None
-            self.last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
+            self.last_action = np.asarray(self.env.control.start_action, dtype=np.float64)
             self.missed: list[int] = []  # ticks stepped with the hold because their command was late
             self.overruns = OverrunCounter()
             self.step_delay_s = self.get_parameter("step_delay_s").value
@@ -155,7 +166,7 @@ class SimNode(EpisodeNode):
             return
         self.start_timer.cancel()
         self.started = True
-        detail = m.started_detail(self.env.task, self.init_index, self.seed, self.versions)
+        detail = m.started_detail(self.env.task, self.init_index, self.seed, self.versions, self.env.control)
         if self.realtime:
             self.clock = TickClock(time.time_ns() + round(START_DELAY_S * 1e9))
             detail.update(tick0_wall_ns=self.clock.tick0_ns, clock="realtime")
@@ -242,7 +253,8 @@ class SimNode(EpisodeNode):
         cmd = self.queued.pop(tick, None)
         if cmd is None:
             self.missed.append(tick)
-            action, source = stop_hold(self.last_action), Source.HOLD_INFERENCE  # (no chunk's: not an action tick)
+            # (no chunk's: not an action tick)
+            action, source = stop_hold(self.last_action, self.env.control.mode), Source.HOLD_INFERENCE
         else:
             action, source = np.asarray(cmd.action, dtype=np.float64), cmd.source
         self.last_action = action

@@ -27,6 +27,9 @@ the answer to the transport's :class:`TickHandlers`, go on until a handler waits
 "now" and "waiting" mean differs (a function call in process, a message through ROS, a wall-clock deadline
 in real time).
 
+What a command means (relative steps or absolute EE poses), its bounds and the hold are the episode's control mode
+(lq_ros/core/control.py), given by the simulator before tick 0 (:meth:`ExecutorCore.start`).
+
 The async merge strategies are in lq_ros/core/merge.py; ``rtc``/``rtc_hard`` also hand the policy the executing
 prefix with the request (:attr:`Request.prefix`).
 """
@@ -40,6 +43,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lq_ros.core.control import ControlMode, ControlStart, action_bounds, bounds_text, hold_action
 from lq_ros.core.latency import LatencyDist, applied_seconds, request_latency
 from lq_ros.core.merge import (
     ENSEMBLE_COEFF,
@@ -52,7 +56,7 @@ from lq_ros.core.merge import (
     apply_chunk,
     default_threshold,
 )
-from lq_ros.core.suite_constants import ACTION_DIM, ACTION_HIGH, ACTION_LOW, DUMMY_ACTION
+from lq_ros.core.suite_constants import ACTION_DIM, DUMMY_ACTION
 
 
 class Mode(StrEnum):
@@ -61,7 +65,7 @@ class Mode(StrEnum):
 
 
 class Hold(StrEnum):
-    STOP = "stop"  # zero arm delta, last gripper command
+    STOP = "stop"  # zero arm delta, last gripper command (absolute control: the last target, as REPEAT)
     REPEAT = "repeat"  # repeat the last applied action
 
 
@@ -218,8 +222,11 @@ class ExecutorStats:
     source_ticks: dict[str, int] = field(default_factory=dict)
 
 
-def validate_chunk(chunk: object, action_dim: int = ACTION_DIM) -> str | None:
-    """Reason why ``chunk`` must not reach the robot, or None when it is a well-formed (H, D) chunk."""
+def validate_chunk(
+    chunk: object, action_dim: int = ACTION_DIM, control_mode: ControlMode = ControlMode.RELATIVE
+) -> str | None:
+    """Reason why ``chunk`` must not reach the robot, or None when it is a well-formed (H, D) chunk within the
+    bounds of ``control_mode`` (lq_ros.core.control.action_bounds)."""
     try:
         arr = np.asarray(chunk, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -229,12 +236,13 @@ def validate_chunk(chunk: object, action_dim: int = ACTION_DIM) -> str | None:
     if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0]
         return f"non-finite value {arr[tuple(bad)]} at row {bad[0]}, column {bad[1]}"
-    outside = (arr < ACTION_LOW) | (arr > ACTION_HIGH)
+    low, high = action_bounds(control_mode)
+    outside = (arr < low) | (arr > high)
     if outside.any():
         bad = np.argwhere(outside)[0]
         return (
             f"value {arr[tuple(bad)]:.6g} at row {bad[0]}, column {bad[1]} outside the action bounds "
-            f"[{ACTION_LOW}, {ACTION_HIGH}]"
+            f"{bounds_text(control_mode)}"
         )
     return None
 
@@ -252,6 +260,7 @@ class ExecutorCore:
         self._warned_no_overlap = False
         self._next_request_id = 1
         self._outstanding: Request | None = None
+        self._control = ControlStart()
         self._last_action = np.asarray(DUMMY_ACTION, dtype=np.float64)
         self._last_rejected = False
         self._consecutive_rejections = 0
@@ -266,6 +275,18 @@ class ExecutorCore:
         self._horizon: int | None = None
         #: Last tick whose inference decision was taken (once per tick).
         self._planned_tick: int | None = None
+
+    def start(self, control: ControlStart) -> None:
+        """The episode's control mode and the command held before its first chunk (the simulator's, from its
+        STARTED event); before tick 0. Without it the episode is relative, held from LIBERO's dummy action."""
+        if self._planned_tick is not None:
+            raise RuntimeError("the control mode is set before tick 0")
+        self._control = control
+        self._last_action = np.asarray(control.start_action, dtype=np.float64)
+
+    @property
+    def control_mode(self) -> ControlMode:
+        return self._control.mode
 
     def advance(self, tick: int) -> TickStep:
         """The next thing control tick ``tick`` needs; call again until it returns the Command."""
@@ -316,7 +337,7 @@ class ExecutorCore:
         if req is None or req.request_id != request_id:
             raise RuntimeError(f"chunk for request {request_id} delivered, outstanding is {req}")
         self._outstanding = None
-        reason = validate_chunk(chunk)
+        reason = validate_chunk(chunk, control_mode=self._control.mode)
         if reason is not None:
             self.stats.chunks_rejected += 1
             self._last_rejected = True
@@ -414,15 +435,14 @@ class ExecutorCore:
     def _hold_action(self) -> np.ndarray:
         if self.config.hold is Hold.REPEAT:
             return self._last_action.copy()
-        return stop_hold(self._last_action)
+        return hold_action(self._control.mode, self._last_action)
 
 
-def stop_hold(last_action: np.ndarray) -> np.ndarray:
-    """The paper's hold: zero arm delta, the last gripper command (the executor's ``hold: stop``; also what the
-    real-time sim applies at a tick whose command did not arrive in time)."""
-    held = np.zeros(ACTION_DIM)
-    held[-1] = last_action[-1]
-    return held
+def stop_hold(last_action: np.ndarray, control_mode: ControlMode = ControlMode.RELATIVE) -> np.ndarray:
+    """The executor's ``hold: stop`` (lq_ros.core.control.hold_action): relative, the paper's zero arm delta with the
+    last gripper command; absolute, the last target. Also what the real-time sim applies at a tick whose command did
+    not arrive in time."""
+    return hold_action(control_mode, last_action)
 
 
 class TickHandlers(Protocol):

@@ -6,6 +6,7 @@ import abc
 
 import numpy as np
 
+from lq_ros.core.control import ControlMode
 from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
 from lq_ros.core.types import Observation, TaskInfo
 
@@ -40,6 +41,9 @@ class Policy(abc.ABC):
     #: Ticks of observations each ``infer`` conditions on: 1, the request's tick only; n > 1, also the n - 1 ticks
     #: before it, in ``Observation.history`` (captured by the simulator every tick, lq_ros.core.observation_history).
     observation_history_ticks: int = 1
+    #: How the arm values of its actions are meant (lq_ros.core.control): relative steps in [-1, 1] (LIBERO's, every
+    #: policy of the paper) or absolute EE poses (X-VLA's LIBERO checkpoints). The simulator switches its controller.
+    control_mode: ControlMode = ControlMode.RELATIVE
 
     @abc.abstractmethod
     def reset(self, task: TaskInfo, seed: int) -> None:

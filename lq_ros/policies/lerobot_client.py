@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lq_ros.core.control import ControlMode, parse_control_mode
 from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
 from lq_ros.core.observation_history import MAX_HISTORY_TICKS
 from lq_ros.core.suite_constants import ACTION_DIM
@@ -79,12 +80,9 @@ EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
 #: Words in an image key that say which camera it is (automatic mapping, case-insensitive).
 AGENTVIEW_WORDS = ("agentview", "front", "third_person")
 WRIST_WORDS = ("wrist", "eye_in_hand", "hand")
-#: Policy types whose LIBERO evaluation needs what the stack cannot do yet, and why.
-UNSUPPORTED_TYPES = {
-    "xvla": "X-VLA's LIBERO actions are absolute end-effector poses (lerobot-eval runs it with "
-    "--env.control_mode=absolute); the stack's executor runs relative (delta) control only (supported types: act, "
-    "diffusion, smolvla, pi0, pi05, ...)",
-}
+#: Policy types whose LIBERO actions are absolute EE poses (``lerobot-eval`` runs them with
+#: ``--env.control_mode=absolute``): their default ``control_mode``. Every other type defaults to relative.
+ABSOLUTE_TYPES = ("xvla",)
 #: Policy types whose LeRobot LIBERO env processor builds the state from the EE rotation matrix (``eef.mat``, sent as
 #: ``observation/eef_mat``) instead of the 8-D state, and the state shapes their configs may declare (X-VLA's
 #: processor declares 20; a checkpoint trained on LeRobot's LIBERO dataset declares its 8): the policy pads it.
@@ -256,8 +254,6 @@ def check_config(config_file: Path, where: str, rename: dict[str, str] | None = 
         raise ValueError(f"lerobot path {where!r}: config.json is not JSON ({exc})") from None
     if not isinstance(config, dict) or not isinstance(config.get("type"), str):
         raise ValueError(f"lerobot path {where!r}: config.json has no policy 'type'")
-    if config["type"] in UNSUPPORTED_TYPES:
-        raise ValueError(f"lerobot path {where!r}: {UNSUPPORTED_TYPES[config['type']]}")
     inputs, outputs = config.get("input_features"), config.get("output_features")
     if not isinstance(inputs, dict) or not isinstance(outputs, dict):
         raise ValueError(f"lerobot path {where!r}: config.json has no input_features/output_features")
@@ -303,8 +299,11 @@ class LeRobotPolicy(OpenPIPolicy):
     the task's language), ``trust_processors`` (load processor steps given by class path: runs their code),
     ``rename`` (image key -> LIBERO camera, see :func:`parse_rename`; default: automatic), ``n_action_steps``
     (actions per chunk instead of the checkpoint's), ``full_chunk`` (answer with the whole chunk of
-    ``predict_action_chunk``), ``clip`` (default true: actions clipped to [-1, 1] as robosuite's controller clips
-    what ``lerobot-eval`` passes to the env; false: an action outside is refused by the executor as out of range).
+    ``predict_action_chunk``), ``control_mode`` (``relative`` or ``absolute``, as ``lerobot-eval``'s
+    ``--env.control_mode``; default: absolute for X-VLA, relative for every other type), ``clip`` (default true:
+    relative actions clipped to [-1, 1] as robosuite's controller clips what ``lerobot-eval`` passes to the env; in
+    absolute control only the gripper, since robosuite neither scales nor clips absolute targets and ``lerobot-eval``
+    passes them as they are; false: an action outside the bounds is refused by the executor as out of range).
     """
 
     name = "lerobot"
@@ -328,6 +327,7 @@ class LeRobotPolicy(OpenPIPolicy):
         rename: object = None,
         n_action_steps: int | None = None,
         full_chunk: bool = False,
+        control_mode: str | None = None,
         clip: bool = True,
     ) -> None:
         super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt, clip=clip)
@@ -356,6 +356,8 @@ class LeRobotPolicy(OpenPIPolicy):
         self.cameras: dict[str, str] = self.config.pop("lq_cameras")
         #: Its LIBERO state is built from the EE rotation matrix: an observation without one is refused.
         self.needs_eef_rot_mat = self.config["type"] in EEF_MAT_TYPES
+        default_mode = ControlMode.ABSOLUTE if self.config["type"] in ABSOLUTE_TYPES else ControlMode.RELATIVE
+        self.control_mode = parse_control_mode(default_mode if control_mode is None else control_mode, "control_mode")
         #: The checkpoint's n_obs_steps: each request carries the n - 1 ticks before its own (Observation.history).
         self.observation_history_ticks = int(self.config.get("n_obs_steps", 1) or 1)
         self.env_cameras = sorted(set(self.cameras.values()))
@@ -404,6 +406,14 @@ class LeRobotPolicy(OpenPIPolicy):
             return super().infer(obs)
         finally:
             self._prefix = None
+
+    def clipped(self, chunk: np.ndarray) -> np.ndarray:
+        """Relative: the whole action in [-1, 1]; absolute: only the gripper (targets are metres and radians)."""
+        if not self.clip or self.control_mode is ControlMode.RELATIVE:
+            return super().clipped(chunk)
+        chunk = np.array(chunk, dtype=np.float64)
+        chunk[:, -1] = np.clip(chunk[:, -1], -1.0, 1.0)
+        return chunk
 
     def reset(self, task: TaskInfo, seed: int) -> None:
         super().reset(task, seed)
@@ -466,6 +476,7 @@ class LeRobotPolicy(OpenPIPolicy):
             "n_action_steps_override": self.n_action_steps,
             "n_obs_steps": self.observation_history_ticks,
             "full_chunk": self.full_chunk,
+            "control_mode": self.control_mode.value,
             "clip": self.clip,
             "cameras": self.cameras,
             "chunk_size": self.config.get("chunk_size", self.config.get("horizon")),

@@ -227,6 +227,10 @@ class OpenPIPolicy(Policy):
             raise PolicyError(f"openpi server response has no 'actions' (got {keys})")
         chunk = checked_chunk(response["actions"], "openpi server")
         self._record_timing(response, round_trip_ms, obs.tick)
+        return self.clipped(chunk)
+
+    def clipped(self, chunk: np.ndarray) -> np.ndarray:
+        """The chunk as this client passes it on: clipped to [-1, 1] with ``clip``, else as the server sent it."""
         return np.clip(chunk, -1.0, 1.0) if self.clip else chunk
 
     def observation_payload(self, obs: Observation) -> dict:

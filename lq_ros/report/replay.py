@@ -15,6 +15,7 @@ the episode's outcome, plus a timeline of command sources with a cursor.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import struct
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from rosbags.serde import SerdeError
 
+from lq_ros.core.control import ControlMode, ControlStart
 from lq_ros.core.cpu import SIMD_FLAGS
 from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import TRANSPORTS, cpu_info
@@ -88,6 +90,8 @@ class Recording:
     #: (kind, tick, reason)
     events: list[tuple[int, int, str]]
     damage: list[str] = field(default_factory=list)
+    #: The detail of the STARTED event (its control mode among others; {} without one).
+    started: dict = field(default_factory=dict)
 
     @property
     def ticks(self) -> int:
@@ -181,6 +185,12 @@ def _collect(rec: Recording, topic: str, msg) -> None:
         rec.arrivals.append(ChunkArrival(due, int(msg.request_id), int(msg.observation_tick)))
     else:
         rec.events.append((int(msg.kind), int(msg.tick), str(msg.reason)))
+        if msg.kind == m.EventKind.STARTED and not rec.started:
+            try:
+                detail = json.loads(msg.detail_json) if msg.detail_json else {}
+            except RecursionError:
+                raise ValueError("STARTED detail nested too deep") from None
+            rec.started = detail if isinstance(detail, dict) else {"unreadable": True}
 
 
 @dataclass(frozen=True)
@@ -194,6 +204,8 @@ class ReplaySetup:
     seed: int
     mode: str
     latency_s: float
+    #: How the recorded commands are meant (lq_ros.core.control): the simulator's controller is switched alike.
+    control_mode: ControlMode = ControlMode.RELATIVE
 
 
 def check_replayable(rec: Recording) -> ReplaySetup:
@@ -220,6 +232,10 @@ def check_replayable(rec: Recording) -> ReplaySetup:
         raise ReplayRefused(f"run configuration lacks the task, init state or seed ({exc!r})") from exc
     if rec.damage:
         raise ReplayRefused(f"bag damaged: {rec.damage[0]}")
+    try:
+        setup = dataclasses.replace(setup, control_mode=ControlStart.from_detail(rec.started).mode)
+    except ValueError as exc:
+        raise ReplayRefused(str(exc)) from None
     if not rec.commands:
         raise ReplayRefused(f"no commands on {m.COMMAND.name}")
     ticks = [c.tick for c in rec.commands]
@@ -392,7 +408,7 @@ def replay(
     partial = Path(video).with_name(Path(video).name + ".part") if video is not None else None
     try:
         try:
-            state = env.reset(cfg.init, cfg.seed)
+            state = env.reset(cfg.init, cfg.seed, control_mode=cfg.control_mode)
         except ValueError as exc:  # e.g. an init state this LIBERO package does not have
             raise ReplayRefused(f"cannot reset to the recorded init state: {exc}") from exc
         overlay = Overlay(rec, cfg, len(cameras) * size_px, size_px) if video is not None else None

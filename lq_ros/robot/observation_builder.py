@@ -48,14 +48,25 @@ class Requirements:
     cameras: tuple[str, ...] = ()
     objects: bool = False
     gripper: bool = True  # every LIBERO policy state includes the two finger positions
+    #: The policy's actions: relative steps (what the bridge turns into EE targets) or absolute EE poses.
+    control_mode: str = "relative"
 
     @classmethod
     def of(cls, policy) -> Requirements:
-        return cls(cameras=tuple(policy.camera_names), objects=needs_object_poses(policy))
+        return cls(
+            cameras=tuple(policy.camera_names),
+            objects=needs_object_poses(policy),
+            control_mode=str(getattr(policy, "control_mode", "relative")),
+        )
 
 
 def check_requirements(req: Requirements, robot: RobotConfig, policy_name: str = "the policy") -> None:
     """Raise :class:`MissingInput` (one line) when ``robot`` cannot feed a policy with ``req``."""
+    if req.control_mode != "relative":
+        raise MissingInput(
+            f"policy {policy_name!r} commands {req.control_mode} EE poses; robot runs take relative actions only "
+            "(the bridge turns each step into an EE target from the measured pose). Run it on the simulator"
+        )
     missing_cams = [c for c in req.cameras if c not in robot.cameras]
     if missing_cams:
         have = ", ".join(robot.cameras) or "none"

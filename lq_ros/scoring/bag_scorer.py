@@ -7,6 +7,7 @@ with a reason; the rest is still scored.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import struct
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from rosbags.serde import SerdeError
 
+from lq_ros.core.control import ControlStart
 from lq_ros.core.executor_protocol import Source, validate_chunk
 from lq_ros.core.latency import label_of
 from lq_ros.core.run_config import ACTION_BUDGET_HARD_STOP, BUDGET_COUNTS, VARIANT_FIELDS
@@ -85,6 +87,8 @@ class EpisodeData:
     energy: Series = field(default_factory=Series)
     events: list = field(default_factory=list)  # (kind, tick, t_ns, reason)
     chunks: list = field(default_factory=list)  # (injected s, real s, error, horizon, valid)
+    #: The episode's control mode and start command (its STARTED event; relative in bags older than the field).
+    control: ControlStart = field(default_factory=ControlStart)
     #: The chunks themselves (boundary.Chunk), for the chunk-boundary metrics.
     chunk_records: list = field(default_factory=list)
     chunk_timings: list[dict] = field(default_factory=list)  # the policy's own timing per chunk (ms)
@@ -181,7 +185,22 @@ def read_episode(
         if reader.damage:
             data.damaged = True
             data.warnings.append(f"{file}: {'; '.join(reader.damage)}; scores are partial (damaged data skipped)")
+    _validate_chunks(data)
     return data
+
+
+def _validate_chunks(data: EpisodeData) -> None:
+    """Decide which chunks were valid, with the bounds of the episode's control mode (known once every message is
+    read: the STARTED event and a chunk can share a stamp). Until then a chunk's last field holds its actions."""
+    mode = data.control.mode
+
+    def valid(actions) -> bool:
+        return actions is not None and validate_chunk(actions, control_mode=mode) is None
+
+    data.chunks = [(inj, real, error, horizon, valid(actions)) for inj, real, error, horizon, actions in data.chunks]
+    data.chunk_records = [
+        c if c.actions is None or valid(c.actions) else dataclasses.replace(c, actions=None) for c in data.chunk_records
+    ]
 
 
 #: Fixed-layout per-tick types: decoded in bulk, a file's worth per channel (decoding has a fixed cost per call).
@@ -300,6 +319,14 @@ def _collect_message(data: EpisodeData, role: str, msg) -> None:
     """One episode event, action chunk or task state; everything is decoded before anything is kept."""
     if role == "events":
         data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
+        if msg.kind == m.EventKind.STARTED and sum(e[0] == m.EventKind.STARTED for e in data.events) == 1:
+            try:
+                detail = json.loads(msg.detail_json) if msg.detail_json else {}
+            except RecursionError:
+                raise ValueError("the STARTED event's detail is nested too deep") from None
+            if not isinstance(detail, dict):
+                raise ValueError("the STARTED event's detail is not a JSON object")
+            data.control = ControlStart.from_detail(detail)
         return
     if role == "task":
         k, p = len(msg.object_names), len(msg.predicate_names)
@@ -318,7 +345,7 @@ def _collect_message(data: EpisodeData, role: str, msg) -> None:
         data.task_poses[m.stamp_ns(msg)] = values
         return
     actions = m.chunk_actions(msg)
-    valid = not msg.error and validate_chunk(actions) is None
+    kept = None if msg.error else actions  # validated once the control mode is known (_validate_chunks)
     if not 0 <= msg.injected_latency_s <= MAX_INJECTED_LATENCY_S:  # NaN, inf, negative, absurd: damage
         latency_s = msg.injected_latency_s
         raise ValueError(f"chunk {msg.request_id}: injected latency {latency_s} s is outside 0 to 1e6 s")
@@ -332,9 +359,9 @@ def _collect_message(data: EpisodeData, role: str, msg) -> None:
         raise ValueError(f"timing_json of chunk {msg.request_id} is nested too deep") from None
     if timing is not None and not isinstance(timing, dict):
         raise ValueError(f"timing_json of chunk {msg.request_id} is not a JSON object")
-    data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), valid))
+    data.chunks.append((msg.injected_latency_s, msg.inference_latency_s, msg.error, len(actions), kept))
     if n is not None:
-        data.chunk_records.append(boundary.Chunk(msg.request_id, msg.observation_tick, n, actions if valid else None))
+        data.chunk_records.append(boundary.Chunk(msg.request_id, msg.observation_tick, n, kept))
     if timing is not None:
         data.chunk_timings.append(timing)
 
@@ -727,8 +754,9 @@ def _score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> 
     missed, unknown = _missed_commands(data.metadata, cfg) if realtime else ([], None)
     try:
         found = boundary.analyse(
-            cfg["mode"], cfg.get("merge"), data.chunk_records, cmds, realtime=realtime, missed_ticks=missed
-        )
+            cfg["mode"], cfg.get("merge"), data.chunk_records, cmds, realtime=realtime, missed_ticks=missed,
+            control=data.control,
+        )  # fmt: skip
     except (boundary.ReplayMismatch, ValueError) as exc:
         return _null(row, keys, f"chunk replay failed: {exc}")
     ticks, jumps = found.switch_ticks, found.jumps

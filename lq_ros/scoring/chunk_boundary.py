@@ -90,9 +90,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lq_ros.core.control import ControlStart
 from lq_ros.core.executor_protocol import Source, stop_hold
 from lq_ros.core.merge import ENSEMBLE_COEFF, Merge, apply_chunk
-from lq_ros.core.suite_constants import DUMMY_ACTION
 from lq_ros.scoring import metrics
 
 #: Arm dimensions of the 7-D action (OSC position and rotation deltas); the gripper is the last.
@@ -194,14 +194,17 @@ def analyse(
     *,
     realtime: bool = False,
     missed_ticks: tuple[int, ...] | list[int] = (),
+    control: ControlStart | None = None,
 ) -> Boundaries:
     """The chunk boundaries of an episode (switches, overlap ends, executed steps, disagreement, jumps against
     the old plan) by replaying its chunks through the run's merge strategy; raises ReplayMismatch.
 
     ``realtime``: chunks may take effect after their due tick (found from the commands, see the module
     docstring); otherwise each takes effect exactly at its due tick. ``missed_ticks``: ticks the real-time sim
-    stepped with the stop hold because their command came too late (the executed series holds there).
+    stepped with the stop hold because their command came too late (the executed series holds there), the hold of
+    the episode's ``control`` mode (default: relative, held from LIBERO's dummy action).
     """
+    control = control or ControlStart()
     order = np.argsort(cmds.tick, kind="stable")
     ticks, actions = cmds.tick[order], cmds.action[order]
     sources, rids, idxs = cmds.source[order], cmds.request_id[order], cmds.chunk_index[order]
@@ -308,7 +311,8 @@ def analyse(
     if missed:
         executed, exec_sources, exec_rids = actions.copy(), list(source_list), list(rid_list)
         for t in missed:
-            executed[t] = stop_hold(executed[t - 1] if t else np.asarray(DUMMY_ACTION, dtype=np.float64))
+            last = executed[t - 1] if t else np.asarray(control.start_action, dtype=np.float64)
+            executed[t] = stop_hold(last, control.mode)
             exec_sources[t], exec_rids[t] = int(Source.HOLD_INFERENCE), 0
 
     def old_plan_for(rid: int, t: int) -> np.ndarray | None:

@@ -17,6 +17,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from lq_ros.core.control import ControlMode, ControlStart
 from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX
 from lq_ros.core.suite_constants import (
     CONTROL_DT_S,
@@ -302,6 +303,8 @@ class LiberoEnv:
         if self.camera_names:
             self._wrap_observables()
         self._obs: dict | None = None
+        #: The control mode of the current episode and its start command (set by :meth:`reset`).
+        self.control = ControlStart()
         self._tick = 0
         self._success = False
         from lq_ros.sim.task_state import TaskStateProbe
@@ -309,8 +312,14 @@ class LiberoEnv:
         self._task_probe = TaskStateProbe(self._env.env)  # object poses, contact, goal predicates per tick
 
     # -- stepping ---------------------------------------------------------------------------
-    def reset(self, init_index: int, seed: int, *, hard: bool | None = None) -> TickState:
+    def reset(
+        self, init_index: int, seed: int, *, hard: bool | None = None, control_mode: ControlMode = ControlMode.RELATIVE
+    ) -> TickState:
         """Reset to init state ``init_index`` and run the wait steps; returns the state at tick 0.
+
+        ``control_mode``: how the controller reads the episode's commands (lq_ros.core.control), switched after the
+        wait steps as LeRobot's ``LiberoEnv`` does; :attr:`control` then holds it with the command that keeps the
+        controller's goal (what the executor holds before the first chunk).
 
         The first reset of an env is hard (robosuite rebuilds the MjSim, ~0.3 s as its compiled model is reused:
         :func:`compiled_once`); later ones are soft by
@@ -344,9 +353,25 @@ class LiberoEnv:
             self._obs, _ = self._robosuite_step(np.asarray(DUMMY_ACTION))
         self._substeps.clear()  # the wait steps are not part of the episode
         self._energy[:] = 0.0
+        self.control = self._switch_control(ControlMode(control_mode))
         self._tick = 0
         self._success = False
         return self._tick_state()
+
+    def _switch_control(self, mode: ControlMode) -> ControlStart:
+        """Set the controller's mode (relative too: robosuite's reset makes a new controller, relative, but say it
+        rather than rely on it) and return the episode's ControlStart."""
+        controller = self._robot.controller
+        controller.use_delta = mode is ControlMode.RELATIVE
+        if mode is ControlMode.RELATIVE:
+            return ControlStart()
+        from robosuite.utils import transform_utils as T
+
+        # The goal the wait steps left, as the command robosuite's set_goal reads back into it (axis-angle ->
+        # quaternion -> matrix): position m, axis-angle rad, gripper open.
+        axis_angle = T.quat2axisangle(T.mat2quat(np.asarray(controller.goal_ori)))
+        start = np.concatenate([np.asarray(controller.goal_pos, dtype=np.float64), axis_angle, [DUMMY_ACTION[-1]]])
+        return ControlStart(mode, tuple(float(v) for v in start))
 
     @contextlib.contextmanager
     def _soft_reset_as_new(self):

@@ -40,7 +40,7 @@ def run_conventional(
 
     The reference the lockstep transports must equal at dt_sim = 0 (sync), and a fast evaluator.
     """
-    state = env.reset(init_index, seed)
+    state = env.reset(init_index, seed, control_mode=policy.control_mode)
     policy.reset(env.task.for_init(init_index), seed)
     budget = max_steps or env.task.step_budget
     positions, tick = [state.eef_pos], 0
@@ -106,16 +106,17 @@ def run_inprocess(
     writer.set_run_metadata(run_metadata(cfg, policy.params(), "inprocess", env_versions, camera_size_px))
     driver: TickDriver | None = None
     try:
-        state = env.reset(cfg.init, cfg.seed)
+        state = env.reset(cfg.init, cfg.seed, control_mode=policy.control_mode)
         policy.reset(env.task.for_init(cfg.init), cfg.seed)
         with_images = bool(policy.camera_names)
         # The ticks before each request, for a policy that conditions on them (as the sim node captures them).
         history = ObservationHistory(policy.observation_history_ticks)
         history.capture(lambda: env.observe(with_images=with_images))
-        rec.event(m.EventKind.STARTED, 0, "", m.started_detail(env.task, cfg.init, cfg.seed, env_versions))
+        rec.event(m.EventKind.STARTED, 0, "", m.started_detail(env.task, cfg.init, cfg.seed, env_versions, env.control))
         for topic, t_ns, data in m.tick_state_msgs(state, cfg.physics_rate):
             rec.put_at(topic, t_ns, data)
         core = ExecutorCore(cfg.executor_config())
+        core.start(env.control)
         chunks: dict[int, bytes] = {}
 
         def infer(req) -> bytes:

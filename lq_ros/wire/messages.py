@@ -15,6 +15,7 @@ from functools import cache
 
 import numpy as np
 
+from lq_ros.core.control import ControlStart
 from lq_ros.core.executor_protocol import Command, Request
 from lq_ros.core.merge import ActionPrefix
 from lq_ros.core.shipped import shipped_path
@@ -385,8 +386,13 @@ def event_msg(t_ns: int, kind: int, tick: int, reason: str = "", detail: dict | 
     return serialize(msg, EPISODE_EVENTS.msgtype)
 
 
-def started_detail(task: TaskInfo, init_index: int, seed: int, versions: dict) -> dict:
-    return {"task": task.for_init(init_index).to_dict(), "init_index": init_index, "seed": seed, "versions": versions}
+def started_detail(
+    task: TaskInfo, init_index: int, seed: int, versions: dict, control: ControlStart | None = None
+) -> dict:
+    """The STARTED event's detail: the episode's task, init state, seed, versions and its control mode with the
+    command held before the first chunk (lq_ros.core.control; the executor and the scorer read it from here)."""
+    detail = {"task": task.for_init(init_index).to_dict(), "init_index": init_index, "seed": seed, "versions": versions}
+    return detail | (control or ControlStart()).to_detail()
 
 
 def observation_from_msg(msg, images: dict[str, np.ndarray] | None = None) -> Observation:

@@ -236,7 +236,7 @@ def batch_arrays(batch: dict) -> dict[str, np.ndarray]:
     return {key: value.detach().cpu().numpy() for key, value in batch.items() if isinstance(value, torch.Tensor)}
 
 
-def libero_vector_env(suite: str, task: int, steps: int | None = None):
+def libero_vector_env(suite: str, task: int, steps: int | None = None, control_mode: str = "relative"):
     import lerobot.envs.libero as lerobot_libero
     from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
     from lerobot.envs.factory import make_env
@@ -245,7 +245,7 @@ def libero_vector_env(suite: str, task: int, steps: int | None = None):
     # LIBERO's own loader; LeRobot's loader torch.loads hf-libero's files. Same states, LIBERO's reader.
     lerobot_libero.get_task_init_states = lambda task_suite, i: task_suite.get_task_init_states(i)
 
-    config = LiberoEnvConfig(task=suite, task_ids=[task], episode_length=steps)
+    config = LiberoEnvConfig(task=suite, task_ids=[task], episode_length=steps, control_mode=control_mode)
     return make_env(config, n_envs=1)[suite][task]
 
 

@@ -283,24 +283,30 @@ def factory_pipeline_error(config, tokenizer: Path) -> str | None:
     return None
 
 
-def env_mat(suite: str, task: int, actions: list[list[float]], out: Path) -> dict:
+def env_mat(suite: str, task: int, actions: list[list[float]], out: Path, control_mode: str = "relative") -> dict:
     """The EE rotation matrix LeRobot's ``LiberoEnv`` reports (``_format_raw_obs``: the controller's ``ee_ori_mat``)
-    after its reset and after each action, through its vector env as ``lerobot-eval`` runs it."""
+    and the simulator state after its reset and after each action, through its vector env as ``lerobot-eval`` runs
+    it with ``--env.control_mode=control_mode``; also the controller's goal after the reset."""
     sys.path.insert(0, str(Path(__file__).parent))
     from lerobot_venv_script import libero_vector_env  # LeRobot's make_env, with that script's one init-state shim
 
-    env = libero_vector_env(suite, task)
+    env = libero_vector_env(suite, task, control_mode=control_mode)
     try:
         observation, _ = env.reset(seed=[0])
-        state = np.asarray(env.envs[0]._env.sim.get_state().flatten())
+        sim = env.envs[0]._env.sim
+        controller = env.envs[0]._env.robots[0].controller
+        goal = np.concatenate([controller.goal_pos, np.asarray(controller.goal_ori).ravel()])
+        states = [np.asarray(sim.get_state().flatten())]
         mats = [observation["robot_state"]["eef"]["mat"][0]]
         for action in actions:
             observation, *_ = env.step(np.asarray([action], dtype=np.float64))
             mats.append(observation["robot_state"]["eef"]["mat"][0])
+            states.append(np.asarray(sim.get_state().flatten()))
+        use_delta = bool(controller.use_delta)
     finally:
         env.close()
-    np.savez(out, mats=np.stack(mats), sim_state=state)
-    return {"ticks": len(mats), "dtype": str(mats[0].dtype)}
+    np.savez(out, mats=np.stack(mats), sim_state=states[0], sim_states=np.stack(states), goal=goal)
+    return {"ticks": len(mats), "dtype": str(mats[0].dtype), "use_delta": use_delta}
 
 
 def main(argv: list[str]) -> None:
@@ -314,7 +320,7 @@ def main(argv: list[str]) -> None:
     elif command == "parity":
         result = parity(args[0], Path(args[1]), Path(args[2]))
     elif command == "env-mat":
-        result = env_mat(args[0], int(args[1]), json.loads(args[2]), Path(args[3]))
+        result = env_mat(args[0], int(args[1]), json.loads(args[2]), Path(args[3]), *args[4:5])
     elif command == "answer":
         result = answer(args[0], Path(args[1]))
     else:

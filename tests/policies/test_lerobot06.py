@@ -101,8 +101,8 @@ def test_config_of_lerobot_06_is_one_line_in_the_044_venv(checkpoints):
 
 @pytest.mark.parametrize("kind", ["act", "smolvla"])
 def test_state_fields_the_stack_does_not_send_change_nothing(checkpoints, kind):
-    """LeRobot 0.6's LiberoEnv adds the EE rotation matrix and finger velocities to the raw state; the stack sends
-    neither. With them added, LeRobot 0.6's functions hand the policy the same tensors, bit for bit."""
+    """LeRobot's LiberoEnv (0.4.4's and 0.6's alike) puts the EE rotation matrix and finger velocities in the raw
+    state; with both added, LeRobot 0.6's functions hand ACT and SmolVLA the same tensors, bit for bit."""
     cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
     result = in_venv06("full-state", checkpoints[kind], *([json.dumps(cameras)] if kind == "smolvla" else []))
     assert result["equal"] and "observation.state" in result["keys"], result

@@ -3,9 +3,8 @@
 LeRobot's LIBERO env processor for X-VLA (``processor_xvla.LiberoProcessorStep``) builds a 20-D state from the EE
 position and the rotation matrix robosuite's controller holds (``eef.mat``: the matrix's first two columns, a zero,
 ten zeros), and X-VLA's actions are absolute EE poses (``lerobot-eval --env.control_mode=absolute``). The stack
-sends the matrix (``Observation.eef_rot_mat`` -> ``observation/eef_mat``, row-major); absolute control is not there
-yet, so the client refuses to run an X-VLA checkpoint naming that alone. The tests that need to look behind that
-refusal lift it (``UNSUPPORTED_TYPES``), as the executor's absolute mode will.
+sends the matrix (``Observation.eef_rot_mat`` -> ``observation/eef_mat``, row-major) and runs an X-VLA checkpoint in
+absolute control (lq_ros.core.control), which the simulator switches as LeRobot's ``LiberoEnv`` does.
 
 The tiny X-VLA is made with LeRobot 0.6's own classes (``lerobot_xvla_script.py``): its sizes are all in its config
 (a two-stage Florence-2 vision tower, a one-layer BART, a one-block action transformer), so no size shim is needed;
@@ -18,6 +17,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -25,10 +25,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lq_ros.core.control import ControlMode
+from lq_ros.core.run_config import RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, lerobot_client, make_policy
 from lq_ros.policies.lerobot_client import EEF_MAT_FIELD, check_config, check_processor_steps
-from tests.policies.test_lerobot06 import run_in_venv06
+from lq_ros.recording.bag_compare import bag_messages
+from lq_ros.run.episode import run_episode
+from lq_ros.wire import messages as m
+from tests.policies.test_lerobot06 import python06, run_in_venv06
 from tests.standin_servers import standin_observation
 
 HERE = Path(__file__).parent
@@ -51,12 +56,6 @@ def server_module():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-@pytest.fixture
-def absolute_control(monkeypatch):
-    """What the executor's absolute control will allow: the client's refusal of X-VLA lifted."""
-    monkeypatch.setattr(lerobot_client, "UNSUPPORTED_TYPES", {})
 
 
 def fake_checkpoint(folder: Path, kind: str = "xvla", state_dim: int = 20, action_dim: int = 20) -> Path:
@@ -83,15 +82,29 @@ def client(path: Path, **args):
 
 
 # -- the client (no LeRobot needed) --------------------------------------------------------------
-def test_xvla_is_refused_to_run_for_absolute_control_alone(tmp_path):
+def test_xvla_runs_in_absolute_control_by_default_as_lerobot_eval_runs_it(tmp_path):
+    xvla = client(fake_checkpoint(tmp_path / "xvla"))
+    assert xvla.control_mode is ControlMode.ABSOLUTE and xvla.params()["control_mode"] == "absolute"
+    smolvla = client(fake_checkpoint(tmp_path / "smolvla", "smolvla", state_dim=8, action_dim=7))
+    assert smolvla.control_mode is ControlMode.RELATIVE
+    assert client(tmp_path / "xvla", control_mode="relative").control_mode is ControlMode.RELATIVE  # --env.control_mode
     with pytest.raises(ValueError) as refused:
-        client(fake_checkpoint(tmp_path / "xvla"))
-    message = str(refused.value)
-    assert "absolute" in message and "--env.control_mode=absolute" in message and "\n" not in message
-    assert "matrix" not in message and "20-D" not in message and "8-D" not in message  # no longer missing
+        client(tmp_path / "xvla", control_mode="delta")
+    assert str(refused.value) == "control_mode 'delta' is not a control mode; valid: relative, absolute"
 
 
-def test_the_request_carries_the_rotation_matrix_row_major(tmp_path, absolute_control):
+def test_absolute_control_clips_the_gripper_only(tmp_path):
+    """robosuite neither scales nor clips absolute targets and lerobot-eval passes them as they are: a target above
+    1 m stays; the gripper is clipped as in relative control. ``clip=0`` passes everything on."""
+    chunk = np.array([[-0.2, 0.1, 1.17, -2.19, -2.19, 0.06, 1.3]])
+    xvla = client(fake_checkpoint(tmp_path / "xvla"))
+    assert xvla.clipped(chunk).tolist() == [[-0.2, 0.1, 1.17, -2.19, -2.19, 0.06, 1.0]]
+    assert client(tmp_path / "xvla", clip=0).clipped(chunk).tolist() == chunk.tolist()
+    relative = client(tmp_path / "xvla", control_mode="relative")
+    assert relative.clipped(chunk).tolist() == [[-0.2, 0.1, 1.0, -1.0, -1.0, 0.06, 1.0]]
+
+
+def test_the_request_carries_the_rotation_matrix_row_major(tmp_path):
     policy = client(fake_checkpoint(tmp_path / "xvla"))
     assert policy.needs_eef_rot_mat and policy.cameras == {
         "observation.images.image": "image", "observation.images.image2": "image2"
@@ -104,7 +117,7 @@ def test_the_request_carries_the_rotation_matrix_row_major(tmp_path, absolute_co
     assert request[EEF_MAT_FIELD].tolist() == [MATRIX[i, j] for i in range(3) for j in range(3)]
 
 
-def test_an_observation_without_the_matrix_is_one_line(tmp_path, absolute_control):
+def test_an_observation_without_the_matrix_is_one_line(tmp_path):
     """A robot reports no matrix: an X-VLA refuses it; a policy of the 8-D state does not need it."""
     obs = standin_observation(64)
     assert obs.eef_rot_mat is None
@@ -124,7 +137,7 @@ def test_an_observation_without_the_matrix_is_one_line(tmp_path, absolute_contro
     ("state", "action", "fits"),
     [(20, 20, True), (8, 20, True), (20, 10, True), (20, 7, False), (9, 20, False), (20, 9, False)],
 )
-def test_xvla_state_and_action_shapes(tmp_path, absolute_control, state, action, fits):
+def test_xvla_state_and_action_shapes(tmp_path, state, action, fits):
     """X-VLA's state is what its LIBERO processor builds (declared 20, or the dataset's 8), its action what LeRobot's
     LIBERO post-processor decodes to 7 (position, 6-D rotation, gripper: at least 10 values)."""
     path = fake_checkpoint(tmp_path / "xvla", state_dim=state, action_dim=action) / "config.json"
@@ -234,6 +247,47 @@ def test_the_observed_matrix_is_lerobots_liberoenv_matrix(tmp_path):
         assert np.array_equal(matrix, theirs), tick
 
 
+@pytest.mark.slow
+def test_absolute_control_is_lerobots_liberoenv_bit_for_bit(tmp_path):
+    """LeRobot's own ``LiberoEnv`` with ``control_mode="absolute"`` (0.4.4's venv, which has LIBERO; 0.6.1's env sets
+    ``use_delta`` the same way, after the wait steps): from the same reset, the same absolute targets leave the
+    simulator in the same state at every tick, bit for bit, and its controller goal after the wait steps is the one
+    our start command holds."""
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    python = lerobot_client.default_python()
+    if not python.is_file():
+        if os.environ.get("CI"):
+            pytest.fail(f"LeRobot's venv is missing ({python}): `make test` makes it with `make setup-lerobot`")
+        pytest.skip("LeRobot 0.4.4's venv is not installed (make setup-lerobot)")
+    ours = LiberoEnv(SUITE, TASK)
+    try:
+        ours.reset(0, seed=0, control_mode=ControlMode.ABSOLUTE)
+        start = np.array(ours.control.start_action)
+        offsets = ([0.0, 0.0, 0.02], [0.03, -0.02, 0.04], [0.05, 0.01, 0.0], [0.05, 0.01, 0.0])
+        actions = [np.r_[start[:3] + d, start[3:6], g] for d, g in zip(offsets, (-1.0, -1.0, 1.0, 1.0), strict=True)]
+        states = [np.asarray(ours._sim.get_state().flatten())]
+        for action in actions:
+            ours.step(action)
+            states.append(np.asarray(ours._sim.get_state().flatten()))
+    finally:
+        ours.close()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # keeps lq_ros's OPENBLAS_CORETYPE: same kernels
+    listed = json.dumps([a.tolist() for a in actions])
+    done = subprocess.run(
+        [str(python), str(SCRIPT), "env-mat", SUITE, str(TASK), listed, str(tmp_path / "lerobot.npz"), "absolute"],
+        capture_output=True, text=True, timeout=600, env=env, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1])["use_delta"] is False
+    lerobot = np.load(tmp_path / "lerobot.npz")
+    assert np.array_equal(lerobot["goal"][:3], start[:3])  # the goal the wait steps left, held by our start command
+    assert lerobot["sim_states"].shape == (len(actions) + 1, len(states[0]))
+    for tick, (mine, theirs) in enumerate(zip(states, lerobot["sim_states"], strict=True)):
+        assert np.array_equal(mine, theirs), tick
+    assert not np.array_equal(states[0], states[-1])  # the arm moved: the test compares moving values
+
+
 # -- LeRobot 0.6's own X-VLA ------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def request_files(tmp_path_factory) -> dict:
@@ -242,10 +296,7 @@ def request_files(tmp_path_factory) -> dict:
     from lq_ros.sim.libero_env import LiberoEnv
 
     folder = tmp_path_factory.mktemp("xvla_request")
-    checkpoint = fake_checkpoint(folder / "ckpt")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(lerobot_client, "UNSUPPORTED_TYPES", {})
-        policy = client(checkpoint)
+    policy = client(fake_checkpoint(folder / "ckpt"))
     env = LiberoEnv(
         SUITE, TASK, camera_names=policy.camera_names, camera_size=lerobot_client.LEROBOT_LIBERO_RENDER_SIZE
     )
@@ -280,7 +331,7 @@ def served(tmp_path_factory, request_files) -> dict:
 
 
 @pytest.mark.sim
-def test_tiny_xvla_is_laid_out_as_published(served, absolute_control):
+def test_tiny_xvla_is_laid_out_as_published(served):
     """Config and processors as ``lerobot/xvla-libero``'s (the config names the hub tokenizer, the processor the
     toy one's folder); LeRobot's own factory pre-processor for X-VLA cannot follow its X-VLA LIBERO env processor
     (both ImageNet-normalize), so the saved processors have no image steps, as the published checkpoint's."""
@@ -327,3 +378,27 @@ def test_tiny_xvla_answers_a_chunk_through_the_server(served):
     assert answer["metadata"]["lerobot_version"] == "0.6.1"
     refusal = answer["without_matrix"]
     assert refusal.startswith("ValueError: xvla:") and "rotation matrix (observation/eef_mat)" in refusal
+
+
+@pytest.mark.slow
+def test_tiny_xvla_runs_an_async_episode_in_absolute_control(served, tmp_path):
+    """Through the client, the server and the executor as a user runs it: the simulator switches to absolute control,
+    every chunk passes the executor's absolute bounds (none rejected), and the bag records the mode."""
+    wrapper = tmp_path / "python-offline"
+    wrapper.write_text(f'#!/bin/sh\nHF_HUB_OFFLINE=1 exec {shlex.quote(str(python06()))} "$@"\n')
+    wrapper.chmod(0o755)
+    cfg = RunConfig(
+        suite=SUITE, task=TASK, init=1, seed=3, mode="async", latency_s=0.1, policy="lerobot",
+        policy_args={"path": served["made"]["xvla"], "python": str(wrapper), "threads": 1, "full_chunk": 1},
+        max_steps=24,
+    )  # fmt: skip
+    outcome, row = run_episode(cfg, tmp_path / "bags", "inprocess")
+    assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
+    assert row["chunks_rejected"] == 0 and row["num_inferences"] >= 3
+    messages = bag_messages(outcome.bag_path)
+    events = [m.deserialize(raw, m.EPISODE_EVENTS.msgtype) for _, raw in messages[m.EPISODE_EVENTS.name]]
+    detail = json.loads(next(e.detail_json for e in events if e.kind == m.EventKind.STARTED))
+    assert detail["control_mode"] == "absolute"
+    commands = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in messages[m.COMMAND.name]]
+    assert np.array_equal(commands[0].action, detail["start_action"])  # the startup hold holds the start target
+    assert sum(c.source == 0 for c in commands) > 0  # ActionCommand.SOURCE_CHUNK

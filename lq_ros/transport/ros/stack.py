@@ -278,6 +278,7 @@ def node_parameters(
     robot: RobotConfig | None = None,
     requirements: Requirements | None = None,
     history_ticks: int = 1,
+    control_mode: str = "relative",
 ) -> dict:
     """The params file: the run's parameters once for every node (``/**``, with ``use_sim_time`` on in lockstep),
     then what only one node needs (derived from the policy: its cameras and render size, its parameters for the
@@ -292,7 +293,7 @@ def node_parameters(
     params = {"/**": {**cfg.ros_parameters(), "use_sim_time": cfg.clock == "lockstep"}}
     if robot is None:
         params[NODE_NAMES["sim"]] = {"cameras": list(cams), "camera_size_px": camera_size_px,
-                                     "history_ticks": history_ticks}  # fmt: skip
+                                     "history_ticks": history_ticks, "control_mode": control_mode}  # fmt: skip
         recorder.update(SIM_RECORDER_PARAMETERS)
     else:
         needs_objects = bool(requirements and requirements.objects)
@@ -364,7 +365,8 @@ class RosStack:
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
         self._replies = b""
         self._keys: dict[str, tuple] | None = None  # configure_keys of the configured nodes
-        self._probe: tuple | None = None  # (policy key, cameras, params, render size, requirements, history ticks)
+        # (policy key, cameras, params, render size, requirements, history ticks, control mode)
+        self._probe: tuple | None = None
         self.roles: tuple[str, ...] = stack_roles(robot=False)  # the managed nodes, in activation order
         self.episodes = 0
         self.restarts: dict[str, int] = {}
@@ -542,15 +544,15 @@ class RosStack:
             probe = make_policy(cfg.policy, **cfg.policy_args)
             self._probe = (
                 policy_key(cfg), probe.camera_names, probe.params(), probe.render_size, Requirements.of(probe),
-                probe.observation_history_ticks,
+                probe.observation_history_ticks, str(probe.control_mode),
             )  # fmt: skip
             probe.close()
-        _, cameras, policy_params, render_size, requirements, history_ticks = self._probe
+        _, cameras, policy_params, render_size, requirements, history_ticks, control_mode = self._probe
         robot = check_robot(cfg.robot, requirements, cfg.policy) if cfg.robot else None
         camera_size_px = cfg.camera_size_for(render_size)
         timeout_s = timeout_s or episode_timeout_s(cfg)
         params = node_parameters(
-            cfg, bag_path, cameras, camera_size_px, policy_params, robot, requirements, history_ticks
+            cfg, bag_path, cameras, camera_size_px, policy_params, robot, requirements, history_ticks, control_mode
         )
         for node, extra in (node_parameters_extra or {}).items():
             params[node] = {**params.get(node, {}), **extra}
