@@ -81,12 +81,6 @@ def test_inputs_beyond_libero_are_refused(tmp_path):
         check_config(config_file(tmp_path, ["empty_camera_0"]), "ckpt")
 
 
-def test_xvla_is_refused_with_its_reason(tmp_path):
-    with pytest.raises(ValueError, match="X-VLA's LIBERO actions are absolute end-effector poses") as refused:
-        check_config(config_file(tmp_path, ["image", "image2"], type="xvla"), "ckpt")
-    assert "\n" not in str(refused.value)
-
-
 @pytest.mark.parametrize("n_obs_steps", [None, 1, 2, 5, 10])
 def test_an_observation_history_of_up_to_ten_ticks_is_accepted(tmp_path, n_obs_steps):
     config = check_config(config_file(tmp_path, ["image", "image2"], type="diffusion", n_obs_steps=n_obs_steps), "d")
