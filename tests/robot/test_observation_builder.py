@@ -88,6 +88,19 @@ def test_refusals_name_what_is_missing() -> None:
     check_requirements(Requirements(objects=True), load_robot_config("standin"), "scripted")
 
 
+def test_a_policy_of_absolute_poses_is_refused_on_a_robot() -> None:
+    """The bridge turns relative steps into EE targets; an absolute-pose policy (X-VLA's) runs on the simulator only."""
+    from tests.policies.absolute_policy import AbsoluteCirclePolicy
+
+    requirements = Requirements.of(AbsoluteCirclePolicy())
+    assert requirements.control_mode == "absolute"
+    for robot in ("standin", ROBOTS_DIR / "franka_ros2.yaml"):
+        with pytest.raises(MissingInput) as err:
+            check_requirements(requirements, load_robot_config(robot), "absolute_circle")
+        assert str(err.value).startswith("policy 'absolute_circle' commands absolute EE poses; robot runs take")
+        assert "\n" not in str(err.value)
+
+
 def test_missing_task_objects() -> None:
     goal = [["on", "akita_black_bowl_1", "plate_1"]]
     assert missing_task_objects(goal, {"plate_1"}) == ["akita_black_bowl_1"]

@@ -456,6 +456,25 @@ def test_missed_commands_are_stop_holds_in_the_executed_series():
     np.testing.assert_array_equal(found.disagreements, plain.disagreements)
 
 
+def test_missed_commands_hold_the_last_target_in_absolute_control():
+    """In absolute control a missed command repeats the last one (the sim's hold): the switch that moves past a missed
+    tick steps from the last target, not from a zero that would mean the world origin."""
+    from lq_ros.core.control import ControlMode, ControlStart
+
+    cfg = ExecutorConfig(mode="async", latency_ticks=1, merge="weighted_average")
+    chunks, cmds = run_core(cfg, 30, ramp_chunk)
+    control = ControlStart(ControlMode.ABSOLUTE, (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0))
+    found = boundary.analyse(
+        "async", "weighted_average", chunks, cmds, realtime=True, missed_ticks=[9, 12], control=control
+    )
+    handovers = found.handover_ticks.tolist()
+    for t, held in ((10, 8), (13, 11)):  # ticks 9 and 12 executed the commands of ticks 8 and 11 again
+        expected = np.linalg.norm(cmds.action[t][:6] - cmds.action[held][:6])
+        assert found.executed_steps[handovers.index(t)] == pytest.approx(expected, rel=1e-12)
+        relative = np.linalg.norm(cmds.action[t][:6])  # what a relative stop hold (a zero) would give
+        assert abs(expected - relative) > 0.1
+
+
 def test_jerk_windows_in_time_select_the_tick_windows_on_a_20_hz_series():
     pos = np.random.default_rng(3).normal(size=(80, 3))
     switches = np.array([12, 30, 51])
