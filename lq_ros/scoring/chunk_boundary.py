@@ -62,9 +62,9 @@ differ from lockstep, and the replay follows what was recorded instead of the no
   flight).
 - *A late command* (the real-time sim did not have tick t's command when it stepped t) is a stop hold:
   the sim stepped zero arm delta and the last gripper command (absolute control: the last command), and counts the
-  tick as a missed command (the bag's metadata lists the ticks). The executor's replay is unchanged (it sent that command), but the
-  executed series that every metric above reads is what the sim applied: a missed tick is a hold there. A
-  switch whose first command was missed is the next tick that executed the new chunk; its old plan is the
+  tick as a missed command (the bag's metadata lists the ticks). The executor's replay is unchanged (it sent that
+  command), but the executed series that every metric above reads is what the sim applied: a missed tick is a
+  hold there. A switch whose first command was missed is the next tick that executed the new chunk; its old plan is the
   one for that tick. A robot applies every command when it arrives: no tick is missed.
 
 In lockstep every chunk takes effect at its due tick and nothing is missed; the replay checks both.

@@ -9,9 +9,9 @@ command when the tick starts, giving a due chunk until :data:`COMMAND_DEADLINE_S
 arrive (else the tick holds and the chunk applies at a later tick). The real-time sim steps tick m at
 :data:`SIM_STEP_OFFSET_S` into the tick with the command of tick m if it has arrived, else the stop hold
 (zero arm delta, last gripper command; absolute control: the last command), and counts that tick as a missed
-command; a robot applies each command when it arrives. The sim stamps state with the ticks' scheduled wall times (exactly 50 ms apart,
-so the scorer's 20 Hz series checks hold); how late each tick's work started and how long it took is
-measured and counted (:class:`OverrunCounter`). A node that falls behind catches up tick by tick (every
+command; a robot applies each command when it arrives. The sim stamps state with the ticks' scheduled wall times
+(exactly 50 ms apart, so the scorer's 20 Hz series checks hold); how late each tick's work started and how long
+it took is measured and counted (:class:`OverrunCounter`). A node that falls behind catches up tick by tick (every
 tick is still decided and stepped, late, and counted). Such runs are not bit-reproducible: their bags
 and rows say ``clock: realtime``.
 """
