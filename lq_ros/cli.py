@@ -199,8 +199,11 @@ def run(
     ] = LatencyRounding.exact,
     replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = _RUN.replan_steps,
     hold: Annotated[
-        Hold, typer.Option(help="sync: what the robot does while it waits: stop (zero arm delta) or repeat the last "
-            "(a policy of absolute poses always keeps its last target).")
+        Hold,
+        typer.Option(
+            help="sync: what the robot does while it waits: stop (zero arm delta) or repeat the last "
+            "(a policy of absolute poses always keeps its last target)."
+        ),
     ] = Hold(_RUN.hold),
     request_threshold: Annotated[
         int, typer.Option(help="async: request at this buffer size; -1: the merge strategy's default (replace: N).")
