@@ -115,9 +115,16 @@ def test_ros_lockstep_equals_inprocess(tmp_path, mode, latency):
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the sim is pinned only with two CPUs or more")
-def test_the_sim_steps_a_lockstep_episode_on_its_own_cpu_and_any_cpu_between_episodes(tmp_path):
+def test_the_sim_steps_a_lockstep_episode_on_its_own_cpu_and_any_cpu_between_episodes(tmp_path, monkeypatch):
     """RosStack pins the sim's main thread to its reserved CPU while a lockstep episode is active (LQ_SIM_CPU),
-    and lets it run anywhere again for the next configure; the episode is the in-process one, bit for bit."""
+    and lets it run anywhere again for the next configure; the episode is the in-process one, bit for bit.
+
+    The CPU locks are this test's own: stacks of other runs on the machine (a 2-worker sweep holds both CPUs of a
+    2-core machine) would leave none to reserve, and the stack then rightly runs unpinned (tests/transport/ros/
+    test_domain_lock.py checks the reservation itself)."""
+    from lq_ros.transport.ros import stack as stack_module
+
+    monkeypatch.setattr(stack_module, "CPU_LOCK_DIR", tmp_path / "cpus")
     cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
     seen: set[frozenset[int]] = set()
     with RosStack() as stack:
