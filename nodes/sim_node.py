@@ -35,8 +35,8 @@ import traceback
 import numpy as np
 from std_msgs.msg import String
 
-from lq_ros.core.control import ControlMode, parse_control_mode
-from lq_ros.core.executor_protocol import Source, stop_hold
+from lq_ros.core.control import ControlMode, hold_action, parse_control_mode
+from lq_ros.core.executor_protocol import Source
 from lq_ros.core.observation_history import ObservationHistory
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
@@ -254,7 +254,7 @@ class SimNode(EpisodeNode):
         if cmd is None:
             self.missed.append(tick)
             # (no chunk's: not an action tick)
-            action, source = stop_hold(self.last_action, self.env.control.mode), Source.HOLD_INFERENCE
+            action, source = hold_action(self.env.control.mode, self.last_action), Source.HOLD_INFERENCE
         else:
             action, source = np.asarray(cmd.action, dtype=np.float64), cmd.source
         self.last_action = action

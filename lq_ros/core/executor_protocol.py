@@ -438,13 +438,6 @@ class ExecutorCore:
         return hold_action(self._control.mode, self._last_action)
 
 
-def stop_hold(last_action: np.ndarray, control_mode: ControlMode = ControlMode.RELATIVE) -> np.ndarray:
-    """The executor's ``hold: stop`` (lq_ros.core.control.hold_action): relative, the paper's zero arm delta with the
-    last gripper command; absolute, the last target. Also what the real-time sim applies at a tick whose command did
-    not arrive in time."""
-    return hold_action(control_mode, last_action)
-
-
 class TickHandlers(Protocol):
     """What a transport does with each answer of the core (:class:`TickDriver`). A handler returns True to go on
     deciding, False to wait (for an observation, a chunk, the sim, the wall clock, or the end of the episode)."""

@@ -190,7 +190,9 @@ def _collect(rec: Recording, topic: str, msg) -> None:
                 detail = json.loads(msg.detail_json) if msg.detail_json else {}
             except RecursionError:
                 raise ValueError("STARTED detail nested too deep") from None
-            rec.started = detail if isinstance(detail, dict) else {"unreadable": True}
+            if not isinstance(detail, dict):
+                raise ValueError("STARTED detail is not a JSON object")
+            rec.started = detail
 
 
 @dataclass(frozen=True)

@@ -56,7 +56,7 @@ class Requirements:
         return cls(
             cameras=tuple(policy.camera_names),
             objects=needs_object_poses(policy),
-            control_mode=str(getattr(policy, "control_mode", "relative")),
+            control_mode=str(policy.control_mode),
         )
 
 

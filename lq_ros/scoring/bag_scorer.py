@@ -193,13 +193,12 @@ def _validate_chunks(data: EpisodeData) -> None:
     """Decide which chunks were valid, with the bounds of the episode's control mode (known once every message is
     read: the STARTED event and a chunk can share a stamp). Until then a chunk's last field holds its actions."""
     mode = data.control.mode
-
-    def valid(actions) -> bool:
-        return actions is not None and validate_chunk(actions, control_mode=mode) is None
-
-    data.chunks = [(inj, real, error, horizon, valid(actions)) for inj, real, error, horizon, actions in data.chunks]
+    # Each chunk's actions are one array, shared by its entry in data.chunks and its record: validated once.
+    valid = {id(a): validate_chunk(a, control_mode=mode) is None for *_, a in data.chunks if a is not None}
+    data.chunks = [(inj, real, error, horizon, valid.get(id(a), False)) for inj, real, error, horizon, a in data.chunks]
     data.chunk_records = [
-        c if c.actions is None or valid(c.actions) else dataclasses.replace(c, actions=None) for c in data.chunk_records
+        c if c.actions is None or valid[id(c.actions)] else dataclasses.replace(c, actions=None)
+        for c in data.chunk_records
     ]
 
 

@@ -90,8 +90,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lq_ros.core.control import ControlStart
-from lq_ros.core.executor_protocol import Source, stop_hold
+from lq_ros.core.control import ControlStart, hold_action
+from lq_ros.core.executor_protocol import Source
 from lq_ros.core.merge import ENSEMBLE_COEFF, Merge, apply_chunk
 from lq_ros.scoring import metrics
 
@@ -312,7 +312,7 @@ def analyse(
         executed, exec_sources, exec_rids = actions.copy(), list(source_list), list(rid_list)
         for t in missed:
             last = executed[t - 1] if t else np.asarray(control.start_action, dtype=np.float64)
-            executed[t] = stop_hold(last, control.mode)
+            executed[t] = hold_action(control.mode, last)
             exec_sources[t], exec_rids[t] = int(Source.HOLD_INFERENCE), 0
 
     def old_plan_for(rid: int, t: int) -> np.ndarray | None:

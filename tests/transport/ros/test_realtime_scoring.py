@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lq_ros.core.executor_protocol import Source, stop_hold
+from lq_ros.core.control import ControlMode, hold_action
+from lq_ros.core.executor_protocol import Source
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.suite_constants import DUMMY_ACTION
 from lq_ros.recording.bag_compare import bag_messages
@@ -46,7 +47,7 @@ def executed_commands(bag: Path, missed: list[int]) -> list[tuple[np.ndarray, in
     out, last = [], np.asarray(DUMMY_ACTION, dtype=np.float64)
     for c in cmds:
         if c.tick in missed:
-            last = stop_hold(last)
+            last = hold_action(ControlMode.RELATIVE, last)
             out.append((last, int(Source.HOLD_INFERENCE), 0))
         else:
             last = np.asarray(c.action, dtype=np.float64)
