@@ -20,13 +20,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+from toy_tokenizer import TOY_WORDS, word_level_tokenizer  # noqa: E402 - beside this script
 
 #: The hub tokenizer LeRobot's pi0 and pi0.5 processors name; the test's toy tokenizer stands in for it.
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"
-#: Words of the toy tokenizer: the test prompts, pi0.5's prompt frame and its 256 state bins (else <unk>).
-TOY_WORDS = (
-    "pick up the black bowl and place it on plate between cabinet stove put push open close turn Task State Action"
-)
+#: Words of the toy tokenizer beside the test prompts': pi0.5's prompt frame (its 256 state bins are added as numbers).
+PI_WORDS = ("Task", "State", "Action")
 PUNCTUATION = ":,;."
 IMAGE_SHAPE = (3, 256, 256)
 CHUNK, STEPS = 10, 5
@@ -42,19 +41,12 @@ def shim_loaded() -> None:
 
 
 def toy_tokenizer(folder: Path) -> Path:
-    """A word-level tokenizer saved as a transformers tokenizer folder (pad, unk, bos, eos, words, 0..255)."""
-    from tokenizers import Tokenizer, models, pre_tokenizers
-    from transformers import PreTrainedTokenizerFast
-
-    tokens = ["<pad>", "<unk>", "<bos>", "<eos>", *TOY_WORDS.split(), *PUNCTUATION, *map(str, range(256))]
-    vocab = {token: i for i, token in enumerate(dict.fromkeys(tokens))}
-    if len(vocab) > sys.modules["sitecustomize"].TINY_VOCAB:
-        raise SystemExit(f"the toy tokenizer has {len(vocab)} tokens: more than the shim's TINY_VOCAB")
-    word_level = Tokenizer(models.WordLevel(vocab=vocab, unk_token="<unk>"))
-    word_level.pre_tokenizer = pre_tokenizers.Whitespace()
-    tokenizer = PreTrainedTokenizerFast(
-        tokenizer_object=word_level, pad_token="<pad>", unk_token="<unk>", bos_token="<bos>", eos_token="<eos>"
-    )
+    """The toy tokenizer saved as a transformers tokenizer folder (pad, unk, bos, eos, words, 0..255)."""
+    tokens = ["<pad>", "<unk>", "<bos>", "<eos>", *TOY_WORDS.split(), *PI_WORDS, *PUNCTUATION, *map(str, range(256))]
+    tokenizer, _ = word_level_tokenizer(
+        tokens, max_vocab=sys.modules["sitecustomize"].TINY_VOCAB,
+        pad_token="<pad>", unk_token="<unk>", bos_token="<bos>", eos_token="<eos>",
+    )  # fmt: skip
     tokenizer.save_pretrained(folder)
     return folder
 

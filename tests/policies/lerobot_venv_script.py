@@ -33,6 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+from toy_tokenizer import TOY_WORDS, word_level_tokenizer  # noqa: E402 - beside this script
 
 IMAGE_SHAPE = (3, 256, 256)
 
@@ -129,8 +130,6 @@ def make(out: Path) -> dict:
     return made
 
 
-#: Words of the toy tokenizer: enough for the test prompts (anything else is <unk>).
-TOY_WORDS = "pick up the black bowl and place it on plate between cabinet stove put push open close turn"
 #: The special tokens SmolVLM's processor and LeRobot's SmolVLA look up by name.
 SMOLVLM_SPECIAL = {
     "fake_image_token": "<fake_token_around_image>",
@@ -144,18 +143,14 @@ FLOW_IMAGE_SIDE = 64
 def tiny_smolvlm(folder: Path) -> Path:
     """A SmolVLM backbone folder LeRobot's SmolVLA builds from (``vlm_model_name``, ``load_vlm_weights=False``):
     a two-layer config and a word-level toy tokenizer, with the processor SmolVLA reads its image tokens from."""
-    from tokenizers import Tokenizer, models, pre_tokenizers
-    from transformers import PreTrainedTokenizerFast, SmolVLMConfig, SmolVLMImageProcessor, SmolVLMProcessor
+    from transformers import SmolVLMConfig, SmolVLMImageProcessor, SmolVLMProcessor
     from transformers.models.smolvlm.video_processing_smolvlm import SmolVLMVideoProcessor
 
     tokens = ["<pad>", "<unk>", "<|im_start|>", *SMOLVLM_SPECIAL.values(), "<video>", *TOY_WORDS.split()]
     tokens += [f"<row_{r}_col_{c}>" for r in range(1, 7) for c in range(1, 7)]
-    vocab = {token: i for i, token in enumerate(dict.fromkeys(tokens))}
-    word_level = Tokenizer(models.WordLevel(vocab=vocab, unk_token="<unk>"))
-    word_level.pre_tokenizer = pre_tokenizers.Whitespace()
-    tokenizer = PreTrainedTokenizerFast(
-        tokenizer_object=word_level, pad_token="<pad>", unk_token="<unk>", bos_token="<|im_start|>",
-        eos_token="<end_of_utterance>", extra_special_tokens=SMOLVLM_SPECIAL,
+    tokenizer, vocab = word_level_tokenizer(
+        tokens, pad_token="<pad>", unk_token="<unk>", bos_token="<|im_start|>", eos_token="<end_of_utterance>",
+        extra_special_tokens=SMOLVLM_SPECIAL,
     )  # fmt: skip
     text = {"model_type": "llama", "vocab_size": len(vocab), "hidden_size": 64, "intermediate_size": 128,
             "num_hidden_layers": 2, "num_attention_heads": 4, "num_key_value_heads": 2, "head_dim": 16,

@@ -31,10 +31,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+from toy_tokenizer import TOY_WORDS, word_level_tokenizer  # noqa: E402 - beside this script
 
 #: The hub tokenizer LeRobot's X-VLA config names; the test's toy tokenizer stands in for it.
 BART_TOKENIZER = "facebook/bart-large"
-TOY_WORDS = "pick up the black bowl and place it on plate between cabinet stove put push open close turn"
 IMAGE_SHAPE = (3, 256, 256)
 #: X-VLA resizes (with padding) every camera to this before its vision tower; the published one uses 224.
 TINY_IMAGE_SIDE = 32
@@ -54,19 +54,11 @@ TINY_FLORENCE = {
 
 
 def toy_tokenizer(folder: Path) -> Path:
-    """A word-level tokenizer saved as a transformers tokenizer folder (BART's special tokens, the test words)."""
-    from tokenizers import Tokenizer, models, pre_tokenizers
-    from transformers import PreTrainedTokenizerFast
-
-    tokens = ["<s>", "<pad>", "</s>", "<unk>", *TOY_WORDS.split()]
-    vocab = {token: i for i, token in enumerate(dict.fromkeys(tokens))}
-    if len(vocab) > TINY_FLORENCE["text_config"]["vocab_size"]:
-        raise SystemExit(f"the toy tokenizer has {len(vocab)} tokens: more than the tiny vocabulary")
-    word_level = Tokenizer(models.WordLevel(vocab=vocab, unk_token="<unk>"))
-    word_level.pre_tokenizer = pre_tokenizers.Whitespace()
-    tokenizer = PreTrainedTokenizerFast(
-        tokenizer_object=word_level, pad_token="<pad>", unk_token="<unk>", bos_token="<s>", eos_token="</s>"
-    )
+    """The toy tokenizer saved as a transformers tokenizer folder (BART's special tokens, the test words)."""
+    tokenizer, _ = word_level_tokenizer(
+        ["<s>", "<pad>", "</s>", "<unk>", *TOY_WORDS.split()], max_vocab=TINY_FLORENCE["text_config"]["vocab_size"],
+        pad_token="<pad>", unk_token="<unk>", bos_token="<s>", eos_token="</s>",
+    )  # fmt: skip
     tokenizer.save_pretrained(folder)
     return folder
 

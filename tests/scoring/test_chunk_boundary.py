@@ -9,6 +9,17 @@ from lq_ros.core.merge import ENSEMBLE_COEFF
 from lq_ros.scoring import chunk_boundary as boundary
 
 
+def recorded_commands(cmds: list[Command]) -> boundary.Commands:
+    """The executor's commands as the scorer reads them from a bag."""
+    return boundary.Commands(
+        tick=np.array([c.tick for c in cmds]),
+        action=np.array([c.action for c in cmds]),
+        source=np.array([int(c.source) for c in cmds]),
+        request_id=np.array([c.request_id for c in cmds]),
+        chunk_index=np.array([c.chunk_index for c in cmds]),
+    )
+
+
 def run_core(cfg: ExecutorConfig, ticks: int, make_chunk):
     """Drive the core like a transport; return the recorded chunks and commands as a bag would hold them."""
     core, pending, chunks, cmds = ExecutorCore(cfg), {}, [], []
@@ -25,14 +36,7 @@ def run_core(cfg: ExecutorConfig, ticks: int, make_chunk):
                 assert isinstance(step, Command)
                 cmds.append(step)
                 break
-    commands = boundary.Commands(
-        tick=np.array([c.tick for c in cmds]),
-        action=np.array([c.action for c in cmds]),
-        source=np.array([int(c.source) for c in cmds]),
-        request_id=np.array([c.request_id for c in cmds]),
-        chunk_index=np.array([c.chunk_index for c in cmds]),
-    )
-    return chunks, commands
+    return chunks, recorded_commands(cmds)
 
 
 def ramp_chunk(req, horizon=8, offset=0.1):
@@ -345,14 +349,7 @@ def run_core_realtime(cfg: ExecutorConfig, ticks: int, make_chunk, late_by):
                 assert isinstance(step, Command), step
                 cmds.append(step)
                 break
-    commands = boundary.Commands(
-        tick=np.array([c.tick for c in cmds]),
-        action=np.array([c.action for c in cmds]),
-        source=np.array([int(c.source) for c in cmds]),
-        request_id=np.array([c.request_id for c in cmds]),
-        chunk_index=np.array([c.chunk_index for c in cmds]),
-    )
-    return chunks, commands, applied
+    return chunks, recorded_commands(cmds), applied
 
 
 def late_pattern(request_id: int) -> int:
