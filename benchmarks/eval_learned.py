@@ -1,4 +1,5 @@
-"""Zero-latency success (per task, Wilson 95% intervals) and inference latency of the learned chunk policies.
+"""Zero-latency success (per task, Wilson 95% intervals; totals also task-clustered) and inference latency of the
+learned chunk policies.
 
 Runs the conventional LIBERO loop (``run_conventional``: infer, execute ``replan_steps`` actions,
 repeat; Δt_sim = 0, no ROS) for each policy on each task of each suite over init states
@@ -13,8 +14,8 @@ Usage: python benchmarks/eval_learned.py [--suite libero_spatial --suite libero_
        python benchmarks/eval_learned.py --merge a.json b.json --by-weights   (columns per checkpoint, see below)
 
 Latency study (``--latency``): success at injected latencies Δt_sim (lockstep, in process, merge replace, the
-paper's step budget: holds count) in the protocols of ``--mode``, per policy, with Wilson 95% intervals. A
-delay-aware policy (``variant=delay``) is told the protocol it runs under (``mode=``), nothing else (it
+paper's step budget: holds count) in the protocols of ``--mode``, per policy, with Wilson and task-clustered 95%
+intervals. A delay-aware policy (``variant=delay``) is told the protocol it runs under (``mode=``), nothing else (it
 estimates d from its own requests, see lq_ros/policies/learned/delay.py). Each policy executes its weights'
 ``replan_steps`` per chunk in sync; async runs the whole buffer (request threshold N).
 
@@ -50,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from lq_ros.core.run_config import BUDGET_COUNTS, versions
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies import Policy, make_policy
-from lq_ros.scoring.intervals import wilson_interval
+from lq_ros.scoring.intervals import clustered_success_ci, wilson_interval
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.training.collect import parse_spec as parse_policy_spec
 from lq_ros.transport.inprocess import run_conventional
@@ -204,8 +205,8 @@ def latency_report(rows: list[dict]) -> dict:
         tasks, inits = sorted({r["task"] for r in mine}), sorted({r["init"] for r in mine})
         print(f"\n{suite}: latency study, seed={SEED}, tasks {tasks[0]}-{tasks[-1]}, inits {inits[0]}-{inits[-1]},"
               f" lockstep in process, merge replace, {BUDGET_TITLES[budget]}")  # fmt: skip
-        print("success k/n = % [Wilson 95% interval, %]")
-        print(f"{'policy':22s} {'mode':6s}" + "".join(f"{f'{lat:g} s':>24s}" for lat in lats))
+        print("success k/n = % [Wilson 95% interval | task-clustered 95% interval, %]")
+        print(f"{'policy':22s} {'mode':6s}" + "".join(f"{f'{lat:g} s':>32s}" for lat in lats))
         for spec in dict.fromkeys(r["policy"] for r in mine):
             key = spec if budget == "all" else f"{spec} budget={budget}"
             for mode in ("sync", "async"):
@@ -217,8 +218,9 @@ def latency_report(rows: list[dict]) -> dict:
                     cell_rows = [r for r in sel if r["latency_s"] == lat]
                     ok, n = sum(r["status"] == "success" for r in cell_rows), len(cell_rows)
                     lo, hi = wilson_interval(ok, n) if n else (0.0, 0.0)
-                    text = f"{ok}/{n} = {100 * ok / n:.0f}% [{100 * lo:.0f}-{100 * hi:.0f}]" if n else "-"
-                    line += f"{text:>24s}"
+                    clustered = interval_text(*task_clustered(cell_rows)) if n else ""
+                    text = f"{ok}/{n} = {100 * ok / n:.0f}% [{100 * lo:.0f}-{100 * hi:.0f} | {clustered}]" if n else "-"
+                    line += f"{text:>32s}"
                     summary.setdefault(suite, {}).setdefault(key, {}).setdefault(mode, {})[f"{lat:g}"] = [ok, n]
                 print(line)
         errors = sum(r["status"].startswith("error") for r in mine)
@@ -300,6 +302,20 @@ def isolated_latency_ms(spec: str, suite: str, repeats: int = 200) -> dict:
     return {"mean": float(t.mean()), "p50": float(np.median(t)), "p95": float(np.percentile(t, 95))}
 
 
+def task_clustered(rows: list[dict]) -> tuple[float, float]:
+    """The success rate's task-clustered 95% interval over ``rows`` (whole tasks resampled, the Wilson interval's
+    hull: lq_ros.scoring.intervals.clustered_success_ci); NaN below its minimum number of tasks."""
+    by_task: dict[int, list[float]] = {}
+    for r in rows:
+        by_task.setdefault(r["task"], []).append(float(r["status"] == "success"))
+    return clustered_success_ci(list(by_task.values()))
+
+
+def interval_text(low: float, high: float) -> str:
+    """``lo-hi`` in percent, ``n/a`` for an interval that is not defined (too few tasks)."""
+    return "n/a" if np.isnan(low) else f"{100 * low:.0f}-{100 * high:.0f}"
+
+
 def cell(ok: int, n: int) -> str:
     """``k/n [lo-hi]`` with the Wilson 95% interval in percent."""
     if n == 0:
@@ -338,6 +354,12 @@ def report(
             sel = [r for r in mine if r["policy"] == spec]
             line += f"{cell(sum(r['status'] == 'success' for r in sel), len(sel)):>{width}s}"
         print(line)
+        # The total's Wilson interval treats the episodes as independent; success clusters by task.
+        line = "tasks  "
+        for spec in specs:
+            sel = [r for r in mine if r["policy"] == spec]
+            line += f"{f'[{interval_text(*task_clustered(sel))}]' if sel else '-':>{width}s}"
+        print(line + f"   <- the total's task-clustered 95% interval, % ({len(tasks)} tasks)")
         summary[suite] = {}
         for spec in specs:
             sel = [r for r in mine if r["policy"] == spec]
@@ -355,6 +377,7 @@ def report(
                 "success": n_ok,
                 "episodes": len(sel),
                 "wilson95": [lo, hi],
+                "task_clustered95": list(task_clustered(sel)),
                 "errors": n_err,
                 "per_task": {
                     t: [sum(r["status"] == "success" for r in sel if r["task"] == t), sum(r["task"] == t for r in sel)]
