@@ -356,6 +356,22 @@ class ExecutorCore:
             self._merge(arr, req)
         return None
 
+    def observed_at(self, request_id: int, tick: int) -> None:
+        """Real time only: the policy was given the observation of ``tick``, later than the one requested (the sim had
+        passed the requested tick when the request reached it). The chunk's rows are planned from that tick, so its
+        stale rows are counted from there. Call before :meth:`deliver`; ValueError for a tick before the request's
+        or after the chunk's due tick.
+        """
+        req = self._outstanding
+        if req is None or req.request_id != request_id:
+            raise RuntimeError(f"observation of request {request_id} reported, outstanding is {req}")
+        if not req.tick <= tick <= req.due_tick:
+            raise ValueError(
+                f"request {request_id}: observation tick {tick} outside its request tick {req.tick} .. due tick "
+                f"{req.due_tick}"
+            )
+        self._outstanding = Request(req.request_id, tick, req.due_tick, req.latency_s, req.prefix)
+
     def late(self, tick: int) -> None:
         """Real time only: the chunk due at ``tick`` has not arrived in time; it takes effect at a later tick.
 

@@ -303,3 +303,36 @@ def test_latency_must_be_whole_ticks():
     with pytest.raises(ValueError, match=r"nearest valid: 0.05 s or 0.1 s"):
         latency_ticks(0.075)
     assert round_latency(0.11) == 0.1 and round_latency(0.14) == 0.15
+
+
+def test_a_later_observation_aligns_the_chunk_to_the_tick_it_was_planned_from():
+    """Real time, an overloaded sim: request 2 asks for tick 4's observation and gets tick 5's. Its chunk's row i is
+    meant for tick 5 + i, so at its due tick 8 (N = 4 from the request) 3 rows are stale, not 4: tick 8 runs the row
+    meant for 8."""
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=4, request_threshold=4))
+    ran, requests = {}, []
+    for t in range(10):
+        step = core.advance(t)
+        while not isinstance(step, Command):
+            if isinstance(step, ObservationNeeded):
+                requests.append(step.request)
+            else:
+                request = step.request
+                observed = request.tick + (1 if request.request_id == 2 else 0)
+                if observed != request.tick:
+                    core.observed_at(request.request_id, observed)
+                core.deliver(request.request_id, chunk_for(observed))
+            step = core.advance(t)
+        ran[t] = round(step.action[0] * 1000)
+    assert [(r.request_id, r.tick, r.due_tick) for r in requests][:2] == [(1, 0, 4), (2, 4, 8)]
+    assert ran[8] == 8 and ran[9] == 9  # counted from the request's tick 4 they would run the rows meant for 9, 10
+
+
+def test_an_observation_outside_its_request_is_refused():
+    core = ExecutorCore(ExecutorConfig(mode="async", latency_ticks=4))
+    step = core.advance(0)
+    assert isinstance(step, ObservationNeeded)
+    with pytest.raises(ValueError, match="observation tick 5 outside its request tick 0 .. due tick 4"):
+        core.observed_at(1, 5)
+    with pytest.raises(RuntimeError):
+        core.observed_at(2, 1)
