@@ -250,13 +250,20 @@ def test_same_stack_under_franka_ros2_topic_names(tmp_path):
     bag, error = launch_nodes(cfg, tmp_path / "out")
     assert error == ""
     row = json.loads((bag / "score.json").read_text())
-    assert row["status"] == "failure" and row["jerk_mean"] is not None, row.get("null_reasons")
-    assert row["energy_rate_hz"] == 500.0  # the YAML's 1 kHz joint states, capped at the stand-in's 500 Hz physics
-    assert row["trajectory_rate_hz"] == 100.0
-    meta = (bag / "metadata.yaml").read_text()
-    for topic in ("/franka_robot_state_broadcaster/current_pose", "/cartesian_impedance_example_controller/"
-                  "equilibrium_pose", "/fr3_gripper/joint_states"):  # fmt: skip
-        assert topic in meta
+    assert row["status"] == "failure", row
+    ee_topic = "/franka_robot_state_broadcaster/current_pose"
+    if row["jerk_mean"] is None:
+        # Only a machine busier than its cores may slow the stand-in's physics below real time (its EE samples then
+        # fall outside the episode); even then the scorer must have read the pose from franka_ros2's topic.
+        why = row["null_reasons"]["jerk_mean"]
+        assert os.getloadavg()[0] > len(os.sched_getaffinity(0)) and f"EE samples on {ee_topic}" in why, why
+    else:
+        assert row["energy_rate_hz"] == 500.0  # the YAML's 1 kHz joint states, capped at the stand-in's 500 Hz physics
+        assert row["trajectory_rate_hz"] == 100.0
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    counts = {t["topic_metadata"]["name"]: t["message_count"] for t in meta["topics_with_message_count"]}
+    for topic in (ee_topic, "/cartesian_impedance_example_controller/equilibrium_pose", "/fr3_gripper/joint_states"):
+        assert counts.get(topic, 0) > 0, counts
 
 
 def test_one_stack_runs_both_clocks_and_the_robot(tmp_path):
