@@ -355,10 +355,10 @@ def report(
             line += f"{cell(sum(r['status'] == 'success' for r in sel), len(sel)):>{width}s}"
         print(line)
         # The total's Wilson interval treats the episodes as independent; success clusters by task.
+        clustered = {spec: task_clustered(sel) for spec in specs if (sel := [r for r in mine if r["policy"] == spec])}
         line = "tasks  "
         for spec in specs:
-            sel = [r for r in mine if r["policy"] == spec]
-            line += f"{f'[{interval_text(*task_clustered(sel))}]' if sel else '-':>{width}s}"
+            line += f"{f'[{interval_text(*clustered[spec])}]' if spec in clustered else '-':>{width}s}"
         print(line + f"   <- the total's task-clustered 95% interval, % ({len(tasks)} tasks)")
         summary[suite] = {}
         for spec in specs:
@@ -377,7 +377,7 @@ def report(
                 "success": n_ok,
                 "episodes": len(sel),
                 "wilson95": [lo, hi],
-                "task_clustered95": list(task_clustered(sel)),
+                "task_clustered95": list(clustered[spec]),
                 "errors": n_err,
                 "per_task": {
                     t: [sum(r["status"] == "success" for r in sel if r["task"] == t), sum(r["task"] == t for r in sel)]
