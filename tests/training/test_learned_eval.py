@@ -79,7 +79,7 @@ def test_latency_table_cells_and_merge_refusals(ev, capsys):
     summary = ev.latency_report(ev.check_latency_rows(rows))["libero_object"]
     assert summary["flow"]["async"]["0.1"] == [3, 4] and summary["flow"]["sync"]["0"] == [0, 1]
     out = capsys.readouterr().out
-    assert "3/4 = 75% [30-95]" in out and "errors: 1" in out and "flow:variant=delay" in out
+    assert "3/4 = 75% [30-95 | n/a]" in out and "errors: 1" in out and "flow:variant=delay" in out
     assert f"flow: w.json (md5 {'a' * 32})" in out
     with pytest.raises(SystemExit, match="twice"):
         ev.check_latency_rows(rows + rows[:1])
