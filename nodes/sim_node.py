@@ -40,8 +40,7 @@ from lq_ros.core.executor_protocol import Source
 from lq_ros.core.observation_history import ObservationHistory
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
-from lq_ros.core.types import TickState
-from lq_ros.sim.libero_env import EnvAhead, LiberoEnv, import_simulator_in_background
+from lq_ros.sim.libero_env import LiberoEnv, import_simulator_in_background
 from lq_ros.transport.ros.endpoints import publish_observation
 from lq_ros.transport.ros.rclpy_helpers import (
     START_CHECK_PERIOD_S,
@@ -83,46 +82,24 @@ class SimNode(EpisodeNode):
         self.declare_parameter("min_event_subscribers", 4)
         # Real time: extra wall seconds per step, standing in for a slower machine (tests of the overrun counting).
         self.declare_parameter("step_delay_s", 0.0)
-        # Build the env of the parameters this node starts with while the stack's other nodes start (the launcher
-        # writes the first episode's parameters before it starts the nodes); configure takes it if they still hold.
-        self.declare_parameter("build_env_at_start", False)
         self.env: LiberoEnv | None = None
-        self.env_ahead: EnvAhead | None = None
-        if self.get_parameter("build_env_at_start").value and not self.cameras():
-            key = self.env_key(self.cfg)
-            self.env_ahead = EnvAhead(key, lambda: self.build_env(key))
         self.finished = False
         self.started = False
         self.versions = versions()
 
     # -- lifecycle ---------------------------------------------------------------------------
     def configure(self, cfg: RunConfig) -> None:
+        cameras = tuple(c for c in self.get_parameter("cameras").value if c)
         self.physics_rate = cfg.physics_rate
-        key = self.env_key(cfg)
-        built = self.env_ahead.take(key) if self.env_ahead is not None else None
-        self.env_ahead = None
-        self.get_logger().info(
-            f"{'built at start' if built else 'creating'}: {cfg.suite} task {cfg.task} (cameras: {key[2] or 'none'})"
-        )
+        self.get_logger().info(f"creating {cfg.suite} task {cfg.task} (cameras: {cameras or 'none'})")
+        self.env = LiberoEnv(
+            cfg.suite, cfg.task, camera_names=cameras, camera_size=self.get_parameter("camera_size_px").value,
+            record_physics=self.physics_rate,
+        )  # fmt: skip
+        mode = self.control_mode()
         # the hard reset (MjSim built) belongs to configure
-        self.env, self.state = built or self.build_env(key)
-        self.reset_for = (cfg.init, cfg.seed, self.control_mode())  # what the env is reset to and not stepped since
-
-    def env_key(self, cfg: RunConfig) -> tuple:
-        """What the configured env depends on: suite, task, cameras, render size (px), physics samples, and the
-        reset's init state, seed and control mode."""
-        size = self.get_parameter("camera_size_px").value
-        return (cfg.suite, cfg.task, self.cameras(), size, cfg.physics_rate, cfg.init, cfg.seed, self.control_mode())
-
-    @staticmethod
-    def build_env(key: tuple) -> tuple[LiberoEnv, TickState]:
-        """The env of :meth:`env_key`'s ``key``, reset (hard: the simulator built); and its state at tick 0."""
-        suite, task, cameras, size, physics_rate, init, seed, mode = key
-        env = LiberoEnv(suite, task, camera_names=cameras, camera_size=size, record_physics=physics_rate)
-        return env, env.reset(init, seed, control_mode=mode)
-
-    def cameras(self) -> tuple[str, ...]:
-        return tuple(c for c in self.get_parameter("cameras").value if c)
+        self.state = self.env.reset(cfg.init, cfg.seed, control_mode=mode)
+        self.reset_for = (cfg.init, cfg.seed, mode)  # what the env is reset to and not stepped since
 
     def control_mode(self) -> ControlMode:
         return parse_control_mode(self.get_parameter("control_mode").value, "sim parameter control_mode")

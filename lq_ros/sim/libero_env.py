@@ -601,33 +601,4 @@ class LiberoEnv:
         self._sim._lq_stages = stages
 
 
-class EnvAhead:
-    """An env built and reset on a background thread before anyone asks for it (the sim node, while the other
-    nodes of a fresh stack start on the same cores: configure then finds it ready).
-
-    ``build`` makes the env for ``key``. :meth:`take` returns what it made only for that same key; a failed build
-    leaves nothing, so the caller builds again on its own thread and reports the error there. A process that
-    exits before taking it leaves the daemon thread to the exit. Without cameras only: a renderer's GL context
-    belongs to the thread that made it.
-    """
-
-    def __init__(self, key: tuple, build: Callable[[], tuple[LiberoEnv, TickState]]) -> None:
-        self.key = key
-        self._built: tuple[LiberoEnv, TickState] | None = None
-
-        def run() -> None:
-            self._built = build()
-
-        self._thread = _in_background("env-ahead", run)
-
-    def take(self, key: tuple) -> tuple[LiberoEnv, TickState] | None:
-        """Wait for the build; its (env, state after reset) if it succeeded for ``key``, else None."""
-        self._thread.join()
-        built, self._built = self._built, None
-        if built is not None and key != self.key:
-            built[0].close()
-            return None
-        return built
-
-
 assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12

@@ -207,39 +207,3 @@ def test_a_hard_reset_frees_the_old_simulator_without_robosuite_s_collection(cam
         gc.enable()
         gc.callbacks.remove(count)
     assert binding_utils.gc is gc
-
-
-def test_an_env_built_ahead_on_a_thread_steps_as_one_built_when_asked():
-    """EnvAhead (the sim node's env built while its peers start): the env it hands over for its key gives the
-    episode of an env built on the caller's thread, bit for bit; another key, or a failed build, gives None (the
-    caller builds), and the env made for the wrong key is closed."""
-    from lq_ros.sim.libero_env import EnvAhead
-
-    def build(key: tuple) -> tuple[LiberoEnv, object]:
-        env = LiberoEnv(*key)
-        return env, env.reset(0, 7)
-
-    key = ("libero_spatial", 0)
-    ahead = EnvAhead(key, lambda: build(key))
-    env, state = ahead.take(key)
-    assert state.tick == 0
-    try:
-        rng = np.random.default_rng(3)
-        actions = [np.concatenate([rng.uniform(-0.5, 0.5, 6), [rng.choice([-1.0, 1.0])]]) for _ in range(10)]
-        built_ahead = [env.step(a).joint_pos.copy() for a in actions]
-    finally:
-        env.close()
-    here, _ = build(key)
-    try:
-        assert all(np.array_equal(here.step(a).joint_pos, q) for a, q in zip(actions, built_ahead, strict=True))
-    finally:
-        here.close()
-
-    closed = []
-    other = EnvAhead(key, lambda: (type("Env", (), {"close": lambda self: closed.append(True)})(), None))
-    assert other.take(("libero_spatial", 1)) is None and closed == [True]
-
-    def broken() -> tuple:
-        raise RuntimeError("no scene")
-
-    assert EnvAhead(key, broken).take(key) is None

@@ -292,10 +292,8 @@ def node_parameters(
     }
     params = {"/**": {**cfg.ros_parameters(), "use_sim_time": cfg.clock == "lockstep"}}
     if robot is None:
-        # build_env_at_start: a sim node started with this file builds this episode's env while its peers start
         params[NODE_NAMES["sim"]] = {"cameras": list(cams), "camera_size_px": camera_size_px,
-                                     "history_ticks": history_ticks, "control_mode": control_mode,
-                                     "build_env_at_start": True}  # fmt: skip
+                                     "history_ticks": history_ticks, "control_mode": control_mode}  # fmt: skip
         recorder.update(SIM_RECORDER_PARAMETERS)
     else:
         needs_objects = bool(requirements and requirements.objects)
