@@ -35,6 +35,8 @@ load and the CPU figures far less, so compare CPU there; the targets are wall se
 in (extracted into the benchmark's temporary folder and put first on PYTHONPATH; the same Python, packages and
 model cache), the two alternated in every repetition, and prints the differences: an A/B of a change in one run,
 both sides under the same load. "This tree" is the lq_ros that Python imports (PYTHONPATH's, else the installed).
+The commands run in the temporary folder, and each side is checked to import lq_ros and its node programs from
+one tree: started in a checkout, `python -m` would take the checkout's lq_ros for both sides.
 
 Default episode: the scripted expert, async, Δt_sim 0.2 s, LIBERO-Spatial task 0, init state 0 (164 ticks).
 Targets: in process <= 4 s; through ROS <= in process + 1.5 s (2 idle cores).
@@ -114,13 +116,13 @@ def process_cpu_s(pid: int) -> tuple[str, float] | None:
     return name.removeprefix("lq_ros_nodes."), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_sampled(argv: list[str], env: dict[str, str]) -> dict[str, float]:
+def run_sampled(argv: list[str], env: dict[str, str], cwd: Path) -> dict[str, float]:
     """Run ``argv`` (a failure stops the benchmark); returns the CPU seconds of it and of each process it started
     (the node programs), by name, as last seen alive: sampled every SAMPLE_S, each misses at most its last
     SAMPLE_S (its exit)."""
     last: dict[int, tuple[str, float]] = {}
     with tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err, env=env)
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=cwd)
         while proc.poll() is None:
             try:
                 children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
@@ -151,10 +153,25 @@ def timed(
     if pythonpath:
         env["PYTHONPATH"] = os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))
     cpu0, start = children_cpu_s(), time.perf_counter()
-    processes = run_sampled(argv, env)
+    processes = run_sampled(argv, env, out.parent)
     elapsed, ended, cpu = time.perf_counter() - start, time.time(), children_cpu_s() - cpu0
     scores = list(out.glob("*/score.json"))
     return elapsed, cpu, (ended - scores[0].stat().st_mtime if scores else None), processes
+
+
+def check_variant(label: str, pythonpath: str | None, out: Path) -> None:
+    """Stop unless the commands of ``label`` import lq_ros and the node programs both from its tree (PYTHONPATH's
+    entry, else the installed package). The commands run in ``out``: `python -m` puts its working directory first
+    on sys.path, so from a checkout's root lq_ros would come from the checkout, whatever PYTHONPATH says."""
+    env = dict(os.environ)
+    if pythonpath:
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))
+    code = "import lq_ros, lq_ros_nodes; print(lq_ros.__path__[0]); print(lq_ros_nodes.__path__[0])"
+    found = subprocess.run([sys.executable, "-c", code], env=env, cwd=out, capture_output=True, text=True,
+                           check=True).stdout.split()  # fmt: skip
+    trees = {str(Path(path).resolve().parent) for path in found}
+    if len(trees) != 1 or (pythonpath and trees != {str(Path(pythonpath).resolve())}):
+        raise SystemExit(f"{label or 'this tree'}: lq_ros and its node programs come from {found}, not one tree")
 
 
 def extract_revision(rev: str, into: Path) -> Path:
@@ -192,6 +209,8 @@ def measure(repeats: int, out: Path, variants: dict[str, str | None]) -> None:
     """Run and print every figure; ``out`` holds the commands' bags and the model cache. ``variants``: label ->
     PYTHONPATH entry of the package to run ("" -> None: the installed one)."""
     cache = str(out / "models")
+    for label, pythonpath in variants.items():
+        check_variant(label, pythonpath, out)
     for pythonpath in variants.values():  # fills the cache and compiles a baseline's bytecode (unmeasured)
         timed(PHASES["episode"], out / "warm-up", cache, pythonpath)
     runs = {**{name: (argv, cache) for name, argv in PHASES.items()},
