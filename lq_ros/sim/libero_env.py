@@ -283,10 +283,13 @@ class LiberoEnv:
         self.camera_size = camera_size
         self.record_physics = record_physics
         with compiled_once(textures=bool(self.camera_names)):
+            # ignore_done: the run's budget ends an episode, never robosuite's horizon (1000 steps, LIBERO's 10 wait
+            # steps included), which an action-budget run or a larger max_steps reaches; it changes no physics.
             self._env = ControlEnv(
                 bddl_file_name=str(bddl),
                 has_offscreen_renderer=bool(self.camera_names),
                 use_camera_obs=False,
+                ignore_done=True,
             )
         self._mujoco = mujoco
         from lq_ros.sim import fast_tick

@@ -207,3 +207,19 @@ def test_a_hard_reset_frees_the_old_simulator_without_robosuite_s_collection(cam
         gc.enable()
         gc.callbacks.remove(count)
     assert binding_utils.gc is gc
+
+
+
+def test_an_episode_steps_past_robosuites_horizon():
+    """robosuite ends an env after 1000 steps (LIBERO's 10 wait steps included) and then refuses every action. An
+    action-budget run (up to ACTION_BUDGET_HARD_STOP x the budget: 1,120 ticks on LIBERO-Object) or a larger
+    max_steps goes past that: the run's budget alone ends an episode."""
+    env = LiberoEnv("libero_spatial", 0)
+    try:
+        env.reset(0, 7)
+        hold = np.array([0, 0, 0, 0, 0, 0, -1.0])
+        for _ in range(1000):
+            state = env.step(hold)
+        assert state.tick == 1000
+    finally:
+        env.close()
