@@ -209,7 +209,6 @@ def test_a_hard_reset_frees_the_old_simulator_without_robosuite_s_collection(cam
     assert binding_utils.gc is gc
 
 
-
 def test_an_episode_steps_past_robosuites_horizon():
     """robosuite ends an env after 1000 steps (LIBERO's 10 wait steps included) and then refuses every action. An
     action-budget run (up to ACTION_BUDGET_HARD_STOP x the budget: 1,120 ticks on LIBERO-Object) or a larger
