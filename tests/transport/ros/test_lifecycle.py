@@ -199,6 +199,9 @@ def test_a_node_killed_mid_episode_is_restarted_and_the_next_episode_runs(tmp_pa
             try:
                 killer = pool.submit(kill_at_sim_time)
                 bag, reason = stack.run_episode(KILLED_CFG, out)
+                if not reason and not killer.done():  # (a failure of the probe, not of the stack: say which)
+                    pytest.fail(f"the episode ran to its end ({bag.name}) without the kill: the clock probe had read "
+                                f"{probe.now_ns()} ns of sim time, waiting for {KILL_AT_NS}")  # fmt: skip
                 assert reason == f"{victim} node exited with code -9", reason
                 killed_at_ns, pid = killer.result(timeout=60)
             finally:
