@@ -150,8 +150,7 @@ def timed(
     argv = [*argv, "--out", str(out)] if "run" in argv else argv
     env = {**os.environ, "LQ_MODEL_CACHE": cache,
            "ROS_AUTOMATIC_DISCOVERY_RANGE": os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")}  # fmt: skip
-    if pythonpath:
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))
+    env.update(variant_path(pythonpath))
     cpu0, start = children_cpu_s(), time.perf_counter()
     processes = run_sampled(argv, env, out.parent)
     elapsed, ended, cpu = time.perf_counter() - start, time.time(), children_cpu_s() - cpu0
@@ -159,13 +158,19 @@ def timed(
     return elapsed, cpu, (ended - scores[0].stat().st_mtime if scores else None), processes
 
 
+def variant_path(pythonpath: str | None) -> dict[str, str]:
+    """The PYTHONPATH of a side: its tree first (None: the installed package, nothing to add)."""
+    if not pythonpath:
+        return {}
+    return {"PYTHONPATH": os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))}
+
+
 def check_variant(label: str, pythonpath: str | None, out: Path) -> None:
     """Stop unless the commands of ``label`` import lq_ros and the node programs both from its tree (PYTHONPATH's
     entry, else the installed package). The commands run in ``out``: `python -m` puts its working directory first
     on sys.path, so from a checkout's root lq_ros would come from the checkout, whatever PYTHONPATH says."""
     env = dict(os.environ)
-    if pythonpath:
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, (pythonpath, os.environ.get("PYTHONPATH"))))
+    env.update(variant_path(pythonpath))
     code = "import lq_ros, lq_ros_nodes; print(lq_ros.__path__[0]); print(lq_ros_nodes.__path__[0])"
     found = subprocess.run([sys.executable, "-c", code], env=env, cwd=out, capture_output=True, text=True,
                            check=True).stdout.split()  # fmt: skip
