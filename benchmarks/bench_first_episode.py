@@ -12,7 +12,7 @@ Each phase is measured as a fresh process that stops after it, so the difference
 
 and, of the ROS command, its end (from the recorder's score file being written to the command's exit: the
 nodes' shutdown transitions and the processes' exit) and the CPU of each of its processes (the launcher, the
-five node programs).
+five node programs, the fork server they are started from).
 
 Every phase runs with the compiled-model cache (lq_ros.sim.model_cache) in a fresh folder that one unmeasured
 run filled first (warm: the task has run on this machine before); `episode` and `ROS` are also measured with
@@ -47,6 +47,7 @@ Targets: in process <= 4 s; through ROS <= in process + 1.5 s (2 idle cores).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import resource
 import shutil
@@ -107,28 +108,34 @@ def process_cpu_s(pid: int) -> tuple[str, float] | None:
     """(name, user + system seconds) of a live process: its Python module (``-m``) or program; None once gone."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
-        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
         return None
     fields = stat.rsplit(")", 1)[1].split()  # (the name in parentheses may hold spaces)
-    names = [a.decode() for a in argv if a]
+    names = [a.decode() for a in argv.replace(b" ", b"\0").split(b"\0") if a]  # (a forked node's title: spaces)
     name = names[names.index("-m") + 1] if "-m" in names[:-1] else Path(names[0]).name if names else ""
     return name.removeprefix("lq_ros_nodes."), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def descendants(pid: int) -> list[int]:
+    """``pid`` and every live process below it (the nodes: the launcher's children, or its fork server's)."""
+    out, todo = [], [pid]
+    while todo:
+        out.append(todo.pop())
+        with contextlib.suppress(OSError):  # (gone meanwhile)
+            todo += map(int, Path(f"/proc/{out[-1]}/task/{out[-1]}/children").read_text().split())
+    return out
+
+
 def run_sampled(argv: list[str], env: dict[str, str], cwd: Path) -> dict[str, float]:
-    """Run ``argv`` (a failure stops the benchmark); returns the CPU seconds of it and of each process it started
-    (the node programs), by name, as last seen alive: sampled every SAMPLE_S, each misses at most its last
-    SAMPLE_S (its exit)."""
+    """Run ``argv`` (a failure stops the benchmark); returns the CPU seconds of it and of each process below it
+    (the node programs and their fork server), by name, as last seen alive: sampled every SAMPLE_S, each misses at
+    most its last SAMPLE_S (its exit)."""
     last: dict[int, tuple[str, float]] = {}
     with tempfile.TemporaryFile() as err:
         proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=cwd)
         while proc.poll() is None:
-            try:
-                children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
-            except OSError:
-                children = []
-            for pid in (proc.pid, *map(int, children)):
+            for pid in descendants(proc.pid):
                 if (sample := process_cpu_s(pid)) is not None:  # (an exited child not yet reaped has no name)
                     last[pid] = (last[pid][0] if pid in last and not sample[0] else sample[0], sample[1])
             time.sleep(SAMPLE_S)

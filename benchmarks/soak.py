@@ -104,7 +104,8 @@ def process_stats(pid: int) -> dict:
 
 def long_lived() -> dict[str, int]:
     """The sweep's long-lived processes: this one, its workers, multiprocessing's resource tracker, and each
-    worker's ROS stack (four nodes and the lifecycle manager; a node restarted after a kill shows a new PID)."""
+    worker's ROS stack (four nodes, the lifecycle manager and the fork server they are started from; a node restarted
+    after a kill shows a new PID)."""
     out = {"sweep": os.getpid()}
     for pid in children(os.getpid()):
         cmd = cmdline(pid)
@@ -113,7 +114,9 @@ def long_lived() -> dict[str, int]:
         elif "spawn_main" in cmd:
             out[f"worker {pid}"] = pid
             for node in descendants(pid):
-                name = next((n for n in (*NODE_NAMES, "manager") if f"lq_ros_nodes.{n}_node" in cmdline(node)), None)
+                cmd = cmdline(node)
+                name = next((n for n in (*NODE_NAMES, "manager") if f"lq_ros_nodes.{n}_node" in cmd), None)
+                name = "fork server" if "lq_ros.transport.ros.fork_server" in cmd else name
                 if name:
                     out[f" {name} {node}"] = node
     return out

@@ -841,10 +841,11 @@ def main() -> int:
         from click import exceptions
 
     try:
-        from lq_ros.transport.processes import executor_choice, sim_cpu_choice
+        from lq_ros.transport.processes import executor_choice, node_forks_choice, sim_cpu_choice
 
         executor_choice(dict(os.environ))  # the node processes' executor: refused before anything starts
         sim_cpu_choice(dict(os.environ))  # whether the stack pins its sim to a CPU
+        node_forks_choice(dict(os.environ))  # whether the stack forks its nodes from a process that imported them
         from lq_ros.sim import model_cache
 
         model_cache.settings(os.environ)  # the compiled-model cache's variables

@@ -84,6 +84,13 @@ def test_an_unknown_sim_cpu_choice_is_refused_in_one_line(tmp_path, monkeypatch)
     assert not out.exists()
 
 
+def test_an_unknown_node_forks_choice_is_refused_in_one_line(tmp_path, monkeypatch):
+    monkeypatch.setenv("LQ_NODE_FORKS", "maybe")
+    out = tmp_path / "bags"
+    assert_refused(lq("run", "--out", str(out)), "LQ_NODE_FORKS must be on or off, got 'maybe'")
+    assert not out.exists()
+
+
 def test_a_bad_model_cache_limit_is_refused_in_one_line(tmp_path, monkeypatch):
     monkeypatch.setenv("LQ_MODEL_CACHE_MB", "-1")
     out = tmp_path / "bags"

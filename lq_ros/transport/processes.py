@@ -33,6 +33,9 @@ EXECUTOR_ENV, EXECUTORS = "LQ_RCLPY_EXECUTOR", ("events", "single_threaded")
 #: Lockstep episodes run the sim node's stepping thread on a CPU of its own (lq_ros.transport.ros.stack): ``auto``
 #: picks one that no other stack's sim holds, ``off`` leaves the choice to the OS scheduler.
 SIM_CPU_ENV, SIM_CPU_CHOICES = "LQ_SIM_CPU", ("auto", "off")
+#: The stack starts its nodes as forks of a process that has imported them (``on``: lq_ros.transport.ros.fork_server)
+#: or executes each afresh (``off``).
+NODE_FORKS_ENV, NODE_FORKS_CHOICES = "LQ_NODE_FORKS", ("on", "off")
 
 
 def executor_choice(environ: dict[str, str]) -> str:
@@ -48,6 +51,14 @@ def sim_cpu_choice(environ: dict[str, str]) -> str:
     choice = environ.get(SIM_CPU_ENV) or SIM_CPU_CHOICES[0]
     if choice not in SIM_CPU_CHOICES:
         raise ValueError(f"{SIM_CPU_ENV} must be {' or '.join(SIM_CPU_CHOICES)}, got {choice!r}")
+    return choice
+
+
+def node_forks_choice(environ: dict[str, str]) -> str:
+    """What :data:`NODE_FORKS_ENV` says (ValueError naming the valid values)."""
+    choice = environ.get(NODE_FORKS_ENV) or NODE_FORKS_CHOICES[0]
+    if choice not in NODE_FORKS_CHOICES:
+        raise ValueError(f"{NODE_FORKS_ENV} must be {' or '.join(NODE_FORKS_CHOICES)}, got {choice!r}")
     return choice
 
 

@@ -57,6 +57,7 @@ from lq_ros.transport.processes import (
     die_with_parent,
     executor_choice,
     inherited_locks,
+    node_forks_choice,
     open_lock_file,
     owned_temp_folder,
     private_folder,
@@ -65,6 +66,7 @@ from lq_ros.transport.processes import (
     stop_processes,
     without_secrets,
 )
+from lq_ros.transport.ros.fork_server import ForkedProcess, ForkServer, ForkServerError
 from lq_ros.wire.node_names import MANAGED_NODE_NAMES, NODE_NAMES, stack_roles
 
 #: The managed nodes of a simulated run (against a robot the bridge replaces the sim: stack_roles).
@@ -255,6 +257,7 @@ def child_environment(domain_id: int, log_dir: Path) -> dict[str, str]:
     env = without_secrets(dict(os.environ))  # a Ray token is the sweep driver's, not the nodes
     executor_choice(env)  # a wrong value is refused here, in one line, not by five node processes
     sim_cpu_choice(env)
+    node_forks_choice(env)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env.setdefault(FASTDDS_PROFILES_ENV, str(FASTDDS_PROFILE))
     env["ROS_DOMAIN_ID"] = str(domain_id)
@@ -360,7 +363,9 @@ class RosStack:
         self.sim_cpu, cpu_lock = held if held is not None else (None, None)
         # The nodes hold the run's locks too (a domain, a CPU, a sweep's processes lock): free only once all are gone.
         self._lock_fds = (self.domain.lock_fd,) + ((cpu_lock,) if cpu_lock is not None else ()) + inherited_locks()
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, subprocess.Popen | ForkedProcess] = {}
+        # Nodes start as forks of a process that imported them (None: not started yet; False: executed afresh).
+        self._forks: ForkServer | bool | None = None if node_forks_choice(self.env) == "on" else False
         self.shm = ShmTracker()
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
         self._replies = b""
@@ -380,25 +385,56 @@ class RosStack:
 
     # -- processes -----------------------------------------------------------------------------------
     def _spawn(self, name: str) -> None:
-        log = open(self.work / f"{name}.log", "ab")  # noqa: SIM115 - closed with the process
+        log = open(self.work / f"{name}.log", "ab")  # noqa: SIM115 - closed once the process has it
         manager = name == MANAGER
         if manager:  # (the nodes it manages, as nav2's node_names)
             args = ["--ros-args", "-p", f"node_names:=[{','.join(NODE_NAMES[r] for r in self.roles)}]"]
         else:
             args = ["--ros-args", "--params-file", str(self.params_file)]
         module = STANDIN_MODULE if name == STANDIN else NODE_MODULE.format(name)
-        self.procs[name] = subprocess.Popen(
-            [sys.executable, "-m", module, *args],
-            env=self.env,
-            stdout=subprocess.PIPE if manager else log,
-            stderr=log if manager else subprocess.STDOUT,
-            stdin=subprocess.PIPE if manager else subprocess.DEVNULL,
-            preexec_fn=die_with_parent,
-            pass_fds=self._lock_fds,
-        )
-        log.close()
-        if manager:
-            self._replies = b""
+        streams = {
+            "stdout": subprocess.PIPE if manager else log,
+            "stderr": log if manager else subprocess.STDOUT,
+            "stdin": subprocess.PIPE if manager else subprocess.DEVNULL,
+        }
+        try:
+            forks = self._fork_server()
+            if forks is not None:
+                try:
+                    self.procs[name] = forks.spawn(module, args, **streams)
+                    return
+                except ForkServerError:  # it died: this node is executed afresh, the next forked by a new server
+                    forks.close()
+                    self._forks = None
+            self.procs[name] = subprocess.Popen(
+                [sys.executable, "-m", module, *args],
+                env=self.env,
+                preexec_fn=die_with_parent,
+                pass_fds=self._lock_fds,
+                **streams,
+            )
+        finally:
+            log.close()
+            if manager:
+                self._replies = b""
+
+    def _fork_server(self) -> ForkServer | None:
+        """The stack's fork server (started with the stack's node programs imported), or None: execute afresh."""
+        if self._forks is False:
+            return None
+        if isinstance(self._forks, ForkServer):
+            if not self._forks.dead:
+                return self._forks
+            self._forks.close()
+        modules = [NODE_MODULE.format(role) for role in (*self.roles, MANAGER)]
+        with open(self.work / "fork_server.log", "ab") as log:
+            try:
+                self._forks = ForkServer(modules, self.env, self._lock_fds, log)
+            except ForkServerError as exc:  # (declined: a thread it cannot fork safely) same nodes, started slower
+                log.write(f"{exc}; the nodes are executed afresh\n".encode())
+                self._forks = False
+                return None
+        return self._forks
 
     def _write_params(self, params: dict) -> None:
         """Replace the params file atomically: a node starting meanwhile reads the old or the new one, whole."""
@@ -667,6 +703,8 @@ class RosStack:
                         p.wait(timeout=10.0)
         finally:
             self._stop(self.procs, ports=True)
+            if isinstance(self._forks, ForkServer):
+                self._forks.close()
             if logs_to is not None:
                 with suppress(OSError):
                     self._collect_logs(*logs_to)

@@ -18,7 +18,8 @@ from lq_ros.recording.bag_compare import bag_messages, comparable
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.run.episode import run_episode
 from lq_ros.transport.inprocess import run_inprocess
-from lq_ros.transport.processes import EXECUTOR_ENV, fastdds_shm_owned
+from lq_ros.transport.processes import EXECUTOR_ENV, NODE_FORKS_ENV, fastdds_shm_owned
+from lq_ros.transport.ros.fork_server import ForkedProcess
 from lq_ros.transport.ros.stack import RosStack
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_lifecycle import wait_until_recording
@@ -162,6 +163,27 @@ def test_rclpys_single_threaded_executor_gives_the_same_episode(tmp_path, monkey
     ros, _ = run_episode(cfg, tmp_path / "ros", "ros")
     (line,) = [ln for ln in (ros.bag_path / "logs" / "sim.log").read_text().splitlines() if "executor:" in ln]
     assert "SingleThreadedExecutor" in line
+    local = run_inprocess(cfg, tmp_path / "local")
+    assert ros.status == local.status == "failure"
+    assert comparable(ros.bag_path) == comparable(local.bag_path)
+
+
+@pytest.mark.parametrize("forks", ["on", "off"])
+def test_nodes_forked_or_executed_afresh_give_the_same_episode(tmp_path, monkeypatch, forks):
+    """By default the stack forks its nodes from a process that imported them (LQ_NODE_FORKS=on); each is a
+    process of its own under its program's name. Executed afresh (off), they run the same episode, bit for bit."""
+    monkeypatch.setenv(NODE_FORKS_ENV, forks)
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
+    with RosStack() as stack:
+        stack.start()
+        for name, proc in stack.procs.items():
+            assert isinstance(proc, ForkedProcess) == (forks == "on"), name
+            parent = Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[1]
+            assert (int(parent) == os.getpid()) == (forks == "off"), name  # forks: the fork server's children
+        ros, _ = run_episode(cfg, tmp_path / "ros", "ros", stack=stack)
+        names = {name: Path(f"/proc/{proc.pid}/cmdline").read_bytes() for name, proc in stack.procs.items()}
+    for name, line in names.items():
+        assert f"-m\0lq_ros_nodes.{name}_node".encode() in line.replace(b" ", b"\0"), (name, line)
     local = run_inprocess(cfg, tmp_path / "local")
     assert ros.status == local.status == "failure"
     assert comparable(ros.bag_path) == comparable(local.bag_path)
