@@ -163,10 +163,11 @@ def main() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the launcher's and the nodes' to handle
     sock = socket.socket(fileno=int(sys.argv[1]))
     preload = json.loads(sock.recv(PACKET_BYTES) or b'{"preload": []}')["preload"]
+    started_with = _threads()  # 1, unless something the interpreter ran at start-up (a sitecustomize) started one
     import numpy  # noqa: F401, PLC0415 - first: the threads it adds are OpenBLAS's (fork-safe: pthread_atfork)
     from setproctitle import setproctitle  # noqa: PLC0415 - each fork names itself
 
-    known_threads = _threads()
+    known_threads = 1 + _threads() - started_with
     for module in preload:
         importlib.import_module(module)
     lttng = _lttng_ust()

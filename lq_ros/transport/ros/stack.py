@@ -364,8 +364,10 @@ class RosStack:
         # The nodes hold the run's locks too (a domain, a CPU, a sweep's processes lock): free only once all are gone.
         self._lock_fds = (self.domain.lock_fd,) + ((cpu_lock,) if cpu_lock is not None else ()) + inherited_locks()
         self.procs: dict[str, subprocess.Popen | ForkedProcess] = {}
-        # Nodes start as forks of a process that imported them (None: not started yet; False: executed afresh).
+        # Nodes start as forks of a process that imported them (None: not started yet; False: executed afresh),
+        # the node programs of its roles and these modules.
         self._forks: ForkServer | bool | None = None if node_forks_choice(self.env) == "on" else False
+        self.fork_preload: tuple[str, ...] = ()
         self.shm = ShmTracker()
         ShmTracker.stale_segments().cleanup()  # segments of runs that died all at once, nobody left to clean
         self._replies = b""
@@ -426,12 +428,13 @@ class RosStack:
             if not self._forks.dead:
                 return self._forks
             self._forks.close()
-        modules = [NODE_MODULE.format(role) for role in (*self.roles, MANAGER)]
+        modules = [NODE_MODULE.format(role) for role in (*self.roles, MANAGER)] + list(self.fork_preload)
         with open(self.work / "fork_server.log", "ab") as log:
             try:
                 self._forks = ForkServer(modules, self.env, self._lock_fds, log)
             except ForkServerError as exc:  # (declined: a thread it cannot fork safely) same nodes, started slower
-                log.write(f"{exc}; the nodes are executed afresh\n".encode())
+                with open(self.work / "launcher.log", "a") as launcher_log:  # (kept with the episode's bag)
+                    launcher_log.write(f"{exc}; the nodes are executed afresh\n")
                 self._forks = False
                 return None
         return self._forks

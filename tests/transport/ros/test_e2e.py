@@ -189,6 +189,23 @@ def test_nodes_forked_or_executed_afresh_give_the_same_episode(tmp_path, monkeyp
     assert comparable(ros.bag_path) == comparable(local.bag_path)
 
 
+def test_a_fork_server_that_declines_leaves_the_nodes_executed_afresh(tmp_path, monkeypatch):
+    """A module the fork server imports starts a thread it does not know to be fork-safe: it declines, the launcher's
+    log (kept with the bag) says so, and the episode runs on nodes executed afresh."""
+    (tmp_path / "threaded_module.py").write_text(
+        "import threading, time\nthreading.Thread(target=time.sleep, args=(600,), daemon=True).start()\n"
+    )
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
+    with RosStack() as stack:
+        stack.fork_preload = ("threaded_module",)
+        ros, _ = run_episode(cfg, tmp_path / "ros", "ros", stack=stack)
+        assert not any(isinstance(proc, ForkedProcess) for proc in stack.procs.values())
+    assert ros.status == "failure"  # (the sine policy's, as in process)
+    log = (ros.bag_path / "logs" / "launcher.log").read_text()
+    assert "the node fork server did not start" in log and "threads after the imports" in log, log
+
+
 def test_same_config_and_seed_give_identical_bags_and_scores(tmp_path):
     cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=25, physics_rate=True)
     first, row1 = run_episode(cfg, tmp_path / "a", "ros")
