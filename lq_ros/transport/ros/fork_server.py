@@ -181,8 +181,9 @@ def main() -> None:
     server_pid = os.getpid()
     sock.send(json.dumps({"ready": server_pid}).encode())
     request = _serve(sock, lttng)
-    if request is None:
-        return
+    if request is None:  # the launcher is done: no ROS entity or file of ours to clean up, so no teardown to wait for
+        sys.stdout.flush()
+        os._exit(0)
     _become(request, server_pid, setproctitle)
     sys.modules[request.module].main()
 
