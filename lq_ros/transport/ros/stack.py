@@ -405,9 +405,9 @@ class RosStack:
                 try:
                     self.procs[name] = forks.spawn(module, args, **streams)
                     return
-                except ForkServerError:  # it died: this node is executed afresh, the next forked by a new server
+                except ForkServerError as exc:  # it died: this stack's nodes are executed afresh from now on
                     forks.close()
-                    self._forks = None
+                    self._fork_server_unusable(exc)
             self.procs[name] = subprocess.Popen(
                 [sys.executable, "-m", module, *args],
                 env=self.env,
@@ -428,16 +428,23 @@ class RosStack:
             if not self._forks.dead:
                 return self._forks
             self._forks.close()
+            self._fork_server_unusable(ForkServerError("the node fork server has exited"))
+            return None
         modules = [NODE_MODULE.format(role) for role in (*self.roles, MANAGER)] + list(self.fork_preload)
         with open(self.work / "fork_server.log", "ab") as log:
             try:
                 self._forks = ForkServer(modules, self.env, self._lock_fds, log)
             except ForkServerError as exc:  # (declined: a thread it cannot fork safely) same nodes, started slower
-                with open(self.work / "launcher.log", "a") as launcher_log:  # (kept with the episode's bag)
-                    launcher_log.write(f"{exc}; the nodes are executed afresh\n")
-                self._forks = False
+                self._fork_server_unusable(exc)
                 return None
         return self._forks
+
+    def _fork_server_unusable(self, exc: ForkServerError) -> None:
+        """Execute this stack's nodes afresh from now on (the same nodes, started slower), and say why in the
+        launcher's log, which is kept with the episode's bag. A server that died once is not started again."""
+        with open(self.work / "launcher.log", "a") as launcher_log:
+            launcher_log.write(f"{exc}; the nodes are executed afresh\n")
+        self._forks = False
 
     def _write_params(self, params: dict) -> None:
         """Replace the params file atomically: a node starting meanwhile reads the old or the new one, whole."""

@@ -206,6 +206,24 @@ def test_a_fork_server_that_declines_leaves_the_nodes_executed_afresh(tmp_path, 
     assert "the node fork server did not start" in log and "threads after the imports" in log, log
 
 
+def test_a_killed_fork_server_takes_its_idle_nodes_and_the_next_episode_runs_on_nodes_executed_afresh(tmp_path):
+    """kill -9 of the fork server between episodes: its nodes end (their parent-death signal), the next episode
+    restarts them executed afresh (a server that died is not started again) and runs the same episode."""
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
+    with RosStack() as stack:
+        first, _ = run_episode(cfg, tmp_path / "first", "ros", stack=stack)
+        os.kill(stack._forks.proc.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30.0
+        while any(proc.poll() is None for proc in stack.procs.values()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert all(proc.poll() is not None for proc in stack.procs.values()), "a node outlived its fork server"
+        second, _ = run_episode(cfg, tmp_path / "second", "ros", stack=stack)
+        assert not any(isinstance(proc, ForkedProcess) for proc in stack.procs.values())
+    assert first.status == second.status == "failure"
+    assert comparable(first.bag_path) == comparable(second.bag_path)
+    assert "the node fork server has exited" in (second.bag_path / "logs" / "launcher.log").read_text()
+
+
 def test_same_config_and_seed_give_identical_bags_and_scores(tmp_path):
     cfg = RunConfig(policy="sine", mode="sync", latency_s=0.1, max_steps=25, physics_rate=True)
     first, row1 = run_episode(cfg, tmp_path / "a", "ros")
