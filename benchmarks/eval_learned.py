@@ -12,6 +12,8 @@ Usage: python benchmarks/eval_learned.py [--suite libero_spatial --suite libero_
        [--policy oft --policy oft:chunk_size=1 --policy flow]   (name[:key=value,...], repeatable)
        python benchmarks/eval_learned.py --merge a.json b.json   (one table from runs split by task/policy)
        python benchmarks/eval_learned.py --merge a.json b.json --by-weights   (columns per checkpoint, see below)
+       python benchmarks/eval_learned.py --from-counts 7/10 5/10 ...   (a total's intervals from a table's per-task
+                                                                         counts, one per task; nothing is run)
 
 Latency study (``--latency``): success at injected latencies Δt_sim (lockstep, in process, merge replace, the
 paper's step budget: holds count) in the protocols of ``--mode``, per policy, with Wilson and task-clustered 95%
@@ -311,6 +313,22 @@ def task_clustered(rows: list[dict]) -> tuple[float, float]:
     return clustered_success_ci(list(by_task.values()))
 
 
+def total_from_counts(counts: list[str]) -> str:
+    """``k/n = p% [Wilson | task-clustered]`` of the total of per-task counts ``k/n`` (one per task), computed as the
+    table of a run computes it (the clustered interval depends on each task's k and n only). ValueError naming a
+    count that is not ``k/n`` with 0 <= k <= n and n > 0."""
+    rows = []
+    for task, count in enumerate(counts):
+        k, _, n = count.partition("/")
+        if not (k.isdigit() and n.isdigit() and 0 < int(n) and int(k) <= int(n)):
+            raise ValueError(f"--from-counts: {count!r} is not k/n with 0 <= k <= n and n > 0 (e.g. 7/10)")
+        rows += [{"task": task, "status": "success" if i < int(k) else "failure"} for i in range(int(n))]
+    ok = sum(r["status"] == "success" for r in rows)
+    lo, hi = wilson_interval(ok, len(rows))
+    clustered = interval_text(*task_clustered(rows))
+    return f"{ok}/{len(rows)} = {100 * ok / len(rows):.0f}% [{100 * lo:.0f}-{100 * hi:.0f} | {clustered}]"
+
+
 def interval_text(low: float, high: float) -> str:
     """``lo-hi`` in percent, ``n/a`` for an interval that is not defined (too few tasks)."""
     return "n/a" if np.isnan(low) else f"{100 * low:.0f}-{100 * high:.0f}"
@@ -429,6 +447,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write every episode row here")
     ap.add_argument("--merge", type=Path, nargs="+", help="only print the table of these --json files together")
     ap.add_argument("--by-weights", action="store_true", help="--merge: one column per checkpoint (see above)")
+    ap.add_argument("--from-counts", nargs="+", metavar="K/N", help="only print a total's intervals from task counts")
     ap.add_argument("--no-isolated", action="store_true", help="skip the isolated latency measurement")
     ap.add_argument("--latency", type=float, nargs="+", help="latency study: injected Δt_sim values, s")
     ap.add_argument("--mode", action="append", choices=("sync", "async"), help="latency study protocols (repeatable)")
@@ -438,6 +457,13 @@ def main() -> None:
     )  # fmt: skip
     args = ap.parse_args()
 
+    if args.from_counts:
+        try:
+            print("success k/n = % [Wilson 95% interval | task-clustered 95% interval, %]")
+            print(total_from_counts(args.from_counts))
+        except ValueError as exc:
+            ap.error(str(exc))
+        return
     if args.merge:
         loaded = [json.loads(path.read_text()) for path in args.merge]
         rows = [r for run in loaded for r in run["rows"]]

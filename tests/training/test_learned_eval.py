@@ -97,3 +97,19 @@ def test_each_budget_gets_its_own_table_and_the_same_episode_under_both_is_not_a
     assert "paper budget (holds count)" in out and "action budget (holds do not count)" in out
     with pytest.raises(SystemExit, match="twice"):
         ev.check_latency_rows(paper + action + action[:1])
+
+
+def test_a_totals_intervals_from_a_tables_per_task_counts(ev):
+    """--from-counts gives what a run's table prints for the same per-task counts: Wilson over the episodes, and the
+    task-clustered interval (wider when the tasks differ, as 10/10 against 0/10 do)."""
+    per_task = (10, 0, 5, 10, 0, 5, 10, 0, 5, 5)
+    rows = [{"task": t, "status": "success" if i < k else "failure"} for t, k in enumerate(per_task) for i in range(10)]
+    low, high = ev.task_clustered(rows)
+    assert (
+        ev.total_from_counts([f"{k}/10" for k in per_task]) == f"50/100 = 50% [40-60 | {ev.interval_text(low, high)}]"
+    )
+    assert low < 0.40 and high > 0.60  # clustered: wider than Wilson's
+    assert ev.total_from_counts(["5/10", "5/10"]).endswith("| n/a]")  # too few tasks for a clustered interval
+    for bad in ("11/10", "3", "a/10", "1/0", "-1/10"):
+        with pytest.raises(ValueError, match="is not k/n"):
+            ev.total_from_counts(["5/10", bad])
