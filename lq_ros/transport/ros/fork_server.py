@@ -151,7 +151,7 @@ def _become(request: _Request, server_pid: int, set_title: Callable[[str], None]
         os.close(fd)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    module = sys.modules[request.module] if request.module in sys.modules else importlib.import_module(request.module)
+    module = importlib.import_module(request.module)  # (preloaded: the imported module itself)
     sys.argv = [module.__file__ or request.module, *request.args]
     # (SPT_NOENV: the title takes the room of the server's command line only, and /proc/PID/environ stays readable)
     os.environ["SPT_NOENV"] = "1"
@@ -301,12 +301,15 @@ class ForkServer:
             packet = self._receive(timeout_s)
             if packet is None:
                 return
-            message, fds = packet
-            for fd in fds:
-                os.close(fd)
-            if "exited" in message and message["exited"] in self.children:
-                self.children.pop(message["exited"])._exited(message["code"])
+            self._take_report(*packet)
             timeout_s = 0.0
+
+    def _take_report(self, message: dict, fds: list[int]) -> None:
+        """An exit report: the child it names has ended with its code (descriptors, which it has none of, closed)."""
+        for fd in fds:
+            os.close(fd)
+        if "exited" in message and message["exited"] in self.children:
+            self.children.pop(message["exited"])._exited(message["code"])
 
     def spawn(self, module: str, args: list[str], stdin, stdout, stderr) -> ForkedProcess:
         """Fork ``python -m module args``; the streams as Popen takes them: a file or descriptor, subprocess.DEVNULL,
@@ -342,10 +345,7 @@ class ForkServer:
                 child = ForkedProcess(self, message["spawned"], fds[0], [module, *args], **ends)
                 self.children[child.pid] = child
                 return child
-            for fd in fds:
-                os.close(fd)
-            if "exited" in message and message["exited"] in self.children:
-                self.children.pop(message["exited"])._exited(message["code"])
+            self._take_report(message, fds)
 
     def close(self) -> None:
         """End the server (its children, if any are left, get their parent-death signal)."""
