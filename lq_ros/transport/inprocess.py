@@ -83,7 +83,16 @@ def run_inprocess(
     ``env`` and ``policy`` may be passed in to reuse them across episodes (sweeps, benchmarks).
     A crash anywhere is recorded as an ERROR event: the episode is an error, never a failure.
     """
+    own_policy = policy is None  # (made here, so closed here: a LeRobot policy's server process ends with it)
     policy = policy or make_policy(cfg.policy, **cfg.policy_args)
+    try:
+        return _run(cfg, out_dir, env, policy)
+    finally:
+        if own_policy:
+            policy.close()
+
+
+def _run(cfg: RunConfig, out_dir: Path, env: LiberoEnv | None, policy: Policy) -> EpisodeOutcome:
     policy.check_merge(cfg.merge)  # e.g. rtc with a policy that cannot take a prefix: refused, no bag
     own_env = env is None
     if env is None:

@@ -70,6 +70,19 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
     return {name: Path(folder) for name, folder in made.items()}
 
 
+def lerobot_servers() -> set[int]:
+    """The LeRobot server processes this test process started that still run."""
+    out = set()
+    for children in Path("/proc/self/task").glob("*/children"):
+        for pid in children.read_text().split():
+            try:
+                if b"lerobot_server.py" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                    out.add(int(pid))
+            except OSError:
+                continue  # gone
+    return out
+
+
 def commands(bag: Path) -> list:
     return [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in bag_messages(bag).get(m.COMMAND.name, [])]
 
@@ -102,6 +115,7 @@ def test_policy_input_equals_lerobot_libero_env_bit_for_bit(checkpoints, tmp_pat
         payload = policy.observation_payload(env.observe())
     finally:
         env.close()
+        policy.close()
     request = tmp_path / "payload.npz"
     np.savez(request, **payload)
     ours = tmp_path / "ours.npz"
@@ -127,8 +141,10 @@ def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind
         policy="lerobot",
         policy_args={"path": str(checkpoints[kind]), "threads": 1}, max_steps=PARITY_STEPS,
     )  # fmt: skip
+    servers_before = lerobot_servers()
     outcome, row = run_episode(cfg, tmp_path / "ours", "inprocess")
     assert outcome.status in ("failure", "success"), outcome.reason
+    assert lerobot_servers() <= servers_before, "the episode's policy server outlived it"
     sent = commands(outcome.bag_path)
     assert all(c.source == SOURCE_CHUNK for c in sent), [c.source for c in sent]
     ours = np.array([c.action for c in sent])

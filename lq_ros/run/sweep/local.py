@@ -14,6 +14,7 @@ from lq_ros.core.run_config import RunConfig
 from lq_ros.run.sweep.worker import EpisodeWorker
 from lq_ros.transport.processes import (
     PROCESSES_LOCK,
+    ShmTracker,
     die_with_parent,
     hold_for_children,
     hold_shared,
@@ -95,7 +96,12 @@ class LocalPool:
             p = self._procs[slot]
             if not p.is_alive():
                 code = p.exitcode
+                found_dead = time.time()
                 wait_process_group_gone(p.pid)  # its nodes are still closing the episode's bag
+                # Its launcher died with it, and so did the record of its nodes' Fast DDS files: a node that died
+                # before removing its segment leaves it. Every segment of this user's made before the worker was
+                # found dead and unlocked now is such an orphan (a live participant locks its own as it makes it).
+                ShmTracker.stale_segments(min_age_s=time.time() - found_dead).cleanup(ports=False)
                 out.append((slot, {"status": "error", "reason": f"worker process died (exit code {code})",
                                    "row": None, "bag": None, "wall_s": None}))  # fmt: skip
                 self._start(slot)

@@ -124,8 +124,16 @@ def shm_files_of(pids: Iterable[int]) -> set[str]:
             continue
         for path in paths:
             if path.startswith(f"{SHM}/"):
-                out.add(shm_base(path.removeprefix(f"{SHM}/")))
+                name = shm_base(path.removeprefix(f"{SHM}/"))
+                out.add(name)
+                if path.endswith("_el") and name not in SHM_OWNERS:  # (its creator holds the _el lock open)
+                    SHM_OWNERS[name] = f"{pid} {cmdline(pid)[:160]}"
     return {name for name in out if name.startswith(("fastrtps_", "fastdds_"))}
+
+
+#: The first process :func:`shm_files_of` saw holding each file's ``_el`` lock (its creator): named when a file is
+#: left behind, so a failure says whose it was.
+SHM_OWNERS: dict[str, str] = {}
 
 
 def orphaned_shm(before: set[str], ours: set[str] | None = None) -> list[str]:
@@ -246,7 +254,8 @@ def start_run_and_probe(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, 
 
 def assert_nothing_left(pids, before_shm: set[str], ours: set[str] | None = None) -> None:
     wait_for(lambda: not any(alive(p) for p in pids), 60, "every process of the run to exit")
-    assert orphaned_shm(before_shm, ours) == []
+    left = orphaned_shm(before_shm, ours)
+    assert left == [], {name: SHM_OWNERS.get(shm_base(name), "creator not seen") for name in left}
 
 
 @pytest.fixture(scope="module")
