@@ -17,7 +17,7 @@ PAIRED_SENTENCE = (
     ("jerk_mean", "mean jerk", 2, 1.0, "m/s³"),
     ("ee_osc", "paper EE-Osc", 1, 1000.0, "mm"),
     ("ee_osc_detrended", "detrended EE-Osc", 1, 1000.0, "mm"),
-    ("energy_total_j", "total energy", 0, 1.0, "J"),
+    ("energy_actuator_j", "actuator energy (net of the constant overhead)", 0, 1.0, "J"),
 )
 
 
@@ -47,7 +47,11 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
                 f"{name}{f' ({unit})' if unit else ''} {agg.ci_text(r, f'{metric}_diff', decimals, scale, signed=True)}"
             )
             adjusted = r.get(f"{metric}_diff_p_adjusted")
-            (shown if adjusted is not None and not pd.isna(adjusted) and adjusted < ALPHA else not_shown).append(change)
+            if adjusted is not None and not pd.isna(adjusted) and adjusted < ALPHA:
+                tasks_p = r.get(f"{metric}_diff_cluster_p")  # the task as the unit: other tasks of the suite
+                shown.append(change + ("" if tasks_p is None or pd.isna(tasks_p) else f" (task-level p {tasks_p:.2g})"))
+            else:
+                not_shown.append(change)
         one = r["n_pairs"] == 1
         pairs = f"{int(r['n_pairs'])} pair{'' if one else 's'} that succeed{'s' if one else ''}"
         found = f"changed: {', '.join(shown)}" if shown else "no change shown"
@@ -57,46 +61,88 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
 
 
 def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
-    """One sentence per comparison whose Holm-adjusted McNemar p is below 0.05 (paired_policies.csv), then how many
-    show no difference: the report never compares two arms by their separate intervals."""
+    """The paired_policies.csv findings: which comparisons were declared primary, one sentence per comparison whose
+    Holm-adjusted McNemar p is below 0.05 (with the population each p-value speaks for), the equivalences a TOST at
+    the spec's margin shows, and how many show no difference: the report never compares two arms by their separate
+    intervals, and never calls two arms equal without an equivalence test."""
     lines = []
+    family = comparisons["family"] if "family" in comparisons else pd.Series("exploratory", index=comparisons.index)
+    n_primary = int((family == "primary").sum())
+    if n_primary:
+        lines.append(f"{n_primary} comparison{'s were' if n_primary > 1 else ' was'} declared primary in the sweep "
+                     "spec (analysis.primary): the Holm family. Every other comparison is exploratory (Holm over the "
+                     "exploratory ones alone), a lead for a new sweep rather than a finding.")  # fmt: skip
+    else:
+        lines.append("No primary comparison was declared (the sweep spec's analysis.primary): every comparison below "
+                     "is exploratory, a lead for a new sweep rather than a finding.")  # fmt: skip
+    n_none = int((family == "none").sum())
+    if n_none:
+        lines.append(f"{n_none} comparison{'s' if n_none > 1 else ''} set two names for identical episodes against "
+                     "each other (the same outcome, steps, action ticks and energy in every pair): no information, "
+                     "in no family.")  # fmt: skip
     called = comparisons[comparisons["called"].astype(bool)]
     for _, r in called.iterrows():
-        where = f"{r['suite']}, {agg.cell_latency_label(r)}" + (
-            "" if r["budget_counts"] == "all" else f", {r['budget_counts']} budget"
-        )
-        better = r["diff"] > 0
-        lo, hi = r["diff_ci_lo"], r["diff_ci_hi"]
-        if pd.isna(lo) or pd.isna(hi):
-            scope = f"(too few tasks for a task-clustered interval: shown on these {int(r['n_tasks'])} tasks only)"
-        elif lo > 0 or hi < 0:
-            scope = f"[{100 * lo:+.0f}, {100 * hi:+.0f}] (task-clustered)"
-        else:  # McNemar treats pairs as independent; resampling tasks says the gap may not hold for other tasks
-            scope = (f"[{100 * lo:+.0f}, {100 * hi:+.0f}] (task-clustered: includes 0, so shown on these tasks, not "
-                     "for tasks of this kind)")  # fmt: skip
+        lines.append(_called_sentence(r))
+    for _, r in comparisons[comparisons.get("equivalent", pd.Series(dtype=object)) == True].iterrows():  # noqa: E712
         lines.append(
-            f"**{r['arm_a']} · {r['mode_a']}** succeeds {'more' if better else 'less'} often than **{r['arm_b']} · "
-            f"{r['mode_b']}** ({where}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
-            f"{int(r['n_pairs'])} shared episodes of {int(r['n_tasks'])} tasks; {int(r['a_only'])} succeed only with "
-            f"A and {int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points {scope}, "
-            f"McNemar p = {r['mcnemar_p']:.2g}, Holm-adjusted p = {r['p_adjusted']:.2g}."
+            f"**{r['arm_a']} · {r['mode_a']}** and **{r['arm_b']} · {r['mode_b']}** ({_where(r)}) are equivalent "
+            f"within ±{100 * r['equivalence_margin']:.0f} points (TOST at the spec's margin: the 95% interval "
+            f"{100 * r['diff']:+.0f} [{100 * r['diff_ci_lo']:+.0f}, {100 * r['diff_ci_hi']:+.0f}] lies inside it)."
         )
     all_ = pd.Series(True, index=comparisons.index)  # a table from before the Holm family was restricted
     testable = comparisons["testable"].astype(bool) if "testable" in comparisons else all_
-    tested_rest, untestable = int(testable.sum()) - len(called), int((~testable).sum())
+    in_family = testable & (family != "none")
+    tested_rest, untestable = int(in_family.sum()) - len(called), int((~testable & (family != "none")).sum())
+    margin = comparisons["equivalence_margin"].dropna() if "equivalence_margin" in comparisons else pd.Series()
+    equal_text = ("equivalence needs a TOST at the spec's analysis.equivalence_margin, and none was stated"
+                  if margin.empty else "only those named above pass the TOST at the spec's margin")  # fmt: skip
     if tested_rest:
         lines.append(
             f"{tested_rest} of the {len(comparisons)} paired comparisons show{'s' if tested_rest == 1 else ''} no "
-            "difference at a family-wise 5% level "
-            "(Holm-adjusted McNemar p >= 0.05): their arms are not shown to differ, which is not the same as equal "
-            "(paired_policies.csv has each one's interval)."
+            "difference at a family-wise 5% level (Holm-adjusted McNemar p >= 0.05): no difference detected, which "
+            f"is not the same as equal ({equal_text}; paired_policies.csv has each one's interval)."
         )
     if untestable:
         lines.append(
             f"{untestable} comparison{' has' if untestable == 1 else 's have'} fewer than 6 discordant pairs, too few "
-            "for an exact McNemar p below 0.05 whatever their direction: outside the Holm family, no difference shown."
+            "for an exact McNemar p below 0.05 whatever their direction: no difference detected."
         )
     return lines
+
+
+def _where(r) -> str:
+    return f"{r['suite']}, {agg.cell_latency_label(r)}" + (
+        "" if r["budget_counts"] == "all" else f", {r['budget_counts']} budget"
+    )
+
+
+def _called_sentence(r) -> str:
+    """A comparison whose Holm-adjusted McNemar p is below 0.05: these tasks, other init states; whether it holds for
+    other tasks of the suite is the task-level sign-flip test's (``cluster_p``) call."""
+    better = r["diff"] > 0
+    lo, hi = r["diff_ci_lo"], r["diff_ci_hi"]
+    n_tasks = int(r["n_tasks"])
+    interval = "no task-clustered interval (too few tasks)" if pd.isna(lo) or pd.isna(hi) else (
+        f"[{100 * lo:+.0f}, {100 * hi:+.0f}]")  # fmt: skip
+    label = "Exploratory: " if r.get("family") == "exploratory" else ""
+    cluster, cluster_adj = r.get("cluster_p"), r.get("cluster_p_adjusted")
+    if cluster is None or pd.isna(cluster):
+        scope = "no task-level test"
+    elif bool(r.get("called_tasks")):
+        scope = (f"task-level sign-flip p = {cluster:.2g} (Holm {cluster_adj:.2g}): the difference speaks for other "
+                 "tasks of the suite")  # fmt: skip
+    else:
+        floor = 2.0 / 2.0**n_tasks
+        why = f", and {n_tasks} tasks cannot give less than {floor:.2g}" if floor >= ALPHA else ""
+        scope = (f"task-level sign-flip p = {cluster:.2g}{why}: shown on these tasks, not for other tasks of the "
+                 "suite")  # fmt: skip
+    return (
+        f"{label}**{r['arm_a']} · {r['mode_a']}** succeeds {'more' if better else 'less'} often than **{r['arm_b']} "
+        f"· {r['mode_b']}** ({_where(r)}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
+        f"{int(r['n_pairs'])} shared episodes of {n_tasks} tasks; {int(r['a_only'])} succeed only with A and "
+        f"{int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points {interval}; McNemar p = "
+        f"{r['mcnemar_p']:.2g}, Holm-adjusted p = {r['p_adjusted']:.2g} (these tasks, other init states); {scope}."
+    )
 
 
 INTRO = (
@@ -124,13 +170,20 @@ NOTES = (
     "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw such a mean hollow, joined to no other, with its "
     "values as dots and no band.",
     "Comparisons: two policies (one protocol) or two protocols (one policy) are compared only on the episodes both "
-    "ran (same task, init state and seed): the discordant pairs, an exact McNemar test and the paired difference "
-    "with a task-clustered interval. Success is the primary endpoint; its p-values are Holm-adjusted over every "
-    "comparison of the report with at least 6 discordant pairs, the fewest that can reach p < 0.05 "
-    "(paired_policies.csv). McNemar counts pairs as independent; when the task-clustered "
-    "interval includes 0 a sentence says the difference is shown on these tasks only. The many changes against 0 s "
-    "are secondary: Benjamini-Hochberg adjusted, called (and starred in the paired table) only when the adjusted p "
-    "is below 0.05.",
+    "ran (same task, init state and seed): the discordant pairs, the paired difference with a task-clustered "
+    "interval and two tests that speak for two populations. The exact McNemar test counts the pairs as independent: "
+    "it speaks for these tasks at other init states. The task-level sign-flip test (cluster_p: each task's mean "
+    "difference, its sign flipped at random) takes the task as the unit: it speaks for other tasks of the suite, and "
+    "a claim about a method in general rests on it (with k tasks it cannot go below 2/2^k: 0.0625 at 5 tasks). "
+    "Success is the primary endpoint. The Holm family is the comparisons the sweep spec declares primary "
+    "(analysis.primary, paired_policies.csv column primary); the rest are exploratory, Holm-adjusted among "
+    "themselves over those with at least 6 discordant pairs, the fewest that can reach p < 0.05; two names for "
+    "identical episodes are in no family. Two arms are called equivalent only when a TOST at the spec's "
+    'analysis.equivalence_margin passes; otherwise a non-significant comparison is "no difference detected", with '
+    "its interval. The changes against 0 s are secondary: Benjamini-Hochberg adjusted over completion time, action "
+    "ticks, the trajectory metrics and the actuator energy (energy net of the constant 85 W overhead, whose change "
+    "would repeat the change of time; the totals stay in the tables, untested), called (and starred in the paired "
+    "table) only when the adjusted p is below 0.05.",
     "Paired changes: success-only means of two latencies average different task mixes whenever their success "
     "differs, so the findings compare each latency > 0 cell with the zero-latency cell of the same variant and "
     "protocol over the (task, init state, seed) pairs that succeed in both: the change per pair, its mean and its "

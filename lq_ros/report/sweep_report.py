@@ -24,6 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
 from lq_ros.report.failure_figures import fig_failure_modes  # noqa: E402
@@ -38,9 +39,11 @@ from lq_ros.report.tables import (  # noqa: E402
     per_task_view,
     summary_table,
 )
+from lq_ros.run.sweep.spec import MAX_SPEC_BYTES  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
 from lq_ros.scoring import failure_aggregate, intervals, labels, paired_tests  # noqa: E402
 from lq_ros.scoring.attribution import decompose, decomposition_table  # noqa: E402
+from lq_ros.scoring.decisions import AnalysisPlan, PlanError, parse_analysis  # noqa: E402
 
 # -- data ------------------------------------------------------------------------------------
 
@@ -98,6 +101,11 @@ def add_energy_parts_per_step(episodes: pd.DataFrame) -> pd.DataFrame:
     for col, _, _ in ENERGY_PARTS:
         out[col.replace("_j", "_per_step_j")] = pd.to_numeric(out.get(col), errors="coerce") * ratio
     out["energy_actuator_per_step_j"] = out["energy_mech_per_step_j"] + out["energy_elec_per_step_j"]
+    # Energy net of the constant overhead: the secondary energy endpoint (the overhead is power x time, so a change
+    # of the total repeats the change of completion time).
+    out["energy_actuator_j"] = pd.to_numeric(out.get("energy_mech_j"), errors="coerce") + pd.to_numeric(
+        out.get("energy_elec_j"), errors="coerce"
+    )
     return out
 
 
@@ -135,12 +143,28 @@ def _in_cell(episodes: pd.DataFrame, row: pd.Series) -> pd.Series:
     return mask
 
 
-def policy_comparisons(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+def policy_comparisons(
+    episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0, plan: AnalysisPlan | None = None
+) -> pd.DataFrame:
     """paired_policies.csv: every pair of policy variants (one protocol) and sync against async (one variant), per
-    suite, latency and budget, over their shared (task, init, seed) episodes (lq_ros/scoring/paired_tests.py)."""
+    suite, latency and budget, over their shared (task, init, seed) episodes (lq_ros/scoring/paired_tests.py);
+    ``plan``: the sweep's declared primary comparisons and equivalence margin (:func:`analysis_plan`)."""
     eps = episodes.copy()
     eps["variant"] = labels.base_labels(eps, ("budget_counts", "latency_dist"))
-    return paired_tests.paired_policies(eps, arm="variant", n_boot=n_boot, seed=seed)
+    return paired_tests.paired_policies(eps, arm="variant", n_boot=n_boot, seed=seed, plan=plan)
+
+
+def analysis_plan(results_dir: Path) -> AnalysisPlan:
+    """The ``analysis`` of the sweep's spec (``sweep.yaml``: primary comparisons, equivalence margin); nothing
+    declared for a folder of bags or a spec without one."""
+    path = Path(results_dir) / "sweep.yaml"
+    if not path.exists():
+        return AnalysisPlan()
+    try:
+        raw = load_yaml(read_text_file(path, MAX_SPEC_BYTES, "spec"), str(path))
+        return parse_analysis(raw.get("analysis") if isinstance(raw, dict) else None)
+    except (YamlRefused, PlanError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
 
 
 def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0):
@@ -161,11 +185,11 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
     paired = paired.sort_values(order, kind="stable").drop(columns=["_budget_order", "_variant"])
     # Many changes against 0 s (every metric of every cell): Benjamini-Hochberg over all of them; a sentence calls
     # a change only when its adjusted p is below 0.05 (lq_ros/scoring/paired_tests.py).
-    p_columns = [f"{m}_diff_p" for m in paired_tests.PAIRED_METRICS if f"{m}_diff_p" in paired]
+    p_columns = [f"{m}_diff_p" for m in paired_tests.TESTED_METRICS if f"{m}_diff_p" in paired]
     if p_columns:
         adjusted = paired_tests.benjamini_hochberg(paired[p_columns].to_numpy(dtype=np.float64).reshape(-1))
         for k, column in enumerate(p_columns):
-            paired[column.replace("_p", "_p_adjusted")] = adjusted.reshape(len(paired), len(p_columns))[:, k]
+            paired[f"{column}_adjusted"] = adjusted.reshape(len(paired), len(p_columns))[:, k]
         paired["p_adjustment"] = paired_tests.BH_ADJUSTMENT  # the CSV says how its p-values were adjusted
     return paired.reset_index(drop=True)
 
@@ -372,7 +396,8 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     paired_csv = out_dir / "paired_vs_zero_latency.csv"
     paired.to_csv(paired_csv, index=False)
     files[paired_csv.name] = paired_csv
-    comparisons = policy_comparisons(episodes, n_boot=n_boot, seed=seed)
+    plan = analysis_plan(results_dir)
+    comparisons = policy_comparisons(episodes, n_boot=n_boot, seed=seed, plan=plan)
     comparisons_csv = out_dir / "paired_policies.csv"
     comparisons.to_csv(comparisons_csv, index=False)
     files[comparisons_csv.name] = comparisons_csv

@@ -49,7 +49,8 @@ PAIRED_COLUMNS = (
     ("Δ jerk m/s³", "jerk_mean", 2, 1.0),
     ("Δ EE-Osc mm", "ee_osc", 1, 1000.0),
     ("Δ EE-Osc detrended mm", "ee_osc_detrended", 1, 1000.0),
-    ("Δ energy J", "energy_total_j", 0, 1.0),
+    ("Δ actuator energy J", "energy_actuator_j", 0, 1.0),
+    ("Δ energy J (total, untested)", "energy_total_j", 0, 1.0),
     ("Δ J/step", "energy_per_step_j", 2, 1.0),
 )
 
@@ -97,11 +98,23 @@ def comparison_table(comparisons: pd.DataFrame) -> pd.DataFrame:
             "B": f"{r['arm_b']} · {r['mode_b']}", "pairs": int(r["n_pairs"]), "tasks": int(r["n_tasks"]),
             "A only / B only": f"{int(r['a_only'])} / {int(r['b_only'])}",
             "success A − B (points)": _points(r["diff"], r["diff_ci_lo"], r["diff_ci_hi"]),
-            "McNemar p": f"{r['mcnemar_p']:.2g}",
-            "Holm p": f"{r['p_adjusted']:.2g}" if not pd.isna(r["p_adjusted"]) else "– (too few discordant)",
+            "family": r.get("family", "exploratory"),
+            "McNemar p (these tasks)": f"{r['mcnemar_p']:.2g}",
+            "Holm p": _holm_text(r),
+            "task-level p (other tasks)": _p_text(r.get("cluster_p")),
             "time to success A − B s (RMST)": _seconds(r["rmst_diff_s"], r["rmst_ci_lo"], r["rmst_ci_hi"]),
         })  # fmt: skip
     return pd.DataFrame(rows)
+
+
+def _p_text(p) -> str:
+    return "–" if p is None or pd.isna(p) else f"{p:.2g}"
+
+
+def _holm_text(r) -> str:
+    if not pd.isna(r["p_adjusted"]):
+        return f"{r['p_adjusted']:.2g}"
+    return "– (identical episodes)" if r.get("family") == "none" else "– (too few discordant)"
 
 
 def _points(diff: float, lo: float, hi: float) -> str:

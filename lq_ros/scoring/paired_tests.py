@@ -39,6 +39,7 @@ from scipy import stats
 
 from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
+from lq_ros.scoring.decisions import AnalysisPlan, cluster_p, equivalent
 from lq_ros.scoring.intervals import cluster_bootstrap_ci, mean_stats, paired_success_ci
 from lq_ros.scoring.labels import _pair_keys, _text, base_labels
 
@@ -48,7 +49,8 @@ PAIR_KEYS = ("task", "init", "seed")
 CELL_KEYS = ("suite", "latency_s", "latency_dist", "budget_counts")
 ALPHA = 0.05
 #: How each table's p-values are adjusted (its ``p_adjustment`` column).
-HOLM_ADJUSTMENT = "Holm over the comparisons with at least 6 discordant pairs"
+HOLM_PRIMARY = "Holm over the declared primary comparisons"
+HOLM_EXPLORATORY = "exploratory: Holm over the undeclared comparisons with at least 6 discordant pairs"
 BH_ADJUSTMENT = "Benjamini-Hochberg over every change against 0 s"
 #: Metrics of the paired view (:func:`paired_differences`): cell minus zero-latency cell, per pair.
 PAIRED_METRICS = (
@@ -59,9 +61,15 @@ PAIRED_METRICS = (
     "ee_osc",
     "ee_osc_detrended",
     "traj_length",
+    "energy_actuator_j",
     "energy_total_j",
     "energy_per_step_j",
 )
+#: Metrics whose changes are tested (Benjamini-Hochberg family): energy enters net of the constant overhead
+#: (``energy_actuator_j``, mechanical + electrical loss). The totals stay in the tables, untested: the overhead is
+#: 85 W x time, so a change of the total energy is the change of completion time again (r = 0.9997 in the demo),
+#: one finding that would be counted twice.
+TESTED_METRICS = tuple(m for m in PAIRED_METRICS if m not in ("energy_total_j", "energy_per_step_j"))
 
 
 def mcnemar_exact_p(a_only: int, b_only: int) -> float:
@@ -115,7 +123,7 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
     A - B with its task-cluster interval, ``mcnemar_p``, and the restricted-mean time-to-success difference.
     """
     keys = list(PAIR_KEYS)
-    cols = [*keys, "status", "completion_time_s", "horizon_s"]
+    cols = [*keys, "status", "completion_time_s", "horizon_s", *SAME_EPISODE_COLUMNS]
 
     def prepared(frame: pd.DataFrame) -> pd.DataFrame:
         frame = frame[frame["status"].isin(["success", "failure"])].copy()
@@ -126,6 +134,8 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
             limit = limit.fillna(frame["step_budget"])
         frame["horizon_s"] = pd.to_numeric(limit, errors="coerce") * CONTROL_DT_S
         frame["completion_time_s"] = pd.to_numeric(frame.get("completion_time_s"), errors="coerce")
+        for column in SAME_EPISODE_COLUMNS:
+            frame[column] = pd.to_numeric(frame.get(column, math.nan), errors="coerce")
         return frame[cols].drop_duplicates(keys)
 
     both = prepared(a).merge(prepared(b), on=keys, suffixes=("_a", "_b"))
@@ -143,11 +153,13 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
     nan4 = dict.fromkeys(("success_a", "success_b", "diff", "diff_ci_lo", "diff_ci_hi"), math.nan)
     out.update(nan4)
     out["mcnemar_p"] = mcnemar_exact_p(out["a_only"], out["b_only"])
-    rmst = dict.fromkeys(("rmst_a_s", "rmst_b_s", "rmst_diff_s", "rmst_ci_lo", "rmst_ci_hi"), math.nan)
-    out.update(rmst)
+    rmst = ("rmst_a_s", "rmst_b_s", "rmst_diff_s", "rmst_ci_lo", "rmst_ci_hi", "rmst_cluster_p")
+    out.update(dict.fromkeys(rmst, math.nan), cluster_p=math.nan, identical=False)
     if not len(both):
         return out
     diff = sa.astype(float) - sb.astype(float)
+    out["cluster_p"] = cluster_p(diff, tasks, seed=seed)  # the task as the unit: speaks for other tasks
+    out["identical"] = _identical(both)
     lo, hi = paired_success_ci(sa, sb, tasks, n_boot=n_boot, seed=seed)
     out.update(success_a=float(sa.mean()), success_b=float(sb.mean()), diff=float(diff.mean()), diff_ci_lo=lo,
                diff_ci_hi=hi)  # fmt: skip
@@ -163,21 +175,70 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
             spread = np.ptp(d) > 0
             lo, hi = cluster_bootstrap_ci(_clusters(d, tasks), n_boot=n_boot, seed=seed) if spread else (math.nan,) * 2
             out.update(rmst_a_s=float(ta.mean()), rmst_b_s=float(tb.mean()), rmst_diff_s=float(d.mean()),
-                       rmst_ci_lo=lo, rmst_ci_hi=hi)  # fmt: skip
+                       rmst_ci_lo=lo, rmst_ci_hi=hi, rmst_cluster_p=cluster_p(d, tasks, seed=seed))  # fmt: skip
     return out
 
 
-def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int = 2000, seed: int = 0) -> pd.DataFrame:
+#: The columns of paired_policies.csv, in order (tests/report/test_report_columns.py reads the header against it).
+COMPARISON_COLUMNS = (
+    *CELL_KEYS, "comparison", "arm_a", "mode_a", "arm_b", "mode_b", "n_pairs", "n_tasks", "both", "a_only", "b_only",
+    "neither", "success_a", "success_b", "diff", "diff_ci_lo", "diff_ci_hi", "mcnemar_p", "rmst_a_s", "rmst_b_s",
+    "rmst_diff_s", "rmst_ci_lo", "rmst_ci_hi", "rmst_cluster_p", "cluster_p", "identical", "primary", "family",
+    "testable", "p_adjusted", "cluster_p_adjusted", "called", "called_tasks", "p_adjustment", "equivalence_margin",
+    "equivalent",
+)  # fmt: skip
+#: Per metric of paired_vs_zero_latency.csv: ``<metric>_diff_<suffix>`` (``p_adjusted``: TESTED_METRICS only).
+DIFF_SUFFIXES = ("n", "mean", "ci_lo", "ci_hi", "p", "values", "cluster_p", "p_adjusted")
+
+#: Per-episode results that two names for one arm reproduce exactly (lockstep episodes are deterministic).
+SAME_EPISODE_COLUMNS = ("completion_steps", "action_ticks", "energy_total_j")
+
+
+def _identical(both: pd.DataFrame) -> bool:
+    """Whether every pair has the same outcome and the same SAME_EPISODE_COLUMNS values in both arms (both missing
+    counts as the same): the same episodes under two names, a comparison without information."""
+    if not (both["status_a"] == both["status_b"]).all():
+        return False
+    compared = 0
+    for column in SAME_EPISODE_COLUMNS:
+        a, b = both[f"{column}_a"].to_numpy(np.float64), both[f"{column}_b"].to_numpy(np.float64)
+        if np.isnan(a).all() and np.isnan(b).all():
+            continue  # not recorded: says nothing either way
+        if not np.all((a == b) | (np.isnan(a) & np.isnan(b))):
+            return False
+        compared += 1
+    return compared > 0  # identical outcomes alone do not make two arms one
+
+
+def paired_policies(
+    episodes: pd.DataFrame,
+    *,
+    arm: str = "policy",
+    n_boot: int = 2000,
+    seed: int = 0,
+    plan: AnalysisPlan | None = None,
+) -> pd.DataFrame:
     """Every pair of policies (same protocol) and sync against async (same policy), per suite, latency and budget.
 
-    ``arm``: the column naming a policy variant (the report's label, without budget and protocol). One row per
-    comparison with ``comparison`` ("policy" or "protocol"), ``arm_a``/``arm_b`` and ``mode_a``/``mode_b``, the
-    columns of :func:`compare_pairs`, ``testable`` (enough discordant pairs to reach p < 0.05), ``p_adjusted``
-    (Holm over the testable comparisons of the whole table; NaN for the others) and ``called`` (adjusted p below
-    0.05). Comparisons without a shared pair are left out.
+    ``arm``: the column naming a policy variant (the report's label, without budget and protocol); ``plan``: the
+    sweep's declared analysis (lq_ros/scoring/decisions.py; None: nothing declared). One row per comparison with
+    ``comparison`` ("policy" or "protocol"), ``arm_a``/``arm_b`` and ``mode_a``/``mode_b``, the columns of
+    :func:`compare_pairs` (``mcnemar_p``: these tasks, other init states; ``cluster_p``: the task-level sign-flip
+    test, other tasks of the suite), and the decision columns:
+
+    - ``primary``: declared in the plan; ``family``: "primary", "exploratory", or "none" (identical episodes under
+      two names: no information, in no family);
+    - ``testable``: enough discordant pairs for an exact McNemar p below 0.05;
+    - ``p_adjusted`` / ``cluster_p_adjusted``: Holm within the family (primary: every declared comparison;
+      exploratory: its testable comparisons), NaN outside one; ``called`` (McNemar, these tasks) and
+      ``called_tasks`` (sign-flip, other tasks) when the adjusted p is below 0.05;
+    - ``equivalence_margin`` and ``equivalent``: TOST at the plan's margin (None without one).
+
+    Comparisons without a shared pair are left out.
     """
     if episodes.empty:
         return pd.DataFrame()
+    plan = plan or AnalysisPlan()
     eps = episodes.copy()
     for key, default in zip(CELL_KEYS, ("", math.nan, "", "all"), strict=True):
         if key not in eps:
@@ -205,14 +266,40 @@ def paired_policies(episodes: pd.DataFrame, *, arm: str = "policy", n_boot: int 
     table = pd.DataFrame(rows)
     if table.empty:
         return table
+    return add_decisions(table, plan)[list(COMPARISON_COLUMNS)]
+
+
+def add_decisions(table: pd.DataFrame, plan: AnalysisPlan) -> pd.DataFrame:
+    """The decision columns of :func:`paired_policies` for a table of compare_pairs rows."""
+    table = table.copy()
+    identical = table["identical"].astype(bool).to_numpy()
+    primary = np.array([plan.is_primary(r) for r in table.to_dict("records")], dtype=bool) & ~identical
+    table["primary"] = primary
+    table["family"] = np.where(identical, "none", np.where(primary, "primary", "exploratory"))
     table["testable"] = [can_reach(a + b) for a, b in zip(table["a_only"], table["b_only"], strict=True)]
     testable = table["testable"].to_numpy(dtype=bool)
-    adjusted = np.full(len(table), math.nan)
-    adjusted[testable] = holm(table["mcnemar_p"].to_numpy(dtype=np.float64)[testable])
-    table["p_adjusted"] = adjusted
-    table["called"] = table["p_adjusted"] < ALPHA  # NaN (untestable) is never called
-    table["p_adjustment"] = HOLM_ADJUSTMENT
+    exploratory = ~primary & ~identical & testable
+    p = table["mcnemar_p"].to_numpy(dtype=np.float64)
+    cp = table["cluster_p"].to_numpy(dtype=np.float64)
+    table["p_adjusted"] = np.fmin(_holm_within(p, primary), _holm_within(p, exploratory))
+    table["cluster_p_adjusted"] = np.fmin(_holm_within(cp, primary), _holm_within(cp, exploratory))
+    table["called"] = table["p_adjusted"] < ALPHA  # NaN (outside a family) is never called
+    table["called_tasks"] = table["cluster_p_adjusted"] < ALPHA
+    table["p_adjustment"] = np.where(identical, "none: identical episodes",
+                                     np.where(primary, HOLM_PRIMARY, HOLM_EXPLORATORY))  # fmt: skip
+    table["equivalence_margin"] = plan.equivalence_margin if plan.equivalence_margin is not None else math.nan
+    table["equivalent"] = pd.Series([equivalent(lo, hi, plan.equivalence_margin)
+                                     for lo, hi in zip(table["diff_ci_lo"], table["diff_ci_hi"], strict=True)],
+                                    index=table.index, dtype=object)  # fmt: skip
     return table
+
+
+def _holm_within(p: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """Holm over the rows where ``members`` is True; NaN elsewhere (np.fmin of two families keeps each row's)."""
+    out = np.full(p.shape, math.nan)
+    if members.any():
+        out[members] = holm(p[members])
+    return out
 
 
 def can_reach(discordant: int, alpha: float = ALPHA) -> bool:
@@ -245,8 +332,9 @@ def paired_differences(
 
     Columns: the cell's ``by`` values; ``zero_budget_counts``; ``n_success``; ``zero_n`` and ``zero_n_success``
     (outcomes and successes of the zero-latency cell; 0 when there is none); ``n_pairs``; per metric
-    ``<metric>_diff_{n,mean,ci_lo,ci_hi,values}`` (cell minus zero per pair, a bootstrap interval over pairs from
-    MIN_N_INTERVAL pairs on) and ``<metric>_zero_mean`` / ``<metric>_cell_mean`` over the same pairs.
+    ``<metric>_diff_{n,mean,ci_lo,ci_hi,p,values}`` (cell minus zero per pair, the t interval and test over pairs
+    from MIN_N_INTERVAL pairs on: these tasks), ``<metric>_diff_cluster_p`` (the sign-flip test of the per-task mean
+    changes: other tasks of the suite) and ``<metric>_zero_mean`` / ``<metric>_cell_mean`` over the same pairs.
     """
     if "latency_s" not in by:
         raise ValueError("paired_differences compares latencies: `by` must contain latency_s")
@@ -275,6 +363,7 @@ def paired_differences(
         if status[i] == "success":
             zero_success.setdefault((*cell, pairs[i]), i)
     columns = {m: pd.to_numeric(eps[m], errors="coerce").to_numpy(dtype=np.float64) for m in metric_names if m in eps}
+    task_of = np.array([p[1] for p in pairs], dtype=object)  # the cluster of a pair: its task (PAIR_KEYS order)
     rows = []
     for key, group in eps.groupby(list(by), dropna=False, sort=True):
         first = group.index[0]
@@ -294,6 +383,8 @@ def paired_differences(
             at_zero = np.array([values[j] for _, j in matched], dtype=np.float64)
             ok = np.isfinite(at_cell) & np.isfinite(at_zero)
             row.update(mean_stats(at_cell[ok] - at_zero[ok], f"{metric}_diff", confidence, n_boot, seed))
+            tasks = np.array([task_of[i] for i, _ in matched], dtype=object)[ok]
+            row[f"{metric}_diff_cluster_p"] = cluster_p(at_cell[ok] - at_zero[ok], tasks.astype(str), seed=seed)
             row[f"{metric}_zero_mean"] = float(at_zero[ok].mean()) if ok.any() else math.nan
             row[f"{metric}_cell_mean"] = float(at_cell[ok].mean()) if ok.any() else math.nan
         rows.append(row)

@@ -34,18 +34,23 @@ def test_comparison_sentences_call_only_adjusted_hits_and_qualify_clustered_ones
     assert list(table["testable"]) == [True, True, False, True]
     assert list(table["called"]) == [True, True, False, False]
     lines = prose.comparison_sentences(table.reset_index())
-    assert len(lines) == 4
-    across, clustered, tested, untestable = lines
-    assert across.startswith("**p · sync** succeeds more often than **q · sync** (libero_spatial, 0.1 s (N=2))")
-    assert "12 succeed only with A and 0 only with B" in across and "(task-clustered)," in across
-    # Two whole tasks carry the difference: McNemar calls it, resampling tasks does not exclude 0, and the sentence
-    # says the difference holds for these tasks only.
-    assert "includes 0, so shown on these tasks, not for tasks of this kind" in clustered
+    assert len(lines) == 5
+    undeclared, across, clustered, tested, untestable = lines
+    assert undeclared.startswith("No primary comparison was declared") and "exploratory" in undeclared
+    assert across.startswith("Exploratory: **p · sync** succeeds more often than **q · sync** (libero_spatial, 0.1 s")
+    assert "12 succeed only with A and 0 only with B" in across and "(these tasks, other init states)" in across
+    # 6 tasks all one way: the task-level test's floor 2/64 = 0.031 < 0.05, but Holm over two exploratory
+    # comparisons doubles it; the sentence names the population each p-value speaks for.
+    assert "task-level sign-flip p = 0.031" in across
+    # Two whole tasks carry the difference: McNemar calls it, the task-level test does not, and the sentence says
+    # the difference holds for these tasks only.
+    assert "shown on these tasks, not for other tasks of the suite" in clustered
     assert tested.startswith("1 of the 4 paired comparisons shows no difference at a family-wise 5% level")
+    assert "no difference detected, which is not the same as equal" in tested
     assert untestable.startswith("1 comparison has fewer than 6 discordant pairs")
 
 
 def test_no_sentence_compares_separate_intervals():
     lines = prose.comparison_sentences(comparisons())
     assert not any("overlap" in line for line in lines)
-    assert all("McNemar" in line or "discordant" in line or "family-wise" in line for line in lines)
+    assert all("McNemar" in line or "discordant" in line or "family-wise" in line for line in lines[1:])

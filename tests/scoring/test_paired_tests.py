@@ -9,8 +9,10 @@ import pandas as pd
 import pytest
 
 from lq_ros.scoring.aggregate import aggregate, ci_text, episodes_frame
+from lq_ros.scoring.decisions import AnalysisPlan, Primary
 from lq_ros.scoring.paired_tests import (
-    HOLM_ADJUSTMENT,
+    HOLM_EXPLORATORY,
+    HOLM_PRIMARY,
     benjamini_hochberg,
     can_reach,
     compare_pairs,
@@ -98,7 +100,7 @@ def test_holm_family_is_the_comparisons_that_can_reach_significance():
     table = paired_policies(pd.concat(rows, ignore_index=True), n_boot=200).set_index(["arm_a", "arm_b"])
     # p-q and p-r: 10 discordant pairs each, testable; q-r: none, so Holm's family is two, not three.
     assert not table.loc[("q", "r"), "testable"]
-    assert set(table["p_adjustment"]) == {HOLM_ADJUSTMENT}
+    assert set(table["p_adjustment"]) == {HOLM_EXPLORATORY}  # nothing declared: all exploratory
     assert table.loc[("p", "q"), "p_adjusted"] == pytest.approx(2 * mcnemar_exact_p(10, 0))
 
 
@@ -167,3 +169,61 @@ def test_two_seeds_of_one_episode_are_two_pairs():
     b8["status"] = ["success"] * 5 + ["failure"] * 5  # seed 8: the other half fails
     out = compare_pairs(pd.concat([a, a8]), pd.concat([b, b8]), n_boot=200)
     assert out["n_pairs"] == 20 and (out["a_only"], out["b_only"], out["both"]) == (10, 0, 10)
+
+
+def _arms(spec: dict[str, list[str]], **columns) -> pd.DataFrame:
+    rows = []
+    for policy, statuses in spec.items():
+        frame = arm(statuses)
+        frame["policy"], frame["mode"], frame["suite"], frame["latency_s"] = policy, "sync", "libero_spatial", 0.2
+        for key, value in columns.items():
+            frame[key] = value
+        rows.append(frame)
+    return pd.concat(rows, ignore_index=True)
+
+
+def test_holm_family_is_the_declared_set_and_never_holds_an_arm_against_itself():
+    """The bad case: "naive + slack" at K = 0 is the naive arm under a second name; its comparisons repeat the naive
+    arm's and, in the family, would triple Holm's multiplier. Declared: p against q only."""
+    eps = _arms({"p": ["success"] * 10, "q": ["failure"] * 10, "q2": ["failure"] * 10, "r": ["success"] * 10},
+                action_ticks=100, energy_total_j=500.0)  # fmt: skip
+    eps.loc[eps.policy == "r", "energy_total_j"] = 510.0  # r: the same outcomes as p, other episodes
+    plan = AnalysisPlan((Primary("p", "q"), Primary("q", "q2")))
+    table = paired_policies(eps, n_boot=200, plan=plan).set_index(["arm_a", "arm_b"])
+    # q and q2 ran identical episodes: in no family, even though declared.
+    assert table.loc[("q", "q2"), "identical"] and table.loc[("q", "q2"), "family"] == "none"
+    assert not table.loc[("q", "q2"), "primary"] and math.isnan(table.loc[("q", "q2"), "p_adjusted"])
+    assert not table.loc[("p", "r"), "identical"]  # same outcomes, different energy: two arms
+    # The family is {p-q}: Holm of one comparison is its own p.
+    assert table.loc[("p", "q"), "primary"] and table.loc[("p", "q"), "p_adjustment"] == HOLM_PRIMARY
+    assert table.loc[("p", "q"), "p_adjusted"] == pytest.approx(mcnemar_exact_p(10, 0))
+    # Exploratory: p-q2, q-r, q2-r (10 discordant each; p-r has none): Holm over three.
+    assert table.loc[("p", "q2"), "family"] == "exploratory"
+    assert table.loc[("p", "q2"), "p_adjusted"] == pytest.approx(3 * mcnemar_exact_p(10, 0))
+    # Five tasks, all 1.0 apart: the task-level test's floor 2 / 2^5.
+    assert table.loc[("p", "q"), "cluster_p"] == pytest.approx(2 / 32)
+    assert not table.loc[("p", "q"), "called_tasks"] and table.loc[("p", "q"), "called"]
+
+
+def test_equivalence_needs_a_margin_and_an_interval_inside_it():
+    eps = _arms({"p": ["success", "failure"] * 20, "q": ["failure", "success"] * 20})  # 20 / 20 discordant
+    eps["task"], eps["init"] = [i // 4 for i in range(40)] * 2, [i % 4 for i in range(40)] * 2  # 10 tasks x 4
+    table = paired_policies(eps, n_boot=500)
+    assert table["equivalent"].tolist() == [None]  # no margin: never equivalent
+    wide = paired_policies(eps, n_boot=500, plan=AnalysisPlan(equivalence_margin=0.05)).iloc[0]
+    narrow_interval = paired_policies(eps, n_boot=500, plan=AnalysisPlan(equivalence_margin=0.5)).iloc[0]
+    assert wide["diff_ci_hi"] > 0.05 and wide["equivalent"] is False
+    assert narrow_interval["equivalent"] is True and narrow_interval["equivalence_margin"] == 0.5
+
+
+def test_changes_against_zero_carry_a_task_level_test():
+    rows = []
+    for task in range(5):
+        rows.append(_episode("success", steps=100, task=task))
+        rows.append(_episode("success", latency=0.2, steps=100 + 10 * (task + 1) * (1 if task < 4 else -1), task=task))
+    by = ("policy", "mode", "latency_s", "latency_dist", "suite")  # pooled over tasks, as the report
+    paired = paired_differences(episodes_frame(rows), by=by, n_boot=200).iloc[0]
+    # Per-task changes +0.5, +1.0, +1.5, +2.0, -2.5 s, in half seconds 1, 2, 3, 4, -5: |sum| = 5 of 15. Flipping a
+    # subset of total F gives |15 - 2F| >= 5 iff F <= 5 (10 subsets: {}, five singles, {1,2}, {1,3}, {1,4}, {2,3})
+    # or F >= 10 (their 10 complements): 20 of 32 sign patterns.
+    assert paired["completion_time_s_diff_cluster_p"] == pytest.approx(20 / 32)
