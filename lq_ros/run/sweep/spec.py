@@ -16,6 +16,7 @@ from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.validation import did_you_mean, num_tasks
+from lq_ros.scoring.decisions import PlanError, parse_analysis
 
 MODES = ("sync", "async")
 #: The most episodes one spec may expand to (counted before anything is expanded); split larger sweeps.
@@ -41,7 +42,7 @@ PROTOCOL_KEYS = PROTOCOL_FIELDS
 SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
     "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budget_counts",
-    "clock", "robot", "parts",
+    "clock", "robot", "parts", "analysis",
 }  # fmt: skip
 #: Every ``lq run`` / ``lq eval`` flag that sets an episode, and the spec key that sets the same thing: one set of
 #: names, plural where a spec takes a list. ``modes.<mode>.<key>``: a protocol parameter under its mode;
@@ -58,7 +59,7 @@ FLAG_TO_SPEC_KEY = {
     "--transport": "transport", "--timeout": "timeout_s",
 }  # fmt: skip
 #: Keys that apply to the whole sweep: a ``parts`` entry may not set them.
-SWEEP_WIDE_KEYS = {"name", "transport", "timeout_s", "clock", "robot", "parts"}
+SWEEP_WIDE_KEYS = {"name", "transport", "timeout_s", "clock", "robot", "parts", "analysis"}
 #: The one-suite shorthand: a part's ``suites`` replaces the top level's shorthand, a shorthand key its ``suites``.
 _SHORTHAND_KEYS = {"suite", "tasks", "inits"}
 #: ``parts`` entries at most.
@@ -440,6 +441,10 @@ def expand_spec(raw: dict, *, default_name: str = "sweep") -> SweepSpec:
             _expand_product(part, clock_and_robot, configs)
         except SpecError as exc:
             raise SpecError(f"parts[{i}]: {exc}" if parts else str(exc)) from exc
+    try:  # the declared primary comparisons and equivalence margin (lq_ros/scoring/decisions.py)
+        parse_analysis(raw.get("analysis"), policy_names=sorted({c.policy for c in configs.values()}))
+    except PlanError as exc:
+        raise SpecError(str(exc)) from None
     return SweepSpec(name, tuple(configs.values()), transport, timeout_s, raw)
 
 

@@ -206,3 +206,20 @@ def test_clock_and_robot_keys():
     ]:
         with pytest.raises(sw.SpecError, match=message):
             sw.expand_spec(small_spec(**over))
+
+
+def test_analysis_declares_primaries_and_an_equivalence_margin():
+    raw = small_spec(policies=["sine", "scripted"],
+                     analysis={"primary": [{"a": "sine", "b": "scripted", "mode": "async", "latency_s": 0.1}],
+                               "equivalence_margin": 0.1})  # fmt: skip
+    assert len(sw.expand_spec(raw).configs) == 8  # the analysis adds no episode
+    for analysis, message in (
+        ({"primary": [{"a": "sine", "b": "sine", "mode": "async"}]}, "compares 'sine' with itself"),
+        ({"primary": [{"a": "flow", "b": "sine"}]}, "names no policy of the spec"),
+        ({"equivalence_margin": -1}, "equivalence_margin"),
+        ({"primaries": []}, "analysis: expected a mapping"),
+    ):
+        with pytest.raises(sw.SpecError, match=message):
+            sw.expand_spec(small_spec(policies=["sine", "scripted"], analysis=analysis))
+    with pytest.raises(sw.SpecError, match="apply to the whole sweep"):
+        sw.expand_spec(small_spec(parts=[{"analysis": {}}]))
