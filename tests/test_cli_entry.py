@@ -1,5 +1,6 @@
-"""lq_ros/cli.py's ``entry`` (the ``lq`` command): the exit code and everything printed or registered to run at
-exit survive leaving without the interpreter's teardown; a process that loaded ROS exits the normal way, with it."""
+"""lq_ros/cli/application.py's ``entry`` (the ``lq`` command): the exit code and everything printed or registered to
+run at exit survive leaving without the interpreter's teardown; a process that loaded ROS exits the normal way, with
+it."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ def run_entry(tmp_path, code: int, before: str = "") -> subprocess.CompletedProc
         f"""
         import atexit, sys
         {before}
-        from lq_ros import cli
+        from lq_ros.cli import application as cli
         atexit.register(lambda: open({str(marker)!r}, "w").write("ran"))
 
         def main():

@@ -214,7 +214,7 @@ def test_an_enumerated_option_lists_its_choices_in_help_and_refusal(tmp_path, ca
 
 
 def test_the_literal_choices_are_the_modules_own():
-    from lq_ros import cli
+    from lq_ros.cli import common as cli
     from lq_ros.core.suite_constants import STEP_BUDGETS
     from lq_ros.run.sweep import BACKENDS
 

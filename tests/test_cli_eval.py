@@ -7,7 +7,7 @@ import re
 import pytest
 import yaml
 
-from lq_ros.cli import EVAL_SPEC_FILE, EVAL_SPEC_FLAGS, eval_spec
+from lq_ros.cli.eval import EVAL_SPEC_FILE, EVAL_SPEC_FLAGS, eval_spec
 from lq_ros.core.run_config import PROTOCOL_FIELDS
 from lq_ros.run.sweep.spec import FLAG_TO_SPEC_KEY, MODES, SPEC_KEYS, SpecError, expand_spec, index_list
 from tests.test_cli_errors import assert_refused, lq

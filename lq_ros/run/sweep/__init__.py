@@ -7,7 +7,7 @@
 ``ray_pool``       the Ray pool: actors on a private loopback Ray or a cluster
 ``orchestrator``   ``run_sweep``: scheduling, records, retry of a crashed attempt
 
-The progress bar is the CLI's (``lq sweep``, lq_ros/cli.py). Layout of a sweep folder (``OUT``)::
+The progress bar is the CLI's (``lq sweep``, lq_ros/cli/sweep.py). Layout of a sweep folder (``OUT``)::
 
     sweep.yaml             the spec as given (provenance)
     manifest.json          every episode key the spec expands to, with its configuration
