@@ -11,8 +11,8 @@ Which episodes a metric is averaged over (one table, the single source of truth)
   episode often ends motionless and would make a policy that fails more look smoother; the same over
   failures (``<metric>_failure_mean``) and over all outcomes (``<metric>_all_mean``) beside them.
 - trajectory length / efficiency: successes (paper A.4); latency and protocol counts: all outcomes.
-Success uses the Wilson score interval over episodes and, beside it, the task-cluster bootstrap interval
-(``success_cluster_ci_lo``/``_hi``: whole tasks resampled; the estimand is the cell's mean success over its
+Success uses the Wilson score interval over episodes and, beside it, the task-clustered interval
+(``success_cluster_ci_lo``/``_hi``: the task as the unit; the estimand is the cell's mean success over its
 episodes, and episodes of one task are not independent draws of it); continuous metrics the Student t interval
 (lq_ros/scoring/intervals.py: it holds its 95% coverage at the small n of a cell, where the percentile bootstrap
 does not). Below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
@@ -265,9 +265,9 @@ def aggregate(
 
 
 def task_clustered_success(outcomes: pd.DataFrame, confidence: float, n_boot: int, seed: int) -> dict:
-    """``n_tasks``, ``success_cluster_ci_lo``/``_hi`` (intervals.clustered_success_ci: the task-cluster bootstrap,
-    never narrower than Wilson) and ``success_design_effect`` of a group's episodes with an outcome (no interval below
-    MIN_N_INTERVAL tasks: a handful of tasks says too little about others)."""
+    """``n_tasks``, ``success_cluster_ci_lo``/``_hi`` (intervals.clustered_success_ci: the cluster-robust t interval
+    over tasks, never narrower than Wilson) and ``success_design_effect`` of a group's episodes with an outcome (no
+    interval below MIN_N_INTERVAL tasks: a handful of tasks says too little about others)."""
     if outcomes.empty or "task" not in outcomes:
         return {"n_tasks": 0, "success_cluster_ci_lo": math.nan, "success_cluster_ci_hi": math.nan,
                 "success_design_effect": math.nan}  # fmt: skip

@@ -15,8 +15,9 @@ S_action(L)`` (what changing the hold would change), never subtracted from the r
 
 S is the success rate over the (task, init, seed) pairs present in every compared cell; S(0) is the zero-latency
 cell under the paper's settings (at N = 0 nothing holds, so neither budget nor hold can change it). Every component
-is a mean of per-pair differences of 0/1 outcomes, and carries a 95% bootstrap interval over those pairs, whole
-tasks resampled (the expanded percentile interval of lq_ros/scoring/intervals.py, seeded; none below 5 tasks). Async
+is a mean of per-pair differences of 0/1 outcomes, and carries the paired 95% interval of lq_ros/scoring/intervals.py
+(task-clustered, never narrower than Tango's score interval: it keeps a width when every pair agrees; none below 5
+tasks). Async
 cells hold only before the first chunk and on underruns: their rows give ``total``, ``budget`` and ``rest`` the same
 way.
 """
@@ -45,8 +46,8 @@ def _key(value: object) -> object:
 
 
 def _paired_interval(gain: np.ndarray, base: np.ndarray, tasks: list, n_boot: int, seed: int) -> tuple[float, float]:
-    """95% interval of S(gain) - S(base) over the pairs: whole tasks resampled (a task's (init, seed) pairs are not
-    independent draws), never narrower than Newcombe's paired score interval (intervals.paired_success_ci). NaN below
+    """95% interval of S(gain) - S(base) over the pairs (intervals.paired_success_ci: the task as the unit, a task's
+    (init, seed) pairs are not independent draws, never narrower than Tango's score interval). NaN below
     MIN_N_INTERVAL tasks."""
     return paired_success_ci(gain.astype(bool), base.astype(bool), tasks, n_boot=n_boot, seed=seed)
 

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from lq_ros.scoring import failure_modes
-from lq_ros.scoring.intervals import clustered_success_ci
+from lq_ros.scoring.intervals import clustered_success_ci, paired_success_ci
 
 
 def mode_fractions(
@@ -58,10 +58,9 @@ def paired_mode_change(
 ) -> dict:
     """The change in the fraction of episodes ending in ``mode`` from 0 s to ``latency_s`` within one series (e.g.
     suite, policy, protocol: ``series`` maps column to value), over the (task, init, seed) pairs classified at both
-    latencies, with the task-clustered bootstrap interval of the mean paired difference (whole tasks resampled:
-    an init's episodes at two latencies share its task). ``n_pairs``, ``n_tasks``, ``change``, ``ci_lo``,
-    ``ci_hi`` (NaN with too few tasks)."""
-    from lq_ros.scoring.intervals import cluster_bootstrap_ci
+    latencies, with the interval of a paired change in a proportion (intervals.paired_success_ci: task-clustered,
+    never narrower than Tango's score interval, so 10 pairs that all move the same way still get a width).
+    ``n_pairs``, ``n_tasks``, ``change``, ``ci_lo``, ``ci_hi`` (NaN with too few tasks)."""
 
     rows = episodes
     for column, value in series.items():
@@ -75,11 +74,12 @@ def paired_mode_change(
     zero = rows[latency == 0.0].drop_duplicates(keys).set_index(keys)["failure_mode"]
     cell = rows[latency == round(float(latency_s), 9)].drop_duplicates(keys).set_index(keys)["failure_mode"]
     both = zero.index.intersection(cell.index)
-    diff = (cell.loc[both] == mode).astype(float) - (zero.loc[both] == mode).astype(float)
-    clusters = [group.to_numpy() for _, group in diff.groupby(level="task", sort=True)]
-    low, high = cluster_bootstrap_ci(clusters, n_boot=n_boot, seed=seed)
-    return {"n_pairs": len(both), "n_tasks": len(clusters), "change": float(diff.mean()) if len(both) else math.nan,
-            "ci_lo": low, "ci_hi": high}  # fmt: skip
+    at_cell = (cell.loc[both] == mode).to_numpy()
+    at_zero = (zero.loc[both] == mode).to_numpy()
+    tasks = both.get_level_values("task").to_numpy()
+    low, high = paired_success_ci(at_cell, at_zero, tasks) if len(both) else (math.nan, math.nan)
+    change = float(at_cell.mean() - at_zero.mean()) if len(both) else math.nan
+    return {"n_pairs": len(both), "n_tasks": len(set(tasks)), "change": change, "ci_lo": low, "ci_hi": high}
 
 
 def shift_sentences(

@@ -6,24 +6,22 @@ same init states and seeds for every task it is the mean over the suite's tasks 
 metric are over the episodes lq_ros/scoring/aggregate.py names (successes, for quality metrics).
 
 - Success rates: the Wilson score interval over episodes (the uncertainty over init states and seeds of these very
-  tasks) and, beside it, the **task-clustered** interval (:func:`clustered_success_ci`: whole tasks resampled, so it
-  speaks for other tasks of this kind; success clusters by task, one task 0/10, another 10/10). It is the hull of
-  the task-cluster bootstrap and the Wilson interval: clustering only widens, and the bootstrap collapses to a point
-  when every task looks alike. The design effect says how much the clustering inflates the variance.
-- Paired success differences: the same hull, of the cluster bootstrap of per-pair differences and Newcombe's paired
-  score interval (:func:`paired_success_ci`).
-- The task-cluster bootstrap is the **expanded percentile** interval (Hesterberg 2015): the percentile level widened
-  so that a normal quantile at it equals sqrt(k/(k-1)) t_{k-1}, k the number of tasks. Below MIN_N_INTERVAL tasks
-  there is no task-clustered interval.
+  tasks) and, beside it, the **task-clustered** interval (:func:`clustered_success_ci`: the task as the unit, so it
+  speaks for other tasks of this kind; success clusters by task, one task 0/10, another 10/10): the hull of the
+  cluster-robust t interval (:func:`cluster_t_ci`, t with k - 1 degrees of freedom over k tasks) and Wilson.
+- Paired differences of proportions (success of two arms on the same episodes, attribution components, a failure
+  mode's share at two latencies): the hull of the cluster-robust t interval of the per-pair differences and
+  Tango's score interval (:func:`paired_success_ci`, :func:`tango_paired_ci`). Tango keeps a width when every pair
+  agrees (10 agreeing pairs: +-0.28 whatever their success rate), where Newcombe's hybrid interval and any
+  bootstrap give [0, 0].
+- Below MIN_N_INTERVAL tasks there is no task-clustered interval.
 - Means of a metric (completion time, jerk, energy, paired changes): the **Student t** interval, from
-  MIN_N_INTERVAL values on; statistics without a closed form (the Kaplan-Meier restricted mean when failures end
-  before the horizon) the t interval with a bootstrap standard error (:func:`bootstrap_t_interval`).
+  MIN_N_INTERVAL values on. The restricted mean time has its own (lq_ros/scoring/survival.py).
 
-Simulated coverage of the nominal 95% (benchmarks/interval_coverage.py, 2000 samples a cell): at n = 5-9 the t
-interval covers 94-96% (normal data) and 91-92% (lognormal, sigma 0.5), where the percentile bootstrap covers 84-90%
-and 82-87%; with 5 or 10 tasks the reported success interval covers 92-100% and the paired difference's 92-97%,
-where the plain percentile cluster bootstrap covers 84-95% and Wilson alone falls to 56% under strong clustering.
-tests/scoring/test_intervals.py checks these with fewer samples.
+No reported interval is a bootstrap: with 5 tasks a percentile bootstrap cannot leave the range of the observed
+tasks and collapses to a point when they agree. :func:`cluster_bootstrap_ci` and :func:`bootstrap_ci` stay as the
+textbook intervals the coverage simulation compares against. Simulated coverage of the nominal 95%:
+benchmarks/interval_coverage.py prints it; tests/scoring/test_intervals.py runs a reduced simulation.
 """
 
 from __future__ import annotations
@@ -35,7 +33,7 @@ from statistics import NormalDist
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
+from scipy import optimize, stats
 
 #: Fewest values an interval of a mean is given for: tables and figures show the values and their count instead.
 MIN_N_INTERVAL = 5
@@ -70,16 +68,20 @@ def expanded_level(n: int, confidence: float = 0.95) -> float:
 
 
 def cluster_bootstrap_ci(
-    clusters: Sequence[ArrayLike], n_boot: int = 2000, seed: int = 0, confidence: float = 0.95, *, expanded: bool = True
+    clusters: Sequence[ArrayLike],
+    n_boot: int = 20_000,
+    seed: int = 0,
+    confidence: float = 0.95,
+    *,
+    expanded: bool = True,
 ) -> tuple[float, float]:
     """Expanded percentile interval of the mean over all units when whole clusters (tasks) are resampled.
 
-    ``clusters``: one array of unit values per cluster (e.g. each task's 0/1 successes, or each task's paired
-    differences). Each resample draws as many clusters as there are, with replacement, and takes the mean over
-    all their units (so a cluster weighs by its size, as in the pooled estimate). The quantiles are taken at
-    :func:`expanded_level` of the number of clusters (``expanded=False``: the plain percentile interval, which
-    undercovers at the suites' 5-10 tasks; kept for comparison). Fewer than MIN_N_INTERVAL non-empty clusters
-    give (nan, nan): a handful of tasks says too little about other tasks for a 95% claim.
+    Not used for a reported number (the module docstring says why); the coverage simulation compares it with
+    :func:`cluster_t_ci`. ``clusters``: one array of unit values per cluster. Each resample draws as many clusters
+    as there are, with replacement, and takes the mean over all their units (a cluster weighs by its size). The
+    quantiles are taken at :func:`expanded_level` of the number of clusters (``expanded=False``: the plain
+    percentile interval). Fewer than MIN_N_INTERVAL non-empty clusters give (nan, nan).
     """
     groups = [np.asarray(c, dtype=np.float64).reshape(-1) for c in clusters]
     groups = [g for g in groups if g.size]
@@ -117,23 +119,24 @@ def bootstrap_t_interval(
 
 
 def clustered_success_ci(
-    clusters: Sequence[ArrayLike], n_boot: int = 2000, seed: int = 0, confidence: float = 0.95
+    clusters: Sequence[ArrayLike], n_boot: int = 0, seed: int = 0, confidence: float = 0.95
 ) -> tuple[float, float]:
-    """The success rate's task-clustered interval: the hull of the task-cluster bootstrap (:func:`cluster_bootstrap_ci`
-    of each task's 0/1 outcomes) and the Wilson interval over all episodes.
+    """The success rate's task-clustered interval: the hull of :func:`cluster_t_ci` over each task's 0/1 outcomes
+    (clipped to [0, 1]) and the Wilson interval over all episodes.
 
-    Clustering can only widen the interval (a design effect below 1 is noise), and the bootstrap collapses to a
-    point when every resampled task looks alike (all succeed, say), where the Wilson interval does not. NaN below
-    MIN_N_INTERVAL tasks, as the cluster bootstrap.
+    Clustering can only widen the interval (a design effect below 1 is noise), and the cluster interval has no
+    width when every task has the same rate (all succeed, say), where the Wilson interval has. NaN below
+    MIN_N_INTERVAL tasks. ``n_boot`` and ``seed`` are unused (kept for callers: the interval used to be a
+    bootstrap, which covered no better at 5-10 tasks; benchmarks/interval_coverage.py compares them).
     """
     groups = [np.asarray(c, dtype=np.float64).reshape(-1) for c in clusters]
     groups = [g for g in groups if g.size]
-    low, high = cluster_bootstrap_ci(groups, n_boot, seed, confidence)
+    low, high = cluster_t_ci(groups, confidence)
     if math.isnan(low):
         return low, high
     units = np.concatenate(groups)
     w_low, w_high = wilson_interval(int(units.sum()), units.size, confidence)
-    return min(low, w_low), max(high, w_high)
+    return max(0.0, min(low, w_low)), min(1.0, max(high, w_high))
 
 
 def newcombe_paired_ci(
@@ -141,7 +144,9 @@ def newcombe_paired_ci(
 ) -> tuple[float, float]:
     """Newcombe's hybrid score interval for the difference of two paired proportions, P(A) - P(B) (Newcombe 1998,
     Stat. Med. 17:2635, method 10): from the two Wilson intervals and the phi correlation of the 2x2 table of pairs.
-    Unlike a bootstrap it keeps a width when every pair agrees (0 of 10 against 0 of 10 gives +-0.28).
+
+    Not used for a reported number: when every pair agrees and both outcomes occur (5 pairs both succeed, 5 both
+    fail) phi is 1 and the interval is [0, 0]. Kept for the coverage comparison; :func:`tango_paired_ci` replaced it.
 
     Raises:
         ValueError: a negative count or no pairs.
@@ -161,22 +166,102 @@ def newcombe_paired_ci(
     return max(-1.0, p1 - p2 - below), min(1.0, p1 - p2 + above)
 
 
+def _tango_statistic(delta: float, b: int, c: int, n: int) -> float:
+    """Tango's score statistic at the null difference ``delta`` (b: pairs only A succeeded, c: only B, n pairs):
+    (b - c - n delta) / sqrt(n (2 q + delta (1 - delta))), q the restricted maximum-likelihood estimate of the
+    B-only probability under the null (Tango 1998, eq. 5)."""
+    a_ = 2.0 * n
+    b_ = -b - c + (2.0 * n - b + c) * delta
+    c_ = -c * delta * (1.0 - delta)
+    q = (math.sqrt(max(0.0, b_ * b_ - 4.0 * a_ * c_)) - b_) / (2.0 * a_)
+    num = b - c - n * delta
+    var = n * (2.0 * q + delta * (1.0 - delta))
+    if var <= 0.0:
+        return 0.0 if num == 0 else math.copysign(math.inf, num)
+    return num / math.sqrt(var)
+
+
+def tango_paired_ci(both: int, a_only: int, b_only: int, neither: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Tango's score interval for the difference of two paired proportions, P(A) - P(B) (Tango 1998, Stat. Med.
+    17:891; the interval Newcombe 1998 and Fagerland et al. 2014 recommend): every difference whose score test is
+    not rejected at ``confidence``, found by root finding on the score statistic. It depends on the discordant
+    pairs and the number of pairs only, and keeps a width when every pair agrees: 0 discordant of n gives
+    +-z^2 / (n + z^2) (+-0.278 at n = 10), whatever the success rate of the agreeing pairs.
+
+    Raises:
+        ValueError: a negative count, no pairs, or confidence outside (0, 1).
+    """
+    counts = (int(both), int(a_only), int(b_only), int(neither))
+    if min(counts) < 0 or sum(counts) == 0:
+        raise ValueError(f"counts of pairs must be >= 0 and not all 0, got {counts}")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    _, b, c, _ = counts
+    n = sum(counts)
+    z = float(stats.norm.ppf(0.5 + confidence / 2.0))
+    estimate = (b - c) / n
+    edge = 1.0 - 1e-12  # the statistic is 0/0 or infinite at exactly +-1
+
+    def score(delta: float) -> float:
+        return _tango_statistic(delta, b, c, n)
+
+    # The statistic falls as delta rises: the bounds are where it crosses +z (below the estimate) and -z (above).
+    low = -1.0 if score(-edge) <= z else float(optimize.brentq(lambda d: score(d) - z, -edge, estimate, xtol=1e-12))
+    high = 1.0 if score(edge) >= -z else float(optimize.brentq(lambda d: score(d) + z, estimate, edge, xtol=1e-12))
+    return max(-1.0, low), min(1.0, high)
+
+
+def cluster_t_ci(clusters: Sequence[ArrayLike], confidence: float = 0.95) -> tuple[float, float]:
+    """Task-clustered interval of the mean over all units: the ratio estimate sum(T_i) / sum(m_i) (T_i the sum, m_i
+    the size of cluster i, so a cluster weighs by its size as in the pooled estimate) +- t_{k-1} x its
+    cluster-robust standard error sqrt(k / (k - 1) sum_i (T_i - m_i mean)^2) / sum(m_i), k clusters. With equal
+    cluster sizes it is the Student t interval of the k per-cluster means. Analytic: no resampling noise, and its
+    bounds are not tied to the observed clusters as a bootstrap's are at 5 tasks. (nan, nan) below MIN_N_INTERVAL
+    non-empty clusters; a zero width when every cluster has the same mean (the callers take a hull with an
+    interval over units for that case)."""
+    groups = [np.asarray(c, dtype=np.float64).reshape(-1) for c in clusters]
+    groups = [g for g in groups if g.size]
+    k = len(groups)
+    if k < MIN_N_INTERVAL:
+        return math.nan, math.nan
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    sums = np.array([g.sum() for g in groups])
+    sizes = np.array([g.size for g in groups], dtype=np.float64)
+    n = float(sizes.sum())
+    mean = float(sums.sum()) / n
+    se = math.sqrt(float(((sums - sizes * mean) ** 2).sum()) * k / (k - 1)) / n
+    half = float(stats.t.ppf(0.5 + confidence / 2.0, k - 1)) * se
+    return mean - half, mean + half
+
+
 def paired_success_ci(
-    a: ArrayLike, b: ArrayLike, tasks: ArrayLike, n_boot: int = 2000, seed: int = 0, confidence: float = 0.95
+    a: ArrayLike, b: ArrayLike, tasks: ArrayLike, n_boot: int = 0, seed: int = 0, confidence: float = 0.95
 ) -> tuple[float, float]:
-    """Interval of the paired success difference mean(a) - mean(b) over pairs (``a``/``b``: 0/1 outcomes of the same
-    pairs, ``tasks``: each pair's task): the hull of the task-cluster bootstrap of the per-pair differences and
-    :func:`newcombe_paired_ci`, for the reasons of :func:`clustered_success_ci`. NaN below MIN_N_INTERVAL tasks."""
+    """Interval of the paired difference of two proportions, mean(a) - mean(b) over pairs: a success difference,
+    an attribution component, or a paired change in the share of a failure mode (``a``/``b``: the 0/1 outcomes or
+    indicators of the same pairs, ``tasks``: each pair's task).
+
+    The hull of :func:`cluster_t_ci` of the per-pair differences (the task as the unit: it speaks for other tasks
+    of the suite) and :func:`tango_paired_ci` (pairs as units: it keeps a width when no pair is discordant, where
+    the cluster interval has none). Its coverage at 5 and 10 tasks is simulated by benchmarks/interval_coverage.py.
+    NaN below MIN_N_INTERVAL tasks. ``n_boot`` and ``seed`` are unused (kept for callers).
+
+    Raises:
+        ValueError: ``a``, ``b`` and ``tasks`` of different lengths.
+    """
     sa = np.asarray(a, dtype=bool).reshape(-1)
     sb = np.asarray(b, dtype=bool).reshape(-1)
     task = np.asarray(tasks).reshape(-1)
+    if not sa.size == sb.size == task.size:
+        raise ValueError(f"need one task per pair, got {sa.size} and {sb.size} outcomes and {task.size} tasks")
     diff = sa.astype(np.float64) - sb.astype(np.float64)
-    low, high = cluster_bootstrap_ci([diff[task == t] for t in np.unique(task)], n_boot, seed, confidence)
+    low, high = cluster_t_ci([diff[task == t] for t in np.unique(task)], confidence)
     if math.isnan(low):
         return low, high
     counts = (int((sa & sb).sum()), int((sa & ~sb).sum()), int((~sa & sb).sum()), int((~sa & ~sb).sum()))
-    n_low, n_high = newcombe_paired_ci(*counts, confidence=confidence)
-    return min(low, n_low), max(high, n_high)
+    t_low, t_high = tango_paired_ci(*counts, confidence=confidence)
+    return max(-1.0, min(low, t_low)), min(1.0, max(high, t_high))
 
 
 def design_effect(clusters: Sequence[ArrayLike]) -> float:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import pandas as pd
 import pytest
 
 from lq_ros.scoring.attribution import decompose
-from lq_ros.scoring.intervals import newcombe_paired_ci
+from lq_ros.scoring.intervals import tango_paired_ci
 
 
 def rows(policy: str, mode: str, latency: float, budget_counts: str, hold: str, successes: list[bool]) -> list[dict]:
@@ -77,10 +79,10 @@ def test_rows_labelled_by_variant_are_decomposed_by_their_bare_policy():
     assert out["policy"] == "oft" and (out["success_paper"], out["success_action"]) == (0.0, 0.5)
 
 
-def test_component_intervals_resample_whole_tasks():
+def test_component_intervals_are_task_clustered():
     """Six tasks of five inits: at 0.2 s the action budget rescues every episode of tasks 0-2 and none of tasks 3-5.
-    The pairs of a task are not independent draws: resampling tasks gives a budget share anywhere in [0, 1], where
-    resampling the 30 pairs alone would give about [0.3, 0.7]."""
+    The pairs of a task are not independent draws: with the task as the unit the budget share can be anywhere in
+    [0, 1] (t over 6 task means: 0.5 +- 0.57), where the 30 pairs as units would give about [0.3, 0.7]."""
 
     def by_task(latency: float, budget_counts: str, successes: list[bool]) -> list[dict]:
         out = rows("oft", "sync", latency, budget_counts, "stop", successes)
@@ -92,9 +94,11 @@ def test_component_intervals_resample_whole_tasks():
     data += by_task(0.2, "action", [True] * 15 + [False] * 15)
     row = decompose(pd.DataFrame(data), n_boot=400).iloc[0]
     assert row["n_pairs"] == 30 and row["drop_budget"] == 0.5 and row["drop_rest"] == 0.5
-    assert row["drop_budget_ci"] == (0.0, 1.0) and row["drop_rest_ci"] == (0.0, 1.0)
-    # Every pair dropped: resampling has no spread, so the interval is Newcombe's paired one (30 of 30), not [1, 1].
-    assert row["drop_total_ci"] == pytest.approx(newcombe_paired_ci(0, 30, 0, 0)) and row["drop_total_ci"][0] < 0.9
+    for name in ("drop_budget_ci", "drop_rest_ci"):
+        low, high = row[name]
+        assert low == pytest.approx(0.5 - 2.570582 * math.sqrt(0.3 / 6)) and high == 1.0
+    # Every pair dropped: no spread between tasks, so the interval is Tango's paired one (30 of 30), not [1, 1].
+    assert row["drop_total_ci"] == pytest.approx(tango_paired_ci(0, 30, 0, 0)) and row["drop_total_ci"][0] < 0.9
 
 
 def test_fewer_than_five_tasks_give_no_interval():

@@ -12,12 +12,14 @@ from lq_ros.scoring.intervals import (
     bootstrap_ci,
     bootstrap_t_interval,
     cluster_bootstrap_ci,
+    cluster_t_ci,
     clustered_success_ci,
     design_effect,
     expanded_level,
     newcombe_paired_ci,
     paired_success_ci,
     t_interval,
+    tango_paired_ci,
     wilson_interval,
 )
 
@@ -80,32 +82,6 @@ def test_expanded_level():
     assert expanded_level(100_000) == pytest.approx(0.95, abs=1e-4)
     with pytest.raises(ValueError):
         expanded_level(1)
-
-
-def clustered_success(rng, k: int, m: int, a: float, b: float) -> list[np.ndarray]:
-    """k tasks of m episodes each; a task's success probability drawn from Beta(a, b) (mean a / (a + b))."""
-    return [rng.random(m) < p for p in rng.beta(a, b, k)]
-
-
-@pytest.mark.parametrize(
-    ("k", "m", "a", "b", "floor"),
-    [(10, 10, 0.6, 0.4, 0.93), (10, 10, 3.0, 2.0, 0.93), (5, 2, 0.6, 0.4, 0.89), (5, 10, 3.0, 2.0, 0.89)],
-)
-def test_cluster_bootstrap_covers_at_the_suites_task_counts(k, m, a, b, floor):
-    """Simulated, 1500 suites each: the success rate's task-cluster interval covers the mean success of tasks of
-    this kind a / (a + b) at least ``floor`` of the time and at most 98%, where the plain percentile interval covers
-    less (Beta(0.6, 0.4): half the tasks nearly always fail or nearly always succeed; Beta(3, 2): milder)."""
-    rng = np.random.default_rng(1000 * k + m)
-    truth = a / (a + b)
-    hits = plain = 0
-    for rep in range(1500):
-        tasks = clustered_success(rng, k, m, a, b)
-        lo, hi = cluster_bootstrap_ci(tasks, n_boot=1000, seed=rep)
-        hits += lo <= truth <= hi
-        lo, hi = cluster_bootstrap_ci(tasks, n_boot=1000, seed=rep, expanded=False)
-        plain += lo <= truth <= hi
-    assert floor <= hits / 1500 <= 0.98
-    assert plain < hits
 
 
 @pytest.mark.parametrize("n", [5, 7, 9])
@@ -172,34 +148,117 @@ def test_newcombe_paired_interval():
         newcombe_paired_ci(0, 0, 0, 0)
 
 
+def test_newcombe_gives_zero_width_when_every_pair_agrees():
+    """The interval the report used before: 5 pairs both succeed, 5 both fail, phi = 1, and the width is gone."""
+    assert newcombe_paired_ci(5, 0, 0, 5) == (0.0, 0.0)
+
+
+def test_tango_keeps_a_width_when_every_pair_agrees():
+    """10 agreeing pairs at 5/10: about +-0.28 (z^2 / (n + z^2), where the score statistic crosses 1.96), never
+    [0, 0], and the same whatever the agreeing pairs' success rate."""
+    z2 = 1.959963984540054**2
+    for table in ((5, 0, 0, 5), (0, 0, 0, 10), (10, 0, 0, 0)):
+        lo, hi = tango_paired_ci(*table)
+        assert lo == pytest.approx(-z2 / (10 + z2)) and hi == pytest.approx(z2 / (10 + z2))
+        assert hi == pytest.approx(0.2775, abs=1e-4)
+
+
+def _tango_by_definition(table: tuple[int, int, int, int], confidence: float = 0.95) -> tuple[float, float]:
+    """Tango's interval straight from its definition: every difference d on a fine grid whose score test (the
+    restricted maximum likelihood found numerically, not by the closed form) is not rejected."""
+    from scipy import optimize, stats
+
+    _, b, c, _ = table
+    n = sum(table)
+    z = stats.norm.ppf(0.5 + confidence / 2)
+
+    def statistic(d: float) -> float:
+        # Multinomial log-likelihood of (b, c, concordant) with P(A only) = q + d, P(B only) = q.
+        def nll(q: float) -> float:
+            cells = np.array([q + d, q, 1 - 2 * q - d])
+            counts = np.array([b, c, n - b - c])
+            return -float(np.sum(counts[counts > 0] * np.log(np.maximum(cells[counts > 0], 1e-300))))
+
+        upper = (1 - d) / 2
+        lower = max(0.0, -d)
+        q = optimize.minimize_scalar(nll, bounds=(lower, upper), method="bounded", options={"xatol": 1e-12}).x
+        var = n * (2 * q + d * (1 - d))
+        return (b - c - n * d) / math.sqrt(var) if var > 0 else math.copysign(math.inf, b - c - n * d)
+
+    grid = np.linspace(-0.999, 0.999, 3997)
+    kept = [d for d in grid if abs(statistic(d)) <= z]
+    return kept[0], kept[-1]
+
+
+@pytest.mark.parametrize("table", [(1, 1, 7, 12), (59, 6, 16, 80), (0, 3, 0, 7), (2, 8, 0, 0), (40, 40, 20, 60)])
+def test_tango_matches_its_definition(table):
+    """Against the brute-force definition to the grid's step (0.0005); the closed-form restricted maximum likelihood
+    and the root finding are what is checked."""
+    lo, hi = tango_paired_ci(*table)
+    b_lo, b_hi = _tango_by_definition(table)
+    assert lo == pytest.approx(b_lo, abs=6e-4) and hi == pytest.approx(b_hi, abs=6e-4)
+
+
+def test_tango_edges_and_symmetry():
+    lo, hi = tango_paired_ci(0, 10, 0, 0)  # A succeeds on all 10, B on none
+    assert 0.4 < lo < 0.5 and hi == 1.0
+    assert tango_paired_ci(5, 1, 3, 1) == pytest.approx(tuple(-v for v in reversed(tango_paired_ci(5, 3, 1, 1))))
+    # Only the discordant pairs and n matter (the concordant split does not).
+    assert tango_paired_ci(20, 4, 1, 20) == pytest.approx(tango_paired_ci(0, 4, 1, 40))
+    lo, hi = tango_paired_ci(0, 4, 1, 40)
+    assert lo < 3 / 45 < hi
+    with pytest.raises(ValueError):
+        tango_paired_ci(0, 0, 0, 0)
+    with pytest.raises(ValueError):
+        tango_paired_ci(1, 1, 1, 1, confidence=1.5)
+
+
+def test_cluster_t_is_the_t_interval_of_task_means_and_needs_five_tasks():
+    rng = np.random.default_rng(4)
+    tasks = [rng.random(4) < p for p in (0.1, 0.5, 0.9, 0.3, 0.6, 0.2)]
+    means = [t.mean() for t in tasks]
+    assert cluster_t_ci(tasks) == pytest.approx(t_interval(means))  # equal sizes: the same interval
+    assert all(math.isnan(v) for v in cluster_t_ci([np.ones(3)] * (MIN_N_INTERVAL - 1)))
+    assert all(math.isnan(v) for v in cluster_t_ci([np.ones(3)] * 4 + [np.array([])]))
+    # Unequal sizes: the ratio estimate (every unit weighs the same) at the centre.
+    lo, hi = cluster_t_ci([np.ones(1), np.zeros(9), np.ones(5), np.zeros(5), np.ones(10)])
+    assert (lo + hi) / 2 == pytest.approx(16 / 30)
+
+
 def test_reported_success_intervals_are_never_narrower_than_their_parts_and_need_five_tasks():
-    every_success = [np.ones(2)] * 5  # the bootstrap collapses to [1, 1]; Wilson keeps a width
+    every_success = [np.ones(2)] * 5  # the cluster interval has no width; Wilson keeps one
     lo, hi = clustered_success_ci(every_success)
     assert hi == 1.0 and lo == pytest.approx(wilson_interval(10, 10)[0])
     assert all(math.isnan(v) for v in clustered_success_ci([np.ones(2)] * 4))
-    a = np.array([True] * 10)
     tasks = np.repeat(np.arange(5), 2)
-    lo, hi = paired_success_ci(a, a, tasks)  # every pair agrees: Newcombe's width, not [0, 0]
-    assert lo < 0 < hi and (lo, hi) == pytest.approx(newcombe_paired_ci(10, 0, 0, 0))
+    a = np.array([True, False] * 5)
+    lo, hi = paired_success_ci(a, a, tasks)  # 10 agreeing pairs at 5/10: Tango's width, not [0, 0]
+    assert (lo, hi) == pytest.approx(tango_paired_ci(5, 0, 0, 5)) and hi - lo > 0.5
     assert all(math.isnan(v) for v in paired_success_ci(a[:8], a[:8], tasks[:8]))
+    # Strongly clustered: every discordant pair in 2 of 5 tasks; the task as the unit widens the pairs' interval.
+    b = np.zeros(10, bool)
+    c = np.array([True] * 4 + [False] * 6)
+    lo, hi = paired_success_ci(c, b, tasks)
+    t_lo, t_hi = tango_paired_ci(0, 4, 0, 6)
+    assert lo < t_lo and hi >= t_hi
+    with pytest.raises(ValueError, match="one task per pair"):
+        paired_success_ci(a, a, tasks[:9])
 
 
 @pytest.mark.parametrize(("k", "m", "a", "b"), [(5, 2, 0.6, 0.4), (10, 1, 8.0, 2.0), (10, 10, 0.6, 0.4)])
 def test_reported_success_intervals_cover(k, m, a, b):
     """Simulated, 1000 suites each (benchmarks/interval_coverage.py prints the full table): the success rate's interval
-    and the paired difference's (B succeeding with 0.6 x A's probability on the same scenes) cover at least 90%, where
-    the cluster bootstrap alone falls to 88-89% (an easy suite: Beta(8, 2), every task may succeed) and Wilson alone
-    to 57% (strong clustering, ten episodes per task)."""
+    and the paired difference's (B succeeding with 0.6 x A's probability on the same scenes) cover at least 90%."""
     rng = np.random.default_rng(7 * k + m)
     truth = a / (a + b)
     tasks = np.repeat(np.arange(k), m)
     success = paired = 0
-    for rep in range(1000):
+    for _ in range(1000):
         q = rng.beta(a, b, k)[:, None]
         u = rng.random((k, m))
         arm_a, arm_b = (u < q).ravel(), (u < 0.6 * q).ravel()
-        lo, hi = clustered_success_ci([arm_a[tasks == t] for t in range(k)], n_boot=500, seed=rep)
+        lo, hi = clustered_success_ci([arm_a[tasks == t] for t in range(k)])
         success += lo <= truth <= hi
-        lo, hi = paired_success_ci(arm_a, arm_b, tasks, n_boot=500, seed=rep)
+        lo, hi = paired_success_ci(arm_a, arm_b, tasks)
         paired += lo <= 0.4 * truth <= hi
-    assert 0.90 <= success / 1000 <= 1.0 and 0.90 <= paired / 1000 <= 0.99
+    assert 0.90 <= success / 1000 <= 1.0 and 0.90 <= paired / 1000 <= 1.0
