@@ -39,7 +39,6 @@ from numpy.typing import ArrayLike
 
 from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
-from lq_ros.scoring import metrics
 from lq_ros.scoring.bag_scorer import BagError, find_bags, score_bag
 from lq_ros.scoring.budget import (
     BUDGET_MARK,
@@ -51,15 +50,13 @@ from lq_ros.scoring.budget import (
 )
 from lq_ros.scoring.intervals import (
     MIN_N_INTERVAL,
-    bootstrap_t_interval,
     clustered_success_ci,
     design_effect,
     mean_stats,
-    t_interval,
     wilson_interval,
 )
 from lq_ros.scoring.labels import _distinct, label_variants
-from lq_ros.scoring.survival import greenwood
+from lq_ros.scoring.survival import greenwood, restricted_mean_interval
 
 SUCCESS_ONLY, WITH_OUTCOME, BY_OUTCOME = "success", "outcome", "by_outcome"
 #: metric -> the episodes its ``_mean`` is over (see the module docstring). BY_OUTCOME metrics are
@@ -311,7 +308,8 @@ def cell_latency_label(row: pd.Series | dict) -> str:
 
 def _add_restricted_mean(row: dict, outcomes: pd.DataFrame, confidence: float, n_boot: int, seed: int) -> None:
     """Kaplan-Meier restricted mean completion time up to the tick limit (the step budget; with budget_counts
-    action, the hard stop at 4x it, where such an episode ends at the latest), with its interval."""
+    action, the hard stop at 4x it, where such an episode ends at the latest), with its interval
+    (survival.restricted_mean_interval)."""
     keys = ("completion_time_rmst_s", "completion_time_rmst_ci_lo", "completion_time_rmst_ci_hi")
     row.update(dict.fromkeys(keys, math.nan))
     row["completion_time_rmst_n"] = len(outcomes)
@@ -324,19 +322,8 @@ def _add_restricted_mean(row: dict, outcomes: pd.DataFrame, confidence: float, n
     if len(budgets) != 1 or not np.all(np.isfinite(times)):
         return  # mixed budgets never pool (max_steps is a variant field); unknown budget: undefined
     horizon = float(budgets[0]) * CONTROL_DT_S
-    estimate = metrics.restricted_mean_time(times, events, horizon)
-    if len(times) < MIN_N_INTERVAL:
-        low = high = math.nan  # too few episodes for an interval (see MIN_N_INTERVAL)
-    elif np.all(times[~events] >= horizon - 1e-9):
-        # Every failure is censored at the budget: the estimate is exactly the mean of min(t, horizon), so its
-        # interval is that mean's t interval.
-        low, high = t_interval(np.minimum(times, horizon), confidence)
-    else:
-        # Failures ending before the horizon (the action budget's): the bootstrap standard error in a t interval.
-        rng = np.random.default_rng(seed)
-        draws = rng.integers(0, len(times), size=(n_boot, len(times)))
-        boot = np.array([metrics.restricted_mean_time(times[i], events[i], horizon) for i in draws])
-        low, high = bootstrap_t_interval(estimate, boot, len(times), confidence)
+    # The analytic Kaplan-Meier interval; a cell without a success gets the bound its exact success bound implies.
+    estimate, low, high, _ = restricted_mean_interval(times, events, horizon, confidence, MIN_N_INTERVAL)
     row.update(dict(zip(keys, (estimate, low, high), strict=True)))
 
 

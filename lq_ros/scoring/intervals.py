@@ -97,27 +97,6 @@ def cluster_bootstrap_ci(
     return float(low), float(high)
 
 
-def bootstrap_t_interval(
-    estimate: float, replicates: ArrayLike, n: int, confidence: float = 0.95
-) -> tuple[float, float]:
-    """``estimate`` +- t_{n-1} sqrt(n/(n-1)) x the standard deviation of its bootstrap ``replicates`` (over ``n``
-    resampled units): the t interval for a statistic without a closed-form standard error. For a mean it is the
-    t interval up to resampling noise, so it keeps the t interval's coverage at small n.
-
-    Raises:
-        ValueError: n < 2, fewer than 2 finite replicates, or confidence outside (0, 1).
-    """
-    reps = np.asarray(replicates, dtype=np.float64).reshape(-1)
-    reps = reps[np.isfinite(reps)]
-    if n < 2 or reps.size < 2:
-        raise ValueError(f"bootstrap_t_interval needs n >= 2 units and 2 replicates, got n={n}, {reps.size}")
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    se = float(reps.std(ddof=1)) * math.sqrt(n / (n - 1))
-    half = float(stats.t.ppf(0.5 + confidence / 2.0, n - 1)) * se
-    return estimate - half, estimate + half
-
-
 def clustered_success_ci(
     clusters: Sequence[ArrayLike], n_boot: int = 0, seed: int = 0, confidence: float = 0.95
 ) -> tuple[float, float]:

@@ -10,7 +10,6 @@ import pytest
 from lq_ros.scoring.intervals import (
     MIN_N_INTERVAL,
     bootstrap_ci,
-    bootstrap_t_interval,
     cluster_bootstrap_ci,
     cluster_t_ci,
     clustered_success_ci,
@@ -82,22 +81,6 @@ def test_expanded_level():
     assert expanded_level(100_000) == pytest.approx(0.95, abs=1e-4)
     with pytest.raises(ValueError):
         expanded_level(1)
-
-
-@pytest.mark.parametrize("n", [5, 7, 9])
-def test_bootstrap_t_interval_covers_as_the_t_interval(n):
-    """The t interval with a bootstrap standard error (for the restricted mean time with early censoring), checked on
-    a mean, 2000 samples each: normal 93-97%, lognormal (sigma 0.5) at least 90%."""
-
-    def interval(x):
-        rng = np.random.default_rng(len(x))
-        means = x[rng.integers(0, x.size, size=(400, x.size))].mean(axis=1)
-        return bootstrap_t_interval(float(x.mean()), means, x.size)
-
-    assert 0.93 <= coverage(interval, *NORMAL, n, 2000, 300 + n) <= 0.97
-    assert coverage(interval, *LOGNORMAL, n, 2000, 400 + n) >= 0.90
-    with pytest.raises(ValueError):
-        bootstrap_t_interval(1.0, [1.0], 5)
 
 
 def test_design_effect():
