@@ -6,12 +6,14 @@
 ``local``          the default pool: spawned worker processes that die with the sweep
 ``ray_pool``       the Ray pool: actors on a private loopback Ray or a cluster
 ``orchestrator``   ``run_sweep``: scheduling, records, retry of a crashed attempt
+``identity``       the code a record was made by; a resume by other code refuses
 
 The progress bar is the CLI's (``lq sweep``, lq_ros/cli/sweep.py). Layout of a sweep folder (``OUT``)::
 
     sweep.yaml             the spec as given (provenance)
     manifest.json          every episode key the spec expands to, with its configuration
-    results/<key>.json     one finished episode (final status, scored row, attempts); written atomically
+    results/<key>.json     one finished episode (final status, scored row, attempts, ``code``: the identity of the
+                           code that made it, lq_ros.run.sweep.identity); written atomically
     bags/<episode>/        the episode's rosbag2 bag (+ node logs for the ros transport)
     attempts/              a crashed first attempt (its bag, logs and record) before its retry
     logs/<key>.a<N>.log    worker-side output of attempt N

@@ -20,10 +20,18 @@ import yaml
 from lq_ros.core.redact import redact_config, redact_value
 from lq_ros.core.run_config import RunConfig
 from lq_ros.run.episode import TRANSPORTS
+from lq_ros.run.sweep.identity import CODE_FIELD, changes, identities
 from lq_ros.run.sweep.local import LocalPool
 from lq_ros.run.sweep.ray_pool import RayPool, refuse_token_in_clear
 from lq_ros.run.sweep.spec import SweepSpec
-from lq_ros.run.sweep.store import RECORD_FORMAT, ResultStore, StoreLocked, atomic_write_text, fsync_tree
+from lq_ros.run.sweep.store import (
+    RECORD_FORMAT,
+    ResultStore,
+    StoreError,
+    StoreLocked,
+    atomic_write_text,
+    fsync_tree,
+)
 from lq_ros.run.sweep.worker import default_workers, env_key
 from lq_ros.transport.processes import PROCESSES_LOCK, end_orphans
 
@@ -39,6 +47,7 @@ class Job:
     cfg: RunConfig
     attempt: int = 1
     previous: list[dict] = field(default_factory=list)  # records of crashed earlier attempts
+    code: dict | None = None  # the identity of the code it runs (lq_ros.run.sweep.identity)
 
     @property
     def key(self) -> str:
@@ -83,10 +92,21 @@ def _now() -> str:
     return datetime.now(UTC).isoformat(timespec="seconds")
 
 
-def prepare(spec: SweepSpec, out_dir: Path, *, retry_errors: bool = False) -> tuple[ResultStore, list[Job], int]:
-    """Create the store, write the spec and manifest; returns the jobs still to run and how many are done."""
+def prepare(
+    spec: SweepSpec, out_dir: Path, *, retry_errors: bool = False, overwrite: bool = False
+) -> tuple[ResultStore, list[Job], int]:
+    """Create the store, write the spec and manifest; returns the jobs still to run and how many are done.
+
+    ``overwrite``: every earlier result of the folder is removed first (all episodes run again). Without it, a
+    finished episode made by other code than what runs now (lq_ros.run.sweep.identity) is a StoreError naming
+    what changed: a folder never holds results of two versions of a policy.
+    """
     store = ResultStore(out_dir)
+    if overwrite:
+        _remove_results(store)
     store.create()
+    codes = identities(spec.configs)
+    _refuse_other_code(store, spec, codes, retry_errors)
     atomic_write_text(store.root / "sweep.yaml", yaml.safe_dump(redact_value(spec.raw), sort_keys=False))
     manifest = {"name": spec.name, "episodes": {c.key(): redact_config(c.to_dict()) for c in spec.configs}}
     atomic_write_text(store.root / "manifest.json", json.dumps(manifest, sort_keys=True, indent=1))
@@ -100,8 +120,38 @@ def prepare(spec: SweepSpec, out_dir: Path, *, retry_errors: bool = False) -> tu
             done += 1
             continue
         previous = store.failed_attempts(cfg.key())
-        jobs.append(Job(cfg, attempt=len(previous) + 1, previous=previous))
+        jobs.append(Job(cfg, attempt=len(previous) + 1, previous=previous, code=codes[cfg.key()]))
     return store, jobs, done
+
+
+def _refuse_other_code(store: ResultStore, spec: SweepSpec, codes: dict[str, dict], retry_errors: bool) -> None:
+    """StoreError (one line naming what changed) if a finished episode the spec would skip was made by other code;
+    before the folder is touched."""
+    stale: dict[str, set] = {}
+    finished = 0
+    for cfg in spec.configs:
+        record = store.load(cfg.key())
+        if record is None or (retry_errors and record["status"] == "error"):
+            continue
+        finished += 1
+        for change in changes(record.get(CODE_FIELD), codes[cfg.key()]):
+            stale.setdefault(change, set()).add(cfg.key())
+    if stale:
+        n = len(set().union(*stale.values()))
+        raise StoreError(
+            f"{store.root}: {n} of its {finished} finished episodes were made by other code "
+            f"({'; '.join(list(stale)[:3])}); rerun them with --overwrite (all its results are replaced), "
+            "or give another --out"
+        )
+
+
+def _remove_results(store: ResultStore) -> None:
+    """Everything earlier sweeps wrote into the folder's results, bags, attempts and logs (``--overwrite``)."""
+    import shutil
+
+    for folder in (store.results, store.bags, store.attempts, store.logs):
+        shutil.rmtree(folder, ignore_errors=True)
+    (store.root / "episodes.jsonl").unlink(missing_ok=True)
 
 
 def run_sweep(
@@ -113,6 +163,7 @@ def run_sweep(
     backend: str = "local",
     address: str | None = None,
     retry_errors: bool = False,
+    overwrite: bool = False,
     on_progress: Callable[[SweepSummary, dict | None], None] | None = None,
 ) -> SweepSummary:
     """Run every unfinished episode of ``spec`` into ``out_dir``; finished ones are skipped.
@@ -140,7 +191,7 @@ def run_sweep(
         left = end_orphans(Path(out_dir) / PROCESSES_LOCK, ORPHAN_WAIT_S)
         if left:
             raise StoreLocked(f"{out_dir}: processes of an earlier sweep on this folder still run (pids {left})")
-        return _run_locked(spec, out_dir, workers, transport, backend, address, retry_errors, on_progress)
+        return _run_locked(spec, out_dir, workers, transport, backend, address, retry_errors, overwrite, on_progress)
 
 
 def _run_locked(
@@ -151,9 +202,10 @@ def _run_locked(
     backend: str,
     address: str | None,
     retry_errors: bool,
+    overwrite: bool,
     on_progress: Callable[[SweepSummary, dict | None], None] | None,
 ) -> SweepSummary:
-    store, jobs, done = prepare(spec, out_dir, retry_errors=retry_errors)
+    store, jobs, done = prepare(spec, out_dir, retry_errors=retry_errors, overwrite=overwrite)
     summary = SweepSummary(total=len(spec.configs), skipped=done, out_dir=store.root)
     if on_progress:
         on_progress(summary, None)
@@ -187,7 +239,7 @@ def _run_locked(
                 if record is None:  # crashed first attempt: run it again
                     summary.retried += 1
                     previous = store.failed_attempts(job.key)
-                    sched.retry(Job(job.cfg, attempt=job.attempt + 1, previous=previous))
+                    sched.retry(Job(job.cfg, attempt=job.attempt + 1, previous=previous, code=job.code))
                     continue
                 summary.ran += 1
                 summary.counts[record["status"]] += 1
@@ -240,6 +292,7 @@ def _finish(store: ResultStore, job: Job, result: dict, transport: str, sweep_na
         "row": row,
         "attempts": [*job.previous, attempt],
         "finished_at": attempt["finished_at"],
+        CODE_FIELD: job.code,
     }
     store.write(record)
     return record

@@ -13,7 +13,7 @@ def test_half_written_or_orphaned_results_do_not_count_as_finished(tmp_path):
     store, jobs, done = sw.prepare(spec, tmp_path)
     assert done == 0 and len(jobs) == 4
     a, b, c, d = (cfg.key() for cfg in spec.configs)
-    full = {"key": a, "status": "failure", "bag": None, "row": {}, "attempts": []}
+    full = {"key": a, "status": "failure", "bag": None, "row": {}, "attempts": [], "code": jobs[0].code}
     store.write(full)
     text = json.dumps({**full, "key": b})
     store.record_path(b).write_text(text[: len(text) // 2])  # killed while writing (without atomic rename)
