@@ -6,6 +6,8 @@ from pathlib import Path
 
 #: The scored row the recorder writes into the bag folder once the bag is closed and scored.
 SCORE_FILE = "score.json"
+#: The log (in the logs folder) an in-process crash writes its traceback to; the ROS nodes' logs sit beside it.
+CRASH_LOG = "episode.log"
 
 
 def logs_beside(bag: Path) -> Path:

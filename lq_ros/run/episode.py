@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 from lq_ros.core.run_config import TRANSPORTS, RunConfig
 from lq_ros.recording.episode_folder import SCORE_FILE
+from lq_ros.run.episode_notes import crash_log
 from lq_ros.transport.outcome import EpisodeOutcome
 
 if TYPE_CHECKING:  # imported when an episode runs: `lq run --help` and sweep specs stay light
@@ -92,4 +93,7 @@ def settle(row: dict, outcome: EpisodeOutcome) -> dict:
     if outcome.status == "error":
         row["success"] = None
         row["error_reason"] = row.get("error_reason") or outcome.reason
+        log = crash_log(outcome.bag_path)
+        if log is not None and str(log) not in row["error_reason"]:
+            row["error_reason"] += f" (traceback: {log})"
     return row

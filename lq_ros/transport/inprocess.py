@@ -21,6 +21,7 @@ from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.policies import Policy, make_policy
 from lq_ros.recording.episode_bag import EpisodeBagWriter, episode_topics, log_time_ns, run_metadata
+from lq_ros.recording.episode_folder import CRASH_LOG, logs_dir
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.outcome import EpisodeOutcome
 from lq_ros.wire import messages as m
@@ -208,9 +209,23 @@ def _run(cfg: RunConfig, out_dir: Path, env: LiberoEnv | None, policy: Policy) -
     except Exception as exc:  # noqa: BLE001 - any crash is an *error*, recorded with its traceback
         reason = f"{type(exc).__name__}: {exc}"
         tick = driver.tick if driver is not None else 0
-        rec.event(m.EventKind.ERROR, tick, reason, {"traceback": traceback.format_exc()})
+        trace = traceback.format_exc()
+        rec.event(m.EventKind.ERROR, tick, reason, {"traceback": trace})
+        _keep_traceback(bag_path, tick, trace)
         return EpisodeOutcome("error", tick, reason, bag_path)
     finally:
         writer.close()
         if own_env:
             env.close()
+
+
+def _keep_traceback(bag_path: Path, tick: int, trace: str) -> None:
+    """Write a crash's traceback where a user looks (the error line names the file): the bag's own events hold it
+    too, but only a bag reader shows those."""
+    log = logs_dir(bag_path) / CRASH_LOG
+    try:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "a") as f:
+            f.write(f"episode error at tick {tick}:\n{trace}")
+    except OSError:  # the traceback stays in the bag's ERROR event
+        pass

@@ -293,6 +293,7 @@ def _finish(store: ResultStore, job: Job, result: dict, transport: str, sweep_na
         "attempts": [*job.previous, attempt],
         "finished_at": attempt["finished_at"],
         CODE_FIELD: job.code,
+        "warnings": result.get("warnings") or [],  # console lines (lq_ros.run.episode_notes), e.g. rejected chunks
     }
     store.write(record)
     return record

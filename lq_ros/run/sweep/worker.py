@@ -12,6 +12,7 @@ from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
 from lq_ros.run.episode import TRANSPORTS, run_episode
+from lq_ros.run.episode_notes import warnings_of
 from lq_ros.transport.ros.stack import configure_keys, policy_key
 
 
@@ -70,7 +71,8 @@ class EpisodeWorker:
         self._stack = None  # ROS transport: the worker's RosStack
 
     def run(self, cfg: RunConfig, log_path: Path) -> dict:
-        """Run ``cfg`` once; returns {status, reason, row, bag, wall_s}. Never raises for episode failures."""
+        """Run ``cfg`` once; returns {status, reason, row, warnings, bag, wall_s}. Never raises for episode
+        failures."""
         started = time.monotonic()
         bag = self.bags_dir / cfg.episode_name()
         row, reason = None, ""
@@ -92,6 +94,7 @@ class EpisodeWorker:
             "status": status,
             "reason": reason,
             "row": row,
+            "warnings": warnings_of(row, bag) if row else [],
             "bag": str(bag) if (bag / "metadata.yaml").exists() else None,
             "wall_s": time.monotonic() - started,
         }
