@@ -80,6 +80,18 @@ def boundary_aggregates(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int
     return cells
 
 
+def series_colours(keys: list[tuple], order: dict[str, int]) -> dict[tuple, str]:
+    """A colour per line (suite, base, merge, latency kind): by merge strategy when the lines differ only in it
+    (and in latency kind: the line style tells those apart), else one colour per (suite, base, merge), so no
+    two series share a colour and a style."""
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len({(k[0], k[1]) for k in keys}) == 1:
+        return {k: cycle[order.get(k[2], len(order)) % len(cycle)] for k in keys}
+    groups = sorted({k[:3] for k in keys}, key=lambda g: (g[0], str(g[1]), order.get(g[2], 99)))
+    index = {g: i for i, g in enumerate(groups)}
+    return {k: cycle[index[k[:3]] % len(cycle)] for k in keys}
+
+
 def _panel_values(rows: pd.DataFrame, metric: str, scale: float):
     """(mean, lo, hi, n) of a panel's metric in ``rows`` (n None for the success rate: always joined)."""
     if metric == "success_rate":
@@ -117,8 +129,6 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
         ax.set_visible(False)
     axes = axes[: len(panels)]
     order = {m.value: i for i, m in enumerate(Merge)}
-    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    colour = {m: cycle[order.get(m, len(order)) % len(cycle)] for m in pooled["merge"].unique()}
     lines = sorted({(str(s), str(b)) for s, b in zip(pooled["suite"], pooled["base"], strict=True)})
     markers = dict(zip(lines, "osD^v<>p*h", strict=False))
     several_bases = pooled["base"].nunique() > 1
@@ -126,6 +136,7 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
     latencies = sorted(pooled["latency_s"].astype(float).unique())
     found: set[str] = set()
     keys = sorted(pooled.groupby(list(SERIES)).groups, key=lambda k: (k[0], str(k[1]), order.get(k[2], 99), k[3]))
+    colour = series_colours(keys, order)
     for ax, (metric, label, scale) in zip(axes, panels, strict=True):
         for suite, base, merge, kind in keys:
             rows = pooled[(pooled["suite"] == suite) & (pooled["base"] == base) & (pooled["merge"] == merge)
@@ -136,12 +147,13 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
             name = f"{base} · {merge}" if several_bases else merge
             name += f" · {suite}" if several_suites else ""
             name += "" if kind == "constant" else f" ({kind} latency)"
-            pr.mean_line(ax, x, mean, lo, hi, n, colour=colour[merge], linestyle=KIND_STYLE.get(kind, "--"),
+            pr.mean_line(ax, x, mean, lo, hi, n, colour=colour[(suite, base, merge, kind)],
+                         linestyle=KIND_STYLE.get(kind, "--"),
                          marker=markers.get((str(suite), str(base)), "o"), label=name, masked=masked,
                          scale=scale)  # fmt: skip
             shown = np.asarray(mean, dtype=np.float64)
             if masked is not None and masked.any():
-                pr.mark_masked(ax, x[masked], colour[merge])
+                pr.mark_masked(ax, x[masked], colour[(suite, base, merge, kind)])
                 shown = np.where(masked, np.nan, shown)
                 found.add(pr.IDLE_NOTE)
             if n is not None and (np.isfinite(shown) & (np.nan_to_num(n.to_numpy(dtype=float)) < pr.MIN_JOIN_N)).any():
@@ -160,7 +172,8 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
              for metric, label, _ in left_out]  # fmt: skip
     notes.append("boundary metrics: means over every episode with an outcome whose arm moved; success over all")
     notes += [n for n in (pr.SMALL_N_NOTE, pr.IDLE_NOTE, pr.DEGENERATE_NOTE) if n in found]
-    pr.layout(fig, axes[:1], title=TITLE, legend_title="merge strategy", ncol=min(3, len(keys)),
+    legend = "merge strategy" if len(lines) == 1 else "policy · merge strategy"
+    pr.layout(fig, axes[:1], title=TITLE, legend_title=legend, ncol=min(3, len(keys)),
               note=pr.footnote(*notes))  # fmt: skip
     return fig
 

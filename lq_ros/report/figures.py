@@ -203,46 +203,77 @@ def _success_band(rows: pd.DataFrame) -> tuple[pd.Series, pd.Series, str]:
 
 
 def fig_success(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 4: one panel per protocol, one line per policy (and suite), shaded 95 % band (task-clustered where
-    every cell of the line has one, else Wilson, hatched and footnoted: _success_band); budget marks (hollow: decided
-    by the action-budget twin; dotted ring: the proxy alone) and red rings on degenerate cells."""
+    """Fig. 4: small multiples, one panel per (suite, protocol): a row per suite, a column per protocol, never two
+    suites in one panel; one line per policy (its colour the same in every panel), shaded 95 % band (task-clustered
+    where every cell of the line has one, else Wilson, hatched and footnoted: _success_band); budget marks (hollow:
+    decided by the action-budget twin; dotted ring: the proxy alone) and red rings on degenerate cells."""
     modes = [m for m in ("sync", "async") if m in set(pooled["mode"])] + sorted(set(pooled["mode"]) - {"sync", "async"})
-    colours = _colours(pooled)
-    suites = _suites(pooled)
-    fig, axes = plt.subplots(1, len(modes), figsize=(5.5 * len(modes), 4.4), squeeze=False, sharey=True)
+    suites = sorted(_suites(pooled)) or [None]
+    several = len(suites) > 1
     budgets = set(pooled.get("budget_counts", pd.Series(dtype=object)).dropna())
     both = {"all", "action"} <= budgets
+    lines = []  # (suite, mode, base label, legend label, budget, rows)
+    for policy, mode, rows in _series(pooled):
+        suite = rows["suite"].iloc[0] if "suite" in rows else None
+        budget = rows["budget_counts"].iloc[0] if "budget_counts" in rows else "all"
+        base = str(rows["series_policy"].iloc[0] if "series_policy" in rows else policy)
+        if not several:
+            base = _with_suite(base, suite, set(suites) - {None})
+        else:  # the panel names the suite
+            for name in suites:
+                base = base.replace(f" · {name}", "")
+        label = f"{base} · {BUDGET_LABEL.get(budget, budget)}" if both else base
+        lines.append((suite if several else None, mode, base, label, budget, rows))
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colours = {b: cycle[i % len(cycle)] for i, b in enumerate(sorted({line[2] for line in lines}))}
+    fig, axes = plt.subplots(len(suites), len(modes), figsize=(5.5 * len(modes), 4.0 * len(suites)), squeeze=False,
+                             sharey=True)  # fmt: skip
     found: set[str] = set()
-    for ax, mode in zip(axes[0], modes, strict=True):
-        for policy, m, rows in _series(pooled):
-            if m != mode:
-                continue
-            budget = rows["budget_counts"].iloc[0] if "budget_counts" in rows else "all"
-            base = rows["series_policy"].iloc[0] if "series_policy" in rows else policy
-            base = _with_suite(str(base), rows["suite"].iloc[0] if "suite" in rows else None, suites)
-            colour = colours.get(base, colours[policy])
-            label = f"{base} · {BUDGET_LABEL.get(budget, budget)}" if both else policy
-            style = ACTION_BUDGET_STYLE if budget == "action" else None
-            lo, hi, band = _success_band(rows)
-            _ci_line(ax, rows["latency_s"], rows["success_rate"], lo, hi, colour=colour, mode=mode, label=label,
-                     scale=100.0, style=style)  # fmt: skip
-            if band == WILSON_BAND_NOTE:  # hatched over its fill: not the interval the other lines' bands are
-                ax.fill_between(rows["latency_s"], 100.0 * lo, 100.0 * hi, facecolor="none", edgecolor=colour,
-                                hatch="///", linewidth=0, alpha=0.45)  # fmt: skip
-            found.add(band)
-            if pr.ring_degenerate(ax, rows, rows["success_rate"], 100.0):
-                found.add(pr.DEGENERATE_NOTE)
-            found |= _budget_mark_points(ax, rows, colour, mode)
-            _distribution_labels(ax, rows, colour)
-        ax.set_title(f"{mode} execution")
-        ax.set_ylim(-2, 102)
-        ax.margins(x=0.12)
-        _latency_axis(ax, pooled)
-    axes[0][0].set_ylabel("success rate (%) [95% CI]")
+    for r, suite in enumerate(suites):
+        for c, mode in enumerate(modes):
+            ax = axes[r][c]
+            for line_suite, m, base, label, budget, rows in lines:
+                if m != mode or (several and line_suite != suite):
+                    continue
+                colour = colours[base]
+                style = ACTION_BUDGET_STYLE if budget == "action" else None
+                lo, hi, band = _success_band(rows)
+                _ci_line(ax, rows["latency_s"], rows["success_rate"], lo, hi, colour=colour, mode=mode, label=label,
+                         scale=100.0, style=style)  # fmt: skip
+                if band == WILSON_BAND_NOTE:  # hatched over its fill: not the interval the other lines' bands are
+                    ax.fill_between(rows["latency_s"], 100.0 * lo, 100.0 * hi, facecolor="none", edgecolor=colour,
+                                    hatch="///", linewidth=0, alpha=0.45)  # fmt: skip
+                found.add(band)
+                if pr.ring_degenerate(ax, rows, rows["success_rate"], 100.0):
+                    found.add(pr.DEGENERATE_NOTE)
+                found |= _budget_mark_points(ax, rows, colour, mode)
+                _distribution_labels(ax, rows, colour)
+            ax.set_title(f"{suite} · {mode} execution" if several else f"{mode} execution", fontsize=10)
+            ax.set_ylim(-2, 102)
+            ax.margins(x=0.12)
+            _latency_axis(ax, pooled)
+            if c == 0:
+                ax.set_ylabel("success rate (%) [95% CI]")
+    _one_legend(axes[0][0], [ax for row in axes for ax in row])
     notes = [n for n in (CLUSTER_BAND_NOTE, WILSON_BAND_NOTE) if n in found]
     notes += [BUDGET_FOOTNOTE[k] for k in ("decided", "proxy") if BUDGET_FOOTNOTE[k] in found]
-    pr.layout(fig, axes[0], title=FIGURES["fig4_success"], note=pr.footnote(*notes, _notes(found)))
+    pr.layout(fig, [axes[0][0]], title=FIGURES["fig4_success"], note=pr.footnote(*notes, _notes(found)),
+              ncol=min(3, max(1, len(axes[0][0].get_legend_handles_labels()[1]))))  # fmt: skip
     return fig
+
+
+def _one_legend(target, axes) -> None:
+    """Give ``target`` an (invisible) entry for every labelled line of ``axes`` it lacks, so the figure's one legend
+    names every series of every panel."""
+    have = set(target.get_legend_handles_labels()[1])
+    for ax in axes:
+        for line in ax.get_lines():
+            label = line.get_label()
+            if label.startswith("_") or label in have:
+                continue
+            have.add(label)
+            target.plot([], [], color=line.get_color(), linestyle=line.get_linestyle(), marker=line.get_marker(),
+                        label=label)  # fmt: skip
 
 
 def _budget_mark_points(ax, rows: pd.DataFrame, colour: str, mode: str) -> set[str]:
@@ -306,58 +337,56 @@ def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
     return fig
 
 
-def _stacked_bars(ax, pooled: pd.DataFrame, parts, total_metric: str) -> bool:
-    """Per latency, one stacked bar per (policy, protocol, suite); whisker: 95 % CI of ``total_metric``. A cell
-    whose arm never moved gets no bar but a red × (plot_rules); returns whether any did."""
-    series = _series(pooled)
-    latencies = sorted(pooled["latency_s"].astype(float).unique())
-    width = 0.8 / max(1, len(series))
-    any_idle = False
-    for i, (policy, mode, rows) in enumerate(series):
-        by_lat = rows.set_index(rows["latency_s"].astype(float))
-        idle_at = dict(zip(by_lat.index, pr.idle_cells(rows), strict=True))
-        idle = np.array([bool(idle_at.get(lat, False)) for lat in latencies])
-        any_idle |= bool(idle.any())
-        x = np.arange(len(latencies)) - 0.4 + width * (i + 0.5)
-        bottom = np.zeros(len(latencies))
-        for col, label, colour in parts:
-            name = col.replace("_j", "_per_step_j") + "_mean"
-            h = np.array([by_lat[name].get(lat, np.nan) for lat in latencies], dtype=np.float64)
-            h = np.nan_to_num(np.where(idle, np.nan, h))
-            ax.bar(x, h, width * 0.92, bottom=bottom, color=colour, edgecolor="white",
-                   hatch="//" if mode == "sync" else None, label=label if i == 0 else None)  # fmt: skip
-            bottom += h
-        lo = np.array([by_lat[f"{total_metric}_ci_lo"].get(lat, np.nan) for lat in latencies])
-        hi = np.array([by_lat[f"{total_metric}_ci_hi"].get(lat, np.nan) for lat in latencies])
-        lo, hi = np.where(idle, np.nan, lo), np.where(idle, np.nan, hi)
-        ax.errorbar(x, bottom, yerr=[np.clip(bottom - lo, 0, None), np.clip(hi - bottom, 0, None)], fmt="none",
-                    ecolor="black", capsize=3)  # fmt: skip
-        pr.mark_masked(ax, x[idle], "black")
-        for xi in x:
-            ax.annotate(f"{policy}\n{mode}", (xi, 0), xytext=(0, -26), textcoords="offset points", ha="center",
-                        fontsize=6, annotation_clip=False)  # fmt: skip
-    ax.set_xticks(np.arange(len(latencies)), [f"{lat:g} s (N={round(lat / CONTROL_DT_S)})" for lat in latencies])
-    ax.tick_params(axis="x", pad=30)
-    ax.set_xlabel("injected latency Δt_sim (bars: policy · protocol; hatched: sync)")
-    ax.set_ylim(0, ax.get_ylim()[1] * 1.18)  # room for the legend above the bars
-    ax.legend(loc="upper center", ncol=len(parts), fontsize=8)
+def _stacked_bars(ax, rows: pd.DataFrame, latencies: list[float], parts, total_metric: str, mode: str) -> bool:
+    """One series' stacked bar per latency; whisker: 95 % CI of ``total_metric``. A cell whose arm never moved gets
+    no bar but a red × (plot_rules); returns whether any did."""
+    by_lat = rows.set_index(rows["latency_s"].astype(float))
+    idle_at = dict(zip(by_lat.index, pr.idle_cells(rows), strict=True))
+    idle = np.array([bool(idle_at.get(lat, False)) for lat in latencies])
+    x = np.arange(len(latencies), dtype=np.float64)
+    bottom = np.zeros(len(latencies))
+    for col, label, colour in parts:
+        name = col.replace("_j", "_per_step_j") + "_mean"
+        h = np.array([by_lat[name].get(lat, np.nan) if name in by_lat else np.nan for lat in latencies])
+        h = np.nan_to_num(np.where(idle, np.nan, h.astype(np.float64)))
+        ax.bar(x, h, 0.6, bottom=bottom, color=colour, edgecolor="white", hatch="//" if mode == "sync" else None,
+               label=label)  # fmt: skip
+        bottom += h
+    lo = np.array([by_lat[f"{total_metric}_ci_lo"].get(lat, np.nan) for lat in latencies], dtype=np.float64)
+    hi = np.array([by_lat[f"{total_metric}_ci_hi"].get(lat, np.nan) for lat in latencies], dtype=np.float64)
+    lo, hi = np.where(idle, np.nan, lo), np.where(idle, np.nan, hi)
+    ax.errorbar(x, bottom, yerr=[np.clip(bottom - lo, 0, None), np.clip(hi - bottom, 0, None)], fmt="none",
+                ecolor="black", capsize=3)  # fmt: skip
+    pr.mark_masked(ax, x[idle], "black")
+    ax.set_xticks(x, [f"{lat:g} s (N={round(lat / CONTROL_DT_S)})" for lat in latencies], fontsize=8)
     ax.grid(axis="y", alpha=0.3)
-    return any_idle
+    return bool(idle.any())
+
+
+#: Fig. 6's width, inches: legible at 1600 px whatever the number of series (a row per series, not a bar each).
+FIG6_WIDTH_IN = 11.0
 
 
 def fig_energy_decomposition(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 6: per-step energy as stacked bars per latency and (policy, protocol, suite): (a) mechanical +
-    electrical loss + overhead, (b) the actuator part alone (the constant overhead hides it in (a))."""
-    n_bars = len(_series(pooled)) * pooled["latency_s"].nunique()
-    fig, axes = plt.subplots(1, 2, figsize=(max(10.0, 1.1 * n_bars), 4.8), squeeze=False)
-    idle = _stacked_bars(axes[0][0], pooled, ENERGY_PARTS, "energy_per_step_j")
-    axes[0][0].set_ylabel("energy per control step (J) [95% CI of total]")
-    axes[0][0].set_title("(a) mechanical + electrical loss + overhead")
-    _stacked_bars(axes[0][1], pooled, ENERGY_PARTS[:2], "energy_actuator_per_step_j")
-    axes[0][1].set_ylabel("energy per control step (J) [95% CI of sum]")
-    axes[0][1].set_title("(b) actuators: mechanical + electrical loss")
+    """Fig. 6: per-step energy as stacked bars per latency, small multiples: a row per (policy, protocol, suite),
+    (a) mechanical + electrical loss + overhead, (b) the actuator part alone (the constant overhead hides it in
+    (a)). Hatched bars: sync."""
+    series = _series(pooled)
+    latencies = sorted(pooled["latency_s"].astype(float).unique())
+    fig, axes = plt.subplots(len(series), 2, figsize=(FIG6_WIDTH_IN, 2.1 * len(series) + 0.6), squeeze=False)
+    idle = False
+    for (policy, mode, rows), (left, right) in zip(series, axes, strict=True):
+        idle |= _stacked_bars(left, rows, latencies, ENERGY_PARTS, "energy_per_step_j", mode)
+        _stacked_bars(right, rows, latencies, ENERGY_PARTS[:2], "energy_actuator_per_step_j", mode)
+        # The row's series on its left (a panel title per row would not fit beside the other panel's).
+        left.set_ylabel("\n".join([*policy.split(" · "), mode, "J per control step"]), fontsize=8)
+    axes[0][0].set_title("(a) mechanical + electrical loss + overhead", fontsize=10)
+    axes[0][1].set_title("(b) actuators: mechanical + electrical loss", fontsize=10)
+    for ax in axes[-1]:
+        ax.set_xlabel("injected latency Δt_sim (whisker: 95% CI of the stack's total)", fontsize=8)
     title = f"{FIGURES['fig6_energy_decomposition']} (successful episodes; {_rate_note(pooled)})"
-    pr.layout(fig, title=title, note=pr.IDLE_NOTE if idle else "")
+    pr.layout(fig, [axes[0][0]], title=title, legend_title="energy part (hatched: sync)", ncol=len(ENERGY_PARTS),
+              note=pr.IDLE_NOTE if idle else "")  # fmt: skip
     return fig
 
 

@@ -89,7 +89,9 @@ def test_no_figure_pools_suites(close_all):
     episodes = _two_suites()
     assert set(episodes["policy"]) == {"scripted"}  # the label alone would pool them
     figures = _figures(episodes)
-    for name in ("fig4_success", "fig5_trajectory", "fig7_energy", af.NAME):
+    panels = [ax.get_title() for ax in figures["fig4_success"].axes if ax.get_title()]  # Fig. 4: a panel per suite
+    assert sorted(panels) == ["libero_object · async execution", "libero_spatial · async execution"]
+    for name in ("fig5_trajectory", "fig7_energy", af.NAME):
         labels = _legend_labels(figures[name])
         assert labels and all("libero_spatial" in t or "libero_object" in t for t in labels), (name, labels)
     jerk_5 = _points(figures["fig5_trajectory"].axes[0])[:, 1]
