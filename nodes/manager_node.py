@@ -261,9 +261,13 @@ class LifecycleManager(Node):
                 raise ValueError("resume: some nodes are unconfigured; startup (or configure) first")
             inactive = [n for n in self.node_names if states[n] == "inactive"]
             first, *between, last = self.node_names  # the recorder first, the node that starts the episode last
-            for group in ([first], between, [last]):
-                if group := [n for n in group if n in inactive]:
-                    self.transition(group, "activate")
+            try:
+                for group in ([first], between, [last]):
+                    if group := [n for n in group if n in inactive]:
+                        self.transition(group, "activate")
+            except TransitionFailed:  # no node is left active (the recorder then keeps no bag: nothing started)
+                self.stop(set())
+                raise
             done += [f"activated {', '.join(inactive)}"] if inactive else []
         if name == "shutdown":
             failed = self.shutdown({n for n, state in states.items() if state == "finalized"})

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
 import time
 import traceback
 from collections import Counter
@@ -166,6 +167,14 @@ class MetricsNode(EpisodeNode):
         self.episode_timer(0.1, self.finish_when_quiet)
 
     def deactivate(self) -> None:
+        if not self.finished and not self.received and not getattr(self, "robot_heard", None):
+            # Deactivated before any node published (another node refused to activate): no episode took place, so
+            # no bag is left (an empty one would score as a stopped episode, an error of a run that never started).
+            self.finished = True
+            self.writer.close()
+            shutil.rmtree(self.bag_path, ignore_errors=True)
+            self.get_logger().info(f"no episode started: bag {self.bag_path} not kept")
+            return
         if not self.finished:
             # Stopped before the episode ended: say so in the bag, so it scores as an error.
             t_ns = time.time_ns() if self.realtime else m.to_ns(sim_time_of_tick(self.last_tick))

@@ -24,7 +24,8 @@ Policy arguments are ROS parameters one by one: ``policy_args.<name>`` sets the 
 (``ros2 param set /lq_policy policy_args.host 10.0.0.5``, ``-p policy_args.host:=...``, or ``policy_args: {host:
 ...}`` in a params file). They add to, and override, the JSON text ``policy_args`` (what the launcher sets), and
 are read at configure like it. A name the (registered) policy does not take is refused when it is set, with the
-policy's arguments; setting ``policy_args`` (the JSON) or another ``policy`` clears them: the new value stands alone.
+policy's arguments (a ``package.module:Class``'s names and types at configure, before it is built); setting
+``policy_args`` (the JSON) or another ``policy`` clears them: the new value stands alone.
 Set ``policy`` first, then its arguments.
 
 Who chooses the policy: any participant of the ROS domain can set this node's parameters between
@@ -53,6 +54,7 @@ from rclpy.parameter import Parameter
 
 from lq_ros.core.run_config import RunConfig
 from lq_ros.policies import REGISTRY, Policy, is_registered, make_policy, policy_class
+from lq_ros.run.validation import check_policy_args
 from lq_ros.transport.ros.endpoints import ChunkServer
 from lq_ros.transport.ros.rclpy_helpers import EpisodeNode, run_managed
 from lq_ros.wire import messages as m
@@ -195,6 +197,9 @@ class PolicyNode(EpisodeNode):
     def configure(self, cfg: RunConfig) -> None:
         cfg = self.cfg = dataclasses.replace(cfg, policy_args=self.policy_arguments(cfg))
         refuse_untrusted_policy(cfg.policy, cfg.policy_args, self.chosen_by_user())  # before any import
+        # A package.module:Class's arguments are checked here, once its module may be imported (a registered
+        # policy's already were, as each was set): a name it does not take, a value of the wrong type, one line.
+        check_policy_args(cfg.policy, cfg.policy_args)
         self.policy = make_policy(cfg.policy, **cfg.policy_args)
 
     def activate(self, cfg: RunConfig) -> None:

@@ -253,8 +253,9 @@ def test_a_refused_activation_is_the_episode_error_with_its_reason_and_the_stack
     with RosStack() as stack:
         bag, reason = stack.run_episode(refused, tmp_path)
         assert reason.startswith("policy node: activate failed: ValueError: merge 'rtc' (real-time chunking)"), reason
-        # The recorder was already active: its bag says the episode was stopped, an error.
-        assert json.loads((bag / "score.json").read_text())["status"] == "error"
+        # The recorder was already active, but no episode started: it keeps no bag (the run is an error by its
+        # reason alone), and the node logs are kept beside where the bag would have been.
+        assert not bag.exists() and (bag.with_name(bag.name + ".logs") / "policy.log").exists()
         bag, reason = stack.run_episode(fine, tmp_path)
         assert reason == "" and (bag / "score.json").exists()
 

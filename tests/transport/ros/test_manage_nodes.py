@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.policies.sine import SinePolicy
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.scoring.bag_scorer import score_bag
 from lq_ros.transport.processes import die_with_parent
@@ -115,6 +116,14 @@ def test_the_manager_answers_manage_nodes_beside_no_launcher(tmp_path):
             assert set(client.states().values()) == {"inactive"}
             second = score_bag(tmp_path / "ep2")  # stopped: a run error, scored over what was recorded
             assert second["status"] == "error" and "stopped" in second["error_reason"], second
+            # A refused RESUME (the executor cannot activate): no node is left active, and no bag is written.
+            client.set_on(NODE_NAMES["metrics"], "bag_path", str(tmp_path / "ep3"))
+            client.set_on(NODE_NAMES["executor"], "merge", "no_such_merge")
+            ok, message = client.manage("resume")
+            assert not ok and message.startswith("resume: lq_executor activate"), message
+            assert set(client.states().values()) == {"inactive"}
+            assert not (tmp_path / "ep3").exists()
+            client.set_on(NODE_NAMES["executor"], "merge", "replace")
             assert client.manage("pause") == (True, "pause: nothing to do")
             assert client.manage(99)[1].startswith("manage_nodes: unknown command 99; known: startup (0), pause (1)")
             ok, message = client.manage("reset")
@@ -173,3 +182,33 @@ def test_policy_arguments_are_parameters_one_by_one(tmp_path):
             client.close()
             stop(proc)
     assert os.path.exists(tmp_path / "policy.log")
+
+
+class GainSine(SinePolicy):
+    """A user's own policy class (``package.module:Class``) with a typed argument."""
+
+    def __init__(self, gain: float = 0.5) -> None:
+        super().__init__(amplitude=gain)
+
+
+def test_a_user_class_arguments_are_checked_at_configure_like_a_registered_ones(tmp_path):
+    """``policy_args.<name>`` of a ``package.module:Class``: a name it does not take and a value of the wrong type
+    are refused at configure, in one line with its arguments (a registered policy's: as they are set, above)."""
+    user_class = f"{__name__}:GainSine"
+    with reserved_domain() as domain:
+        for i, (arg, expected) in enumerate([
+            ("policy_args.bogus:=1", f"policy '{user_class}' takes no argument 'bogus'; its arguments: gain: float"),
+            ("policy_args.gain:=fast", f"policy '{user_class}': gain='fast' is a str, not float"),
+        ]):  # fmt: skip
+            proc = start(NODE_MODULE.format("policy"), domain.id, domain.lock_fd, tmp_path, f"policy{i}",
+                         "-p", f"policy:={user_class}", "-p", arg)  # fmt: skip
+            client = LifecycleClient(domain.id, NODE_NAMES["policy"])
+            try:
+                assert not client.set_state("configure") and client.state() == "unconfigured"
+                log = (tmp_path / f"policy{i}.log").read_text()
+                assert f"configure failed: InputError: {expected}" in log, log[-2000:]
+                assert client.set_state("shutdown")
+                assert proc.wait(timeout=30) == 0
+            finally:
+                client.close()
+                stop(proc)
