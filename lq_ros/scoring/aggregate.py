@@ -477,7 +477,8 @@ def markdown_table(aggregates: pd.DataFrame) -> str:
     if any(agg.get("n_degenerate") for _, agg in aggregates.iterrows()):
         note += "; ⚠: degenerate protocol (async chunks with no fresh action)"
     if any(agg.get("budget_decided") for _, agg in aggregates.iterrows()):
-        note += f"; {BUDGET_MARK}: budget-decided (at least half the timeouts succeed under the action budget)"
+        note += (f"; {BUDGET_MARK}: budget-decided (at least 5 timeouts, and the fraction that succeeds under the "
+                 "action budget above half with its whole 95% interval)")  # fmt: skip
     if any(agg.get("budget_mark") == "proxy" for _, agg in aggregates.iterrows()):
         note += f"; {PROXY_MARK}: budget proxy only (no action-budget twin was run; a hint, not a finding)"
     return pd.DataFrame(rows).to_markdown(index=False) + note

@@ -13,10 +13,14 @@ import math
 import numpy as np
 import pandas as pd
 
+from lq_ros.scoring.intervals import wilson_interval
 from lq_ros.scoring.labels import _distinct, _pair_keys, base_labels
 
 #: ``budget_counts`` of rows scored before the choice existed: every tick counted (the paper's budget).
 DEFAULT_BUDGET_COUNTS = "all"
+#: Fewest timeouts a cell's budget mark rests on: one rescued timeout of two is an anecdote (its rescued fraction's
+#: interval is [9%, 91%]).
+MIN_TIMEOUTS = 5
 
 
 def add_budget_attribution(episodes: pd.DataFrame) -> pd.DataFrame:
@@ -93,12 +97,16 @@ def add_budget_counts(row: dict, group: pd.DataFrame) -> None:
     ``n_policy_limited`` and ``n_budget_unattributed`` timeouts under budget ``all``; the success of the group's
     action-budget twins (``action_budget_success_rate`` over ``action_budget_n``); and the cell's mark:
 
-    - ``budget_mark`` "decided" (``budget_decided``): at least half the timeouts (``n_timeouts``) succeed in their
-      action-budget twin (``budget_decided_n``; ``budget_twinned_n`` of them had a twin): the same episodes, given
-      the ticks the holds took, succeed (a timeout without a twin counts against the mark);
-    - "proxy": no twin ran for any episode of the cell, and at least half the timeouts pass the zero-latency
-      action-ticks proxy (``budget_proxy_n``), in a cell without degenerate episodes or underruns: a hint,
-      not a finding;
+    - ``budget_mark`` "decided" (``budget_decided``): at least MIN_TIMEOUTS timeouts (``n_timeouts``), and the
+      fraction of them that succeed in their action-budget twin (``budget_decided_n``, the rescued fraction
+      ``budget_rescued`` with its Wilson 95% interval ``budget_rescued_ci_lo``/``_hi``; ``budget_twinned_n`` of
+      them had a twin, a timeout without one counts as not rescued) is above one half with its whole interval:
+      the same episodes, given the ticks the holds took, mostly succeed, and chance does not explain it. Where the
+      point is at least half but the interval reaches below, the cell is only *consistent with* a budget-decided
+      cell (``budget_consistent``), no mark;
+    - "proxy": no twin ran for any episode of the cell, at least MIN_TIMEOUTS timeouts, and at least half pass the
+      zero-latency action-ticks proxy (``budget_proxy_n``), in a cell without degenerate episodes or underruns: a
+      hint, not a finding;
     - "" otherwise.
     """
     budget = group.get("budget_counts", pd.Series(DEFAULT_BUDGET_COUNTS, index=group.index))
@@ -119,9 +127,12 @@ def add_budget_counts(row: dict, group: pd.DataFrame) -> None:
     proxy_allowed = not degenerate.any() and not (underruns > 0).any()
     # Twins of any episode of the cell (a success's too): with one, "no twin run" would be false.
     twins = [bool(v) for v in group.get("budget_twin_success", pd.Series(dtype=object))[paper] if _is_flag(v)]
-    if n_failures and n_twinned and 2 * n_twin_decided >= n_failures:
+    rescued_lo, rescued_hi = wilson_interval(n_twin_decided, n_failures) if n_failures else (math.nan, math.nan)
+    enough = n_failures >= MIN_TIMEOUTS
+    half = n_failures and n_twinned and 2 * n_twin_decided >= n_failures
+    if enough and half and rescued_lo > 0.5:
         mark = "decided"
-    elif n_failures and not twins and proxy_allowed and 2 * n_proxy >= n_failures:
+    elif enough and not twins and proxy_allowed and 2 * n_proxy >= n_failures:
         mark = "proxy"
     else:
         mark = ""
@@ -136,6 +147,10 @@ def add_budget_counts(row: dict, group: pd.DataFrame) -> None:
         budget_proxy_n=n_proxy,
         budget_mark=mark,
         budget_decided=mark == "decided",
+        budget_consistent=bool(half) and mark != "decided",
+        budget_rescued=n_twin_decided / n_failures if n_failures and n_twinned else math.nan,
+        budget_rescued_ci_lo=rescued_lo if n_twinned else math.nan,
+        budget_rescued_ci_hi=rescued_hi if n_twinned else math.nan,
     )
     row["action_budget_n"] = len(twins)
     row["action_budget_success_rate"] = sum(twins) / len(twins) if twins else math.nan
@@ -151,24 +166,27 @@ PROXY_MARK = "◌"
 
 
 def budget_note(agg: pd.Series | dict) -> str:
-    """What decided an aggregate row's timeouts: e.g. ``◇ budget-decided by the action-budget twins: 3/3 timeouts
-    succeed there`` or ``◌ budget proxy only, no twin run: 3/4 timeouts executed fewer action ticks than the 0 s
-    success`` (empty without timeouts under the paper budget; ``action budget`` for such a cell)."""
+    """What decided an aggregate row's timeouts, with the rescued fraction and its Wilson 95% interval: e.g.
+    ``◇ budget-decided by the action-budget twins: 6/6 timeouts succeed under the action budget (100% [61, 100])``,
+    ``consistent with a budget-decided cell: 4/6 timeouts succeed under the action budget (67% [30, 90]); the
+    interval reaches below half``, ``◌ budget proxy only, no twin run: 5/5 timeouts ran fewer action ticks than the
+    0 s success`` (empty without timeouts under the paper budget; ``action budget`` for such a cell)."""
     if agg.get("budget_counts") == "action":
         return "action budget"
     counts = [agg.get(k) for k in ("n_budget_limited", "n_policy_limited", "n_budget_unattributed")]
     if any(c is None or pd.isna(c) for c in counts) or not sum(counts):
         return ""
     mark, timeouts = agg.get("budget_mark"), int(sum(counts))
+    rescued = _rescued_text(agg, timeouts)
     if mark == "decided":
-        text = f"{BUDGET_MARK} budget-decided by the action-budget twins: {int(agg['budget_decided_n'])}/{timeouts}"
-        text += " timeouts succeed there"
-        twinned = agg.get("budget_twinned_n", timeouts)
-        untwinned = 0 if twinned is None or pd.isna(twinned) else timeouts - int(twinned)
-        text += f" ({untwinned} without a twin)" if untwinned > 0 else ""
+        text = f"{BUDGET_MARK} budget-decided by the action-budget twins: {rescued}"
     elif mark == "proxy":
         text = (f"{PROXY_MARK} budget proxy only, no twin run: {int(agg['budget_proxy_n'])}/{timeouts} timeouts ran"
                 " fewer action ticks than the 0 s success")  # fmt: skip
+    elif rescued and timeouts < MIN_TIMEOUTS:
+        text = f"{rescued}: too few timeouts to attribute (a mark needs {MIN_TIMEOUTS})"
+    elif rescued and bool(agg.get("budget_consistent")):
+        text = f"consistent with a budget-decided cell: {rescued}; the interval reaches below half"
     else:
         text = f"{int(counts[0])}/{timeouts} timeouts budget-limited"
         proxy = agg.get("budget_proxy_n")
@@ -176,8 +194,23 @@ def budget_note(agg: pd.Series | dict) -> str:
         by_proxy = int(proxy) if proxy is not None and not pd.isna(proxy) else 0
         notes = [f"{by_proxy} by the proxy alone"] if by_proxy else []
         notes += [f"{int(counts[2])} unattributed"] if counts[2] else []
+        notes += ["too few timeouts for a mark"] if timeouts < MIN_TIMEOUTS and (by_proxy or rescued) else []
         text += f" ({'; '.join(notes)})" if notes else ""
     n_twins = agg.get("action_budget_n")
     if n_twins and not pd.isna(n_twins):
         text += f"; action budget: {100 * agg['action_budget_success_rate']:.0f} % of {int(n_twins)}"
     return text
+
+
+def _rescued_text(agg, timeouts: int) -> str:
+    """``K/F timeouts succeed there (R% [lo, hi]) (U without a twin)``: the rescued fraction with its Wilson 95%
+    interval; empty when no timeout had an action-budget twin."""
+    twinned = agg.get("budget_twinned_n")
+    if twinned is None or pd.isna(twinned) or not int(twinned):
+        return ""
+    k = int(agg.get("budget_decided_n") or 0)
+    lo, hi = wilson_interval(k, timeouts)
+    share = f"{100 * k / timeouts:.0f}% [{100 * lo:.0f}, {100 * hi:.0f}]"
+    text = f"{k}/{timeouts} timeouts succeed under the action budget ({share})"
+    untwinned = timeouts - int(twinned)
+    return text + (f" ({untwinned} without a twin)" if untwinned > 0 else "")

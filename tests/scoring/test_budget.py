@@ -4,6 +4,7 @@ zero-latency action-ticks proxy gives a weaker mark, and never to a degenerate c
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 
 from lq_ros.scoring.aggregate import aggregate, episodes_frame
 from lq_ros.scoring.budget import BUDGET_MARK, PROXY_MARK, add_budget_counts, budget_note
@@ -68,9 +69,10 @@ def test_sync_at_large_n_the_proxy_alone_is_only_a_proxy():
 
 def test_twins_decide_and_overrule_the_proxy():
     """The same sync cell with its action-budget twins: when the twins fail too, the policy failed (no mark,
-    although every timeout passes the proxy); when at least half succeed, the cell is budget-decided."""
+    although every timeout passes the proxy). Half or more rescued is a budget-decided cell only when the rescued
+    fraction's interval stays above half: 3/6 and 5/6 are only consistent with one, 6/6 decides."""
     ticks = BUDGET_TICKS * 5 // (5 + 8)
-    for twin_successes, mark in ((0, ""), (2, ""), (3, "decided"), (6, "decided")):
+    for twin_successes, mark in ((0, ""), (2, ""), (3, ""), (5, ""), (6, "decided")):
         rows = _zero_latency("sync", 6)
         for i in range(6):
             rows.append(_episode("failure", latency=0.4, init=i, action_ticks=ticks))
@@ -80,27 +82,31 @@ def test_twins_decide_and_overrule_the_proxy():
         assert cell["budget_mark"] == mark, twin_successes
         assert (cell["budget_decided_n"], cell["budget_twinned_n"], cell["budget_proxy_n"]) == (twin_successes, 6, 0)
         assert cell["n_budget_limited"] == twin_successes and cell["n_policy_limited"] == 6 - twin_successes
+        assert cell["budget_consistent"] == (3 <= twin_successes < 6)
+        note = budget_note(cell)
         if mark:
-            assert budget_note(cell).startswith(f"{BUDGET_MARK} budget-decided by the action-budget twins: ")
-            assert f": {twin_successes}/6 timeouts succeed there" in budget_note(cell)
+            assert note.startswith(f"{BUDGET_MARK} budget-decided by the action-budget twins: 6/6 timeouts succeed "
+                                   "under the action budget (100% [61, 100])")  # fmt: skip
+        elif twin_successes == 5:
+            assert note.startswith("consistent with a budget-decided cell: 5/6 timeouts succeed under the action "
+                                   "budget (83% [44, 97])")  # fmt: skip
 
 
-def test_a_timeout_without_a_twin_counts_against_the_mark():
-    """4 timeouts, twins for 2 of them: 2 successes there are half the timeouts (decided, and the note says 2 had
-    no twin); 1 success is not. The twinless timeouts pass the proxy, but a cell with twins gets no proxy mark."""
-    for twin_successes, mark in ((2, "decided"), (1, "")):
-        rows = _zero_latency("sync", 4)
-        rows += [_episode("failure", latency=0.2, init=i, action_ticks=60) for i in range(4)]
-        rows += [
-            _episode("success" if i < twin_successes else "failure", latency=0.2, init=i, budget_counts="action")
-            for i in range(2)
-        ]
+def test_one_rescued_timeout_of_two_is_no_mark():
+    """The bad case: "the budget decides the sync cell at 0.1 s" from 1 of 2 timeouts rescued. Too few timeouts for
+    a mark; the note gives the rescued fraction with its interval. Four timeouts with 2 rescued (and 2 without a
+    twin) are still too few."""
+    for n, twinned, rescued, text in ((2, 2, 1, "1/2 timeouts succeed under the action budget (50% [9, 91])"),
+                                      (4, 2, 2, "2/4 timeouts succeed under the action budget (50% [15, 85]) "
+                                                "(2 without a twin)")):  # fmt: skip
+        rows = _zero_latency("sync", n)
+        rows += [_episode("failure", latency=0.2, init=i, action_ticks=60) for i in range(n)]
+        rows += [_episode("success" if i < rescued else "failure", latency=0.2, init=i, budget_counts="action")
+                 for i in range(twinned)]  # fmt: skip
         cell = _cell(aggregate(episodes_frame(rows), n_boot=50), "sync", 0.2)
-        assert cell["budget_mark"] == mark and cell["budget_twinned_n"] == 2
-        if mark:
-            assert budget_note(cell).endswith(
-                "2/4 timeouts succeed there (2 without a twin); action budget: 100 % of 2"
-            )
+        assert cell["budget_mark"] == "" and cell["budget_twinned_n"] == twinned
+        assert cell["budget_rescued"] == pytest.approx(rescued / n)
+        assert budget_note(cell).startswith(f"{text}: too few timeouts to attribute (a mark needs 5)")
 
 
 def test_underruns_anywhere_in_the_cell_withhold_the_proxy_mark():
@@ -116,7 +122,9 @@ def test_underruns_anywhere_in_the_cell_withhold_the_proxy_mark():
     cell = _cell(aggregate(frame, n_boot=50), "async", 0.4)
     assert cell["budget_proxy_n"] == 3 and cell["budget_mark"] == ""
     # The note says the three come from the proxy alone, not from a twin.
-    assert budget_note(cell) == "3/4 timeouts budget-limited (3 by the proxy alone; 1 unattributed)"
+    assert budget_note(cell) == (
+        "3/4 timeouts budget-limited (3 by the proxy alone; 1 unattributed; too few timeouts for a mark)"
+    )
 
 
 def test_counts_of_a_group_without_timeouts():
