@@ -119,21 +119,31 @@ def _metric_line(ax, rows: pd.DataFrame, metric: str, *, colour: str, mode: str,
     few = np.isfinite(mean) & (np.nan_to_num(n.to_numpy(dtype=np.float64)) < pr.MIN_JOIN_N)
     if few.any():
         notes.add(pr.SMALL_N_NOTE)
-    if f"{metric}_values" not in rows:
-        return notes
-    for xi, ni, values, m in zip(x, n, rows[f"{metric}_values"], mean, strict=True):
-        if not isinstance(values, str) or not values or not 0 < ni < agg.MIN_N_INTERVAL or not np.isfinite(m):
+    values_of = rows[f"{metric}_values"] if f"{metric}_values" in rows else pd.Series("", index=rows.index)
+    for xi, ni, values, m in zip(x, n, values_of, mean, strict=True):
+        if not np.isfinite(m) or not ni > 0:
             continue
-        ys = np.asarray(json.loads(values), dtype=np.float64) * scale
-        ax.scatter(np.full(len(ys), xi), ys, s=10, color=colour, alpha=0.6, zorder=4, linewidths=0)
+        # Every point's n: the means of two latencies average different episodes (the successes of each), so
+        # the reader sees how many each rests on (the paired changes against 0 s are in the paired table).
         ax.annotate(f"n={int(ni)}", (xi, m * scale), xytext=(4, 4), textcoords="offset points", fontsize=6,
                     color=colour)  # fmt: skip
+        if isinstance(values, str) and values and ni < agg.MIN_N_INTERVAL:
+            ys = np.asarray(json.loads(values), dtype=np.float64) * scale
+            ax.scatter(np.full(len(ys), xi), ys, s=10, color=colour, alpha=0.6, zorder=4, linewidths=0)
     return notes
 
 
-def _notes(found: set[str]) -> str:
-    """The footnote of the notes found, in a fixed order."""
-    return pr.footnote(*(n for n in (pr.SMALL_N_NOTE, pr.IDLE_NOTE, pr.DEGENERATE_NOTE) if n in found))
+#: Footnote of the success-only means of Figs. 5 and 7: a line joins means of different episode sets.
+EPISODE_SET_NOTE = (
+    "n: the successful episodes behind each mean; a line joins means of different episode sets (the successes of each "
+    "latency), so a change along it mixes the latency's effect with which episodes succeed: the paired changes "
+    "against 0 s (paired_vs_zero_latency.csv) compare the same episodes"
+)
+
+
+def _notes(found: set[str], *extra: str) -> str:
+    """The footnote of the notes found, in a fixed order, then ``extra``."""
+    return pr.footnote(*(n for n in (pr.SMALL_N_NOTE, pr.IDLE_NOTE, pr.DEGENERATE_NOTE) if n in found), *extra)
 
 
 def _latency_ticks(pooled: pd.DataFrame) -> tuple[list[float], list[str]]:
@@ -333,7 +343,7 @@ def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
     for ax in axes[0][2:]:
         ax.set_ylim(low, high)  # the same scale: the detrended value is the part of the paper's that is not travel
     pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig5_trajectory']} (successful episodes; {_rate_note(pooled)})",
-              legend_title="policy · protocol", ncol=2, note=_notes(found))  # fmt: skip
+              legend_title="policy · protocol", ncol=2, note=_notes(found, EPISODE_SET_NOTE))  # fmt: skip
     return fig
 
 
@@ -402,7 +412,7 @@ def fig_energy(pooled: pd.DataFrame) -> plt.Figure:
         ax.set_ylabel(f"{label} [95% CI]")
         _latency_axis(ax, pooled)
     pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig7_energy']} (successful episodes; {_rate_note(pooled)})",
-              legend_title="policy · protocol", ncol=2, note=_notes(found))  # fmt: skip
+              legend_title="policy · protocol", ncol=2, note=_notes(found, EPISODE_SET_NOTE))  # fmt: skip
     return fig
 
 

@@ -8,9 +8,10 @@ from lq_ros.report.tables import count_text, outcomes_text
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.budget import budget_note
 from lq_ros.scoring.intervals import MIN_N_INTERVAL
-from lq_ros.scoring.paired_tests import ALPHA
+from lq_ros.scoring.paired_tests import ALPHA, RMST_METRIC
 
-#: (metric, sentence name, decimals, scale, unit) of the paired changes the report's sentences name.
+#: (metric, sentence name, decimals, scale, unit) of the paired changes the report's sentences name, over the pairs
+#: that succeed in both (completion time there is descriptive: the tested time change is over every pair).
 PAIRED_SENTENCE = (
     ("completion_time_s", "completion time", 2, 1.0, "s"),
     ("action_ticks", "action ticks", 0, 1.0, ""),
@@ -21,9 +22,22 @@ PAIRED_SENTENCE = (
 )
 
 
+def _called(r, metric: str) -> bool:
+    adjusted = r.get(f"{metric}_diff_p_adjusted")
+    return adjusted is not None and not pd.isna(adjusted) and adjusted < ALPHA
+
+
+def _change(r, metric: str, name: str, decimals: int, scale: float, unit: str) -> str:
+    text = f"{name}{f' ({unit})' if unit else ''} {agg.ci_text(r, f'{metric}_diff', decimals, scale, signed=True)}"
+    tasks_p = r.get(f"{metric}_diff_cluster_p")  # the task as the unit: other tasks of the suite
+    return text + ("" if not _called(r, metric) or tasks_p is None or pd.isna(tasks_p)
+                   else f" (task-level p {tasks_p:.2g})")  # fmt: skip
+
+
 def paired_sentences(paired: pd.DataFrame) -> list[str]:
     """The report's findings, one sentence per latency > 0 cell: success against latency 0, what decided its
-    timeouts, and the paired changes (never a comparison of success-only means over different task mixes)."""
+    timeouts, the time to success over every pair (no survivor selection), and the paired changes over the pairs
+    that succeed in both (never a comparison of success-only means over different task mixes)."""
     lines = []
     for _, r in paired.iterrows():
         latency = r.get("latency_label") or agg.cell_latency_label(r)
@@ -36,22 +50,20 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
         )
         note = budget_note(r)
         text += f" ({note})" if note and note != "action budget" else ""
+        n_all = r.get("n_pairs_all")
+        if n_all is not None and not pd.isna(n_all) and int(n_all):
+            time = _change(r, RMST_METRIC, "time to success", 2, 1.0, "s")
+            verdict = "changed" if _called(r, RMST_METRIC) else "not shown to change"
+            text += f"; over all {int(n_all)} pairs (a failure at the horizon), {verdict}: {time}"
         if not r["n_pairs"]:
-            lines.append(text + "; no (task, init, seed) pair succeeds in both, so there is no paired change.")
+            lines.append(text + "; no (task, init, seed) pair succeeds in both, so there is no paired change of the "
+                         "quality metrics.")  # fmt: skip
             continue
         shown, not_shown = [], []
         for metric, name, decimals, scale, unit in PAIRED_SENTENCE:
             if not r.get(f"{metric}_diff_n"):
                 continue
-            change = (
-                f"{name}{f' ({unit})' if unit else ''} {agg.ci_text(r, f'{metric}_diff', decimals, scale, signed=True)}"
-            )
-            adjusted = r.get(f"{metric}_diff_p_adjusted")
-            if adjusted is not None and not pd.isna(adjusted) and adjusted < ALPHA:
-                tasks_p = r.get(f"{metric}_diff_cluster_p")  # the task as the unit: other tasks of the suite
-                shown.append(change + ("" if tasks_p is None or pd.isna(tasks_p) else f" (task-level p {tasks_p:.2g})"))
-            else:
-                not_shown.append(change)
+            (shown if _called(r, metric) else not_shown).append(_change(r, metric, name, decimals, scale, unit))
         one = r["n_pairs"] == 1
         pairs = f"{int(r['n_pairs'])} pair{'' if one else 's'} that succeed{'s' if one else ''}"
         found = f"changed: {', '.join(shown)}" if shown else "no change shown"

@@ -44,7 +44,8 @@ def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
 
 #: (header, metric, decimals, scale) of the paired table: cell minus zero latency over pairs succeeding in both.
 PAIRED_COLUMNS = (
-    ("Δ time s", "completion_time_s", 2, 1.0),
+    ("Δ time to success s (all pairs)", "time_to_success_s", 2, 1.0),
+    ("Δ time s (both succeed, untested)", "completion_time_s", 2, 1.0),
     ("Δ action ticks", "action_ticks", 0, 1.0),
     ("Δ jerk m/s³", "jerk_mean", 2, 1.0),
     ("Δ EE-Osc mm", "ee_osc", 1, 1000.0),
@@ -63,7 +64,7 @@ def paired_table(paired: pd.DataFrame) -> pd.DataFrame:
         row = {"policy": r["policy"], "mode": r["mode"], "latency": r.get("latency_label") or agg.cell_latency_label(r),
                "sampling": agg.sampling_label(r),
                "success vs 0 s": f"{count_text(r, 'cell_n_success')}/{outcomes_text(r)} vs {zero}",
-               "pairs": int(r["n_pairs"])}  # fmt: skip
+               "pairs (all / both succeed)": f"{_count(r.get('n_pairs_all'))} / {int(r['n_pairs'])}"}  # fmt: skip
         for header, metric, decimals, scale in PAIRED_COLUMNS:
             row[header] = agg.ci_text(r, f"{metric}_diff", decimals, scale, signed=True) + _star(r, metric)
         rows.append(row)
@@ -128,6 +129,10 @@ def _seconds(diff: float, lo: float, hi: float) -> str:
     if pd.isna(diff):
         return "–"
     return f"{diff:+.2f}" + (f" [{lo:+.2f}, {hi:+.2f}]" if not pd.isna(lo) else "")
+
+
+def _count(value) -> str:
+    return "–" if value is None or pd.isna(value) else str(int(value))
 
 
 def count_text(r, key: str) -> str:

@@ -62,13 +62,16 @@ def test_every_csv_header_is_declared_and_unmangled(report):
         mangled = [c for c in columns if "p_adjusted" in c and not c.endswith("p_adjusted")]
         assert not mangled, f"{name}: {mangled}"
     assert headers["paired_policies.csv"] == list(pt.COMPARISON_COLUMNS)
-    declared = {f"{m}_diff_{s}" for m in pt.PAIRED_METRICS for s in pt.DIFF_SUFFIXES}
-    declared |= {f"{m}_{side}_mean" for m in pt.PAIRED_METRICS for side in ("zero", "cell")}
-    per_metric = [c for c in headers["paired_vs_zero_latency.csv"] if any(c.startswith(m) for m in pt.PAIRED_METRICS)]
+    metrics = (*pt.PAIRED_METRICS, pt.RMST_METRIC)
+    declared = {f"{m}_diff_{s}" for m in metrics for s in pt.DIFF_SUFFIXES}
+    declared |= {f"{m}_{side}_mean" for m in metrics for side in ("zero", "cell")}
+    per_metric = [c for c in headers["paired_vs_zero_latency.csv"] if any(c.startswith(m) for m in metrics)]
     assert per_metric and set(per_metric) <= declared, sorted(set(per_metric) - declared)
     adjusted = {c for c in per_metric if c.endswith("_p_adjusted")}
     assert adjusted == {f"{m}_diff_p_adjusted" for m in pt.TESTED_METRICS}  # totals untested
-    assert {"jerk_p90_diff_p_adjusted", "energy_actuator_j_diff_p_adjusted"} <= adjusted
+    assert {"jerk_p90_diff_p_adjusted", "energy_actuator_j_diff_p_adjusted", "time_to_success_s_diff_p_adjusted"} <= (
+        adjusted
+    )
 
 
 def test_the_declared_primary_is_the_holm_family_and_the_report_says_which_population(report):

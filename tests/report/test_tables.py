@@ -19,11 +19,12 @@ def test_comparison_table_shows_no_adjusted_p_outside_the_holm_family():
 
 def test_paired_table_stars_adjusted_hits_only():
     base = {"policy": "p", "mode": "sync", "latency_label": "0.2 s (N=4)", "zero_n_success": 9, "zero_n": 10,
-            "cell_n_success": 8, "n_failure": 2, "n_pairs": 8, "completion_time_s_diff_n": 8,
-            "completion_time_s_diff_mean": 1.0, "completion_time_s_diff_ci_lo": 0.5,
-            "completion_time_s_diff_ci_hi": 1.5, "completion_time_s_diff_p": 0.001}  # fmt: skip
-    rows = pd.DataFrame([base | {"completion_time_s_diff_p_adjusted": 0.004},
-                         base | {"policy": "q", "completion_time_s_diff_p_adjusted": 0.07}])  # fmt: skip
+            "cell_n_success": 8, "n_failure": 2, "n_pairs": 8, "n_pairs_all": 10, "time_to_success_s_diff_n": 8,
+            "time_to_success_s_diff_mean": 1.0, "time_to_success_s_diff_ci_lo": 0.5,
+            "time_to_success_s_diff_ci_hi": 1.5, "time_to_success_s_diff_p": 0.001}  # fmt: skip
+    rows = pd.DataFrame([base | {"time_to_success_s_diff_p_adjusted": 0.004},
+                         base | {"policy": "q", "time_to_success_s_diff_p_adjusted": 0.07}])  # fmt: skip
     table = tables.paired_table(rows).set_index("policy")
-    assert table.loc["p", "Δ time s"] == "+1.00 [+0.50, +1.50] *"
-    assert table.loc["q", "Δ time s"] == "+1.00 [+0.50, +1.50]"
+    assert table.loc["p", "Δ time to success s (all pairs)"] == "+1.00 [+0.50, +1.50] *"
+    assert table.loc["q", "Δ time to success s (all pairs)"] == "+1.00 [+0.50, +1.50]"
+    assert table.loc["p", "pairs (all / both succeed)"] == "10 / 8"

@@ -227,3 +227,20 @@ def test_changes_against_zero_carry_a_task_level_test():
     # subset of total F gives |15 - 2F| >= 5 iff F <= 5 (10 subsets: {}, five singles, {1,2}, {1,3}, {1,4}, {2,3})
     # or F >= 10 (their 10 complements): 20 of 32 sign patterns.
     assert paired["completion_time_s_diff_cluster_p"] == pytest.approx(20 / 32)
+
+
+def test_time_to_success_against_zero_counts_every_pair_not_only_the_survivors():
+    """The bad case: at 0.2 s the three slowest episodes fail. Over the pairs that succeed in both nothing changed
+    (the survivors are the fast ones); over every pair, a failure at the 11 s horizon, the latency costs time."""
+    rows = [_episode("success", steps=100 + 10 * i, init=i, step_budget=220) for i in range(5)]
+    rows += [_episode("success", latency=0.2, steps=100 + 10 * i, init=i, step_budget=220) for i in range(2)]
+    rows += [_episode("failure", latency=0.2, steps=220, init=i, step_budget=220) for i in range(2, 5)]
+    row = paired_differences(episodes_frame(rows), n_boot=200).iloc[0]
+    assert row["n_pairs"] == 2 and row["completion_time_s_diff_mean"] == 0.0  # survivors: no change
+    assert row["n_pairs_all"] == 5
+    # 0, 0, 11 - 6, 11 - 6.5, 11 - 7 s.
+    assert row["time_to_success_s_diff_mean"] == pytest.approx((5.0 + 4.5 + 4.0) / 5)
+    assert row["time_to_success_s_zero_mean"] == pytest.approx(6.0)
+    assert (
+        row["time_to_success_s_diff_ci_lo"] < row["time_to_success_s_diff_mean"] < row["time_to_success_s_diff_ci_hi"]
+    )
