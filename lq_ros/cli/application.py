@@ -11,6 +11,7 @@ import typer
 from lq_ros.cli.common import console
 from lq_ros.cli.demo import demo
 from lq_ros.cli.eval import eval_
+from lq_ros.cli.plan import plan
 from lq_ros.cli.reindex import reindex
 from lq_ros.cli.replay import replay
 from lq_ros.cli.report import report
@@ -29,6 +30,7 @@ app.command()(score)
 app.command()(sweep)
 app.command(name="eval")(eval_)
 app.command()(report)
+app.command()(plan)
 app.command()(replay)
 app.command()(reindex)
 # Learned policies: demonstrations and training (lq_ros/training/cli.py).
