@@ -6,6 +6,8 @@ Part of the LeRobot server (``lerobot_server.py``); runs in LeRobot's venv (lq_r
 from __future__ import annotations
 
 import json
+import os
+import sys
 from pathlib import Path
 
 #: Config fields a config.json may carry beyond its class's (``type`` names the class).
@@ -15,6 +17,22 @@ HUB_PREFIX = "hub:"
 #: The processor pipelines a LeRobot >= 0.4 checkpoint saves (lerobot.utils.constants), and the largest read.
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 MAX_PROCESSOR_BYTES = 1 << 20
+
+
+#: The switches that keep the Hugging Face libraries off the network. Each library reads them once, when it is first
+#: imported (``huggingface_hub.constants.HF_HUB_OFFLINE``), so they are set before LeRobot is imported.
+OFFLINE_SWITCHES = ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE")
+HUB_LIBRARIES = ("huggingface_hub", "transformers", "datasets")
+
+
+def go_offline() -> None:
+    """Set :data:`OFFLINE_SWITCHES` for a local checkpoint (nothing is fetched: LeRobot would try the hub for a
+    missing state file); RuntimeError if a hub library is already imported, since it would not see them."""
+    imported = [name for name in HUB_LIBRARIES if name in sys.modules]
+    if imported:
+        raise RuntimeError(f"offline switches set after {', '.join(imported)} was imported: they would not apply")
+    for name in OFFLINE_SWITCHES:
+        os.environ[name] = "1"
 
 
 def checkpoint_source(path: str) -> tuple[str, bool]:

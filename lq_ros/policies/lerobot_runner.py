@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import importlib
-import os
 import sys
 import time
 from pathlib import Path
@@ -67,8 +66,7 @@ class LeRobotServer:
 
         self.torch = torch
         path, local = checkpoint_source(path)
-        if local:  # nothing fetched for a local checkpoint (LeRobot would try the hub for a missing state file)
-            os.environ["HF_HUB_OFFLINE"] = "1"
+        if local:  # offline: the server's main set the switches before LeRobot was imported (go_offline)
             check_config_fields(Path(path) / "config.json")
         else:
             from huggingface_hub import hf_hub_download
@@ -143,6 +141,7 @@ class LeRobotServer:
 
     # -- metadata ---------------------------------------------------------------------------
     def metadata(self) -> dict:
+        import huggingface_hub.constants
         import lerobot
 
         return {
@@ -158,6 +157,8 @@ class LeRobotServer:
             "action_queue": self._action_queue() is not None,
             "rtc": self.supports_rtc(),
             "state_from_eef_mat": self.needs_eef_mat,
+            # What the hub library itself reads (it takes the switch once, when imported): True for a local checkpoint.
+            "hub_offline": bool(huggingface_hub.constants.HF_HUB_OFFLINE),
         }
 
     # -- one request --------------------------------------------------------------------------

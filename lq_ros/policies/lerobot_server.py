@@ -100,7 +100,7 @@ from pathlib import Path
 if str(Path(__file__).resolve().parent) not in sys.path:
     sys.path.append(str(Path(__file__).resolve().parent))
 
-from lerobot_checkpoint import check_config_fields  # noqa: E402, F401 - after the path; test scripts use these names
+from lerobot_checkpoint import HUB_PREFIX, check_config_fields, go_offline  # noqa: E402, F401 - test scripts use these
 from lerobot_request import RequestError, checked_request, error_line  # noqa: E402
 from lerobot_runner import LeRobotServer  # noqa: E402
 
@@ -257,6 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --host {args.host!r}: the policy server binds to loopback only (127.0.0.1)", file=sys.stderr)
         return 2
     try:
+        if not args.path.startswith(HUB_PREFIX):
+            go_offline()  # before anything imports a hub library: each reads the switches once, when imported
         import torch
 
         if args.threads > 0:
