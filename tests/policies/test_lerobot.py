@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.core.seeding import LEROBOT_SEED_TAG, episode_seed
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, make_policy
 from lq_ros.policies.lerobot_client import LEROBOT_LIBERO_RENDER_SIZE, SERVER_SCRIPT, default_python
@@ -132,7 +133,9 @@ def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind
     """diffusion2 (n_obs_steps 2): lerobot-eval's policy sees the tick before each replan from its own per-tick
     queue, ours from the request's history (the simulator's capture of that tick)."""
     reference = tmp_path / "eval.npz"
-    in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, 0, reference)
+    # Our server is seeded with the episode's seed (init 0, run seed 0); lerobot-eval's set_seed gets the same.
+    seed = episode_seed(0, SUITE, TASK, 0, LEROBOT_SEED_TAG)
+    in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, seed, reference)
     executed = np.load(reference)["actions"].astype(np.float64)
     assert executed.shape == (PARITY_STEPS, 7)
 
