@@ -26,9 +26,20 @@ CLOCKS = ("lockstep", "realtime")
 PROTOCOL_FIELDS = ("replan_steps", "hold", "request_threshold", "merge", "request_slack")
 #: Run configuration fields besides the group keys that tell variants of a policy or protocol apart.
 #: Every parameter that changes outcomes is one: results that differ in any of them never pool.
-VARIANT_FIELDS = ("policy_args", *PROTOCOL_FIELDS, "max_steps", "budget_counts", "camera_size", "clock", "robot")
+VARIANT_FIELDS = (
+    "policy_args", *PROTOCOL_FIELDS, "max_steps", "budgets", "budget_counts", "camera_size", "clock", "robot",
+)  # fmt: skip
+#: Fields that say where a value came from, not what ran: recorded in rows, never part of ``RunConfig.key()`` (a
+#: run whose replan_steps came from the policy's declaration is the same episode as one given the same flag).
+PROVENANCE_FIELDS = ("replan_steps_source",)
+#: Where ``replan_steps`` came from: the policy's declared reference protocol, or the user (a flag or a spec); empty
+#: for a configuration made without either (a test's, a result stored before the choice existed).
+REPLAN_STEPS_SOURCES = ("", "policy", "flag")
 #: Camera render size when neither the run nor the policy names one, px.
 DEFAULT_CAMERA_SIZE_PX = 224
+#: Actions of each chunk sync executes unless the policy declares its own (Policy.reference) or the run names one:
+#: the paper's protocol.
+PAPER_REPLAN_STEPS = 5
 #: What an aggregate row (and a figure's series point) is computed over: one policy variant, protocol,
 #: applied (mean) latency and its distribution, task, and the sampling its trajectory and energy metrics
 #: were computed at.
@@ -43,6 +54,7 @@ _KEY_OPTIONAL_FIELDS = {
     "robot": "",
     "budget_counts": "all",
     "request_slack": 0,
+    "budgets": "paper",
 }
 #: What the step budget counts (``budget_counts``): ``all`` ticks (the paper's and OpenVLA's loop: holds count
 #: against it) or only ``action`` ticks, whose command came from a chunk.
@@ -64,7 +76,7 @@ class RunConfig:
     #: Injected inference latency dt_sim, seconds (constant). With ``latency_dist`` set: its expected
     #: applied value (set from it; lq_ros/core/latency.py).
     latency_s: float = 0.0
-    replan_steps: int = 5
+    replan_steps: int = PAPER_REPLAN_STEPS
     hold: str = "stop"
     #: async: request when this many actions remain buffered; -1: N (latency ticks).
     request_threshold: int = -1
@@ -91,9 +103,18 @@ class RunConfig:
     budget_counts: str = "all"
     #: async: request the next chunk K actions earlier than the threshold (lq_ros.core.executor_protocol).
     request_slack: int = 0
+    #: Step budgets per suite when ``max_steps`` is 0: ``paper`` (default), ``lerobot`` (LeRobot 0.6's) or ``xvla``
+    #: (800; lq_ros.core.suite_constants.BUDGET_PRESETS).
+    budgets: str = "paper"
+    #: Where ``replan_steps`` came from (REPLAN_STEPS_SOURCES): provenance, not part of the key.
+    replan_steps_source: str = ""
 
     def __post_init__(self) -> None:
-        step_budget(self.suite)  # validates the suite name
+        step_budget(self.suite, self.budgets)  # validates the suite and preset names
+        if self.replan_steps_source not in REPLAN_STEPS_SOURCES:
+            raise ValueError(
+                f"replan_steps_source must be one of {REPLAN_STEPS_SOURCES}, got {self.replan_steps_source!r}"
+            )
         if self.clock not in CLOCKS:
             raise ValueError(f"clock must be {' or '.join(CLOCKS)}, got {self.clock!r}")
         if self.budget_counts not in BUDGET_COUNTS:
@@ -133,7 +154,7 @@ class RunConfig:
     @property
     def budget(self) -> int:
         """The step budget, ticks: what ``budget_counts`` counts against."""
-        return self.max_steps or step_budget(self.suite)
+        return self.max_steps or step_budget(self.suite, self.budgets)
 
     @property
     def tick_limit(self) -> int:
@@ -196,7 +217,10 @@ class RunConfig:
 
     def key(self) -> str:
         """Stable hash of the configuration (for resumable sweeps and file names)."""
-        fields = {k: v for k, v in redact_config(self.to_dict()).items() if _KEY_OPTIONAL_FIELDS.get(k, object()) != v}
+        fields = {
+            k: v for k, v in redact_config(self.to_dict()).items()
+            if _KEY_OPTIONAL_FIELDS.get(k, object()) != v and k not in PROVENANCE_FIELDS
+        }  # fmt: skip
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
     def episode_name(self) -> str:

@@ -31,6 +31,24 @@ STEP_BUDGETS: dict[str, int] = {
     "libero_90": 400,
 }
 
+#: LeRobot 0.6's episode lengths (``TASK_SUITE_MAX_STEPS`` in ``lerobot/envs/libero.py``; a test compares): what
+#: ``lerobot-eval`` gives a LIBERO episode after its wait steps. Spatial differs from the paper's (openpi's) 220.
+LEROBOT_STEP_BUDGETS: dict[str, int] = {
+    "libero_spatial": 280,
+    "libero_object": 280,
+    "libero_goal": 300,
+    "libero_10": 520,
+    "libero_90": 400,
+}
+#: The episode length of LeRobot's X-VLA LIBERO evaluation (``--env.episode_length=800``), every suite.
+XVLA_STEP_BUDGET = 800
+#: Step budget presets (RunConfig.budgets): the paper's (the default), LeRobot 0.6's, and X-VLA's evaluation.
+BUDGET_PRESETS: dict[str, dict[str, int]] = {
+    "paper": STEP_BUDGETS,
+    "lerobot": LEROBOT_STEP_BUDGETS,
+    "xvla": dict.fromkeys(STEP_BUDGETS, XVLA_STEP_BUDGET),
+}
+
 #: Tasks LIBERO ships per suite (its benchmark registry's n_tasks; tests/sim/test_libero_env.py compares). Known
 #: here so that checking a task id, or expanding a sweep's ``tasks: all``, does not import LIBERO (whose import
 #: reads every installed package's metadata): through ROS the nodes import it, not the launcher.
@@ -46,10 +64,13 @@ NUM_TASKS: dict[str, int] = {
 NUM_INIT_STATES = 50
 
 
-def step_budget(suite: str) -> int:
-    """Policy-controlled tick budget of ``suite``; raises ValueError naming the known suites."""
+def step_budget(suite: str, preset: str = "paper") -> int:
+    """Policy-controlled tick budget of ``suite`` in a :data:`BUDGET_PRESETS` preset; ValueError naming the known
+    suites or presets."""
+    if preset not in BUDGET_PRESETS:
+        raise ValueError(f"unknown budget preset {preset!r}; known: {', '.join(BUDGET_PRESETS)}")
     try:
-        return STEP_BUDGETS[suite]
+        return BUDGET_PRESETS[preset][suite]
     except KeyError:
         raise ValueError(f"unknown suite {suite!r}; known: {', '.join(STEP_BUDGETS)}") from None
 

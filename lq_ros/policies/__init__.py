@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 
 from lq_ros.core.merge import ActionPrefix
-from lq_ros.policies.base import Policy, PolicyError
+from lq_ros.policies.base import Policy, PolicyError, ReferenceProtocol
 from lq_ros.policies.openpi_remote import libero_state_8d, libero_training_image
 
 #: name -> "module:Class". Adding a policy is one new module and one line here.
@@ -58,7 +58,25 @@ def make_policy(name: str, **params) -> Policy:
     return policy_class(name)(**params)
 
 
+def reference_protocol(name: str, params: dict) -> ReferenceProtocol:
+    """The reference protocol a policy made with ``params`` declares (:meth:`Policy.reference`). The policy is made
+    and closed again: none of the shipped ones connects or starts a server before its first inference."""
+    policy = make_policy(name, **params)
+    try:
+        return policy.reference()
+    finally:
+        policy.close()
+
+
+def declared_replan_steps(name: str, params: dict) -> int:
+    """The actions per chunk a policy's reference protocol executes in sync. A policy that does not override
+    :meth:`Policy.reference` declares the paper's without being made; one that does is made (and closed)."""
+    if policy_class(name).reference is Policy.reference:
+        return ReferenceProtocol().replan_steps
+    return reference_protocol(name, params).replan_steps
+
+
 __all__ = [
-    "ActionPrefix", "Policy", "PolicyError", "REGISTRY", "is_registered", "libero_state_8d", "libero_training_image",
-    "make_policy", "policy_class",
+    "ActionPrefix", "Policy", "PolicyError", "REGISTRY", "ReferenceProtocol", "is_registered", "libero_state_8d",
+    "libero_training_image", "make_policy", "policy_class", "reference_protocol", "declared_replan_steps",
 ]  # fmt: skip

@@ -3,16 +3,31 @@
 from __future__ import annotations
 
 import abc
+from dataclasses import dataclass
 
 import numpy as np
 
 from lq_ros.core.control import ControlMode
 from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
+from lq_ros.core.run_config import PAPER_REPLAN_STEPS
 from lq_ros.core.types import Observation, TaskInfo
 
 
 class PolicyError(RuntimeError):
     """The policy could not produce a chunk (server down, timeout, garbage): the episode is an error."""
+
+
+@dataclass(frozen=True)
+class ReferenceProtocol:
+    """How a policy's own reference evaluation runs it: ``lq run``, ``lq eval`` and sweeps default to it (an explicit
+    ``--replan-steps`` or ``--camera-size`` wins, and the result row says which was used)."""
+
+    #: Actions of each chunk the sync protocol executes before the next request.
+    replan_steps: int = PAPER_REPLAN_STEPS
+    #: Camera render size, px; None: the run's default (lq_ros.core.run_config.DEFAULT_CAMERA_SIZE_PX).
+    camera_size: int | None = None
+    #: The cameras rendered for it (none: no rendering).
+    camera_names: tuple[str, ...] = ()
 
 
 class Policy(abc.ABC):
@@ -61,6 +76,12 @@ class Policy(abc.ABC):
     def params(self) -> dict:
         """Parameters recorded in the run metadata."""
         return {}
+
+    def reference(self) -> ReferenceProtocol:
+        """The protocol this policy's reference evaluation uses: the paper's actions per chunk, its render size and
+        cameras. A policy whose reference depends on its arguments (a LeRobot checkpoint's ``n_action_steps``)
+        overrides it."""
+        return ReferenceProtocol(camera_size=self.render_size, camera_names=tuple(self.camera_names))
 
     @classmethod
     def check_merge(cls, merge: str) -> None:

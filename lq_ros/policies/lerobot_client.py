@@ -30,6 +30,7 @@ them (bottom row first) at LeRobot's LIBERO render size.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -44,15 +45,21 @@ import numpy as np
 from lq_ros.core.control import ControlMode, parse_control_mode
 from lq_ros.core.merge import PREFIX_STRATEGIES, ActionPrefix, Merge
 from lq_ros.core.observation_history import MAX_HISTORY_TICKS
+from lq_ros.core.seeding import LEROBOT_SEED_TAG, episode_seed
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation, TaskInfo
-from lq_ros.policies.base import PolicyError
+from lq_ros.policies.base import PolicyError, ReferenceProtocol
 from lq_ros.policies.openpi_remote import AGENTVIEW, WRIST, OpenPIPolicy, camera_image, flag, positive_number
 
 #: ``lerobot-eval`` 0.4.4 renders LIBERO at 256 x 256: ``lerobot.envs.libero.LiberoEnv``'s default (its env config
-#: declares 360, but does not pass the size to the env; a test checks both against LeRobot's code). 0.6 passes it
-#: (360): ``--camera-size 360`` renders as 0.6 does.
+#: declares 360, but does not pass the size to the env; a test checks both against LeRobot's code). 0.6 passes its
+#: config's 360 to the env. A checkpoint's reference render size is its serving LeRobot's (:func:`render_size_of`).
 LEROBOT_LIBERO_RENDER_SIZE = 256
+LEROBOT06_LIBERO_RENDER_SIZE = 360
+#: The first LeRobot version whose lerobot-eval passes its LIBERO config's size to the env (checked for 0.6.1).
+RENDERS_CONFIG_SIZE_FROM = (0, 6)
+#: How long asking LeRobot's venv for its LeRobot version may take, s.
+VERSION_TIMEOUT_S = 60.0
 #: The LIBERO state LeRobot's env processor builds: EE position, axis-angle, gripper finger qpos.
 LEROBOT_STATE_KEY = "observation.state"
 LEROBOT_STATE_DIM = 8
@@ -111,6 +118,28 @@ def venv_environment() -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in NOT_FOR_THE_SERVER}
     env["PYTHONNOUSERSITE"] = "1"
     return env
+
+
+@functools.cache
+def lerobot_version(python: Path) -> str:
+    """The LeRobot version installed for ``python`` (its package metadata; LeRobot is not imported); ValueError."""
+    code = "from importlib.metadata import version; print(version('lerobot'))"
+    try:
+        done = subprocess.run(
+            [str(python), "-c", code], capture_output=True, text=True, timeout=VERSION_TIMEOUT_S,
+            env=venv_environment(), check=False,
+        )  # fmt: skip
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise ValueError(f"lerobot: cannot ask {python} for its LeRobot version ({type(exc).__name__})") from None
+    if done.returncode != 0:
+        raise ValueError(f"lerobot: {python} has no LeRobot installed; {SETUP_HINT}")
+    return done.stdout.strip()
+
+
+def render_size_of(version: str) -> int:
+    """The size ``lerobot-eval`` of LeRobot ``version`` renders LIBERO at, px (0.4.4: 256; 0.6: 360)."""
+    numbers = tuple(int(part) for part in re.findall(r"\d+", version)[:2])
+    return LEROBOT06_LIBERO_RENDER_SIZE if numbers >= RENDERS_CONFIG_SIZE_FROM else LEROBOT_LIBERO_RENDER_SIZE
 
 
 def hub_id(path: str) -> str | None:
@@ -307,7 +336,6 @@ class LeRobotPolicy(OpenPIPolicy):
     """
 
     name = "lerobot"
-    render_size = LEROBOT_LIBERO_RENDER_SIZE
     #: SmolVLA, pi0 and pi0.5 take the executing prefix (LeRobot's RTC); :meth:`check_merge` refuses the others once
     #: the checkpoint is known (a class-level check cannot see it).
     supports_prefix = True
@@ -391,6 +419,21 @@ class LeRobotPolicy(OpenPIPolicy):
         self._prefix: ActionPrefix | None = None
 
     # -- Policy interface -------------------------------------------------------------------
+    @property
+    def render_size(self) -> int:
+        """The size the serving LeRobot's ``lerobot-eval`` renders LIBERO at (0.4.4: 256; 0.6: 360), px."""
+        return render_size_of(lerobot_version(self.python))
+
+    @property
+    def actions_per_chunk(self) -> int:
+        """The actions ``lerobot-eval`` executes of each chunk: ``n_action_steps`` (the argument, else the config's)."""
+        return int(self.n_action_steps or self.config.get("n_action_steps") or 1)
+
+    def reference(self) -> ReferenceProtocol:
+        """``lerobot-eval``'s protocol: every chunk executed whole (``n_action_steps``) in sync, at the serving
+        LeRobot's render size, the checkpoint's cameras."""
+        return ReferenceProtocol(self.actions_per_chunk, self.render_size, tuple(self.camera_names))
+
     def _check_merge_for_checkpoint(self, merge: str) -> None:
         """Real-time chunking merges only for the policy types LeRobot wires its RTC processor into."""
         if Merge(merge) in PREFIX_STRATEGIES and self.config["type"] not in RTC_TYPES:
@@ -416,9 +459,12 @@ class LeRobotPolicy(OpenPIPolicy):
         return chunk
 
     def reset(self, task: TaskInfo, seed: int) -> None:
+        """A new episode: the server resets the policy and seeds torch, numpy and random (LeRobot's ``set_seed``)
+        with the episode's own seed, drawn from (seed, suite, task, init state) (lq_ros.core.seeding), so the episodes
+        of a cell draw independent noise and a rerun of one episode repeats it."""
         super().reset(task, seed)
         self._episode_start = True
-        self._seed = int(seed)
+        self._seed = episode_seed(seed, task.suite, task.task_id, task.init_state, LEROBOT_SEED_TAG)
 
     def observation_fields(self, obs: Observation) -> dict[str, np.ndarray]:
         """Cameras as robosuite renders them (our images are upright: undo the row flip), state unprocessed, and the
@@ -472,7 +518,7 @@ class LeRobotPolicy(OpenPIPolicy):
             "path": str(self.path),
             "policy_type": self.config["type"],
             "config_sha256": self.config_sha256,
-            "n_action_steps": self.n_action_steps or self.config.get("n_action_steps"),
+            "n_action_steps": self.actions_per_chunk,
             "n_action_steps_override": self.n_action_steps,
             "n_obs_steps": self.observation_history_ticks,
             "full_chunk": self.full_chunk,
@@ -485,6 +531,8 @@ class LeRobotPolicy(OpenPIPolicy):
             "timeout_s": self.timeout_s,
             "prompt": self.prompt_override,
             "trust_processors": self.trust_processors,
+            # The server is seeded per episode (reset): lq_ros.core.seeding.episode_seed with LEROBOT_SEED_TAG.
+            "seeding": "episode",
         }
 
     def close(self) -> None:

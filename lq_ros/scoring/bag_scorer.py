@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lq_ros.core.run_config import ACTION_BUDGET_HARD_STOP, BUDGET_COUNTS, VARIANT_FIELDS
-from lq_ros.core.suite_constants import CONTROL_DT_S, PHYSICS_DT_S, STEP_BUDGETS
+from lq_ros.core.run_config import ACTION_BUDGET_HARD_STOP, BUDGET_COUNTS, PROVENANCE_FIELDS, VARIANT_FIELDS
+from lq_ros.core.seeding import policy_seed
+from lq_ros.core.suite_constants import BUDGET_PRESETS, CONTROL_DT_S, PHYSICS_DT_S
 from lq_ros.scoring import metrics
 from lq_ros.scoring.bag_metrics import (
     UNIFORM_TOL,
@@ -77,6 +78,12 @@ def score_episode(
     row.update({k: cfg.get(k) for k in ("policy", "mode", "suite", "task", "init", "seed")})
     # Policy arguments and protocol parameters: what tells variants of one policy or mode apart.
     row.update({k: cfg[k] for k in VARIANT_FIELDS if k in cfg})
+    # Where protocol values came from (the policy's reference protocol or the user), the render size used, and the
+    # seed a per-episode-seeded policy server was given (lq_ros.core.seeding).
+    row.update({k: cfg.get(k) for k in PROVENANCE_FIELDS})
+    row["camera_size_px"] = meta.get("camera_size_px")
+    row["camera_size_source"] = ("flag" if cfg.get("camera_size") else "policy") if cfg else None
+    row["policy_seed"] = policy_seed(cfg, meta.get("policy_params") or {})
     row["transport"] = meta.get("transport")
     versions = meta.get("versions") or {}
     cpu = versions.get("cpu") if isinstance(versions, dict) else None
@@ -105,7 +112,8 @@ def score_episode(
     outcome = status in ("success", "failure")
     row["error_reason"] = reason if status in ("error", "unknown") else None
     # The budget a failure is censored at (Kaplan-Meier completion time in the aggregates).
-    row["step_budget"] = cfg.get("max_steps") or STEP_BUDGETS.get(cfg.get("suite"))
+    budgets = BUDGET_PRESETS.get(cfg.get("budgets", "paper"), {})  # the run's preset (bags before it: the paper's)
+    row["step_budget"] = cfg.get("max_steps") or budgets.get(cfg.get("suite"))
     # What the budget counted (bags from before the choice existed counted every tick), and the ticks of any
     # kind after which the episode ended at the latest: where a failure is censored in sim time.
     row["budget_counts"] = cfg.get("budget_counts", "all") if cfg else None

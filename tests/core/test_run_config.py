@@ -54,3 +54,23 @@ def test_versions_record_the_cpu_class():
     cpu = cpu_info()
     assert cpu["model"] and cpu["class"].split()[0] in ("x86_64", "aarch64")
     assert versions()["cpu"] == cpu
+
+
+def test_where_replan_steps_came_from_is_recorded_but_not_part_of_the_key():
+    """A run given --replan-steps 5 is the same episode as one whose policy declared 5 (stored sweeps resume)."""
+    given, declared = RunConfig(replan_steps_source="flag"), RunConfig(replan_steps_source="policy")
+    assert given.key() == declared.key() == RunConfig().key()
+    assert declared.to_dict()["replan_steps_source"] == "policy"
+    with pytest.raises(ValueError, match="replan_steps_source must be one of"):
+        RunConfig(replan_steps_source="guess")
+
+
+def test_budget_presets_give_each_suite_its_budget_and_the_paper_stays_the_default():
+    assert RunConfig(suite="libero_spatial").budget == 220
+    assert RunConfig(suite="libero_spatial", budgets="lerobot").budget == 280
+    assert RunConfig(suite="libero_10", budgets="xvla").budget == 800
+    assert RunConfig(suite="libero_spatial", budgets="lerobot", max_steps=50).budget == 50  # max_steps wins
+    # The paper's preset keeps the keys of stored results; another preset is another experiment.
+    assert RunConfig(budgets="paper").key() == RunConfig().key() != RunConfig(budgets="lerobot").key()
+    with pytest.raises(ValueError, match="unknown budget preset 'lerobot06'; known: paper, lerobot, xvla"):
+        RunConfig(budgets="lerobot06")

@@ -19,9 +19,19 @@ import numpy as np
 import pytest
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.core.suite_constants import LEROBOT_STEP_BUDGETS
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, make_policy
-from lq_ros.policies.lerobot_client import RTC_TYPES, check_config, default_python
+from lq_ros.policies.base import ReferenceProtocol
+from lq_ros.policies.lerobot_client import (
+    LEROBOT06_LIBERO_RENDER_SIZE,
+    LEROBOT_LIBERO_RENDER_SIZE,
+    RTC_TYPES,
+    check_config,
+    default_python,
+    lerobot_version,
+    render_size_of,
+)
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
@@ -140,6 +150,45 @@ def test_act_saved_by_06_answers_its_queue_a_full_chunk_or_n_action_steps(checkp
         policy06(checkpoints["diffusion"], full_chunk=1)
     with pytest.raises(ValueError, match="n_action_steps 9: valid: 1 to the checkpoint's chunk size, 8"):
         policy06(checkpoints["act"], n_action_steps=9)
+
+
+def test_lerobot_06_budgets_and_render_size_are_ours():
+    """LeRobot 0.6's LIBERO episode lengths (TASK_SUITE_MAX_STEPS, read from its source: its env module needs the
+    LIBERO simulator, which its venv lacks) and render size (its env config's, which it passes to the env)."""
+    code = (
+        "import ast, json, lerobot.envs, pathlib\n"
+        "from lerobot.envs.configs import LiberoEnv\n"
+        "tree = ast.parse((pathlib.Path(lerobot.envs.__file__).parent / 'libero.py').read_text())\n"
+        "steps = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.AnnAssign)\n"
+        "             and getattr(n.target, 'id', '') == 'TASK_SUITE_MAX_STEPS')\n"
+        "env = LiberoEnv(task='libero_spatial')\n"
+        "kwargs = env.gym_kwargs\n"
+        "print(json.dumps({'steps': steps, 'size': [env.observation_height, env.observation_width],\n"
+        "                  'passed': [kwargs.get('observation_height'), kwargs.get('observation_width')]}))"
+    )
+    environ = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    done = subprocess.run([str(python06()), "-c", code], capture_output=True, text=True, env=environ, check=True)
+    lerobot = json.loads(done.stdout.strip().splitlines()[-1])
+    assert lerobot["steps"] == LEROBOT_STEP_BUDGETS
+    assert lerobot["size"] == lerobot["passed"] == [LEROBOT06_LIBERO_RENDER_SIZE] * 2
+    assert render_size_of(lerobot_version(python06())) == LEROBOT06_LIBERO_RENDER_SIZE
+    assert render_size_of("0.4.4") == LEROBOT_LIBERO_RENDER_SIZE
+
+
+def test_a_checkpoint_declares_lerobot_evals_protocol_and_is_served_offline(checkpoints, monkeypatch):
+    """The reference protocol: n_action_steps per chunk, 0.6's render size, the checkpoint's cameras; a local
+    checkpoint's server has the hub library offline (it reads the switch once, when imported)."""
+    for name in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
+        monkeypatch.delenv(name, raising=False)
+    assert policy06(checkpoints["smolvla"]).reference().replan_steps == SMOLVLA_STEPS
+    policy = policy06(checkpoints["act"], n_action_steps=3)
+    try:
+        assert policy.reference() == ReferenceProtocol(3, 360, ("agentview", "robot0_eye_in_hand"))
+        policy.reset(TASK_INFO, 0)
+        policy.infer(standin_observation(64, 0))
+        assert policy.server_metadata["hub_offline"] is True
+    finally:
+        policy.close()
 
 
 def test_smolvla_cameras_are_mapped_and_its_empty_camera_is_not_sent(checkpoints):

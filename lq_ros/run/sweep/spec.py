@@ -466,9 +466,11 @@ def _expand_product(raw: dict, clock_and_robot: dict, configs: dict[str, RunConf
         )
     policies, latencies, modes, suites = _policies(raw), _latencies(raw), _modes(raw), _suites(raw)
     budgets = _budget_counts(raw)
+    declared: dict[str, int] = {}
     for (policy, args), proto, latency, budget_counts, (suite, tasks, inits) in itertools.product(
         policies, modes, latencies, budgets, suites
     ):
+        proto = _with_replan_steps(proto, policy, args, declared)
         for task, init, seed in itertools.product(tasks, inits, seeds):
             try:
                 cfg = RunConfig(
@@ -481,6 +483,27 @@ def _expand_product(raw: dict, clock_and_robot: dict, configs: dict[str, RunConf
             if cfg.key() in configs:
                 raise SpecError(f"the spec lists the same episode twice: {cfg.episode_name()}")
             configs[cfg.key()] = cfg
+
+
+def _with_replan_steps(proto: dict, policy: str, args: dict, declared: dict[str, int]) -> dict:
+    """A sync protocol's ``replan_steps``: the spec's (source ``flag``), else the policy's declared reference
+    protocol's (source ``policy``; lq_ros.policies.declared_replan_steps, once per policy and arguments). A policy
+    that cannot be made here keeps RunConfig's default: check_policies refuses it, in one line, before any run."""
+    if proto["mode"] != "sync":
+        return proto
+    if "replan_steps" in proto:
+        return {**proto, "replan_steps_source": "flag"}
+    ident = json.dumps([policy, args], sort_keys=True, default=str)
+    if ident not in declared:
+        from lq_ros.policies import declared_replan_steps
+
+        try:
+            declared[ident] = declared_replan_steps(policy, dict(args))
+        except Exception:  # noqa: BLE001 - check_policies names the problem
+            declared[ident] = 0
+    if not declared[ident]:
+        return proto
+    return {**proto, "replan_steps": declared[ident], "replan_steps_source": "policy"}
 
 
 def _clock_and_robot(raw: dict, transport: str | None) -> dict:

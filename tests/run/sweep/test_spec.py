@@ -223,3 +223,12 @@ def test_analysis_declares_primaries_and_an_equivalence_margin():
             sw.expand_spec(small_spec(policies=["sine", "scripted"], analysis=analysis))
     with pytest.raises(sw.SpecError, match="apply to the whole sweep"):
         sw.expand_spec(small_spec(parts=[{"analysis": {}}]))
+
+
+def test_sync_replan_steps_default_to_the_policys_declaration_and_a_given_one_wins():
+    declared = sw.expand_spec(small_spec(modes=["sync"], latencies_s=[0.0])).configs
+    assert [(c.replan_steps, c.replan_steps_source) for c in declared] == [(5, "policy")]
+    given = sw.expand_spec(small_spec(modes={"sync": {"replan_steps": 8}}, latencies_s=[0.0])).configs
+    assert [(c.replan_steps, c.replan_steps_source) for c in given] == [(8, "flag")]
+    asynchronous = sw.expand_spec(small_spec(modes=["async"], latencies_s=[0.0])).configs
+    assert [c.replan_steps_source for c in asynchronous] == [""]  # async executes no fixed count
