@@ -11,10 +11,13 @@ import typer
 from rich.table import Table
 
 from lq_ros.cli.common import (
+    BUDGETS_HELP,
     MERGE_HELP,
     POLICY_ARG_HELP,
     POLICY_HELP,
+    REPLAN_STEPS_HELP,
     SUITE_HELP,
+    Budgets,
     Transport,
     _parse_policy_args,
     _refuse,
@@ -30,7 +33,7 @@ from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX
 #: lq_ros.run.sweep.spec.FLAG_TO_SPEC_KEY (tests/test_cli_eval.py checks both). --workers and --out say how it runs.
 EVAL_SPEC_FLAGS = (
     "--policy", "--policy-arg", "--suite", "--tasks", "--inits", "--latencies", "--modes", "--merge", "--replan-steps",
-    "--seeds", "--camera-size", "--max-steps", "--transport",
+    "--seeds", "--camera-size", "--max-steps", "--budgets", "--transport",
 )  # fmt: skip
 #: The file ``lq eval`` writes the spec it runs to, in OUT (``lq sweep OUT/eval_spec.yaml --out OUT`` runs it again).
 EVAL_SPEC_FILE = "eval_spec.yaml"
@@ -65,11 +68,12 @@ def _number_or_text(text: str) -> float | str:
 
 
 def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str, latencies: list, modes: list[str],
-              merge: str, replan_steps: int, seeds: list[int], camera_size: int, max_steps: int, transport: str,
-              name: str) -> dict:  # fmt: skip
-    """The sweep spec ``lq eval`` runs: its flags under their spec keys (docs/guide/sweeps.md)."""
+              merge: str, replan_steps: int | None, seeds: list[int], camera_size: int, max_steps: int, transport: str,
+              name: str, budgets: str = "paper") -> dict:  # fmt: skip
+    """The sweep spec ``lq eval`` runs: its flags under their spec keys (docs/guide/sweeps.md). Without
+    ``replan_steps`` sync executes the policy's reference protocol's (the sweep's default)."""
     protocol = {
-        "sync": {"replan_steps": replan_steps, "hold": "stop"},
+        "sync": {**({} if replan_steps is None else {"replan_steps": replan_steps}), "hold": "stop"},
         "async": {"merge": merge, "request_threshold": -1},
     }
     raw = {
@@ -78,6 +82,7 @@ def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str
         "modes": {m: protocol[m] for m in modes}, "seeds": seeds,
     }  # fmt: skip
     raw |= {"camera_size": camera_size} if camera_size else {}
+    raw |= {"budgets": budgets} if budgets != "paper" else {}
     return raw | ({"max_steps": max_steps} if max_steps else {})
 
 
@@ -104,13 +109,14 @@ def eval_(
         str, typer.Option(help="Protocols, comma-separated: sync, async, or sync,async (both, paired).")
     ] = "sync,async",
     merge: Annotated[Merge, typer.Option(help=MERGE_HELP, metavar="STRATEGY")] = Merge.REPLACE,
-    replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed before the next.")] = 5,
+    replan_steps: Annotated[int | None, typer.Option(help=REPLAN_STEPS_HELP)] = None,
     seeds: Annotated[str, typer.Option(help="Seeds, comma-separated: every episode once per seed (7 or 7,8,9).")] = "7",
     camera_size: Annotated[
         int,
         typer.Option(help=f"Camera render size, px; 0: the policy's reference size, else {DEFAULT_CAMERA_SIZE_PX}."),
     ] = 0,
-    max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's (the paper's).")] = 0,
+    max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's (see --budgets).")] = 0,
+    budgets: Annotated[Budgets, typer.Option(help=BUDGETS_HELP)] = Budgets.paper,
     workers: Annotated[int | None, typer.Option(help="Episodes run in parallel; default: CPU cores.")] = None,
     transport: Annotated[
         Transport,
@@ -128,12 +134,13 @@ def eval_(
     reasons are printed under the table.
 
     Every flag is a spec key (docs/guide/sweeps.md): --suite, --tasks, --inits, --seeds, --modes, --camera-size,
-    --max-steps and --transport by the same name; --latencies is latencies_s, --policy and --policy-arg are
+    --max-steps, --budgets and --transport by the same name; --latencies is latencies_s, --policy and --policy-arg are
     policies: [{name: P, args: {key: value}}], --merge is modes: {async: {merge: M}}, --replan-steps is
     modes: {sync: {replan_steps: K}}.
     """
     import yaml
 
+    from lq_ros.report.eval_info import EVAL_INFO_DIR, write_eval_info
     from lq_ros.report.sweep_report import build_report
     from lq_ros.run import sweep as sw
     from lq_ros.run.validation import did_you_mean
@@ -149,6 +156,7 @@ def eval_(
         policy, _parse_policy_args(policy_arg), suite, tasks, inits,
         [_number_or_text(v) for v in _csv(latencies, "--latencies")], mode_list, merge.value, replan_steps,
         _csv(seeds, "--seeds", int), camera_size, max_steps, transport.value, out.resolve().name or "eval",
+        budgets.value,
     )  # fmt: skip
     try:
         spec = sw.expand_spec(raw, default_name="eval")
@@ -164,11 +172,13 @@ def eval_(
         _refuse(str(exc))
     with contextlib.redirect_stdout(sys.stderr):
         result = build_report(out)
+    infos = write_eval_info(result.episodes, out)  # lerobot-eval's eval_info.json, one per protocol cell
     print_eval_table(result, f"{policy} on {suite}")
     print_error_reasons(result.episodes.to_dict("records"))
     console.print(
         f"report: {result.files['report.html']}  (markdown: {result.files['report.md'].name})", highlight=False
     )
+    console.print(f"lerobot-eval's eval_info.json: {out / EVAL_INFO_DIR}/<cell>/ ({len(infos)} cells)", highlight=False)
     if summary.counts["error"]:
         raise typer.Exit(1)
 
