@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 
 import pytest
@@ -74,6 +75,13 @@ def test_eval_writes_its_flags_under_their_spec_keys():
     assert {(c.mode, c.merge, c.replan_steps) for c in spec.configs} >= {("async", "rtc", 5), ("sync", "replace", 3)}
     assert {c.camera_size for c in spec.configs} == {256} and {c.max_steps for c in spec.configs} == {40}
     assert len(spec.configs) == 3 * 50 * 2 * 2 * 2 and spec.transport == "ros"
+    assert {c.replan_steps_source for c in spec.configs if c.mode == "sync"} == {"flag"}
+    # Without --replan-steps, sync executes the policy's declared reference protocol; --budgets is the spec's budgets.
+    raw = eval_spec("sine", {}, "libero_object", "0", "0", [0.0], ["sync"], "replace", None, [7], 0, 0, "inprocess",
+                    "mine", "lerobot")  # fmt: skip
+    assert "replan_steps" not in raw["modes"]["sync"] and raw["budgets"] == "lerobot"
+    (cfg,) = expand_spec(raw).configs
+    assert (cfg.replan_steps, cfg.replan_steps_source, cfg.budget) == (5, "policy", 280)
 
 
 def test_the_help_names_each_flags_spec_key_where_they_differ():
@@ -119,6 +127,12 @@ def test_a_tiny_evaluation_runs_writes_its_spec_and_report_and_prints_the_table(
     assert set(spec["modes"]) == {"sync", "async"} and spec["policies"] == ["scripted"]
     assert len(expand_spec(spec).configs) == 4  # the written spec is the one that ran: lq sweep runs it as is
     assert (out / "report" / "report.html").exists() and (out / "report" / "paired_policies.csv").exists()
+    # lerobot-eval's eval_info.json, one per protocol cell, for a LeRobot user's scripts
+    cells = sorted(p.parent.name for p in (out / "eval_info").glob("*/eval_info.json"))
+    assert cells == ["async_0ms", "async_200ms", "sync_0ms", "sync_200ms"], cells
+    info = json.loads((out / "eval_info" / "sync_0ms" / "eval_info.json").read_text())
+    assert len(info["per_episode"]) == 1 and info["overall"]["n_episodes"] == 1
+    assert info["aggregated"]["pc_success"] == 100.0 * info["per_episode"][0]["success"]
     table = result.stdout
     assert "scripted on libero_spatial" in table and table.count("0.2 s (N=4)") == 2 and table.count("0 s (N=0)") == 2
     assert "success %" in table and "[Info]" not in table and "[info]" not in table  # no LIBERO chatter on stdout

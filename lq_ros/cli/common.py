@@ -14,6 +14,7 @@ from rich.table import Table
 
 from lq_ros.core.merge import Merge
 from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, TRANSPORTS, RunConfig
+from lq_ros.core.suite_constants import BUDGET_PRESETS
 
 # Before anything may initialise ROS: keep DDS discovery on this machine unless the user chose.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -55,6 +56,18 @@ class LatencyRounding(StrEnum):
 
 #: --budget-counts choices (lq_ros.core.run_config.BUDGET_COUNTS).
 BudgetCounts = StrEnum("BudgetCounts", {v: v for v in BUDGET_COUNTS})
+#: --budgets choices (lq_ros.core.suite_constants.BUDGET_PRESETS).
+Budgets = StrEnum("Budgets", {v: v for v in BUDGET_PRESETS})
+#: --budgets' help (run and eval).
+BUDGETS_HELP = (
+    "Step budgets when --max-steps is 0: paper (the default: 220/280/300/520, as openpi), lerobot (LeRobot 0.6's "
+    "lerobot-eval: Spatial 280) or xvla (800, LeRobot's X-VLA evaluation); docs/guide/lerobot.md."
+)
+#: --replan-steps' help (run and eval).
+REPLAN_STEPS_HELP = (
+    "sync: actions of each chunk executed; default: the policy's reference protocol (a LeRobot checkpoint's "
+    "n_action_steps, else the paper's 5)."
+)
 
 
 #: --transport choices (lq_ros.core.run_config.TRANSPORTS).

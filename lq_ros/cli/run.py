@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -12,11 +13,14 @@ import typer
 
 from lq_ros.cli.common import (
     _RUN,
+    BUDGETS_HELP,
     MERGE_HELP,
     POLICY_ARG_HELP,
     POLICY_HELP,
+    REPLAN_STEPS_HELP,
     SUITE_HELP,
     BudgetCounts,
+    Budgets,
     Clock,
     LatencyRounding,
     Transport,
@@ -56,7 +60,7 @@ def run(
     latency_rounding: Annotated[
         LatencyRounding, typer.Option(help="exact: refuse a latency between ticks; nearest: round it to N·0.05 s.")
     ] = LatencyRounding.exact,
-    replan_steps: Annotated[int, typer.Option(help="sync: actions of each chunk executed.")] = _RUN.replan_steps,
+    replan_steps: Annotated[int | None, typer.Option(help=REPLAN_STEPS_HELP)] = None,
     hold: Annotated[
         Hold,
         typer.Option(
@@ -82,7 +86,8 @@ def run(
         typer.Option(help=f"Camera render size, px; 0: the policy's reference size, else {DEFAULT_CAMERA_SIZE_PX}."),
     ] = _RUN.camera_size,
     physics_rate: Annotated[bool, typer.Option(help="Also record 500 Hz poses and joint states.")] = _RUN.physics_rate,
-    max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's.")] = _RUN.max_steps,
+    max_steps: Annotated[int, typer.Option(help="Tick budget; 0: the suite's (see --budgets).")] = _RUN.max_steps,
+    budgets: Annotated[Budgets, typer.Option(help=BUDGETS_HELP)] = Budgets(_RUN.budgets),
     budget_counts: Annotated[
         BudgetCounts,
         typer.Option(
@@ -140,10 +145,12 @@ def run(
         validate.check_suite(suite)  # before RunConfig, whose own message has no suggestion
         cfg = RunConfig(
             suite=suite, task=task, init=init, seed=seed, mode=mode.value, **latency_fields,
-            replan_steps=replan_steps, hold=hold.value, request_threshold=request_threshold, merge=merge.value,
+            replan_steps=_RUN.replan_steps if replan_steps is None else replan_steps, hold=hold.value,
+            request_threshold=request_threshold, merge=merge.value,
             request_slack=request_slack, policy=policy, policy_args=_parse_policy_args(policy_arg),
-            camera_size=camera_size, physics_rate=physics_rate, max_steps=max_steps,
+            camera_size=camera_size, physics_rate=physics_rate, max_steps=max_steps, budgets=budgets.value,
             budget_counts=budget_counts.value, clock=clock.value, robot=robot,
+            replan_steps_source=("policy" if replan_steps is None else "flag") if mode is Mode.SYNC else "",
         )  # fmt: skip
         if cfg.clock == "realtime" and transport is not Transport.ros:
             raise ValueError("--clock realtime runs through ROS only (--transport ros)")
@@ -152,7 +159,10 @@ def run(
 
             load_robot_config(cfg.robot)  # a bad robot YAML: one line naming the entry
         validate.check_run(cfg)  # task and init ranges, the policy and its arguments: before anything starts
-        from lq_ros.policies import policy_class
+        from lq_ros.policies import declared_replan_steps, policy_class
+
+        if replan_steps is None and cfg.mode == "sync":  # the policy's reference protocol (LeRobot: n_action_steps)
+            cfg = dataclasses.replace(cfg, replan_steps=declared_replan_steps(cfg.policy, cfg.policy_args))
 
         policy_class(cfg.policy).check_merge(cfg.merge)  # rtc needs a policy that takes the executing prefix
         if cfg.robot:  # a policy that needs what the robot does not publish: refused before anything starts

@@ -13,7 +13,14 @@ from lq_ros.core.latency import MAX_LATENCY_S, LatencyError, parse_latency
 from lq_ros.core.redact import redact_value
 from lq_ros.core.run_config import BUDGET_COUNTS, CLOCKS, PROTOCOL_FIELDS, RunConfig
 from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file
-from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_INIT_STATES, STEP_BUDGETS, latency_ticks, round_latency
+from lq_ros.core.suite_constants import (
+    BUDGET_PRESETS,
+    CONTROL_DT_S,
+    NUM_INIT_STATES,
+    STEP_BUDGETS,
+    latency_ticks,
+    round_latency,
+)
 from lq_ros.run.episode import TRANSPORTS
 from lq_ros.run.validation import did_you_mean, num_tasks
 from lq_ros.scoring.decisions import PlanError, parse_analysis
@@ -41,8 +48,8 @@ _POLICY_PATH = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*")
 PROTOCOL_KEYS = PROTOCOL_FIELDS
 SPEC_KEYS = {
     "name", "transport", "timeout_s", "suites", "suite", "tasks", "inits", "seeds", "policies",
-    "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budget_counts",
-    "clock", "robot", "parts", "analysis",
+    "latencies_s", "latency_rounding", "modes", "camera_size", "physics_rate", "max_steps", "budgets",
+    "budget_counts", "clock", "robot", "parts", "analysis",
 }  # fmt: skip
 #: Every ``lq run`` / ``lq eval`` flag that sets an episode, and the spec key that sets the same thing: one set of
 #: names, plural where a spec takes a list. ``modes.<mode>.<key>``: a protocol parameter under its mode;
@@ -55,8 +62,8 @@ FLAG_TO_SPEC_KEY = {
     "--latency-rounding": "latency_rounding", "--replan-steps": "modes.sync.replan_steps", "--hold": "modes.sync.hold",
     "--request-threshold": "modes.async.request_threshold", "--request-slack": "modes.async.request_slack",
     "--merge": "modes.async.merge", "--camera-size": "camera_size", "--physics-rate": "physics_rate",
-    "--max-steps": "max_steps", "--budget-counts": "budget_counts", "--clock": "clock", "--robot": "robot",
-    "--transport": "transport", "--timeout": "timeout_s",
+    "--max-steps": "max_steps", "--budgets": "budgets", "--budget-counts": "budget_counts", "--clock": "clock",
+    "--robot": "robot", "--transport": "transport", "--timeout": "timeout_s",
 }  # fmt: skip
 #: Keys that apply to the whole sweep: a ``parts`` entry may not set them.
 SWEEP_WIDE_KEYS = {"name", "transport", "timeout_s", "clock", "robot", "parts", "analysis"}
@@ -452,7 +459,7 @@ def _expand_product(raw: dict, clock_and_robot: dict, configs: dict[str, RunConf
     """Add one product's episodes to ``configs`` (key -> RunConfig, in order); refuse an episode already there."""
     seeds = _ints(raw.get("seeds", [7]), "seeds", 0, 2**31 - 1)
     common = {}
-    for key, typ in (("camera_size", int), ("physics_rate", bool), ("max_steps", int)):
+    for key, typ in (("camera_size", int), ("physics_rate", bool), ("max_steps", int), ("budgets", str)):
         if key in raw:
             if not isinstance(raw[key], typ) or (typ is int and isinstance(raw[key], bool)):
                 raise SpecError(f"{key}: expected {typ.__name__}, got {raw[key]!r}")
@@ -460,6 +467,8 @@ def _expand_product(raw: dict, clock_and_robot: dict, configs: dict[str, RunConf
     common.update(clock_and_robot)
     if not 0 <= common.get("max_steps", 0) <= MAX_STEPS:
         raise SpecError(f"max_steps: expected 0 (the suite's budget) or 1..{MAX_STEPS} ticks, got {raw['max_steps']}")
+    if common.get("budgets", "paper") not in BUDGET_PRESETS:
+        raise SpecError(f"budgets: expected one of {', '.join(BUDGET_PRESETS)}, got {raw['budgets']!r}")
     if not 0 <= common.get("camera_size", 0) <= MAX_CAMERA_SIZE_PX:
         raise SpecError(
             f"camera_size: expected 0 (the policy's) or 1..{MAX_CAMERA_SIZE_PX} px, got {raw['camera_size']}"
