@@ -72,6 +72,10 @@ class EnergyIntegrals:
     torque_squared_integral: float  # sum_k tau_k . tau_k dt, N^2 m^2 s
 
 
+#: A task object's articulation joint kind (lq_msgs/msg/TaskState JOINT_*): none, a slide (m), a hinge (rad).
+JOINT_NONE, JOINT_SLIDE, JOINT_HINGE = 0, 1, 2
+
+
 @dataclass(frozen=True)
 class TaskStateSample:
     """The task's state at one tick: object poses, gripper contact, and the goal predicates' truth.
@@ -87,6 +91,12 @@ class TaskStateSample:
     grasped: np.ndarray  # (K,) bool: both finger pads touch it
     predicate_names: tuple[str, ...]  # e.g. "(On akita_black_bowl_1 plate_1)"
     predicate_values: np.ndarray  # (P,) bool
+    #: (K,) uint8: each object's one articulation joint (lq_msgs/msg/TaskState JOINT_*: 0 none, 1 slide, 2 hinge).
+    joint_type: np.ndarray | None = None
+    #: (K,) that joint's position, m for a slide, rad for a hinge (NaN: none).
+    joint_position: np.ndarray | None = None
+    #: (K,) the end effector's distance to each object's nearest surface, m (NaN: no geoms).
+    ee_distance: np.ndarray | None = None
 
 
 @dataclass

@@ -1,7 +1,9 @@
 """Failure modes by latency (fig10_failure_modes.png): one panel per suite and policy (rows) and protocol
 (columns); at each latency a bar stacks the cell's failure modes as fractions of its episodes, so the bar's
 height is the cell's failure rate. Suites are never pooled. A cell of fewer than MIN_JOIN_N classified episodes
-gets no bar (a hatched outline says so); n is printed above every bar."""
+gets no bar (a hatched outline says so); n is printed above every bar. Episodes in which no fresh action ran
+(``no_action_executed``: the protocol's failure, not the policy's) are stacked apart on top, hatched and outlined;
+a mode not validated against an observer is starred in the legend."""
 
 from __future__ import annotations
 
@@ -18,10 +20,14 @@ import pandas as pd  # noqa: E402
 from lq_ros.report.plot_rules import MIN_JOIN_N  # noqa: E402
 from lq_ros.scoring import failure_modes  # noqa: E402
 
-#: One colour per failure mode (colour-blind-safe tab10 order; grey for stalled).
-MODE_COLOURS = dict(zip(failure_modes.FAILURE_MODES, [
-    "#9467bd", "#2ca02c", "#8c564b", "#1f77b4", "#ff7f0e", "#d62728", "#e377c2", "#7f7f7f",
-], strict=True))  # fmt: skip
+#: One colour per policy failure mode (tab10; grey for stalled).
+MODE_COLOURS = {
+    "undone": "#9467bd", "budget_out_progressing": "#2ca02c", "stalled": "#7f7f7f", "pushed_or_toppled": "#bcbd22",
+    "wrong_object_disturbed": "#8c564b", "never_reached": "#1f77b4", "stopped_short": "#17becf",
+    "grasp_missed": "#ff7f0e", "dropped_in_transit": "#d62728", "placed_off_target": "#e377c2",
+}  # fmt: skip
+#: The protocol's failure: white, hatched, outlined, above a gap.
+NO_ACTION_STYLE = {"facecolor": "white", "hatch": "xxx", "edgecolor": "#444444", "linewidth": 0.6}
 PROTOCOLS = ("sync", "async")
 
 
@@ -64,6 +70,10 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
                         ax.bar(i, height, bottom=bottom, width=0.7, color=MODE_COLOURS[mode], edgecolor="white",
                                linewidth=0.4)  # fmt: skip
                         bottom += height
+                no_action = sum(float(by_mode.get(mode, 0.0)) for mode in failure_modes.PROTOCOL_MODES)
+                if no_action > 0:  # apart: a gap, then hatched
+                    ax.bar(i, no_action, bottom=bottom + 0.02, width=0.7, **NO_ACTION_STYLE)
+                    bottom += no_action + 0.02
                 degenerate = int(cell["n_degenerate"].iloc[0]) if "n_degenerate" in cell else 0
                 ax.text(i, bottom + 0.02, f"n={n}" + (f"\n{degenerate} degenerate" if degenerate else ""),
                         ha="center", va="bottom", fontsize=7, color="tab:red" if degenerate else "black")  # fmt: skip
@@ -79,9 +89,17 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
             if r == len(rows) - 1:
                 ax.set_xlabel("Δt_sim (s)")
     handles = [plt.Rectangle((0, 0), 1, 1, color=MODE_COLOURS[m]) for m in failure_modes.FAILURE_MODES]
-    fig.legend(handles, [m.replace("_", " ") for m in failure_modes.FAILURE_MODES], loc="center right",
-               fontsize=8, frameon=False, title="failure mode", title_fontsize=8)  # fmt: skip
-    note = "Bar height: the cell's failure rate; its parts: the failure modes (docs/guide/failure_modes.md)."
+    handles.append(plt.Rectangle((0, 0), 1, 1, **NO_ACTION_STYLE))
+    labels = [m.replace("_", " ") + ("" if m in failure_modes.VALIDATED_MODES else " *")
+              for m in failure_modes.FAILURE_MODES]  # fmt: skip
+    labels.append("no action executed\n(the protocol's, apart)")
+    fig.legend(handles, labels, loc="center right", fontsize=8, frameon=False, title="failure mode",
+               title_fontsize=8)  # fmt: skip
+    note = (
+        "Bar height: the cell's failure rate; its parts: the failure modes (docs/guide/failure_modes.md). "
+        "* not validated against an observer: the classifier's reading of the task state. Hatched, above a gap: "
+        "no fresh action ran (the protocol starved the arm), not a policy failure."
+    )
     if small:
         note += f" Hatched outline: fewer than {MIN_JOIN_N} classified episodes, no bar."
     if found_degenerate:

@@ -72,13 +72,25 @@ def score_failure(row: dict, data: EpisodeData, status: str, t0_ns, t1_ns) -> No
     """``failure_mode``, ``progress``, ``furthest_phase``, ``unmet_predicate`` and ``predicate_events`` from the
     task state (lq_ros.scoring.failure_modes); ``unavailable`` where the bag has none or too little."""
     series, why = task_series(data, t0_ns, t1_ns)
+    src = np.asarray(data.command_sources)
+    fresh = int((src == Source.CHUNK).sum()) if len(src) else None  # commands from a chunk (None: no command topic)
     if series is None:
-        row["failure_mode"] = "unavailable"
-        null(row, FAILURE_KEYS, why)
-        row["null_reasons"]["failure_mode"] = why
+        no_action = failure_modes.no_action_executed(status, fresh)
+        row["failure_mode"] = "no_action_executed" if no_action else "unavailable"
+        null(row, [*FAILURE_KEYS, "collateral"], why)
+        if not no_action:
+            row["null_reasons"]["failure_mode"] = why
         return
-    analysis = failure_modes.classify(series, status if status in ("success", "failure") else "error")
+    if data.command_groups:  # a grasp tried beside the target is told from a hand that stopped there
+        ticks = np.concatenate([g["tick"] for g in data.command_groups])
+        actions = np.concatenate([g["action"] for g in data.command_groups])
+        series.gripper_closing = failure_modes.gripper_closing(series.ticks, ticks, actions[:, -1])
+    analysis = failure_modes.classify(series, status if status in ("success", "failure") else "error", fresh)
     row["failure_mode"] = analysis.failure_mode
+    row["collateral"] = analysis.collateral
+    if analysis.reason:  # an articulated target in a bag without joint positions
+        null(row, ["furthest_phase", "collateral"], analysis.reason)
+        row["null_reasons"]["failure_mode"] = analysis.reason
     row["progress"] = analysis.progress
     row["furthest_phase"] = analysis.furthest_phase
     row["unmet_predicate"] = analysis.unmet_predicate

@@ -65,7 +65,8 @@ class EpisodeData:
     command_groups: list[dict] = field(default_factory=list)
     requests: int = 0
     #: The simulator's task state: (stamp ns, tick, object names, contact (K,), grasped (K,), predicate names,
-    #: predicate values (P,)) per tick, and the object poses (stamp ns -> (K, 7) xyz + quaternion xyzw).
+    #: predicate values (P,), (joint positions, joint kinds, surface distances) or None in older bags) per tick, and
+    #: the object poses (stamp ns -> (K, 7) xyz + quaternion xyzw).
     task_states: list = field(default_factory=list)
     task_poses: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)

@@ -245,9 +245,14 @@ def _collect_message(data: EpisodeData, role: str, msg) -> None:
         k, p = len(msg.object_names), len(msg.predicate_names)
         if len(msg.gripper_contact) != k or len(msg.grasped) != k or len(msg.predicate_values) != p:
             raise ValueError(f"task state at tick {msg.tick}: {k} objects and {p} predicates, arrays of other lengths")
+        extras = m.task_state_fields(msg)  # joints and surface distances (None in older bags)
+        if extras is not None and (any(len(a) != k for a in extras) or (extras[1] > 2).any()):
+            raise ValueError(f"task state at tick {msg.tick}: {k} objects, joint or distance arrays of other lengths "
+                             "or an unknown joint kind (0 none, 1 slide, 2 hinge)")  # fmt: skip
         data.task_states.append((m.stamp_ns(msg), msg.tick, tuple(msg.object_names),
                                  np.asarray(msg.gripper_contact, dtype=bool), np.asarray(msg.grasped, dtype=bool),
-                                 tuple(msg.predicate_names), np.asarray(msg.predicate_values, dtype=bool)))  # fmt: skip
+                                 tuple(msg.predicate_names), np.asarray(msg.predicate_values, dtype=bool),
+                                 extras))  # fmt: skip
         return
     if role == "task_poses":
         rows = [(q.position.x, q.position.y, q.position.z, q.orientation.x, q.orientation.y, q.orientation.z,

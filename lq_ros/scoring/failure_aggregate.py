@@ -1,8 +1,11 @@
 """Failure modes per cell: the fraction of a cell's episodes that ended in each mode, with task-clustered intervals.
 
 A cell's fractions are over its episodes with an outcome (success or failure) whose bag holds task state, so the
-failure modes of a cell add up to its failure rate. Episodes without task state (older bags, a robot without
-object poses) are counted apart (``n_unavailable``), never as ``none``; errors are counted apart too (``n_error``).
+failure modes of a cell add up to its failure rate. ``no_action_executed`` (no fresh action ran: the protocol's
+failure, not the policy's) has its own row and ``n_no_action``, apart from the policy's modes; ``n_collateral``
+counts the failures that also disturbed another object (a flag, not a mode). Episodes without task state (older
+bags, a robot without object poses) are counted apart (``n_unavailable``), never as ``none``; errors are counted
+apart too (``n_error``).
 Each interval is the task-cluster interval of the success rate (intervals.clustered_success_ci) applied to the
 episode's 0/1 indicator of the mode: episodes of one task are not independent.
 """
@@ -23,10 +26,11 @@ def mode_fractions(
     episodes: pd.DataFrame, by: Sequence[str], *, n_boot: int = 2000, seed: int = 0, confidence: float = 0.95
 ) -> pd.DataFrame:
     """One row per (cell, failure mode): ``n`` classified episodes, ``count``, ``fraction`` and its interval
-    (``ci_lo``/``ci_hi``), ``n_tasks``, and the cell's ``n_unavailable``, ``n_error`` and ``n_degenerate`` (episodes
-    of a degenerate async protocol). Empty without ``failure_mode``."""
+    (``ci_lo``/``ci_hi``), ``n_tasks``, and the cell's ``n_unavailable``, ``n_error``, ``n_degenerate`` (episodes
+    of a degenerate async protocol), ``n_no_action`` and ``n_collateral``. The modes are the policy's
+    (failure_modes.FAILURE_MODES) then the protocol's (PROTOCOL_MODES). Empty without ``failure_mode``."""
     columns = [*by, "failure_mode", "n", "count", "fraction", "ci_lo", "ci_hi", "n_tasks", "n_unavailable", "n_error",
-               "n_degenerate"]  # fmt: skip
+               "n_degenerate", "n_no_action", "n_collateral"]  # fmt: skip
     if "failure_mode" not in episodes or episodes.empty:
         return pd.DataFrame(columns=columns)
     rows = []
@@ -42,14 +46,18 @@ def mode_fractions(
         # Async chunks no longer than N: no fresh action ever ran (lq_ros/scoring/bag_scorer.py), the arm never moved.
         degenerate = classified.get("degenerate_protocol", pd.Series(False, index=classified.index))
         n_degenerate = int(degenerate.fillna(False).astype(bool).sum())
+        n_no_action = int(classified["failure_mode"].isin(failure_modes.PROTOCOL_MODES).sum())
+        flags = classified.get("collateral", pd.Series(False, index=classified.index))
+        n_collateral = int((flags.fillna(False).astype(bool) & (classified["status"] == "failure")).sum())
         by_task = [g for _, g in classified.groupby("task", sort=True)] if "task" in classified else [classified]
-        for name in failure_modes.FAILURE_MODES:
+        for name in (*failure_modes.FAILURE_MODES, *failure_modes.PROTOCOL_MODES):
             clusters = [(g["failure_mode"] == name).to_numpy(dtype=np.float64) for g in by_task]
             count = int(sum(c.sum() for c in clusters))
             low, high = clustered_success_ci(clusters, n_boot=n_boot, seed=seed, confidence=confidence)
             rows.append({**cell, "failure_mode": name, "n": len(classified), "count": count,
                          "fraction": count / len(classified), "ci_lo": low, "ci_hi": high, "n_tasks": len(by_task),
-                         "n_unavailable": n_unavailable, "n_error": n_error, "n_degenerate": n_degenerate})  # fmt: skip
+                         "n_unavailable": n_unavailable, "n_error": n_error, "n_degenerate": n_degenerate,
+                         "n_no_action": n_no_action, "n_collateral": n_collateral})  # fmt: skip
     return pd.DataFrame(rows, columns=columns)
 
 
@@ -112,20 +120,33 @@ def shift_sentences(
             if extra < min_extra:
                 continue
             rises = (counts - base_counts.reindex(counts.index, fill_value=0)).sort_values(ascending=False)
-            top, top_rise = rises.index[0], int(rises.iloc[0])
-            lead = "Most of the rise is" if top_rise > extra / 2 else "The largest rise is"
-            row = cell.set_index("failure_mode").loc[top]
             values = [str(v) for v in names.values()]
             # A policy label that names its suite ("flow · libero_object") says the suite once.
             label = ", ".join(v for v in values if not any(v != w and v in w for w in values))
+            sentence = (
+                f"{label} at {latency:g} s: {int(counts.sum())} of {n} episodes failed, against "
+                f"{int(base_counts.sum())} of {base_n} at 0 s."
+            )
+            no_action = int(counts.reindex(failure_modes.PROTOCOL_MODES, fill_value=0).sum())
+            if no_action:  # a count of commands, not a judgement: no observer needed to quote it
+                sentence += (f" {no_action} of them ran no fresh action at all (the protocol's failure, not the "
+                             "policy's).")  # fmt: skip
+            # Only a mode validated against an observer is named (failure_modes.VALIDATED_MODES).
+            policy_rises = rises.drop(list(failure_modes.PROTOCOL_MODES), errors="ignore")
+            top, top_rise = policy_rises.index[0], int(policy_rises.iloc[0])
+            if top_rise <= 0:
+                out.append(sentence)
+                continue
+            if top not in failure_modes.VALIDATED_MODES:
+                out.append(sentence + " The largest rise is in a failure mode not validated against an observer: its "
+                           "count is in failure_modes.csv and Fig. 10.")  # fmt: skip
+                continue
+            lead = "Most of the rise is" if top_rise > extra / 2 else "The largest rise is"
+            row = cell.set_index("failure_mode").loc[top]
             interval = (
                 f", 95% CI {row['ci_lo']:.0%}-{row['ci_hi']:.0%}" if not math.isnan(row["ci_lo"]) else ", no interval"
             )
-            sentence = (
-                f"{label} at {latency:g} s: {int(counts.sum())} of {n} episodes failed, against "
-                f"{int(base_counts.sum())} of {base_n} at 0 s. {lead} {top.replace('_', ' ')} "
-                f"(+{top_rise}; {row['fraction']:.0%} of the cell{interval})."
-            )
+            sentence += f" {lead} {top.replace('_', ' ')} (+{top_rise}; {row['fraction']:.0%} of the cell{interval})."
             if episodes is not None:
                 change = paired_mode_change(episodes, names, latency, top)
                 if math.isnan(change["ci_lo"]):

@@ -49,6 +49,7 @@ def task_series(data: EpisodeData, t0_ns, t1_ns) -> tuple[failure_modes.TaskSeri
         predicate_names=predicates,
         predicate_values=np.stack([s[6] for s in keep]).reshape(len(keep), len(predicates)),
         ee_pos=ee[[ee_at[s[0]] for s in keep]],
+        **failure_modes.optional_columns([s[7] for s in keep]),
     ), ""
 
 
@@ -110,4 +111,5 @@ def _robot_task_series(data: EpisodeData, t0_ns, t1_ns) -> tuple[failure_modes.T
         predicate_names=predicates,
         predicate_values=np.stack([states[i][6] for _, i, _ in keep]).reshape(len(keep), len(predicates)),
         ee_pos=ee[[j for _, _, j in keep]],
+        **failure_modes.optional_columns([states[i][7] for _, i, _ in keep]),
     ), ""

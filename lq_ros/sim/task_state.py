@@ -9,7 +9,12 @@ What it records (lq_msgs/msg/TaskState and a geometry_msgs/PoseArray, one each p
   pad touches it: robosuite's ``_check_grasp`` test, computed here from MuJoCo's contact arrays with precomputed
   geom ids rather than robosuite's per-contact name lookups); a region counts through its parent object's geoms;
 - the truth of each goal predicate, evaluated by the env's own ``_eval_predicate`` (what LIBERO's success is
-  made of).
+  made of);
+- each object's one articulation joint (a drawer's slide, a knob's or door's hinge: what ``open`` or ``turnon``
+  judge) and its position; a region takes the joint LIBERO gives it (a drawer's ``top_region``: that drawer's);
+- the end effector's distance to each object's nearest surface: the axis-aligned boxes of its collision geoms in
+  their own frames (for an object or region with one joint, the geoms that joint moves: the drawer with its
+  handle, the knob), so a hand at a drawer's handle is near the drawer, not 13 cm from its region's site.
 
 Everything is read from the simulator's current data: nothing is written, so the simulation stays
 bit-identical with or without it.
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lq_ros.core.types import TaskStateSample
+from lq_ros.core.types import JOINT_HINGE, JOINT_NONE, JOINT_SLIDE, TaskStateSample
 
 
 def predicate_name(state: list[str]) -> str:
@@ -79,7 +84,46 @@ class TaskStateProbe:
             # A region whose parent LIBERO cannot name (or a model without contact geoms) has no contact to test.
             object_masks.append(geom_mask(getattr(owner, "contact_geoms", None) or ()))
         self._object_masks = np.array(object_masks).reshape(len(self.object_names), ngeom)  # (K, ngeom)
+        self._joints = [self._joint_of(name) for name in self.object_names]  # (qpos address, kind) or None
+        self._joint_type = np.array([j[1] if j else JOINT_NONE for j in self._joints], dtype=np.uint8)
+        # Surface geoms per object: a jointed object's moving part (the joint body's subtree), else its own geoms.
+        owners, geoms = [], []
+        for i, joint in enumerate(self._joints):
+            mask = self._object_masks[i] & (self._subtree_geoms(joint[2]) if joint else True)
+            found = np.flatnonzero(mask)
+            owners += [i] * len(found)
+            geoms += found.tolist()
+        self._surface_geoms = np.array(geoms, dtype=np.int64)
+        self._surface_owner = np.array(owners, dtype=np.int64)
+        self._grip_site = env.robots[0].eef_site_id
         self._bound_to = self._model
+
+    def _joint_of(self, name: str) -> tuple[int, int, int] | None:
+        """(qpos address, JOINT_SLIDE | JOINT_HINGE, body id) of the object's one articulation joint, else None."""
+        import mujoco
+
+        env, model = self._env, self._model
+        state = env.object_states_dict[name]
+        if getattr(state, "object_state_type", "object") == "site":
+            names = getattr(env.object_sites_dict.get(name), "joints", None) or ()
+        else:
+            names = getattr(env.get_object(name), "joints", None) or ()
+        kinds = {int(mujoco.mjtJoint.mjJNT_SLIDE): JOINT_SLIDE, int(mujoco.mjtJoint.mjJNT_HINGE): JOINT_HINGE}
+        found = []
+        for joint in names:
+            j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+            if j >= 0 and int(model.jnt_type[j]) in kinds:
+                found.append((int(model.jnt_qposadr[j]), kinds[int(model.jnt_type[j])], int(model.jnt_bodyid[j])))
+        return found[0] if len(found) == 1 else None  # several (a cabinet's drawers): no one joint to name
+
+    def _subtree_geoms(self, body: int) -> np.ndarray:
+        """Mask of the geoms on ``body`` and the bodies below it."""
+        model = self._model
+        inside = np.zeros(model.nbody, dtype=bool)
+        inside[body] = True
+        for b in range(body + 1, model.nbody):  # MuJoCo numbers a body after its parent
+            inside[b] = inside[model.body_parentid[b]]
+        return inside[model.geom_bodyid]
 
     def sample(self) -> TaskStateSample:
         import mujoco
@@ -111,6 +155,7 @@ class TaskStateProbe:
             grasped = _touch(objects1, objects2, self._pad_masks[0][geom1], self._pad_masks[0][geom2])
             grasped &= _touch(objects1, objects2, self._pad_masks[1][geom1], self._pad_masks[1][geom2])
         values = np.array([bool(env._eval_predicate(state)) for state in self._goal], dtype=bool)
+        joint_pos = np.array([data.qpos[j[0]] if j else np.nan for j in self._joints], dtype=np.float64)
         return TaskStateSample(
             object_names=self.object_names,
             object_pos=pos,
@@ -119,7 +164,26 @@ class TaskStateProbe:
             grasped=grasped,
             predicate_names=self.predicate_names,
             predicate_values=values,
+            joint_type=self._joint_type.copy(),
+            joint_position=joint_pos,
+            ee_distance=self._surface_distance(),
         )
+
+    def _surface_distance(self) -> np.ndarray:
+        """Per object: the grip site's distance to the nearest of its surface geoms' boxes, m (NaN: none)."""
+        data, model = self._data, self._model
+        out = np.full(len(self.object_names), np.inf)
+        if not len(self._surface_geoms):
+            return np.full(len(self.object_names), np.nan)
+        g = self._surface_geoms
+        offset = data.site_xpos[self._grip_site] - data.geom_xpos[g]  # (G, 3) world
+        local = np.einsum("gji,gj->gi", data.geom_xmat[g].reshape(-1, 3, 3), offset)  # into each geom's frame
+        aabb = model.geom_aabb[g]  # (G, 6): centre, half-size, geom frame
+        outside = np.maximum(np.abs(local - aabb[:, :3]) - aabb[:, 3:], 0.0)
+        distance = np.linalg.norm(outside, axis=1)
+        np.minimum.at(out, self._surface_owner, distance)
+        out[np.isinf(out)] = np.nan  # an object without geoms
+        return out
 
 
 def _touch(objects1: np.ndarray, objects2: np.ndarray, other1: np.ndarray, other2: np.ndarray) -> np.ndarray:

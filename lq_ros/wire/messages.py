@@ -137,7 +137,35 @@ def serialize(msg, msgtype: str) -> bytes:
 
 
 def deserialize(data: bytes | memoryview, msgtype: str):
-    return typestore().deserialize_cdr(data, msgtype)
+    """A message decoded with msg_schemas' definition; a TaskState recorded before its joint and distance fields
+    (they come last) falls back to the definition it was written with."""
+    try:
+        return typestore().deserialize_cdr(data, msgtype)
+    except Exception as exc:
+        if msgtype != TASK_STATE.msgtype:
+            raise
+        try:
+            return _legacy_typestore().deserialize_cdr(data, msgtype)
+        except Exception:
+            raise exc from None  # damaged under either definition: the current one's complaint
+
+
+#: The TaskState definition before joint positions and surface distances were added: older bags hold it.
+_LEGACY_TASK_STATE_FIELDS = ("joint_type", "joint_position", "ee_distance")
+
+
+@cache
+def _legacy_typestore():
+    """A typestore whose TaskState is the one older bags were written with (msg_schemas' without its last fields)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    text = (MSG_DIR / "TaskState.msg").read_text()
+    lines = [line for line in text.splitlines()
+             if not any(line.split("#")[0].split()[1:2] == [f] for f in _LEGACY_TASK_STATE_FIELDS)
+             and not line.startswith("uint8 JOINT_")]  # fmt: skip
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg("\n".join(lines), TASK_STATE.msgtype))
+    return store
 
 
 def to_ns(t_s: float) -> int:
@@ -230,11 +258,32 @@ def task_state_msgs(t_ns: int, tick: int, task: TaskStateSample) -> list[tuple[T
         grasped=np.asarray(task.grasped, dtype=bool),
         predicate_names=list(task.predicate_names),
         predicate_values=np.asarray(task.predicate_values, dtype=bool),
+        **_articulation_fields(task),
     )
     return [
         (TASK_OBJECT_POSES, t_ns, serialize(poses, TASK_OBJECT_POSES.msgtype)),
         (TASK_STATE, t_ns, serialize(state, TASK_STATE.msgtype)),
     ]
+
+
+def _articulation_fields(task: TaskStateSample) -> dict:
+    """TaskState's joint and surface-distance arrays (NaN and JOINT_NONE where the sample has none)."""
+    k = len(task.object_names)
+
+    def floats(values) -> np.ndarray:
+        return np.full(k, np.nan) if values is None else np.asarray(values, dtype=np.float64)
+
+    kinds = np.zeros(k, dtype=np.uint8) if task.joint_type is None else np.asarray(task.joint_type, dtype=np.uint8)
+    return {"joint_type": kinds, "joint_position": floats(task.joint_position),
+            "ee_distance": floats(task.ee_distance)}  # fmt: skip
+
+
+def task_state_fields(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A decoded TaskState's (joint_position, joint_type, ee_distance), or None for one recorded before them."""
+    if not hasattr(msg, "joint_type"):
+        return None
+    return (np.asarray(msg.joint_position, dtype=np.float64), np.asarray(msg.joint_type, dtype=np.uint8),
+            np.asarray(msg.ee_distance, dtype=np.float64))  # fmt: skip
 
 
 def tick_state_msgs(state: TickState, physics_rate: bool = False, clock: bool = True) -> list[tuple[Topic, int, bytes]]:

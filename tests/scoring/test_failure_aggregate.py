@@ -52,7 +52,8 @@ def episode_with_task_state(path, *, drop_at: int | None, extra: bytes | None = 
     for tick, (t_ns, _) in enumerate(ee):
         held = 50 <= tick and (drop_at is None or tick < drop_at)
         x = min(0.25, 0.002 * max(0, min(tick, drop_at or 10**6) - 50))
-        for topic, ts, data in m.task_state_msgs(t_ns, tick, sample(tick, grasped=held, bowl_xyz=(x, 0.0, 0.95),
+        z = 0.95 if held else 0.9  # lifted while held, on the table before and after
+        for topic, ts, data in m.task_state_msgs(t_ns, tick, sample(tick, grasped=held, bowl_xyz=(x, 0.0, z),
                                                                     on=False)):  # fmt: skip
             writer.write(topic, ts, data)
     if extra is not None:
@@ -82,13 +83,13 @@ def test_a_damaged_task_state_message_is_skipped_as_damage(tmp_path):
     assert any("undecodable /lq/task/state" in w for w in row["warnings"]), row["warnings"]
 
 
-def episodes_frame() -> pd.DataFrame:
-    """Six tasks x 10 episodes per latency; at 0.2 s four more failures per task, all dropped in transit."""
+def episodes_frame(rising: str = "grasp_missed") -> pd.DataFrame:
+    """Six tasks x 10 episodes per latency; at 0.2 s four more failures per task, all ``rising`` (a missed grasp)."""
     rows = []
     for latency, drops in ((0.0, 1), (0.2, 5)):
         for task in range(6):
             for i in range(10):
-                mode = "dropped_in_transit" if i < drops else ("never_reached" if i == 9 else "none")
+                mode = rising if i < drops else ("never_reached" if i == 9 else "none")
                 status = "success" if mode == "none" else "failure"
                 cell = {"policy": "flow", "mode": "async", "latency_s": latency, "latency_dist": "constant"}
                 rows.append({**cell, "suite": "libero_object", "task": task, "status": status, "failure_mode": mode})
@@ -100,10 +101,10 @@ def episodes_frame() -> pd.DataFrame:
 def test_fractions_per_cell_add_up_to_the_failure_rate_with_clustered_intervals():
     fractions = mode_fractions(episodes_frame(), ("policy", "mode", "latency_s", "latency_dist", "suite"), n_boot=200)
     cell = fractions[fractions["latency_s"] == 0.2].set_index("failure_mode")
-    assert set(cell.index) == set(failure_modes.FAILURE_MODES)
-    assert cell.loc["dropped_in_transit", "count"] == 30 and cell["n"].iloc[0] == 60
+    assert set(cell.index) == {*failure_modes.FAILURE_MODES, *failure_modes.PROTOCOL_MODES}
+    assert cell.loc["grasp_missed", "count"] == 30 and cell["n"].iloc[0] == 60
     assert cell["fraction"].sum() == pytest.approx(36 / 60)
-    low, high = cell.loc["dropped_in_transit", ["ci_lo", "ci_hi"]]
+    low, high = cell.loc["grasp_missed", ["ci_lo", "ci_hi"]]
     assert low < 0.5 < high and cell["n_tasks"].iloc[0] == 6
     zero = fractions[fractions["latency_s"] == 0.0]
     assert zero["n_unavailable"].iloc[0] == 1 and zero["n_error"].iloc[0] == 1 and zero["n"].iloc[0] == 60
@@ -114,7 +115,34 @@ def test_the_sentence_says_where_the_extra_failures_went():
     (sentence,) = shift_sentences(fractions, ("suite", "policy", "mode"))
     expected = "libero_object, flow, async at 0.2 s: 36 of 60 episodes failed, against 12 of 60 at 0 s."
     assert sentence.startswith(expected)
-    assert "Most of the rise is dropped in transit (+24; 50% of the cell, 95% CI" in sentence
+    assert "Most of the rise is grasp missed (+24; 50% of the cell, 95% CI" in sentence
+
+
+def test_no_sentence_quotes_an_unvalidated_mode():
+    fractions = mode_fractions(episodes_frame("dropped_in_transit"), ("policy", "mode", "latency_s", "latency_dist",
+                                                                      "suite"), n_boot=200)  # fmt: skip
+    (sentence,) = shift_sentences(fractions, ("suite", "policy", "mode"))
+    assert "dropped" not in sentence and "not validated against an observer" in sentence
+    assert "dropped_in_transit" not in failure_modes.VALIDATED_MODES
+
+
+def test_no_action_executed_is_counted_apart_and_shown_apart():
+    """A starved protocol's episodes: their own row and count, a sentence that says whose failure it is, and a
+    hatched bar above a gap in the figure."""
+    frame = episodes_frame()
+    starved = (frame["latency_s"] == 0.2) & (frame["failure_mode"] == "grasp_missed")
+    frame.loc[starved, "failure_mode"] = "no_action_executed"
+    frame.loc[starved & (frame["task"] == 0), "collateral"] = True
+    fractions = mode_fractions(frame, ("policy", "mode", "latency_s", "latency_dist", "suite"), n_boot=200)
+    cell = fractions[fractions["latency_s"] == 0.2].set_index("failure_mode")
+    assert cell.loc["no_action_executed", "count"] == 30 == cell["n_no_action"].iloc[0]
+    assert cell.loc["grasp_missed", "count"] == 0 and cell["n_collateral"].iloc[0] == 5
+    (sentence,) = shift_sentences(fractions, ("suite", "policy", "mode"))
+    assert "30 of them ran no fresh action at all (the protocol's failure, not the policy's)." in sentence
+    fig = fig_failure_modes(fractions)
+    hatched = [p for p in fig.axes[0].patches if p.get_hatch() == "xxx" and p.get_height() > 0]
+    assert [round(p.get_height(), 3) for p in hatched] == [0.5]
+    assert hatched[0].get_y() == pytest.approx(0.1 + 0.02)  # above the policy's modes, after a gap
 
 
 def test_the_figure_stacks_the_modes_per_protocol():

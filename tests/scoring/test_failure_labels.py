@@ -6,7 +6,10 @@ taxonomy, not the code (benchmarks/failure_labels.py made and checks them):
 - tests/data/failure_labels_by_mode: 24 more, 6 of each rare mode as the classifier calls it (its precision).
 
 The agreement documented in docs/design/failure_modes.md is what the scorer gives on these bags today: a
-classifier change that moves it fails here, and the page must say the new figure."""
+classifier change that moves it fails here, and the page must say the new figure. The labels predate the modes
+``stopped_short`` and ``pushed_or_toppled`` and the rules for holding and reach: they check what they can (the
+precision of the modes the labeller had), and the modes they cannot check are not validated
+(failure_modes.VALIDATED_MODES)."""
 
 from __future__ import annotations
 
@@ -16,12 +19,13 @@ from pathlib import Path
 
 import pytest
 
+from lq_ros.scoring import failure_modes
 from lq_ros.scoring.bag_scorer import score_bag
 from lq_ros.scoring.failure_aggregate import label_agreement
 
 DATA = Path(__file__).resolve().parents[1] / "data/failure_labels"
-#: docs/design/failure_modes.md: 39 of 48 agree, Cohen's kappa 0.68.
-AGREED, N, KAPPA = 39, 48, 0.68
+#: docs/design/failure_modes.md: 29 of 48 agree, Cohen's kappa 0.45 (the earlier rules: 39, 0.68).
+AGREED, N, KAPPA = 29, 48, 0.45
 
 
 @pytest.fixture(scope="module")
@@ -45,9 +49,32 @@ def test_the_documented_agreement(labelled):
     assert round(out["kappa"], 2) == KAPPA
 
 
+def test_the_validated_modes_are_those_the_labels_support(labelled):
+    """A mode is validated when, of the episodes the classifier puts in it over both labelled sets, the labeller
+    put at least 70% there too (and at least 5 such episodes)."""
+    labels, predicted = labelled
+    by_mode_labels, by_mode_predicted = _by_mode()
+    labels, predicted = {**labels, **by_mode_labels}, {**predicted, **by_mode_predicted}
+    called = {mode: [n for n in labels if predicted[n] == mode] for mode in set(predicted.values())}
+    precise = {
+        m for m, names in called.items() if len(names) >= 5 and sum(labels[n] == m for n in names) >= 0.7 * len(names)
+    }
+    assert precise == set(failure_modes.VALIDATED_MODES)
+
+
 BY_MODE = Path(__file__).resolve().parents[1] / "data/failure_labels_by_mode"
-#: docs/design/failure_modes.md: of 6 episodes the classifier puts in each mode, how many the labeller does.
-BY_MODE_AGREED = {"wrong_object_disturbed": 1, "dropped_in_transit": 1, "placed_off_target": 3, "stalled": 1}
+#: docs/design/failure_modes.md: of the 24 episodes (6 of each of four modes, as the earlier rules called them), how
+#: many the classifier puts in each mode now, and how many of those the labeller does.
+BY_MODE_CALLED = {"budget_out_progressing": 5, "grasp_missed": 4, "placed_off_target": 6, "pushed_or_toppled": 8,
+                  "stalled": 1}  # fmt: skip
+BY_MODE_AGREED = {"budget_out_progressing": 4, "grasp_missed": 2, "placed_off_target": 3, "pushed_or_toppled": 0,
+                  "stalled": 0}  # fmt: skip
+
+
+def _by_mode() -> tuple[dict[str, str], dict[str, str]]:
+    with (BY_MODE / "labels.csv").open() as f:
+        labels = {row["episode"]: row["label"] for row in csv.DictReader(f)}
+    return labels, {name: score_bag(BY_MODE / "bags" / name)["failure_mode"] for name in labels}
 
 
 def test_the_documented_precision_of_the_rare_modes():
@@ -55,7 +82,7 @@ def test_the_documented_precision_of_the_rare_modes():
         labels = {row["episode"]: row["label"] for row in csv.DictReader(f)}
     assert sorted(labels) == json.loads((BY_MODE / "episodes.json").read_text())["episodes"]
     assert not set(labels) & set(json.loads((DATA / "episodes.json").read_text())["episodes"])
-    predicted = {name: score_bag(BY_MODE / "bags" / name)["failure_mode"] for name in labels}
-    called = {mode: [n for n in labels if predicted[n] == mode] for mode in BY_MODE_AGREED}
-    assert {mode: len(names) for mode, names in called.items()} == dict.fromkeys(BY_MODE_AGREED, 6)
+    _, predicted = _by_mode()
+    called = {mode: [n for n in labels if predicted[n] == mode] for mode in set(predicted.values())}
+    assert {mode: len(names) for mode, names in called.items()} == BY_MODE_CALLED
     assert {mode: sum(labels[n] == mode for n in names) for mode, names in called.items()} == BY_MODE_AGREED

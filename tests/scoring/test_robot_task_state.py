@@ -45,7 +45,7 @@ def robot_bag(
     def state(tick: int):
         held = 50 <= tick < drop_at
         x = min(0.25, 0.002 * max(0, min(tick, drop_at) - 50))
-        return sample(tick, grasped=held, bowl_xyz=(x, 0.0, 0.95), on=tick in on_ticks)
+        return sample(tick, grasped=held, bowl_xyz=(x, 0.0, 0.95 if held else 0.9), on=tick in on_ticks)  # lifted
 
     for tick in range(TICKS):
         poses_ns = T0_NS + tick * TICK_NS + EE_NS  # the bridge: the robot's latest EE stamp at the tick's start

@@ -63,3 +63,56 @@ def test_observation_carries_the_controller_rotation_matrix_when_there_is_one(wi
         assert back.eef_rot_mat.shape == (3, 3) and np.array_equal(back.eef_rot_mat, rot)  # row-major, bit for bit
     else:
         assert back.eef_rot_mat is None
+
+
+def _task_sample(**fields):
+    from lq_ros.core.types import TaskStateSample
+
+    return TaskStateSample(
+        object_names=("drawer_region", "bowl"),
+        object_pos=np.zeros((2, 3)),
+        object_quat_xyzw=np.tile([0.0, 0.0, 0.0, 1.0], (2, 1)),
+        gripper_contact=np.array([True, False]),
+        grasped=np.array([False, False]),
+        predicate_names=("(open drawer_region)",),
+        predicate_values=np.array([False]),
+        **fields,
+    )
+
+
+def test_task_state_carries_joints_and_surface_distances():
+    from lq_ros.core.types import JOINT_NONE, JOINT_SLIDE
+
+    sample = _task_sample(joint_type=np.array([JOINT_SLIDE, JOINT_NONE]), joint_position=np.array([-0.04, np.nan]),
+                          ee_distance=np.array([0.01, 0.2]))  # fmt: skip
+    (_, _, raw) = m.task_state_msgs(0, 3, sample)[1]
+    joint_pos, kinds, distance = m.task_state_fields(m.deserialize(raw, m.TASK_STATE.msgtype))
+    assert kinds.tolist() == [JOINT_SLIDE, JOINT_NONE] and joint_pos[0] == -0.04 and np.isnan(joint_pos[1])
+    assert distance.tolist() == [0.01, 0.2]
+    # A sample without them (a robot's own task state): no joint, distances unknown.
+    (_, _, raw) = m.task_state_msgs(0, 3, _task_sample())[1]
+    joint_pos, kinds, distance = m.task_state_fields(m.deserialize(raw, m.TASK_STATE.msgtype))
+    assert kinds.tolist() == [JOINT_NONE] * 2 and np.isnan(joint_pos).all() and np.isnan(distance).all()
+
+
+def test_a_task_state_recorded_before_joints_still_decodes():
+    """Older bags hold TaskState without its last three fields: decoded by that definition, without them."""
+    legacy = m._legacy_typestore()
+    cls = legacy.types[m.TASK_STATE.msgtype]
+    assert not hasattr(cls(**_old_fields()), "joint_type")
+    raw = bytes(legacy.serialize_cdr(cls(**_old_fields()), m.TASK_STATE.msgtype))
+    raw += bytes(-len(raw) % 4)  # padded as Fast DDS delivers it
+    msg = m.deserialize(raw, m.TASK_STATE.msgtype)
+    assert list(msg.object_names) == ["drawer_region", "bowl"] and m.task_state_fields(msg) is None
+    with pytest.raises(Exception, match="TaskState"):  # damaged under either definition: still damage
+        m.deserialize(raw[:-8], m.TASK_STATE.msgtype)
+
+
+def _old_fields() -> dict:
+    from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as Time
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
+
+    return {"header": Header(stamp=Time(sec=0, nanosec=0), frame_id=""), "tick": 3,
+            "object_names": ["drawer_region", "bowl"], "gripper_contact": np.array([True, False]),
+            "grasped": np.array([False, False]), "predicate_names": ["(open drawer_region)"],
+            "predicate_values": np.array([False])}  # fmt: skip
