@@ -40,6 +40,10 @@ def test_absolute_targets_from_deltas_equal_libero_delta_control():
     assert np.abs(mine.object_pos - sims.object_pos).max() < 1e-6
     assert np.array_equal(mine.predicate_values, sims.predicate_values)
     assert np.array_equal(mine.gripper_contact, sims.gripper_contact) and np.array_equal(mine.grasped, sims.grasped)
+    # Joints and the hand's distance to each object's surface: the stand-in's bag is judged by them too.
+    assert np.array_equal(mine.joint_type, sims.joint_type)
+    assert np.array_equal(mine.joint_position, sims.joint_position, equal_nan=True)
+    assert np.abs(mine.ee_distance - sims.ee_distance).max() < 1e-5 and np.isfinite(mine.ee_distance[:2]).all()
     robot.close()
     env.close()
 
