@@ -21,11 +21,14 @@ SHORT = {
     "undone": "undone",
     "budget_out_progressing": "budget",
     "stalled": "stalled",
+    "pushed_or_toppled": "pushed",
     "wrong_object_disturbed": "wrong obj",
     "never_reached": "never reached",
+    "stopped_short": "short",
     "grasp_missed": "grasp missed",
     "dropped_in_transit": "dropped",
     "placed_off_target": "off target",
+    "no_action_executed": "no action",
 }
 
 
@@ -42,7 +45,8 @@ def main() -> None:
     fig = fig_failure_modes(fractions)
     if fig is not None:
         fig.savefig(args.out / "fig10_failure_modes.png", dpi=110)
-    modes = [m for m in failure_modes.FAILURE_MODES if fractions.loc[fractions["failure_mode"] == m, "count"].sum() > 0]
+    every = (*failure_modes.FAILURE_MODES, *failure_modes.PROTOCOL_MODES)
+    modes = [m for m in every if fractions.loc[fractions["failure_mode"] == m, "count"].sum() > 0]
     header = ["suite", "policy", "protocol", "Δt (s)", "n", "failed", *(SHORT[m] for m in modes)]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))

@@ -250,8 +250,8 @@ def _link(bag, prefix: str) -> str:
 
 FAILURE_FIGURE = "fig10_failure_modes"
 FAILURE_TITLE = "Failure modes by latency"
-FAILURE_NOTE = (
-    "How each failed episode failed, read from its bag's task state (docs/guide/failure_modes.md); fractions of a "
+FAILURE_NOTE = failure_aggregate.validation_note() + (
+    " How each failed episode failed, read from its bag's task state (docs/guide/failure_modes.md); fractions of a "
     "cell's episodes with task state, with task-clustered 95% intervals in failure_modes.csv. The sentences say where "
     "the extra failures at a latency went; whether the rise in failures is more than chance is the paired tests' "
     "call above."

@@ -162,6 +162,20 @@ def shift_sentences(
     return out
 
 
+def validation_note() -> str:
+    """What the failure modes are validated against, for a report's failure-mode section to open with."""
+    n, agreed, kappa = failure_modes.VALIDATION_AGREEMENT
+    validated = " and ".join(m.replace("_", " ") for m in failure_modes.VALIDATED_MODES)
+    return (
+        "What these modes are validated against: failed LIBERO-Spatial and LIBERO-Object episodes labelled from "
+        "replay contact sheets by one labeller (an AI agent, blind to the classifier, not a person), under an "
+        f"earlier taxonomy. Re-scored with today's rules, {agreed} of its {n} stratified episodes agree (Cohen's "
+        f"kappa {kappa:.2f}). Validated, for those two suites only (precision at least 70%): {validated}. Every "
+        "other mode, the new and changed ones included, and every mode on LIBERO-Goal and LIBERO-10, is not "
+        "validated: the figure and failure_modes.csv show its counts (starred), and no sentence here names it."
+    )
+
+
 def label_agreement(labels: dict[str, str], predicted: dict[str, str]) -> dict:
     """A labelled set against the classifier: ``matrix`` (rows: label, columns: classifier, over ``modes``), ``n``,
     ``agreed``, ``agreement`` (raw) and Cohen's ``kappa`` (NaN when chance agreement is 1)."""

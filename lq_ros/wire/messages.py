@@ -279,8 +279,9 @@ def _articulation_fields(task: TaskStateSample) -> dict:
 
 
 def task_state_fields(msg) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """A decoded TaskState's (joint_position, joint_type, ee_distance), or None for one recorded before them."""
-    if not hasattr(msg, "joint_type"):
+    """A decoded TaskState's (joint_position, joint_type, ee_distance), or None for one recorded before them or
+    one that leaves all three empty (a robot that knows no joints or surfaces)."""
+    if not hasattr(msg, "joint_type") or not (len(msg.joint_type) or len(msg.joint_position) or len(msg.ee_distance)):
         return None
     return (np.asarray(msg.joint_position, dtype=np.float64), np.asarray(msg.joint_type, dtype=np.uint8),
             np.asarray(msg.ee_distance, dtype=np.float64))  # fmt: skip

@@ -204,3 +204,13 @@ def test_shift_sentences_say_the_paired_change_and_whether_its_interval_excludes
     assert "Most of the rise is grasp missed (+30" in sentence
     expected = "Paired change from 0 s: +60%, 95% CI +46% to +72% over 50 pairs in 10 tasks (excludes no change)"
     assert expected in sentence
+
+
+def test_the_failure_section_opens_with_what_the_modes_are_validated_against():
+    from lq_ros.report.sweep_report import FAILURE_NOTE
+    from lq_ros.scoring.failure_aggregate import validation_note
+
+    note = validation_note()
+    assert FAILURE_NOTE.startswith(note) and "one labeller" in note and "kappa 0.45" in note
+    named = {mode for mode in failure_modes.MODES if mode.replace("_", " ") in note}
+    assert named == set(failure_modes.VALIDATED_MODES)  # no unvalidated mode quoted
