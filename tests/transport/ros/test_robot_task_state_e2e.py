@@ -5,6 +5,7 @@ on the simulator's task topics and the row gets a real failure mode (one short e
 import json
 import os
 
+import numpy as np
 import pytest
 
 from lq_ros.recording.bag_compare import bag_messages
@@ -41,6 +42,9 @@ def test_standin_episode_has_a_failure_mode_from_its_own_task_state(tmp_path):
     names = json.loads(started.detail_json)["object_names"]
     assert names == list(states[0].object_names) and names[:2] == ["akita_black_bowl_1", "plate_1"]
     assert all(len(p.poses) == len(names) for p in poses)
+    # Joints and surface distances travel too (the bridge relays the robot's bytes unchanged).
+    joint_pos, kinds, distance = m.task_state_fields(states[-1])
+    assert len(kinds) == len(names) and np.isfinite(distance[:2]).all() and distance[0] < 1.0
     # The robot's own stamps: the stand-in's substeps (2 ms) at 20 Hz, not the bridge's ticks.
     state_ns = [m.stamp_ns(s) for s in states]
     assert state_ns == sorted(state_ns) and {t % 2_000_000 for t in state_ns} == {state_ns[0] % 2_000_000}
