@@ -25,6 +25,17 @@ def test_a_small_one_way_effect_at_five_tasks_of_two():
     assert cell["replaced"] < 0.90 and cell["cluster t"] < 0.85
 
 
+def test_the_stated_coverage_range_is_the_benchmarks():
+    """intervals.CLUSTER_COVERAGE is the range the full benchmark printed; a reduced run of its lowest cells (success:
+    5 tasks x 10, Beta(0.6, 0.4), 91.5%; paired: 5 x 10, task effects +-0.3, 92.3%) lands near it."""
+    from lq_ros.scoring.intervals import CLUSTER_COVERAGE
+
+    low = interval_coverage.success_cell(5, 10, 0.6, 0.4, REPS)["reported"]
+    assert abs(low - CLUSTER_COVERAGE["success"][0]) < 0.05
+    low = interval_coverage.paired_cell(5, 10, "no mean effect, task effects +-0.3", REPS)["reported"]
+    assert abs(low - CLUSTER_COVERAGE["paired"][0]) < 0.05
+
+
 def test_task_effects_without_a_mean_effect_need_the_task_as_the_unit():
     """Task effects of +-0.3 around no mean effect, 10 tasks x 10 pairs: pairs as units (Tango alone) cover about
     two thirds; the reported hull, which has the task as the unit, stays near nominal."""
