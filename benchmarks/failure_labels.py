@@ -20,6 +20,20 @@ tests/scoring/test_failure_labels.py):
 
 A second set, picked by the classifier's mode (the rare modes a stratified set of 48 misses), checks each mode's
 precision; its steps take ``--set failure_labels_by_mode`` and ``select --modes A,B --per-mode K``.
+
+A validation set with two blind labelling passes and an adjudication (labels_a.csv, labels_b.csv, each made
+without the other or the classifier; adjudicated.csv, made after, may read the bags) is checked by
+
+    passes     the labellers' agreement and kappa; the classifier against the adjudicated labels overall, per suite
+               and per mode (precision with a Wilson interval), against the targets: agreement >= 85%, kappa >=
+               0.75, LIBERO-Goal >= 80%; a mode under 70% precision is unvalidated.
+
+    .venv/bin/python benchmarks/failure_labels.py --set failure_validation select bags/sweeps/failure_validation \
+        --n 64 --inits 45,46,47,48,49
+    .venv/bin/python benchmarks/failure_labels.py --set failure_validation render bags/sweeps/failure_validation \
+        --sheets /tmp/sheets
+    .venv/bin/python benchmarks/failure_labels.py --set failure_validation extract bags/sweeps/failure_validation
+    .venv/bin/python benchmarks/failure_labels.py --set failure_validation passes
 """
 
 from __future__ import annotations
@@ -167,7 +181,8 @@ def extract(sweep: Path) -> None:
     from lq_ros.recording.episode_bag import EpisodeBagWriter, read_run_metadata
     from lq_ros.wire import messages as m
 
-    topics = [m.EPISODE_EVENTS, m.EE_POSE, m.TASK_STATE, m.TASK_OBJECT_POSES]
+    # Commands too: whether any fresh action ran, and whether the gripper was closed beside the target.
+    topics = [m.EPISODE_EVENTS, m.EE_POSE, m.COMMAND, m.TASK_STATE, m.TASK_OBJECT_POSES]
     for name in _picked():
         source = sweep / "bags" / name
         target = DATA / "bags" / name
@@ -212,6 +227,59 @@ def agreement() -> dict:
     return out
 
 
+#: What a validation set must reach against its adjudicated labels (agreement, kappa, LIBERO-Goal's agreement), and
+#: the precision under which a mode stays unvalidated.
+TARGETS = {"agreement": 0.85, "kappa": 0.75, "libero_goal": 0.80, "precision": 0.70}
+
+
+def _labels(name: str) -> dict[str, str]:
+    import csv
+
+    if not (DATA / name).exists():
+        raise SystemExit(f"{DATA / name}: missing (passes needs labels_a.csv, labels_b.csv and adjudicated.csv)")
+    with (DATA / name).open() as f:
+        return {r["episode"]: r["label"] for r in csv.DictReader(f)}
+
+
+def passes() -> dict:
+    """Two blind passes and their adjudication: the labellers' kappa, then the classifier against the adjudicated
+    labels, overall, per suite and per mode, each with its count and a Wilson interval, against TARGETS."""
+    from lq_ros.scoring.bag_scorer import score_bag
+    from lq_ros.scoring.failure_aggregate import label_agreement
+    from lq_ros.scoring.intervals import wilson_interval
+
+    first, second, truth = _labels("labels_a.csv"), _labels("labels_b.csv"), _labels("adjudicated.csv")
+    if not set(first) == set(second) == set(truth) == set(_picked()):
+        raise SystemExit("labels_a.csv, labels_b.csv and adjudicated.csv must each label every picked episode once")
+    between = label_agreement(first, second)
+    print(f"labellers: {between['agreed']} of {between['n']} agree, Cohen's kappa {between['kappa']:.2f}")
+    rows = {name: score_bag(DATA / "bags" / name) for name in truth}
+    predicted = {name: row["failure_mode"] for name, row in rows.items()}
+    out = label_agreement(truth, predicted)
+
+    def share(agreed: int, n: int) -> str:
+        low, high = wilson_interval(agreed, n)
+        return f"{agreed} of {n} ({agreed / n:.0%}, 95% CI {low:.0%}-{high:.0%})" if n else "none"
+
+    print(f"classifier vs adjudicated: {share(out['agreed'], out['n'])}, Cohen's kappa {out['kappa']:.2f}")
+    met = {"agreement": out["agreement"] >= TARGETS["agreement"], "kappa": out["kappa"] >= TARGETS["kappa"]}
+    for suite in sorted({str(row.get("suite")) for row in rows.values()}):
+        names = [n for n, row in rows.items() if str(row.get("suite")) == suite]
+        agreed = sum(truth[n] == predicted[n] for n in names)
+        print(f"  {suite}: {share(agreed, len(names))}")
+        if suite == "libero_goal":
+            met["libero_goal"] = agreed >= TARGETS["libero_goal"] * len(names)
+    unvalidated = []
+    for mode in sorted(set(predicted.values())):
+        names = [n for n in truth if predicted[n] == mode]
+        agreed = sum(truth[n] == mode for n in names)
+        print(f"  classifier {mode}: the adjudicated label agrees on {share(agreed, len(names))}")
+        if agreed < TARGETS["precision"] * len(names):
+            unvalidated.append(mode)
+    print(f"targets met: {met}; unvalidated modes (precision under {TARGETS['precision']:.0%}): {unvalidated}")
+    return {"between": between, "classifier": out, "met": met, "unvalidated": unvalidated}
+
+
 def main() -> None:
     global DATA
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -230,6 +298,7 @@ def main() -> None:
     p = sub.add_parser("extract")
     p.add_argument("sweep", type=Path)
     sub.add_parser("agreement")
+    sub.add_parser("passes", help="two blind passes and their adjudication against the classifier")
     args = parser.parse_args()
     DATA = REPO / "tests/data" / args.set
     if args.step == "select" and args.modes:
@@ -240,6 +309,8 @@ def main() -> None:
         render(args.sweep, args.sheets)
     elif args.step == "extract":
         extract(args.sweep)
+    elif args.step == "passes":
+        passes()
     else:
         agreement()
 
