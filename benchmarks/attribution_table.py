@@ -6,8 +6,9 @@ The sweep must hold, for each latency, the cells under the paper's budget (budge
 budget (budget_counts action) and, for sync, the action budget with hold repeat, plus the zero-latency cell:
 config/sweeps/attribution.yaml. One markdown row per (policy variant, protocol, latency): success in each setting
 (Wilson 95% CI) over the (task, init) pairs present in all of them, and the drop from zero latency split into the
-budget's part and the rest, with the paper's hold (percentage points, 95% paired bootstrap interval over the pairs,
-whole tasks resampled, expanded percentile; drop = budget + rest), and beside it the sensitivity to holding by
+budget's part and the rest, with the paper's hold (percentage points, the paired 95% interval of
+lq_ros/scoring/intervals.py: the task as the unit, never narrower than Tango's; drop = budget + rest), and beside
+it the sensitivity to holding by
 repeating the last action (not part of the sum; a negative value means repeat lowered success). The sweep report
 prints the same table (lq_ros.scoring.attribution.decomposition_table) when a sweep ran both budgets.
 """

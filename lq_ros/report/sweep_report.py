@@ -202,7 +202,8 @@ ATTRIBUTION_NOTE = (
     "Cells run under both budgets, over the (task, init, seed) pairs present in each: drop = S(0) - S(paper budget) "
     "= budget + rest, with budget = S(action budget) - S(paper budget) and rest = S(0) - S(action budget), all "
     "with the paper's hold (stop); hold repeat = S(action budget, hold repeat) - S(action budget) is a sensitivity "
-    "beside the sum. Percentage points with paired 95% bootstrap intervals (whole tasks resampled)."
+    "beside the sum. Percentage points with paired 95% intervals (the task as the unit, never narrower than Tango's "
+    "score interval)."
 )
 
 

@@ -227,7 +227,7 @@ def aggregate(
     seed: int = 0,
     confidence: float = 0.95,
 ) -> pd.DataFrame:
-    """One row per group: counts, success rate with Wilson CI, each metric's mean with bootstrap CI."""
+    """One row per group: counts, success rate with Wilson CI, each metric's mean with its t CI."""
     rows = []
     for key, group in episodes.groupby(list(by), dropna=False, sort=True):
         row = dict(zip(by, key if isinstance(key, tuple) else (key,), strict=True))

@@ -7,11 +7,11 @@ intervals. For success (the primary endpoint):
 
 - the discordant pairs (A succeeded where B failed, and the reverse) and the **exact McNemar test** (a two-sided
   binomial test of the discordant pairs at 1/2);
-- the **paired difference** of success rates with a 95% task-clustered interval (pairs of one task resampled
-  together, never narrower than Newcombe's paired score interval: intervals.paired_success_ci);
+- the **paired difference** of success rates with a 95% task-clustered interval (the task as the unit, never
+  narrower than Tango's score interval: intervals.paired_success_ci);
 - the **paired restricted-mean time to success** difference over all pairs (a failure counts as the horizon, the
-  episode's tick limit: every episode counts, not only those that succeed in both arms), with a task-cluster
-  bootstrap interval (none when every pair differs by the same amount: no spread to resample).
+  episode's tick limit: every episode counts, not only those that succeed in both arms), with the cluster-robust t
+  interval over tasks (intervals.cluster_t_ci; none when every task has the same mean difference: no spread).
 
 ``p_adjusted`` is Holm's step-down adjustment (family-wise error 5%) over the comparisons of the table that can
 reach p < 0.05 at all: the exact McNemar p of d discordant pairs is at least 2 / 2^d, so fewer than 6 discordant
@@ -40,7 +40,7 @@ from scipy import stats
 from lq_ros.core.run_config import GROUP_KEYS
 from lq_ros.core.suite_constants import CONTROL_DT_S
 from lq_ros.scoring.decisions import AnalysisPlan, cluster_p, equivalent
-from lq_ros.scoring.intervals import cluster_bootstrap_ci, mean_stats, paired_success_ci
+from lq_ros.scoring.intervals import cluster_t_ci, mean_stats, paired_success_ci
 from lq_ros.scoring.labels import _pair_keys, _text, base_labels
 
 #: The episodes two arms share: a pair is one (task, init state, seed); the cluster is the task.
@@ -175,10 +175,11 @@ def compare_pairs(a: pd.DataFrame, b: pd.DataFrame, *, n_boot: int = 2000, seed:
         tb = np.where(sb, np.fmin(both["completion_time_s_b"].to_numpy(), horizon), horizon)
         if np.all(np.isfinite(ta)) and np.all(np.isfinite(tb)):
             d = ta - tb
-            # Every pair the same difference (both arms fail everywhere, say): the sample has no spread to give an
-            # interval from, and a zero-width one would claim certainty.
-            spread = np.ptp(d) > 0
-            lo, hi = cluster_bootstrap_ci(_clusters(d, tasks), n_boot=n_boot, seed=seed) if spread else (math.nan,) * 2
+            lo, hi = cluster_t_ci(_clusters(d, tasks))
+            if not hi > lo:
+                # Every task the same mean difference (both arms fail everywhere, say): no spread to give an
+                # interval from, and a zero-width one would claim certainty.
+                lo = hi = math.nan
             out.update(rmst_a_s=float(ta.mean()), rmst_b_s=float(tb.mean()), rmst_diff_s=float(d.mean()),
                        rmst_ci_lo=lo, rmst_ci_hi=hi, rmst_cluster_p=cluster_p(d, tasks, seed=seed))  # fmt: skip
     return out

@@ -70,6 +70,21 @@ def test_compare_pairs_counts_discordant_pairs_and_leaves_errors_out():
     assert math.isnan(few["diff_ci_lo"]) and math.isnan(few["rmst_ci_hi"])
 
 
+def test_the_time_difference_interval_is_not_held_inside_the_observed_tasks():
+    """Five tasks whose A - B time differences are 1, 1, 1, 1 and 5 s: a task bootstrap could never give a lower bound
+    below the smallest task's 1 s; the t interval over the task means does (1.8 +- 2.776 x 0.8 s)."""
+    statuses = ["success"] * 10
+    a = arm(statuses, [6.0] * 8 + [10.0, 10.0])
+    b = arm(statuses, [5.0] * 10)
+    out = compare_pairs(a, b)
+    assert out["rmst_diff_s"] == pytest.approx(1.8)
+    assert out["rmst_ci_lo"] == pytest.approx(1.8 - 2.776445 * 0.8, abs=1e-4) and out["rmst_ci_lo"] < 1.0
+    assert out["rmst_ci_hi"] == pytest.approx(1.8 + 2.776445 * 0.8, abs=1e-4)
+    # Every task the same difference: no spread, no interval (not a zero-width one).
+    same = compare_pairs(arm(statuses, [6.0] * 10), b)
+    assert same["rmst_diff_s"] == pytest.approx(1.0) and math.isnan(same["rmst_ci_lo"])
+
+
 def test_paired_policies_compares_policies_within_a_protocol_and_protocols_within_a_policy():
     rows = []
     for policy, mode, statuses in (("p", "sync", ["success"] * 10), ("p", "async", ["failure"] * 10),
