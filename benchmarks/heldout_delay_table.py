@@ -1,6 +1,8 @@
 """The held-out delay study's tables (docs/design/heldout_delay_study.md): every arm's success, and the comparisons
-its plan fixed before the episodes ran, paired on (task, init state, seed), with exact McNemar p-values adjusted by
-Holm over the whole family.
+its plan fixed before the episodes ran, paired on (task, init state, seed): exact McNemar p-values (these tasks, other
+init states) and the task-level sign-flip p (``cluster_p``: other tasks of the suite), each adjusted by Holm over the
+family. A comparison of identical episodes (the same arm under two names, or the same comparison listed twice) is
+printed but in no family.
 
 Usage: python benchmarks/heldout_delay_table.py [SWEEP_DIR]        (default: bags/sweeps/heldout_delay)
 
@@ -81,7 +83,7 @@ def compare(a: pd.DataFrame, b: pd.DataFrame) -> dict:
     return {"pairs": out["n_pairs"], "A only": out["a_only"], "B only": out["b_only"], "A %": pct(out["success_a"]),
             "B %": pct(out["success_b"]), "A - B (points)": pct(out["diff"]),
             "95% (task-clustered)": f"[{100 * out['diff_ci_lo']:+.0f}, {100 * out['diff_ci_hi']:+.0f}]",
-            "mcnemar_p": out["mcnemar_p"]}  # fmt: skip
+            "mcnemar_p": out["mcnemar_p"], "cluster_p": out["cluster_p"], "identical": out["identical"]}  # fmt: skip
 
 
 def main() -> None:
@@ -112,7 +114,7 @@ def main() -> None:
     for _, r in errors.iterrows():
         print(f"error: {r.family} {r.lat} {r.arm} task {r.task} init {r.init}: {r.get('error_reason')}")
 
-    comps = []
+    comps, seen = [], set()
     for family in ("oft", "flow"):
         for lat_a, arm_a, lat_b, arm_b in COMPARISONS:
             a, b = arm_rows(episodes, family, lat_a, arm_a), arm_rows(episodes, family, lat_b, arm_b)
@@ -120,13 +122,27 @@ def main() -> None:
                 continue
             same = arm_b == "naive + slack" and SLACK.get((family, lat_b)) == 0
             name_b = f"{arm_b} @ {lat_b}" + (" (= naive)" if same else "")
-            comps.append({"family": family, "A": f"{arm_a} @ {lat_a}", "B": name_b, **compare(a, b)})
+            row = compare(a, b)
+            # The same pairs compared twice (B at K = 0 is the naive arm; A = delay equals naive there) count once.
+            key = (family, arm_a, lat_a, tuple(b.status), tuple(b.get("completion_steps", b.status)))
+            row["in family"] = not row["identical"] and key not in seen
+            seen.add(key)
+            comps.append({"family": family, "A": f"{arm_a} @ {lat_a}", "B": name_b, **row})
     table = pd.DataFrame(comps)
-    table["p_adjusted"] = holm(table["mcnemar_p"].to_numpy())
-    table["called"] = np.where(table["p_adjusted"] < 0.05, "yes", "no")
-    for col in ("mcnemar_p", "p_adjusted"):
-        table[col] = table[col].map(lambda v: f"{v:.2g}")
-    print(f"\nPlanned comparisons, paired on (task, init, seed); exact McNemar p, Holm over all {len(table)}")
+    family_rows = table["in family"].to_numpy(bool)
+    for col in ("mcnemar_p", "cluster_p"):
+        adjusted = np.full(len(table), np.nan)
+        adjusted[family_rows] = holm(table.loc[family_rows, col].to_numpy())
+        table[f"{col} Holm"] = adjusted
+    table["called (these tasks)"] = np.where(table["mcnemar_p Holm"] < 0.05, "yes", "no")
+    table["called (other tasks)"] = np.where(table["cluster_p Holm"] < 0.05, "yes", "no")
+    for col in ("mcnemar_p", "mcnemar_p Holm", "cluster_p", "cluster_p Holm"):
+        table[col] = table[col].map(lambda v: "-" if np.isnan(v) else f"{v:.2g}")
+    table = table.drop(columns=["identical"])
+    print(
+        f"\nPlanned comparisons, paired on (task, init, seed); exact McNemar p and task-level sign-flip p, Holm over"
+        f" the {int(family_rows.sum())} in the family"
+    )
     print(table.to_markdown(index=False))
     commits = sorted(set(episodes.git_commit.dropna()))
     cpus = sorted(set(episodes.cpu_class.dropna()))
