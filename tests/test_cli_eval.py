@@ -14,7 +14,8 @@ from lq_ros.run.sweep.spec import FLAG_TO_SPEC_KEY, MODES, SPEC_KEYS, SpecError,
 from tests.test_cli_errors import assert_refused, lq
 
 #: The flags whose spec key is not their own name: seconds are in the key's name (the documented mapping).
-NAMED_OTHERWISE = {"--latency": "latencies_s", "--latencies": "latencies_s", "--timeout": "timeout_s"}
+NAMED_OTHERWISE = {"--latency": "latencies_s", "--latencies": "latencies_s", "--timeout": "timeout_s",
+                   "--primary": "analysis.primary", "--equivalence-margin": "analysis.equivalence_margin"}  # fmt: skip
 #: Flags of lq run / lq eval that are no spec setting: where results go and how the command runs.
 NOT_IN_A_SPEC = {"--out", "--overwrite", "--json", "--domain-id", "--workers", "--help"}
 
@@ -140,3 +141,15 @@ def test_a_tiny_evaluation_runs_writes_its_spec_and_report_and_prints_the_table(
     again = lq(*args, timeout=900)  # resumable: nothing runs again
     assert again.returncode == 0 and "4 of 4 episodes already finished" in again.stderr
     assert again.stdout == table  # the same report
+
+
+def test_eval_declares_its_primary_comparisons():
+    """lq eval --primary 0.2 --equivalence-margin 0.1: sync against async at 0.2 s is the Holm family."""
+    raw = eval_spec("flow", {"variant": "delay"}, "libero_object", "0-2", "0", [0.0, 0.2], ["sync", "async"],
+                    "replace", 5, [7], 0, 0, "inprocess", "mine", primary=[0.2], equivalence_margin=0.1)  # fmt: skip
+    assert raw["analysis"] == {"primary": [{"a": "flow [variant=delay]", "b": "flow [variant=delay]",
+                                            "mode_a": "sync", "mode_b": "async", "latency_s": 0.2}],
+                               "equivalence_margin": 0.1}  # fmt: skip
+    expand_spec(raw)  # valid
+    assert "analysis" not in eval_spec("flow", {}, "libero_object", "0", "0", [0.0], ["sync"], "replace", 5, [7], 0,
+                                       0, "inprocess", "mine")  # fmt: skip

@@ -33,7 +33,7 @@ from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX
 #: lq_ros.run.sweep.spec.FLAG_TO_SPEC_KEY (tests/test_cli_eval.py checks both). --workers and --out say how it runs.
 EVAL_SPEC_FLAGS = (
     "--policy", "--policy-arg", "--suite", "--tasks", "--inits", "--latencies", "--modes", "--merge", "--replan-steps",
-    "--seeds", "--camera-size", "--max-steps", "--budgets", "--transport",
+    "--seeds", "--camera-size", "--max-steps", "--budgets", "--transport", "--primary", "--equivalence-margin",
 )  # fmt: skip
 #: The file ``lq eval`` writes the spec it runs to, in OUT (``lq sweep OUT/eval_spec.yaml --out OUT`` runs it again).
 EVAL_SPEC_FILE = "eval_spec.yaml"
@@ -69,9 +69,11 @@ def _number_or_text(text: str) -> float | str:
 
 def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str, latencies: list, modes: list[str],
               merge: str, replan_steps: int | None, seeds: list[int], camera_size: int, max_steps: int, transport: str,
-              name: str, budgets: str = "paper") -> dict:  # fmt: skip
+              name: str, budgets: str = "paper", primary: list | None = None,
+              equivalence_margin: float = 0.0) -> dict:  # fmt: skip
     """The sweep spec ``lq eval`` runs: its flags under their spec keys (docs/guide/sweeps.md). Without
-    ``replan_steps`` sync executes the policy's reference protocol's (the sweep's default)."""
+    ``replan_steps`` sync executes the policy's reference protocol's (the sweep's default). ``primary``: the
+    latencies at which sync against async is a declared primary comparison (``analysis.primary``)."""
     protocol = {
         "sync": {**({} if replan_steps is None else {"replan_steps": replan_steps}), "hold": "stop"},
         "async": {"merge": merge, "request_threshold": -1},
@@ -83,7 +85,24 @@ def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str
     }  # fmt: skip
     raw |= {"camera_size": camera_size} if camera_size else {}
     raw |= {"budgets": budgets} if budgets != "paper" else {}
+    analysis: dict = {}
+    if primary:
+        analysis["primary"] = [{"a": _label(policy, policy_args), "b": _label(policy, policy_args), "mode_a": "sync",
+                                "mode_b": "async", "latency_s": latency} for latency in primary]  # fmt: skip
+    if equivalence_margin:
+        analysis["equivalence_margin"] = equivalence_margin
+    raw |= {"analysis": analysis} if analysis else {}
     return raw | ({"max_steps": max_steps} if max_steps else {})
+
+
+def _label(policy: str, policy_args: dict) -> str:
+    """The report's variant label of the policy (lq_ros.scoring.labels), as a declared comparison names its arms."""
+    import pandas as pd
+
+    from lq_ros.scoring.labels import base_labels
+
+    row = pd.DataFrame([{"policy": policy, "policy_args": policy_args or None}])
+    return str(base_labels(row, ("budget_counts", "latency_dist")).iloc[0])
 
 
 def eval_(
@@ -111,6 +130,20 @@ def eval_(
     merge: Annotated[Merge, typer.Option(help=MERGE_HELP, metavar="STRATEGY")] = Merge.REPLACE,
     replan_steps: Annotated[int | None, typer.Option(help=REPLAN_STEPS_HELP)] = None,
     seeds: Annotated[str, typer.Option(help="Seeds, comma-separated: every episode once per seed (7 or 7,8,9).")] = "7",
+    primary: Annotated[
+        str,
+        typer.Option(
+            help="Latencies (s, comma-separated) where sync against async is a primary comparison: the report's Holm "
+            "family; none: every comparison exploratory. Spec key: analysis.primary."
+        ),
+    ] = "",
+    equivalence_margin: Annotated[
+        float,
+        typer.Option(
+            help="Success difference within which sync and async may be called equivalent (TOST; 0.1 = 10 points); "
+            "0: never. Spec key: analysis.equivalence_margin."
+        ),
+    ] = 0.0,
     camera_size: Annotated[
         int,
         typer.Option(help=f"Camera render size, px; 0: the policy's reference size, else {DEFAULT_CAMERA_SIZE_PX}."),
@@ -156,7 +189,7 @@ def eval_(
         policy, _parse_policy_args(policy_arg), suite, tasks, inits,
         [_number_or_text(v) for v in _csv(latencies, "--latencies")], mode_list, merge.value, replan_steps,
         _csv(seeds, "--seeds", int), camera_size, max_steps, transport.value, out.resolve().name or "eval",
-        budgets.value,
+        budgets.value, _csv(primary, "--primary", float), equivalence_margin,
     )  # fmt: skip
     try:
         spec = sw.expand_spec(raw, default_name="eval")

@@ -59,6 +59,11 @@ class Policy(abc.ABC):
     #: How the arm values of its actions are meant (lq_ros.core.control): relative steps in [-1, 1] (LIBERO's, every
     #: policy of the paper) or absolute EE poses (X-VLA's LIBERO checkpoints). The simulator switches its controller.
     control_mode: ControlMode = ControlMode.RELATIVE
+    #: Whether two seeds can give two different episodes (benchmarks/seed_replication.py measures it; the simulator
+    #: sets the init state after seeding, so the scene does not depend on the seed): False, measured identical (the
+    #: policy ignores its seed), so a second seed repeats the first episode and a sweep refuses it; True, measured
+    #: to differ; None, not known (a checkpoint's sampling decides, or a user's policy).
+    seed_varies: bool | None = None
 
     @abc.abstractmethod
     def reset(self, task: TaskInfo, seed: int) -> None:

@@ -37,6 +37,7 @@ class FlowPolicy(LearnedChunkPolicy):
 
     name = "flow"
     kind = "flow"
+    seed_varies = True  # the noise is seeded per episode (benchmarks/seed_replication.py)
     supports_prefix = True
 
     def __init__(

@@ -15,6 +15,7 @@ class OFTPolicy(LearnedChunkPolicy):
     """
 
     name = "oft"
+    seed_varies = False  # one deterministic forward pass (benchmarks/seed_replication.py)
     kind = "oft"
 
     def __init__(

@@ -21,6 +21,7 @@ class SinePolicy(Policy):
     """
 
     name = "sine"
+    seed_varies = False  # a function of the tick alone
     supports_prefix = True
 
     def __init__(self, chunk_size: int = 8, amplitude: float = 0.5, period_ticks: float = 40.0) -> None:

@@ -96,6 +96,7 @@ class ScriptedExpert(Policy):
 
     name = "scripted"
     needs_object_poses = True  # privileged state: plans on the objects' poses
+    seed_varies = False  # plans on poses alone (benchmarks/seed_replication.py)
     camera_names = ()
 
     def __init__(self, **params) -> None:

@@ -63,7 +63,8 @@ FLAG_TO_SPEC_KEY = {
     "--request-threshold": "modes.async.request_threshold", "--request-slack": "modes.async.request_slack",
     "--merge": "modes.async.merge", "--camera-size": "camera_size", "--physics-rate": "physics_rate",
     "--max-steps": "max_steps", "--budgets": "budgets", "--budget-counts": "budget_counts", "--clock": "clock",
-    "--robot": "robot", "--transport": "transport", "--timeout": "timeout_s",
+    "--robot": "robot", "--transport": "transport", "--timeout": "timeout_s", "--primary": "analysis.primary",
+    "--equivalence-margin": "analysis.equivalence_margin",
 }  # fmt: skip
 #: Keys that apply to the whole sweep: a ``parts`` entry may not set them.
 SWEEP_WIDE_KEYS = {"name", "transport", "timeout_s", "clock", "robot", "parts", "analysis"}
@@ -565,12 +566,36 @@ def load_spec(path: Path) -> SweepSpec:
         raise SpecError(f"{path}: {exc}") from exc
 
 
+def _check_seeds(configs: tuple[RunConfig, ...] | list[RunConfig]) -> None:
+    """Refuse a second seed for a policy whose episodes do not depend on the seed (``Policy.seed_varies`` False,
+    measured by benchmarks/seed_replication.py): the episode would repeat bit for bit and count one draw twice."""
+    from lq_ros.run.validation import InputError, policy_class
+
+    seeds: dict[str, set[int]] = {}
+    for cfg in configs:
+        seeds.setdefault(cfg.policy, set()).add(cfg.seed)
+    for policy, values in seeds.items():
+        if len(values) < 2:
+            continue
+        try:
+            varies = getattr(policy_class(policy), "seed_varies", None)
+        except InputError:
+            continue  # refused with its own message by the policy checks
+        if varies is False:
+            raise SpecError(
+                f"seeds: {sorted(values)} for policy {policy!r}, whose episodes do not depend on the seed "
+                "(benchmarks/seed_replication.py): a second seed repeats the first episode and would count it "
+                "twice; give one seed"
+            )
+
+
 def check_policies(configs: tuple[RunConfig, ...] | list[RunConfig]) -> None:
     """Check and build each distinct policy once, so bad policy arguments fail before any episode runs
     (lq_ros.run.validation: an argument the policy does not take or of the wrong type, a value it refuses)."""
     from lq_ros.run.validation import InputError, check_policy, policy_class
 
     seen, merges = set(), set()
+    _check_seeds(configs)
     for cfg in configs:
         try:
             if (cfg.policy, cfg.merge) not in merges:

@@ -232,3 +232,13 @@ def test_sync_replan_steps_default_to_the_policys_declaration_and_a_given_one_wi
     assert [(c.replan_steps, c.replan_steps_source) for c in given] == [(8, "flag")]
     asynchronous = sw.expand_spec(small_spec(modes=["async"], latencies_s=[0.0])).configs
     assert [c.replan_steps_source for c in asynchronous] == [""]  # async executes no fixed count
+
+
+def test_a_second_seed_for_a_seed_blind_policy_is_refused():
+    """The bad case: the scripted expert ignores its seed and the init state is set after seeding, so seeds 7 and 8
+    give one episode twice (benchmarks/seed_replication.py); counted as two it would double every count."""
+    for policy in ("scripted", "sine"):
+        spec = sw.expand_spec(small_spec(policies=[policy], seeds=[7, 8]))
+        with pytest.raises(sw.SpecError, match=f"seeds: \\[7, 8\\] for policy '{policy}', whose episodes do not"):
+            sw.check_policies(spec.configs)
+    sw.check_policies(sw.expand_spec(small_spec(policies=["scripted"], seeds=[7])).configs)  # one seed: fine
