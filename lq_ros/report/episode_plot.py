@@ -141,7 +141,7 @@ class EpisodeView:
 
 def load_episode_view(bag: Path) -> EpisodeView:
     """Read one bag folder into an EpisodeView (the scorer's reader for poses and joints)."""
-    from lq_ros.scoring import failure_modes
+    from lq_ros.scoring.bag_metrics import classify_episode
     from lq_ros.scoring.bag_scorer import read_episode, task_series
 
     bag = Path(bag)
@@ -170,7 +170,7 @@ def load_episode_view(bag: Path) -> EpisodeView:
         outcome = {"success": "success", "timeout": "failure"}.get(
             m.EventKind.NAMES.get(terminal[0][0], "") if terminal else "", "error"
         )
-        analysis = failure_modes.classify(series, outcome)
+        analysis = classify_episode(series, data, outcome)  # as the scorer's row has it
         events, mode = analysis.predicate_events, analysis.failure_mode
     return EpisodeView(
         name=bag.name,

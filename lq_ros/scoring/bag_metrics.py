@@ -68,24 +68,35 @@ def coverage(
 FAILURE_KEYS = ["progress", "furthest_phase", "unmet_predicate", "predicate_events"]
 
 
+def _fresh_actions(data: EpisodeData) -> int | None:
+    """The commands that came from a chunk (None: no command topic)."""
+    src = np.asarray(data.command_sources)
+    return int((src == Source.CHUNK).sum()) if len(src) else None
+
+
+def classify_episode(series: failure_modes.TaskSeries, data: EpisodeData, status: str) -> failure_modes.FailureAnalysis:
+    """The failure analysis of an episode's task series with what its commands add: whether any fresh action ran,
+    and where the gripper was commanded closed (a grasp tried beside the target, told from a hand that stopped)."""
+    if data.command_groups:
+        ticks = np.concatenate([g["tick"] for g in data.command_groups])
+        actions = np.concatenate([g["action"] for g in data.command_groups])
+        series.gripper_closing = failure_modes.gripper_closing(series.ticks, ticks, actions[:, -1])
+    outcome = status if status in ("success", "failure") else "error"
+    return failure_modes.classify(series, outcome, _fresh_actions(data))
+
+
 def score_failure(row: dict, data: EpisodeData, status: str, t0_ns, t1_ns) -> None:
     """``failure_mode``, ``progress``, ``furthest_phase``, ``unmet_predicate`` and ``predicate_events`` from the
     task state (lq_ros.scoring.failure_modes); ``unavailable`` where the bag has none or too little."""
     series, why = task_series(data, t0_ns, t1_ns)
-    src = np.asarray(data.command_sources)
-    fresh = int((src == Source.CHUNK).sum()) if len(src) else None  # commands from a chunk (None: no command topic)
     if series is None:
-        no_action = failure_modes.no_action_executed(status, fresh)
+        no_action = failure_modes.no_action_executed(status, _fresh_actions(data))
         row["failure_mode"] = "no_action_executed" if no_action else "unavailable"
         null(row, [*FAILURE_KEYS, "collateral"], why)
         if not no_action:
             row["null_reasons"]["failure_mode"] = why
         return
-    if data.command_groups:  # a grasp tried beside the target is told from a hand that stopped there
-        ticks = np.concatenate([g["tick"] for g in data.command_groups])
-        actions = np.concatenate([g["action"] for g in data.command_groups])
-        series.gripper_closing = failure_modes.gripper_closing(series.ticks, ticks, actions[:, -1])
-    analysis = failure_modes.classify(series, status if status in ("success", "failure") else "error", fresh)
+    analysis = classify_episode(series, data, status)
     row["failure_mode"] = analysis.failure_mode
     row["collateral"] = analysis.collateral
     if analysis.reason:  # an articulated target in a bag without joint positions

@@ -190,7 +190,7 @@ def classify(series: TaskSeries, status: str, fresh_actions: int | None = None) 
         return FailureAnalysis("budget_out_progressing", progress, "goal", None, events)
     mode = view.mode()
     disturbed = view.other_disturbed()
-    if disturbed and PHASES.index(phase) < PHASES.index("touched") and mode in ("never_reached", "stopped_short"):
+    if disturbed and not view.touched and mode in ("never_reached", "stopped_short", "grasp_missed"):
         mode = "wrong_object_disturbed"  # the target never touched: the object the arm went for was another
     collateral = disturbed and mode != "wrong_object_disturbed" and view.touched
     return FailureAnalysis(mode, progress, phase, unmet_name, events, collateral=bool(collateral))

@@ -125,6 +125,19 @@ def test_wrong_object_disturbed():
     assert (out.failure_mode, out.furthest_phase, out.collateral) == ("wrong_object_disturbed", "none", False)
 
 
+def test_the_other_bowl_lifted_beside_the_target_is_the_wrong_object():
+    """The gripper closes within reach of the target but lifts the other bowl: never touching the target, that is
+    the wrong object, not a grasp missed on air."""
+    s = series()
+    s.ee_distance = np.full((T, 3), 0.3)
+    s.ee_distance[60:120, 0] = 0.04
+    s.gripper_closing = np.zeros(T, dtype=bool)
+    s.gripper_closing[80:] = True
+    carry(s, 2, 80, 120, (0.0, 0.2, 1.0))
+    out = fm.classify(s, "failure")
+    assert (out.failure_mode, out.furthest_phase, out.collateral) == ("wrong_object_disturbed", "reached", False)
+
+
 def test_collateral_is_a_flag_once_the_target_was_touched():
     """An arm that shoves the other bowl on its way in, then touches its target: the target's mode, flagged."""
     s = series()
