@@ -195,7 +195,7 @@ def _budget_marks(rows: pd.DataFrame) -> np.ndarray:
 
 
 #: Fig. 4's band notes: which 95 % interval a line's band is (lq_ros/scoring/intervals.py).
-CLUSTER_BAND_NOTE = "band: task-clustered 95% interval (whole tasks resampled: speaks for other tasks of the suite)"
+CLUSTER_BAND_NOTE = "band: task-clustered 95% interval (the task as the unit: speaks for other tasks of the suite)"
 WILSON_BAND_NOTE = (
     f"hatched band: Wilson 95% interval over episodes, for a line with a cell of fewer than {agg.MIN_N_INTERVAL} "
     "tasks (no task-clustered interval): it speaks for these tasks only"
@@ -423,8 +423,9 @@ TIME_TO_SUCCESS_PANELS = (
 )
 #: Footnote of Fig. 9.
 KM_NOTE = (
-    "bands: pointwise 95% log-log Greenwood intervals of the fraction succeeded (none where every episode at risk "
-    "succeeded); ⚠ in a label: every episode of the cell held throughout (no fresh action ran)"
+    "bands: pointwise 95% log-log Greenwood intervals of the fraction succeeded, before the first success the exact "
+    "(Clopper-Pearson) bound (none where every episode at risk succeeded); ⚠ in a label: every episode of the cell "
+    "held throughout (no fresh action ran)"
 )
 
 

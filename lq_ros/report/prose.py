@@ -7,7 +7,7 @@ import pandas as pd
 from lq_ros.report.tables import count_text, outcomes_text
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.budget import budget_note
-from lq_ros.scoring.intervals import MIN_N_INTERVAL
+from lq_ros.scoring.intervals import CLUSTER_COVERAGE, MIN_N_INTERVAL, T_COVERAGE
 from lq_ros.scoring.paired_tests import ALPHA, RMST_METRIC
 
 #: (metric, sentence name, decimals, scale, unit) of the paired changes the report's sentences name, over the pairs
@@ -170,14 +170,22 @@ INTRO = (
     "energy was integrated "
     "(docs/guide/scoring.md)."
 )
+
+
+def _coverage(bounds: tuple[float, float]) -> str:
+    return f"{100 * bounds[0]:.1f}-{100 * bounds[1]:.1f}%"
+
+
 #: The report's reading notes (after INTRO): how to read what the figures and tables attribute.
 NOTES = (
     f"Intervals: success carries the Wilson interval over episodes (these tasks, other init states) and, for a cell "
-    f"of at least {MIN_N_INTERVAL} tasks, the task-clustered interval (whole tasks resampled, expanded percentile; "
-    "success clusters by task, so this is the one that speaks for other tasks of this kind; Fig. 4's band is it "
-    "wherever every cell of a line has it, else the hatched Wilson band); the mean of a metric "
-    "carries the Student t interval. Each holds its 95% coverage at these sizes in simulation "
-    "(docs/design/scoring.md). Few values: a metric over fewer than "
+    f"of at least {MIN_N_INTERVAL} tasks, the task-clustered interval (the task as the unit, never narrower than "
+    "Wilson; success clusters by task, so this is the one that speaks for other tasks of this kind; Fig. 4's band is "
+    "it wherever every cell of a line has it, else the hatched Wilson band); the mean of a metric "
+    "carries the Student t interval, a paired success difference the task-clustered interval never narrower than "
+    "Tango's. Simulated at 5-10 tasks (benchmarks/interval_coverage.py, docs/design/statistics.md), the nominal 95% "
+    f"intervals cover {_coverage(CLUSTER_COVERAGE['success'])} (success), {_coverage(CLUSTER_COVERAGE['paired'])} "
+    f"(paired differences) and {_coverage(T_COVERAGE)} (means of 5-9 values). Few values: a metric over fewer than "
     f"{MIN_N_INTERVAL} episodes (or pairs) gets no interval; tables print the mean, n and the values, "
     "as MEAN (n=1) or MEAN (n=3: V1, V2, V3), and figures draw such a mean hollow, joined to no other, with its "
     "values as dots and no band.",

@@ -14,8 +14,8 @@ Which episodes a metric is averaged over (one table, the single source of truth)
 Success uses the Wilson score interval over episodes and, beside it, the task-clustered interval
 (``success_cluster_ci_lo``/``_hi``: the task as the unit; the estimand is the cell's mean success over its
 episodes, and episodes of one task are not independent draws of it); continuous metrics the Student t interval
-(lq_ros/scoring/intervals.py: it holds its 95% coverage at the small n of a cell, where the percentile bootstrap
-does not). Below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
+(lq_ros/scoring/intervals.py: at the n = 5-9 of many cells it covers 91-96% in simulation, where the percentile
+bootstrap covers 82-90%). Below ``MIN_N_INTERVAL`` values no interval is given, the values and their count are
 (``<metric>_values``, :func:`ci_text`).
 
 The rest of the scoring statistics live beside this module: lq_ros/scoring/intervals.py (every interval),

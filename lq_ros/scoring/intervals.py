@@ -42,6 +42,8 @@ MIN_N_INTERVAL = 5
 #: ``python benchmarks/interval_coverage.py`` (2,000 samples a cell, seed 0; docs/design/statistics.md): the range
 #: the report states where coverage falls below 95%.
 CLUSTER_COVERAGE = {"success": (0.915, 0.997), "paired": (0.923, 1.0)}
+#: The same for the Student t interval of a mean of 5-9 values (normal and lognormal data).
+T_COVERAGE = (0.907, 0.960)
 
 
 def t_interval(values: ArrayLike, confidence: float = 0.95) -> tuple[float, float]:
