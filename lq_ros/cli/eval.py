@@ -33,8 +33,11 @@ from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX
 #: lq_ros.run.sweep.spec.FLAG_TO_SPEC_KEY (tests/test_cli_eval.py checks both). --workers and --out say how it runs.
 EVAL_SPEC_FLAGS = (
     "--policy", "--policy-arg", "--suite", "--tasks", "--inits", "--latencies", "--modes", "--merge", "--replan-steps",
-    "--seeds", "--camera-size", "--max-steps", "--budgets", "--transport", "--primary", "--equivalence-margin",
+    "--seeds", "--camera-size", "--max-steps", "--budgets", "--budget-counts", "--transport", "--primary",
+    "--equivalence-margin",
 )  # fmt: skip
+#: --budget-counts values: what the tick budget counts (lq_ros.core.run_config.BUDGET_COUNTS), or both (the twins).
+BUDGET_CHOICES = {"all": ["all"], "action": ["action"], "both": ["all", "action"]}
 #: The file ``lq eval`` writes the spec it runs to, in OUT (``lq sweep OUT/eval_spec.yaml --out OUT`` runs it again).
 EVAL_SPEC_FILE = "eval_spec.yaml"
 #: What the printed table's brackets and columns mean (the report says more: docs/guide/scoring.md).
@@ -70,7 +73,7 @@ def _number_or_text(text: str) -> float | str:
 def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str, latencies: list, modes: list[str],
               merge: str, replan_steps: int | None, seeds: list[int], camera_size: int, max_steps: int, transport: str,
               name: str, budgets: str = "paper", primary: list | None = None,
-              equivalence_margin: float = 0.0) -> dict:  # fmt: skip
+              equivalence_margin: float = 0.0, budget_counts: list[str] | None = None) -> dict:  # fmt: skip
     """The sweep spec ``lq eval`` runs: its flags under their spec keys (docs/guide/sweeps.md). Without
     ``replan_steps`` sync executes the policy's reference protocol's (the sweep's default). ``primary``: the
     latencies at which sync against async is a declared primary comparison (``analysis.primary``)."""
@@ -92,6 +95,7 @@ def eval_spec(policy: str, policy_args: dict, suite: str, tasks: str, inits: str
     if equivalence_margin:
         analysis["equivalence_margin"] = equivalence_margin
     raw |= {"analysis": analysis} if analysis else {}
+    raw |= {"budget_counts": budget_counts} if budget_counts and budget_counts != ["all"] else {}
     return raw | ({"max_steps": max_steps} if max_steps else {})
 
 
@@ -150,6 +154,18 @@ def eval_(
     ] = 0,
     max_steps: Annotated[int, typer.Option(help="Tick budget per episode; 0: the suite's (see --budgets).")] = 0,
     budgets: Annotated[Budgets, typer.Option(help=BUDGETS_HELP)] = Budgets.paper,
+    budget_counts: Annotated[
+        str,
+        typer.Option(
+            help="What the tick budget counts: all (the paper's: holds count), action (only ticks whose command came "
+            "from a chunk), or both: every episode under each, the action-budget twins the report's budget "
+            "attribution needs (twice the episodes; docs/guide/scoring.md).",
+            metavar="all|action|both",
+        ),
+    ] = "all",
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace OUT's earlier results (all its episodes run again) instead of resuming.")
+    ] = False,
     workers: Annotated[int | None, typer.Option(help="Episodes run in parallel; default: CPU cores.")] = None,
     transport: Annotated[
         Transport,
@@ -162,14 +178,15 @@ def eval_(
     protocols (sync and async), paired.
 
     Writes the spec it runs to OUT/eval_spec.yaml, runs it as a resumable sweep with a progress bar (run the same
-    command again after any stop: finished episodes are skipped), writes the report (OUT/report: report.html,
+    command again after any stop: finished episodes are skipped; results made by other code than what runs now are
+    refused, naming the change: --overwrite replaces them), writes the report (OUT/report: report.html,
     report.md, figures, CSV tables) and prints the success table. Exits 1 if any episode was a run error; their
     reasons are printed under the table.
 
     Every flag is a spec key (docs/guide/sweeps.md): --suite, --tasks, --inits, --seeds, --modes, --camera-size,
-    --max-steps, --budgets and --transport by the same name; --latencies is latencies_s, --policy and --policy-arg are
-    policies: [{name: P, args: {key: value}}], --merge is modes: {async: {merge: M}}, --replan-steps is
-    modes: {sync: {replan_steps: K}}.
+    --max-steps, --budgets, --budget-counts and --transport by the same name (--budget-counts both: [all, action]);
+    --latencies is latencies_s, --policy and --policy-arg are policies: [{name: P, args: {key: value}}], --merge is
+    modes: {async: {merge: M}}, --replan-steps is modes: {sync: {replan_steps: K}}.
     """
     import yaml
 
@@ -185,11 +202,14 @@ def eval_(
     if not mode_list or bad or len(set(mode_list)) != len(mode_list):
         hint = did_you_mean(bad[0], ("sync", "async")) if bad else ""
         _refuse(f"--modes {modes!r}: expected sync, async or sync,async{hint}")
+    if budget_counts not in BUDGET_CHOICES:
+        hint = did_you_mean(budget_counts, BUDGET_CHOICES)
+        _refuse(f"--budget-counts {budget_counts!r}: expected all, action or both{hint}")
     raw = eval_spec(
         policy, _parse_policy_args(policy_arg), suite, tasks, inits,
         [_number_or_text(v) for v in _csv(latencies, "--latencies")], mode_list, merge.value, replan_steps,
         _csv(seeds, "--seeds", int), camera_size, max_steps, transport.value, out.resolve().name or "eval",
-        budgets.value, _csv(primary, "--primary", float), equivalence_margin,
+        budgets.value, _csv(primary, "--primary", float), equivalence_margin, BUDGET_CHOICES[budget_counts],
     )  # fmt: skip
     try:
         spec = sw.expand_spec(raw, default_name="eval")
@@ -200,7 +220,7 @@ def eval_(
     (out / EVAL_SPEC_FILE).write_text(yaml.safe_dump(raw, sort_keys=False, allow_unicode=True))
     console.print(f"{len(spec.configs)} episodes; the spec: {out / EVAL_SPEC_FILE}", highlight=False)
     try:
-        summary = _run_sweep_with_progress(spec, out, workers=workers, transport=transport.value)
+        summary = _run_sweep_with_progress(spec, out, workers=workers, transport=transport.value, overwrite=overwrite)
     except (sw.RayConnectError, sw.StoreError) as exc:
         _refuse(str(exc))
     with contextlib.redirect_stdout(sys.stderr):

@@ -10,6 +10,9 @@ import typer
 
 from lq_ros.cli.common import Backend, Transport, _refuse, console
 
+#: What Ctrl-C (or SIGTERM) on ``lq sweep`` / ``lq eval`` prints: finished episodes are kept.
+INTERRUPTED = "interrupted: rerun the same command to resume"
+
 
 def sweep(
     spec: Annotated[Path, typer.Argument(help="The sweep spec, a YAML file (docs/guide/sweeps.md).")],
@@ -21,8 +24,12 @@ def sweep(
     address: Annotated[str | None, typer.Option(help="Ray cluster address; none: a private local Ray.")] = None,
     out: Annotated[Path | None, typer.Option(help="Sweep folder; default: bags/sweeps/<spec name>.")] = None,
     retry_errors: Annotated[bool, typer.Option(help="Run episodes recorded as error again.")] = False,
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace the folder's earlier results (all episodes run again) instead of resuming.")
+    ] = False,
 ) -> None:
-    """Run a latency sweep (docs/guide/sweeps.md); resumable: finished episodes are skipped. Exits 1 on any error."""
+    """Run a latency sweep (docs/guide/sweeps.md); resumable: finished episodes are skipped (results made by other
+    code than what runs now are refused, naming the change; --overwrite replaces them). Exits 1 on any error."""
     from lq_ros.run import sweep as sw
 
     if address and backend is not Backend.ray:
@@ -38,7 +45,7 @@ def sweep(
     try:
         summary = _run_sweep_with_progress(
             sweep_spec, out, workers=workers, transport=transport.value if transport else None,
-            backend=backend.value, address=address, retry_errors=retry_errors,
+            backend=backend.value, address=address, retry_errors=retry_errors, overwrite=overwrite,
         )  # fmt: skip
     except (sw.RayConnectError, sw.StoreError) as exc:  # a wrong --address or token; --out busy or unusable
         _refuse(str(exc))
@@ -54,6 +61,7 @@ def sweep(
 
 def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
     """run_sweep with a rich progress bar: episodes done, successes, failures, errors, ETA."""
+    from rich.markup import escape
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -85,10 +93,15 @@ def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
                         retried=summary.retried)  # fmt: skip
         if record is not None and record["status"] == "error":
             progress.console.print(f"[red]error[/red] {record['episode']}: {record['row'].get('error_reason')}")
+        for warning in (record or {}).get("warnings") or []:  # e.g. chunks the executor rejected
+            progress.console.print(f"[yellow]warning[/yellow] {escape(record['episode'])}: {escape(warning)}")
 
     previous = sigterm_as_keyboard_interrupt()  # SIGTERM stops the sweep (and its workers) like Ctrl-C
     try:
         with progress:
             return run_sweep(spec, out_dir, on_progress=update, **kwargs)
+    except KeyboardInterrupt:  # the finished episodes are kept (each record written as it finished)
+        console.print(INTERRUPTED)
+        raise typer.Exit(130) from None
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -49,8 +49,8 @@ ACTION_BUDGET_STYLE = ":"
 BUDGET_FOOTNOTE = {
     "decided": "hollow marker: budget-decided cell, its action-budget twin succeeded where the paper budget timed out "
     "(holds spent the paper budget; see the report's notes)",
-    "proxy": "dotted ring: budget-limited by the action-tick proxy only (no action-budget twin was run): weaker "
-    "evidence",
+    "proxy": "dotted ring: budget-limited by the action-tick proxy only (no action-budget twin was run; lq eval "
+    "--budget-counts both runs them): weaker evidence",
 }
 #: How a figure says which points have no interval (and are not joined).
 SMALL_N_NOTE = pr.SMALL_N_NOTE

@@ -52,6 +52,8 @@ def _local_worker_main(slot: int, transport: str, bags_dir: str, timeout_s, task
                 return
             cfg_dict, log_path = item
             results.put((slot, worker.run(RunConfig(**cfg_dict), Path(log_path))))
+    except KeyboardInterrupt:  # stopped by the sweep (SIGTERM, or its Ctrl-C): the sweep says so, in one line
+        return
     finally:
         worker.close()
         results.cancel_join_thread()  # don't block exit on results a dead sweep will never read
