@@ -260,7 +260,9 @@ def test_a_run_error_prints_its_reason_under_the_table_and_stdout_holds_only_the
     assert "[info]" not in result.stdout and "Applying task order" not in result.stdout
     (bag,) = [p for p in out.iterdir() if p.is_dir() and not p.name.endswith("logs")]
     lines = result.stderr.splitlines()
-    assert f"error: {bag.name}: PolicyError: injected failure on request 1" in lines
+    trace = bag / "logs" / "episode.log"  # the error line names where its traceback is
+    assert f"error: {bag.name}: PolicyError: injected failure on request 1 (traceback: {trace})" in lines
+    assert "injected failure on request 1" in trace.read_text()
     assert f"bag: {bag}" in lines  # one line, whole
     assert not any("macro file" in line for line in lines)  # robosuite's private-macro advice is silenced
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import atexit
 import os
 import sys
+from typing import Annotated
 
 import typer
 
@@ -23,6 +24,28 @@ from lq_ros.training import cli as _learned_cli
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="LIBERO-LQ: latency-aware VLA evaluation on ROS 2.")
 #: Width of --help when the output is no terminal (a pipe, a file): wide enough for every option name.
 PIPED_WIDTH = 160
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        import lq_ros
+        from lq_ros.core.run_config import git_commit
+
+        print(f"lq {lq_ros.__version__} (commit {git_commit()})")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="Print the version and commit, then exit."
+        ),
+    ] = False,
+) -> None:
+    """LIBERO-LQ: latency-aware VLA evaluation on ROS 2."""
+
 
 app.command()(run)
 app.command()(demo)

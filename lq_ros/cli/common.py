@@ -151,9 +151,19 @@ def stdout_console() -> Console:
     return Console(width=None if sys.stdout.isatty() else PIPED_TABLE_WIDTH, soft_wrap=True)
 
 
-def print_rows(rows: list[dict], title: str = "") -> None:
-    """Scored rows as a table on stdout; under it, on stderr, the reason of every error row."""
-    table = Table(title=title or None, caption="bags and episode names: see the run folder")
+#: What the row table's less obvious columns mean (docs/guide/scoring.md says more), printed under it.
+ROW_NOTES = (
+    "budget: what the tick budget counts (all: every tick, the paper's; action: only ticks whose command came from a "
+    "chunk) · switch step: mean executed step |c_t - c_t-1| at chunk handovers, action units (smaller: smoother)"
+)
+
+
+def print_rows(rows: list[dict], title: str = "", where: str = "") -> None:
+    """Scored rows as a table on stdout, ``where`` (the run folder) and ROW_NOTES under it; on stderr, the reason of
+    every error row."""
+    from rich.markup import escape
+
+    table = Table(title=title or None, caption=escape("\n".join(filter(None, (where, ROW_NOTES)))))
     for _, header in ROW_COLUMNS:
         table.add_column(header, justify="right")
     for row in rows:

@@ -45,7 +45,8 @@ def demo(
             _make_room(out / cfg.episode_name(), overwrite=True)
             with contextlib.redirect_stdout(sys.stderr):  # stdout: the table alone
                 rows.append(run_episode(cfg, out, transport, **({"stack": stack} if stack else {})))
-    print_rows(rows, title=f"LIBERO-LQ demo · libero_spatial task {task} · {policy} · {transport.value}")
+    print_rows(rows, title=f"LIBERO-LQ demo · libero_spatial task {task} · {policy} · {transport.value}",
+               where=f"run folder: {out}/ (a bag folder per episode)")  # fmt: skip
     console.print(f"bags: {out}/  (score again with: lq score {out})", highlight=False)
     if any(r.get("status") == "error" for r in rows):
         raise typer.Exit(1)

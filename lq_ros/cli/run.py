@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from lq_ros.cli.common import (
     _RUN,
@@ -34,6 +35,8 @@ from lq_ros.cli.common import (
 from lq_ros.core.executor_protocol import Hold, Mode
 from lq_ros.core.merge import Merge
 from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX, RunConfig
+from lq_ros.run.episode_notes import warnings_of
+from lq_ros.transport.ros.domain_choice import choose_domain
 
 
 def run(
@@ -117,7 +120,13 @@ def run(
         Transport,
         typer.Option(help="ros: the four ROS 2 nodes; inprocess: one process, no ROS (the same episode, faster)."),
     ] = Transport.ros,
-    domain_id: Annotated[int | None, typer.Option(help="ROS_DOMAIN_ID; default: a free one.")] = None,
+    domain_id: Annotated[
+        int | None,
+        typer.Option(
+            help="ROS domain of the nodes; default: an exported ROS_DOMAIN_ID, else a free one (printed either way). "
+            "Refused if another lq run of yours holds it."
+        ),
+    ] = None,
     timeout: Annotated[float | None, typer.Option(help="Wall-clock limit of the run, seconds.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the scored row as JSON.")] = False,
 ) -> None:
@@ -174,6 +183,8 @@ def run(
                 check_robot(cfg.robot, Requirements.of(probe), cfg.policy)
             finally:
                 probe.close()
+        # The nodes' ROS domain: --domain-id, else an exported ROS_DOMAIN_ID, else a free one.
+        domain, source = choose_domain(domain_id) if transport is Transport.ros else (None, "")
     except ValueError as exc:  # validate.InputError included
         _refuse(str(exc))
     from lq_ros.transport.processes import ResourceBusy, claimed
@@ -182,16 +193,26 @@ def run(
         with claimed(out / cfg.episode_name(), "bag folder"):
             _make_room(out / cfg.episode_name(), overwrite)
             # stdout holds the result alone: what LIBERO, robosuite or the policy print while it runs goes to stderr.
-            with contextlib.redirect_stdout(sys.stderr):
-                row = run_episode(cfg, out, transport, domain_id=domain_id, timeout_s=timeout)
+            with contextlib.ExitStack() as stack:
+                launch: dict = {"timeout_s": timeout}
+                if transport is Transport.ros:  # the nodes' domain, said so that ROS tools can join it
+                    from lq_ros.transport.ros.stack import RosStack
+
+                    launch["stack"] = stack.enter_context(RosStack(domain))
+                    console.print(f"ROS_DOMAIN_ID={launch['stack'].domain.id} ({source})", highlight=False)
+                with contextlib.redirect_stdout(sys.stderr):
+                    row = run_episode(cfg, out, transport, **launch)
     except ResourceBusy as exc:
         _refuse(str(exc))
     if as_json:
         print(json.dumps(row, sort_keys=True, default=str))
         print_error_reasons([row])
     else:
-        print_rows([row], title=f"{cfg.suite} task {cfg.task} init {cfg.init} · {cfg.policy} · {transport.value}")
+        print_rows([row], title=f"{cfg.suite} task {cfg.task} init {cfg.init} · {cfg.policy} · {transport.value}",
+                   where=f"run folder: {out}/ (the bag: {cfg.episode_name()}/)")  # fmt: skip
         console.print(f"bag: {out / cfg.episode_name()}", highlight=False)
+    for warning in warnings_of(row, out / cfg.episode_name()):
+        console.print(f"[yellow]warning:[/yellow] {escape(warning)}", highlight=False)
     if row.get("status") == "error":
         raise typer.Exit(1)
 
