@@ -84,8 +84,6 @@ def scripted_commands(tmp_path, suite: str, task: int) -> list[np.ndarray]:
 def run_until(suite: str, task: int, commands, stop, then: np.ndarray, ticks: int, look=lambda inner: None):
     """Replay ``commands`` from init 0 until ``stop(state)`` holds, then send ``then`` for ``ticks`` ticks; the
     episode's task series (as the scorer builds it from the bag) and ``look(LIBERO's env)`` at the end."""
-    from lq_ros.scoring import failure_modes as fm
-
     env = LiberoEnv(suite, task)
     try:
         states = [env.reset(0, 7)]
@@ -97,24 +95,30 @@ def run_until(suite: str, task: int, commands, stop, then: np.ndarray, ticks: in
             raise AssertionError("the stop condition never held")
         for _ in range(ticks):
             states.append(env.step(then))
-        tasks = [s.task for s in states]
-        series = fm.TaskSeries(
-            ticks=np.array([s.tick for s in states]),
-            object_names=tasks[0].object_names,
-            object_pos=np.stack([t.object_pos for t in tasks]),
-            object_quat_xyzw=np.stack([t.object_quat_xyzw for t in tasks]),
-            contact=np.stack([t.gripper_contact for t in tasks]),
-            grasped=np.stack([t.grasped for t in tasks]),
-            predicate_names=tasks[0].predicate_names,
-            predicate_values=np.stack([t.predicate_values for t in tasks]),
-            ee_pos=np.stack([s.eef_pos for s in states]),
-            joint_pos=np.stack([t.joint_position for t in tasks]),
-            joint_type=tasks[0].joint_type,
-            ee_distance=np.stack([t.ee_distance for t in tasks]),
-        )
-        return series, look(env._env.env)
+        return series_of(states), look(env._env.env)
     finally:
         env.close()
+
+
+def series_of(states):
+    """The task series of a run's tick states, as the scorer builds it from the bag."""
+    from lq_ros.scoring import failure_modes as fm
+
+    tasks = [s.task for s in states]
+    return fm.TaskSeries(
+        ticks=np.array([s.tick for s in states]),
+        object_names=tasks[0].object_names,
+        object_pos=np.stack([t.object_pos for t in tasks]),
+        object_quat_xyzw=np.stack([t.object_quat_xyzw for t in tasks]),
+        contact=np.stack([t.gripper_contact for t in tasks]),
+        grasped=np.stack([t.grasped for t in tasks]),
+        predicate_names=tasks[0].predicate_names,
+        predicate_values=np.stack([t.predicate_values for t in tasks]),
+        ee_pos=np.stack([s.eef_pos for s in states]),
+        joint_pos=np.stack([t.joint_position for t in tasks]),
+        joint_type=tasks[0].joint_type,
+        ee_distance=np.stack([t.ee_distance for t in tasks]),
+    )
 
 
 def test_a_knob_turned_20_degrees_and_let_go_is_placed_off_target(tmp_path):
@@ -174,3 +178,33 @@ def test_a_starved_async_protocol_executed_no_action(tmp_path):
                       max_steps=60)  # fmt: skip
     assert row["status"] == "failure" and row["action_ticks"] == 0 and row["underrun_ticks"] > 0
     assert row["failure_mode"] == "no_action_executed" and row["failure_mode"] not in fm.FAILURE_MODES
+
+
+def test_a_bowl_pushed_along_the_table_is_pushed_not_dropped():
+    """LIBERO-Spatial's bowl, pushed 10 cm past its start by the closed hand moving along the table, then the hand
+    lifts away: it moved, never off its support, so it was pushed (the earlier rules had no mode for it)."""
+    from lq_ros.scoring import failure_modes as fm
+
+    env = LiberoEnv("libero_spatial", 0)
+    try:
+        states = [env.reset(0, 7)]
+        bowl = states[0].task.object_pos[0].copy()
+
+        def go(target, ticks: int) -> None:  # a proportional reach for a point, gripper closed
+            for _ in range(ticks):
+                action = np.zeros(7)
+                action[:3], action[6] = np.clip((target - states[-1].eef_pos) / 0.02, -1.0, 1.0), 1.0
+                states.append(env.step(action))
+
+        behind = bowl + [-0.12, 0.0, 0.03]
+        go(behind + [0.0, 0.0, 0.15], 40)
+        go(behind, 30)
+        go(bowl + [0.10, 0.0, 0.03], 50)
+        go(states[-1].eef_pos + [0.0, 0.0, 0.2], 30)
+    finally:
+        env.close()
+    series = series_of(states)
+    assert np.linalg.norm(series.object_pos[-1, 0, :2] - bowl[:2]) > 0.1  # it went along
+    assert (series.object_pos[:, 0, 2] - bowl[2]).max() < fm.LIFTED_M  # never lifted
+    out = fm.classify(series, "failure")
+    assert (out.failure_mode, out.unmet_predicate) == ("pushed_or_toppled", "(on akita_black_bowl_1 plate_1)")
