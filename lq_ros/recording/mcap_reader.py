@@ -22,6 +22,7 @@ import os
 import struct
 import zlib
 from collections.abc import Collection, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import BinaryIO
 
@@ -61,8 +62,51 @@ from lq_ros.recording.mcap_records import (
 #: What other modules import from here (the reader, its bounds and its batches).
 __all__ = [
     "MAX_BULK_PAYLOAD_BYTES", "MAX_CHUNK_BYTES", "MAX_DAMAGE", "MAX_SEQUENCE_ITEMS", "Batch", "Channel", "McapDamage",
-    "StreamingMcapReader", "concat", "decode", "open_regular",
+    "StreamingMcapReader", "TopicBudget", "concat", "decode", "open_regular",
 ]  # fmt: skip
+
+
+@dataclass
+class TopicBudget:
+    """What the readers of one bag may yield in all, per topic: messages and payload bytes.
+
+    Beyond it a topic's further messages are damage, skipped before they are copied (and chunks that hold only
+    spent topics are not decompressed): what a bag costs follows the budget, not what the file holds. A topic not
+    named has no limit.
+    """
+
+    #: topic -> messages it may still yield
+    messages: dict[str, int]
+    #: topic -> payload bytes it may still yield
+    bytes: dict[str, int]
+    #: what the budget follows, for the damage line (e.g. "an episode of at most 220 ticks")
+    why: str
+    #: the limits as given, and the topics that held more
+    limits: dict[str, tuple[int, int]] = field(init=False)
+    exceeded: set[str] = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self.limits = {t: (self.messages[t], self.bytes[t]) for t in self.messages}
+
+    def spent(self, topic: str) -> bool:
+        return topic in self.messages and (self.messages[topic] <= 0 or self.bytes[topic] <= 0)
+
+    def take(self, topic: str, lengths: np.ndarray) -> int:
+        """How many of these messages (payload lengths in bytes, in order) fit; the budget is charged for them."""
+        if topic not in self.messages:
+            return len(lengths)
+        n = min(len(lengths), max(0, self.messages[topic]))
+        n = min(n, int(np.searchsorted(np.cumsum(lengths[:n]), self.bytes[topic], side="right")))
+        self.messages[topic] -= n
+        self.bytes[topic] -= int(lengths[:n].sum())
+        return n
+
+    def damage(self, topic: str) -> str:
+        messages, size = self.limits[topic]
+        return (
+            f"{topic}: more than the {messages} messages or {size / 2**20:.3g} MiB that {self.why} may hold on it "
+            "(a flood); the rest skipped"
+        )
 
 
 def _indexed_messages(u8: np.ndarray, offs: np.ndarray, owner: np.ndarray) -> tuple | str:
@@ -96,7 +140,13 @@ class StreamingMcapReader:
     ended properly. Damage never raises: everything readable has been yielded.
     """
 
-    def __init__(self, path: Path, topics: Collection[str] | None, optional: Collection[str] = ()) -> None:
+    def __init__(
+        self,
+        path: Path,
+        topics: Collection[str] | None,
+        optional: Collection[str] = (),
+        budget: TopicBudget | None = None,
+    ) -> None:
         self.path = Path(path)
         self.topics = None if topics is None else set(topics)  # None: every topic
         # Wanted topics a bag may lack (newer ones, e.g. the task state): their absence alone never makes a chunk
@@ -107,6 +157,10 @@ class StreamingMcapReader:
         #: topic -> how many known channels carry it (kept as channels are defined: never rebuilt per chunk)
         self._known_topics: dict[str, int] = {}
         self.damage: list[str] = []
+        #: topics with damage of their own (messages over the budget or over their size bound, skipped)
+        self.damaged_topics: set[str] = set()
+        #: what :meth:`batches` may yield (None: everything; shared by the readers of one bag's files)
+        self.budget = budget
         self.complete = False
         self._size = 0
 
@@ -121,7 +175,9 @@ class StreamingMcapReader:
                     if op == OP_MESSAGE_INDEX and pending is not None:
                         pending[3][0] += 1
                         channel_id = _U16.unpack(_read(f, 2, at))[0]
-                        if self._wanted(channel_id) or channel_id not in self.channels:
+                        if channel_id not in self.channels or (
+                            self._wanted(channel_id) and not self._spent(channel_id, length > 6)
+                        ):
                             pending[2].append((channel_id, _read(f, length - 2, at)))
                         continue
                     if pending is not None:
@@ -134,8 +190,10 @@ class StreamingMcapReader:
                         self._definition(op, _read(f, length, at), f"byte {at}")
                     elif op == OP_MESSAGE:  # a message outside any chunk (unchunked files)
                         channel_id = _U16.unpack(_read(f, 2, at))[0]
-                        if self._wanted(channel_id) and self._payload_fits(
-                            f"byte {at}", self.channels[channel_id], length - 22
+                        if (
+                            self._wanted(channel_id)
+                            and self._payload_fits(f"byte {at}", self.channels[channel_id], length - 22)
+                            and self._fits_budget(self.channels[channel_id].topic, np.array([length - 22]))
                         ):
                             body = memoryview(_U16.pack(channel_id) + _read(f, length - 2, at))
                             one = np.array([22], dtype=np.int64)
@@ -246,11 +304,36 @@ class StreamingMcapReader:
         if channel.msgtype not in WALKERS or length <= MAX_BULK_PAYLOAD_BYTES:
             return True
         plural = "s" if count != 1 else ""
+        self.damaged_topics.add(channel.topic)
         self._damaged(
             f"{where}: {count} {channel.topic} message{plural} larger than the {MAX_BULK_PAYLOAD_BYTES} "
             f"bytes a {channel.msgtype} may have; skipped"
         )
         return False
+
+    def _spent(self, channel_id: int, has_messages: bool) -> bool:
+        """Whether a wanted channel's topic has spent its budget (then its further messages are named as damage)."""
+        if self.budget is None or not self.budget.spent(topic := self.channels[channel_id].topic):
+            return False
+        if has_messages:
+            self._over_budget(topic)
+        return True
+
+    def _take(self, topic: str, lengths: np.ndarray) -> int:
+        """How many of a topic's next messages (payload lengths, in order) the budget allows; the rest is damage."""
+        n = len(lengths) if self.budget is None else self.budget.take(topic, lengths)
+        if n < len(lengths):
+            self._over_budget(topic)
+        return n
+
+    def _fits_budget(self, topic: str, lengths: np.ndarray) -> bool:
+        return self._take(topic, lengths) == len(lengths)
+
+    def _over_budget(self, topic: str) -> None:
+        assert self.budget is not None
+        self.budget.exceeded.add(topic)
+        self.damaged_topics.add(topic)
+        self._damaged(self.budget.damage(topic))
 
     def _damaged(self, message: str) -> None:
         if message not in self.damage:  # a chunk walked twice (definitions, then messages) is named once
@@ -313,7 +396,7 @@ class StreamingMcapReader:
         found = None
         if n_index_records and all(cid in self.channels for cid, _ in indexes):
             # A message index record: u32 byte length, then (u64 log time, u64 offset) entries.
-            wanted = [(cid, raw) for cid, raw in indexes if self._wanted(cid)]
+            wanted = [(cid, raw) for cid, raw in indexes if self._wanted(cid) and not self._spent(cid, len(raw) > 4)]
             offs = np.frombuffer(b"".join(raw[4:] for _, raw in wanted), dtype="<u8").reshape(-1, 2)[:, 1]
             owner = np.repeat(
                 np.asarray([cid for cid, _ in wanted], dtype=np.int64), [(len(r) - 4) // 16 for _, r in wanted]
@@ -344,6 +427,9 @@ class StreamingMcapReader:
             too_big = int(payload_lengths[lo:hi][big][0]) if big.any() else 0
             if big.any() and not self._payload_fits(f"chunk at byte {at}", channel, too_big, int(big.sum())):
                 keep[lo:hi] = ~big
+            if self.budget is not None:  # the first messages of the channel that fit its topic's budget
+                kept = np.flatnonzero(keep[lo:hi]) + lo
+                keep[kept[self._take(channel.topic, payload_lengths[kept]) :]] = False
         if not keep.all():
             offs, owner, payload_lengths = offs[keep], owner[keep], payload_lengths[keep]
             if not len(offs):

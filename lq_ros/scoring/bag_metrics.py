@@ -15,7 +15,7 @@ from lq_ros.core.suite_constants import CONTROL_DT_S, PHYSICS_DT_S, latency_tick
 from lq_ros.scoring import chunk_boundary as boundary
 from lq_ros.scoring import failure_modes, metrics
 from lq_ros.scoring.episode_data import EpisodeData
-from lq_ros.scoring.task_series import task_series
+from lq_ros.scoring.task_series import TaskProblem, read_task_series
 from lq_ros.wire import messages as m
 
 #: Relative tolerance of a sample interval: our bags are exact (sim time); other tools' topics jitter.
@@ -78,25 +78,37 @@ def classify_episode(series: failure_modes.TaskSeries, data: EpisodeData, status
     """The failure analysis of an episode's task series with what its commands add: whether any fresh action ran,
     and where the gripper was commanded closed (a grasp tried beside the target, told from a hand that stopped)."""
     if data.command_groups:
-        ticks = np.concatenate([g["tick"] for g in data.command_groups])
-        actions = np.concatenate([g["action"] for g in data.command_groups])
-        series.gripper_closing = failure_modes.gripper_closing(series.ticks, ticks, actions[:, -1])
+        try:
+            ticks = np.concatenate([g["tick"] for g in data.command_groups])
+            actions = np.concatenate([g["action"] for g in data.command_groups])
+        except ValueError:  # commands of different action widths (damage, named by the boundary metrics)
+            actions = np.empty((0, 0))
+        if actions.ndim == 2 and actions.shape[1]:
+            series.gripper_closing = failure_modes.gripper_closing(series.ticks, ticks, actions[:, -1])
     outcome = status if status in ("success", "failure") else "error"
     return failure_modes.classify(series, outcome, _fresh_actions(data))
 
 
-def score_failure(row: dict, data: EpisodeData, status: str, t0_ns, t1_ns) -> None:
+def score_failure(row: dict, data: EpisodeData, status: str, t0_ns, t1_ns) -> str | None:
     """``failure_mode``, ``progress``, ``furthest_phase``, ``unmet_predicate`` and ``predicate_events`` from the
-    task state (lq_ros.scoring.failure_modes); ``unavailable`` where the bag has none or too little."""
-    series, why = task_series(data, t0_ns, t1_ns)
-    if series is None:
+    task state (lq_ros.scoring.failure_modes); ``unavailable`` where the bag has none or too little, null (with
+    ``failure_mode_reason``) where a task topic is damaged or the task state contradicts itself. Returns the
+    warning of a damaged task topic (which it adds to ``data.damaged_topics``), else None."""
+    found = read_task_series(data, t0_ns, t1_ns)
+    if isinstance(found, TaskProblem):
         no_action = failure_modes.no_action_executed(status, _fresh_actions(data))
-        row["failure_mode"] = "no_action_executed" if no_action else "unavailable"
-        null(row, [*FAILURE_KEYS, "collateral"], why)
+        unscored = "unavailable" if found.kind == "unavailable" else None  # damaged or contradictory: null
+        row["failure_mode"] = "no_action_executed" if no_action else unscored
+        row["failure_mode_reason"] = None if no_action else found.reason
+        null(row, [*FAILURE_KEYS, "collateral"], found.reason)
         if not no_action:
-            row["null_reasons"]["failure_mode"] = why
-        return
-    analysis = classify_episode(series, data, status)
+            row["null_reasons"]["failure_mode"] = found.reason
+        if found.topic is None:
+            return None
+        data.damaged_topics.add(found.topic)
+        return f"{found.reason}; the failure mode is null, the rest is scored"
+    analysis = classify_episode(found, data, status)
+    row["failure_mode_reason"] = analysis.reason or None
     row["failure_mode"] = analysis.failure_mode
     row["collateral"] = analysis.collateral
     if analysis.reason:  # an articulated target in a bag without joint positions
@@ -205,7 +217,13 @@ def score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> N
         return null(row, keys, "not a bag of this stack's protocols (no run configuration)")
     if not data.command_groups or not data.chunk_records:
         return null(row, keys, "no commands or action chunks in the bag")
-    cmds = boundary.Commands(**{k: np.concatenate([g[k] for g in data.command_groups]) for k in data.command_groups[0]})
+    try:
+        cmds = boundary.Commands(
+            **{k: np.concatenate([g[k] for g in data.command_groups]) for k in data.command_groups[0]}
+        )
+    except ValueError:  # commands of different action widths: damage of that topic
+        data.damaged_topics.add(m.COMMAND.name)
+        return null(row, keys, f"{m.COMMAND.name} damaged: commands of different action widths")
     realtime = cfg.get("clock") == "realtime"
     missed, unknown = _missed_commands(data.metadata, cfg) if realtime else ([], None)
     try:
@@ -335,7 +353,12 @@ def score_energy(
     else:
         series = data.joints_physics if sampling == "physics" else data.joints
         topic = m.JOINT_STATES_PHYSICS.name if sampling == "physics" else data.joint_topic
-        t, jv = series.arrays(after_start, t1_ns)
+        try:
+            t, jv = series.arrays(after_start, t1_ns)
+        except ValueError as exc:  # the joint count changed: damage of that topic, the rest is scored
+            data.damaged_topics.add(topic)
+            warnings.append(f"{name or 'bag'}: {topic} damaged: {exc}")
+            return null(row, keys, f"{topic} damaged: {exc}")
         dt = {"control": CONTROL_DT_S, "physics": PHYSICS_DT_S}.get(sampling) or native_dt(t)
         row["energy_rate_hz"] = round(1.0 / dt, 6) if dt else None
         if not len(jv):

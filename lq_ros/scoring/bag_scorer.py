@@ -131,7 +131,8 @@ def score_episode(
         null(row, ["completion_steps", "completion_time_s", "censored"], f"no outcome ({status})")
 
     # -- task progress and failure mode -----------------------------------------------------------
-    score_failure(row, data, status, t0_ns, t1_ns)
+    if task_damage := score_failure(row, data, status, t0_ns, t1_ns):
+        warnings.append(f"{name or 'bag'}: {task_damage}")
 
     # -- latency and protocol -------------------------------------------------------------------
     score_protocol(row, data, cfg, meta)
@@ -170,6 +171,8 @@ def score_episode(
     # -- energy ---------------------------------------------------------------------------------
     score_energy(row, data, energy_rate, ours, t0_ns, t1_ns, elec_coeff, overhead_w, warnings, name, outcome)
 
+    # Topics with damage of their own (skipped messages, a malformed optional topic): what needs them is null.
+    row["damaged_topics"] = sorted(data.damaged_topics)
     row["partial"] = bool(warnings)
     row["warnings"] = warnings
     row["versions"] = meta.get("versions")

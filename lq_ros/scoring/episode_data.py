@@ -69,11 +69,23 @@ class EpisodeData:
     #: the object poses (stamp ns -> (K, 7) xyz + quaternion xyzw).
     task_states: list = field(default_factory=list)
     task_poses: dict = field(default_factory=dict)
+    #: The task state's name tuples, each kept once (every tick repeats them).
+    task_names: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     #: The file was cut or corrupt: what the damage covered is missing.
     damaged: bool = False
     #: JointState messages without matching velocity and effort arrays (no energy from those).
     joints_without_effort: int = 0
+    #: Topics with damage of their own (undecodable, malformed or flooded messages skipped): the row's
+    #: ``damaged_topics``; what does not need them is still scored.
+    damaged_topics: set[str] = field(default_factory=set)
+    #: Events already kept (kind, tick, stamp, reason, detail) and whether a STARTED was: a second STARTED or an
+    #: event recorded twice is damage, counted here by kind name and skipped.
+    event_keys: set[tuple] = field(default_factory=set)
+    started: bool = False
+    duplicate_events: dict[str, int] = field(default_factory=dict)
+    #: Object-pose records at a stamp that already had one (contradictory task state: two states for one tick).
+    task_pose_repeats: int = 0
     ee_topic: str = m.EE_POSE.name
     joint_topic: str = m.JOINT_STATES.name

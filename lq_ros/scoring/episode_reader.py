@@ -21,6 +21,7 @@ from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.recording.mcap_reader import McapDamage, StreamingMcapReader
 from lq_ros.scoring import chunk_boundary as boundary
 from lq_ros.scoring.episode_data import BagError, EpisodeData
+from lq_ros.scoring.read_budget import topic_budget
 from lq_ros.wire import messages as m
 
 
@@ -72,8 +73,11 @@ def read_episode(
     if physics:
         roles[m.EE_POSE_PHYSICS.name] = ("ee_physics", m.EE_POSE_PHYSICS.msgtype)
         roles[m.JOINT_STATES_PHYSICS.name] = ("joints_physics", m.JOINT_STATES_PHYSICS.msgtype)
+    # One budget for the bag's files: what reading costs follows the episode's length, not what the file holds.
+    budget = topic_budget({topic: role for topic, (role, _) in roles.items()}, data.metadata)
     for file in files:
-        reader = StreamingMcapReader(file, roles, optional=(m.TASK_STATE.name, m.TASK_OBJECT_POSES.name))
+        optional = (m.TASK_STATE.name, m.TASK_OBJECT_POSES.name)
+        reader = StreamingMcapReader(file, roles, optional=optional, budget=budget)
         checked: set[int] = set()
         pending = _PendingBulk(data, reader, roles)
         try:
@@ -96,9 +100,17 @@ def read_episode(
             raise BagError(str(exc)) from exc
         except OSError as exc:
             raise BagError(f"{file}: cannot read: {exc}") from exc
+        data.damaged_topics |= reader.damaged_topics
         if reader.damage:
             data.damaged = True
             data.warnings.append(f"{file}: {'; '.join(reader.damage)}; scores are partial (damaged data skipped)")
+    if data.duplicate_events:
+        counts = ", ".join(f"{n} {kind}" for kind, n in sorted(data.duplicate_events.items()))
+        data.damaged_topics.add(m.EPISODE_EVENTS.name)
+        data.warnings.append(
+            f"{bag}: {sum(data.duplicate_events.values())} duplicate {m.EPISODE_EVENTS.name} events skipped "
+            f"({counts}: an episode starts once and an event is recorded once); scores are partial"
+        )
     _validate_chunks(data)
     return data
 
@@ -182,6 +194,7 @@ def _collect_or_report(data: EpisodeData, reader: StreamingMcapReader, role: str
                 first = inner if not count else first
                 count += 1
     plural = "s" if count != 1 else ""
+    data.damaged_topics.add(batch.channel.topic)
     reader.damage.append(f"{count} undecodable {batch.channel.topic} message{plural} skipped ({first})")
 
 
@@ -226,13 +239,23 @@ MAX_INJECTED_LATENCY_S = 1e6
 
 #: A task-state message beyond this is damage: a scene has tens of objects and predicates, bytes.
 MAX_TASK_MESSAGE_BYTES = 64 << 10
+#: A task state or object-pose record with more objects (or predicates) than this is damage: a LIBERO scene has
+#: tens (bounds the Python objects one small message can decode to).
+MAX_TASK_ITEMS = 256
 
 
 def _collect_message(data: EpisodeData, role: str, msg) -> None:
     """One episode event, action chunk or task state; everything is decoded before anything is kept."""
     if role == "events":
+        key = (msg.kind, msg.tick, m.stamp_ns(msg), msg.reason, msg.detail_json)
+        if key in data.event_keys or (msg.kind == m.EventKind.STARTED and data.started):  # (a set: O(1) per event)
+            name = m.EventKind.NAMES.get(msg.kind, f"kind {msg.kind}").upper()
+            data.duplicate_events[name] = data.duplicate_events.get(name, 0) + 1
+            return
+        data.event_keys.add(key)
         data.events.append((msg.kind, msg.tick, m.stamp_ns(msg), msg.reason))
-        if msg.kind == m.EventKind.STARTED and sum(e[0] == m.EventKind.STARTED for e in data.events) == 1:
+        if msg.kind == m.EventKind.STARTED:
+            data.started = True
             try:
                 detail = json.loads(msg.detail_json) if msg.detail_json else {}
             except RecursionError:
@@ -243,24 +266,30 @@ def _collect_message(data: EpisodeData, role: str, msg) -> None:
         return
     if role == "task":
         k, p = len(msg.object_names), len(msg.predicate_names)
+        if k > MAX_TASK_ITEMS or p > MAX_TASK_ITEMS:
+            raise ValueError(f"task state at tick {msg.tick}: {k} objects, {p} predicates (at most {MAX_TASK_ITEMS})")
         if len(msg.gripper_contact) != k or len(msg.grasped) != k or len(msg.predicate_values) != p:
             raise ValueError(f"task state at tick {msg.tick}: {k} objects and {p} predicates, arrays of other lengths")
         extras = m.task_state_fields(msg)  # joints and surface distances (None in older bags)
         if extras is not None and (any(len(a) != k for a in extras) or (extras[1] > 2).any()):
             raise ValueError(f"task state at tick {msg.tick}: {k} objects, joint or distance arrays of other lengths "
                              "or an unknown joint kind (0 none, 1 slide, 2 hinge)")  # fmt: skip
-        data.task_states.append((m.stamp_ns(msg), msg.tick, tuple(msg.object_names),
-                                 np.asarray(msg.gripper_contact, dtype=bool), np.asarray(msg.grasped, dtype=bool),
-                                 tuple(msg.predicate_names), np.asarray(msg.predicate_values, dtype=bool),
-                                 extras))  # fmt: skip
+        # Every tick names the same objects and predicates: kept once (a tuple per tick would be most of the memory).
+        names = data.task_names.setdefault(tuple(msg.object_names), tuple(msg.object_names))
+        predicates = data.task_names.setdefault(tuple(msg.predicate_names), tuple(msg.predicate_names))
+        data.task_states.append((m.stamp_ns(msg), msg.tick, names, np.asarray(msg.gripper_contact, dtype=bool),
+                                 np.asarray(msg.grasped, dtype=bool), predicates,
+                                 np.asarray(msg.predicate_values, dtype=bool), extras))  # fmt: skip
         return
     if role == "task_poses":
+        if len(msg.poses) > MAX_TASK_ITEMS:
+            raise ValueError(f"object poses at {m.stamp_ns(msg)} ns: {len(msg.poses)} poses (at most {MAX_TASK_ITEMS})")
         rows = [(q.position.x, q.position.y, q.position.z, q.orientation.x, q.orientation.y, q.orientation.z,
                  q.orientation.w) for q in msg.poses]  # fmt: skip
-        values = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"object poses at {m.stamp_ns(msg)} ns: not finite")
-        data.task_poses[m.stamp_ns(msg)] = values
+        # Kept as recorded: poses that are not finite or not physical make the failure mode null (task_series).
+        stamp = m.stamp_ns(msg)
+        data.task_pose_repeats += stamp in data.task_poses
+        data.task_poses[stamp] = np.asarray(rows, dtype=np.float64).reshape(-1, 7)
         return
     actions = m.chunk_actions(msg)
     kept = None if msg.error else actions  # validated once the control mode is known (_validate_chunks)
