@@ -15,7 +15,7 @@ import numpy as np
 
 from lq_ros.core.run_config import ACTION_BUDGET_HARD_STOP, BUDGET_COUNTS, PROVENANCE_FIELDS, VARIANT_FIELDS
 from lq_ros.core.seeding import policy_seed
-from lq_ros.core.suite_constants import BUDGET_PRESETS, CONTROL_DT_S, PHYSICS_DT_S
+from lq_ros.core.suite_constants import CONTROL_DT_S, PHYSICS_DT_S
 from lq_ros.scoring import metrics
 from lq_ros.scoring.bag_metrics import (
     UNIFORM_TOL,
@@ -30,6 +30,7 @@ from lq_ros.scoring.bag_metrics import (
 )
 from lq_ros.scoring.episode_data import BagError, EpisodeData, Series
 from lq_ros.scoring.episode_reader import read_episode
+from lq_ros.scoring.read_budget import run_step_budget
 from lq_ros.scoring.task_series import ROBOT_TASK_MATCH_NS, task_series
 from lq_ros.wire import messages as m
 
@@ -112,8 +113,7 @@ def score_episode(
     outcome = status in ("success", "failure")
     row["error_reason"] = reason if status in ("error", "unknown") else None
     # The budget a failure is censored at (Kaplan-Meier completion time in the aggregates).
-    budgets = BUDGET_PRESETS.get(cfg.get("budgets", "paper"), {})  # the run's preset (bags before it: the paper's)
-    row["step_budget"] = cfg.get("max_steps") or budgets.get(cfg.get("suite"))
+    row["step_budget"] = run_step_budget(cfg)  # max_steps or the run's preset's (bags before presets: the paper's)
     # What the budget counted (bags from before the choice existed counted every tick), and the ticks of any
     # kind after which the episode ended at the latest: where a failure is censored in sim time.
     row["budget_counts"] = cfg.get("budget_counts", "all") if cfg else None

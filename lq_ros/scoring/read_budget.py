@@ -11,7 +11,7 @@ tick limit its run metadata gives (step budget, times the hard stop when only ac
 from __future__ import annotations
 
 from lq_ros.core.run_config import ACTION_BUDGET_HARD_STOP
-from lq_ros.core.suite_constants import CONTROL_DT_S, STEP_BUDGETS
+from lq_ros.core.suite_constants import BUDGET_PRESETS, CONTROL_DT_S
 from lq_ros.recording.mcap_reader import TopicBudget
 
 #: The longest episode a bag is read for, in control ticks (5 min at 20 Hz; LIBERO's longest budget counted in
@@ -37,12 +37,23 @@ BYTES_PER_TICK = {
 }  # fmt: skip
 
 
+def run_step_budget(cfg: dict) -> int | None:
+    """The run's step budget from its configuration: ``max_steps``, else its preset's budget for its suite (the
+    paper's for bags from before presets); None when unknown or not a positive whole number (hostile metadata)."""
+    if not isinstance(cfg, dict):
+        return None
+    preset, suite = cfg.get("budgets", "paper"), cfg.get("suite")
+    steps = cfg.get("max_steps") or (
+        BUDGET_PRESETS.get(preset, {}).get(suite) if isinstance(preset, str) and isinstance(suite, str) else None
+    )
+    return steps if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0 else None
+
+
 def episode_ticks(metadata: dict) -> tuple[int, str]:
     """The ticks a bag is read for and where that comes from (the run's tick limit, else the cap)."""
     cfg = metadata.get("config") if isinstance(metadata, dict) else None
-    cfg = cfg if isinstance(cfg, dict) else {}
-    steps = cfg.get("max_steps") or STEP_BUDGETS.get(cfg.get("suite"))  # type: ignore[arg-type]
-    if isinstance(steps, int) and not isinstance(steps, bool) and steps > 0:
+    steps = run_step_budget(cfg) if isinstance(cfg, dict) else None
+    if steps is not None:
         limit = steps * (ACTION_BUDGET_HARD_STOP if cfg.get("budget_counts") == "action" else 1)
         if limit <= MAX_EPISODE_TICKS:
             return limit, f"an episode of at most {limit} ticks (its step budget)"

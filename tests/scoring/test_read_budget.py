@@ -22,7 +22,16 @@ def test_the_episode_length_is_the_run_tick_limit_capped():
     assert episode_ticks(config())[0] == 220  # LIBERO-Spatial's step budget
     assert episode_ticks(config(max_steps=500))[0] == 500
     assert episode_ticks(config(budget_counts="action"))[0] == 4 * 220  # the hard stop in ticks of any kind
-    for metadata in ({}, config(max_steps=10**9), config(max_steps="many"), {"config": []}, config(suite="x")):
+    assert episode_ticks(config(budgets="xvla"))[0] == 800  # the run's budget preset
+    for metadata in (
+        {},
+        config(max_steps=10**9),
+        config(max_steps="many"),
+        {"config": []},
+        config(suite="x"),
+        config(suite=["x"]),
+        config(budgets={}),
+    ):
         ticks, why = episode_ticks(metadata)
         assert ticks == MAX_EPISODE_TICKS and "the scorer's cap" in why
 
