@@ -127,9 +127,9 @@ def flood_state(n_names: int) -> bytes:
 
 
 def test_a_task_state_flood_is_damage_within_the_episode_budget(tmp_path):
-    """20,000 task states of 200 objects each (4,000,000 names once decoded) in a bag of ~60 KB."""
+    """15,000 task states of 200 objects each (3,000,000 names once decoded) in a bag of ~80 KB."""
     state = flood_state(200)
-    bag = rewritten(tmp_path / "ep", [(m.TASK_STATE.name, m.TASK_STATE.msgtype, _stamp(1), state)] * 20_000)
+    bag = rewritten(tmp_path / "ep", [(m.TASK_STATE.name, m.TASK_STATE.msgtype, _stamp(1), state)] * 15_000)
     assert sum(f.stat().st_size for f in bag.iterdir()) < 100_000
     row, cost = scored(bag)
     assert cost["wall_s"] < 60 and cost["rss_mb"] < 1024, cost
