@@ -425,9 +425,10 @@ def _small_n_text(mean: float, values, n: int, decimals: int, scale: float, sign
 def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.0, *, signed: bool = False) -> str:
     """``mean [lo, hi]`` of an aggregate row's ``metric`` (``success``: the rate), or – when it has none.
 
-    A bootstrap metric with fewer than MIN_N_INTERVAL values gives ``mean (n=k: v1, ..., vk)`` instead (``mean
-    (n=1)`` for one): no interval is claimed. The success rate keeps its Wilson interval at any n (it is exact
-    enough there; the summary tables give n beside it). ``signed``: a leading + on positive numbers (changes).
+    A metric with fewer than MIN_N_INTERVAL values gives ``mean (n=k: v1, ..., vk)`` instead (``mean (n=1)`` for
+    one), and one whose values are all equal ``mean (n=k, all equal)``: no interval is claimed. The success rate
+    keeps its Wilson interval at any n (it is exact enough there; the summary tables give n beside it).
+    ``signed``: a leading + on positive numbers (changes).
     """
     mean_key = {"success": "success_rate", "completion_time_rmst": "completion_time_rmst_s"}.get(metric)
     prefix = "success" if metric == "success" else metric
@@ -438,6 +439,10 @@ def ci_text(row: pd.Series | dict, metric: str, decimals: int, scale: float = 1.
         if mean is None or not np.isfinite(mean):
             return "–"
         return _small_n_text(mean, row.get(f"{prefix}_values"), int(n), decimals, scale, sign)
+    low, high = row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi")
+    no_interval = low is None or high is None or pd.isna(low) or pd.isna(high)
+    if metric != "success" and no_interval and mean is not None and np.isfinite(mean) and n and not pd.isna(n):
+        return f"{mean * scale:{sign}.{decimals}f} (n={int(n)}, all equal)"  # no spread: no interval (mean_stats)
     return _with_ci(mean, row.get(f"{prefix}_ci_lo"), row.get(f"{prefix}_ci_hi"), decimals, scale, sign)
 
 

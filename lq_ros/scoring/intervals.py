@@ -332,8 +332,10 @@ def bootstrap_ci(
 def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: int = 2000, seed: int = 0) -> dict:
     """``<name>_n``, ``_mean``, ``_ci_lo``, ``_ci_hi``, ``_p`` and ``_values`` of the finite ``values``: the Student t
     interval (and the one-sample t test's two-sided p against 0, for a change) from MIN_N_INTERVAL values on;
-    below that the interval is NaN and ``_values`` lists them (JSON). ``n_boot`` and ``seed`` are unused (kept for
-    callers)."""
+    below that the interval is NaN and ``_values`` lists them (JSON). Values that are all equal have no spread to
+    give an interval from: the interval is NaN (a zero-width one would claim certainty; :func:`aggregate.ci_text`
+    prints "all equal"), and the p is the exact sign test's (2 / 2^n when they are not 0, 1 when they are).
+    ``n_boot`` and ``seed`` are unused (kept for callers)."""
     values = values[np.isfinite(values)]
     out = {f"{name}_n": len(values), f"{name}_mean": math.nan, f"{name}_ci_lo": math.nan, f"{name}_ci_hi": math.nan,
            f"{name}_p": math.nan}  # fmt: skip
@@ -341,11 +343,11 @@ def mean_stats(values: np.ndarray, name: str, confidence: float = 0.95, n_boot: 
     if len(values):
         out[f"{name}_mean"] = float(values.mean())
     if len(values) >= MIN_N_INTERVAL:
-        out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = t_interval(values, confidence)
         spread = float(values.std(ddof=1))
         if spread > 0:
+            out[f"{name}_ci_lo"], out[f"{name}_ci_hi"] = t_interval(values, confidence)
             t = float(values.mean()) / (spread / math.sqrt(len(values)))
             out[f"{name}_p"] = float(2 * stats.t.sf(abs(t), len(values) - 1))
         else:
-            out[f"{name}_p"] = 1.0 if float(values.mean()) == 0 else 0.0
+            out[f"{name}_p"] = 1.0 if float(values.mean()) == 0 else min(1.0, 2.0 * 0.5 ** len(values))
     return out

@@ -78,7 +78,9 @@ def test_metrics_without_values_and_success_without_successes_get_no_row():
     table = async_table.paired_rows(episodes())
     assert set(table["metric"]) == {"jerk m/s³", "executed step, mean"}
     step = table[table["metric"] == "executed step, mean"].iloc[0]
-    assert step["diff"] == pytest.approx(-0.5) and step.ci_lo == step.ci_hi == pytest.approx(-0.5)
+    # Every pair the same change: no spread, so no interval (not [-0.5, -0.5]) and the sign test's p (5 of 5: 2/32).
+    assert step["diff"] == pytest.approx(-0.5) and math.isnan(step.ci_lo) and math.isnan(step.ci_hi)
+    assert step.p == pytest.approx(2 / 2**step.n_pairs)
 
 
 def test_success_is_compared_pair_by_pair_when_an_episode_succeeds():

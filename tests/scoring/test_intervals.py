@@ -245,3 +245,19 @@ def test_reported_success_intervals_cover(k, m, a, b):
         lo, hi = paired_success_ci(arm_a, arm_b, tasks)
         paired += lo <= 0.4 * truth <= hi
     assert 0.90 <= success / 1000 <= 1.0 and 0.90 <= paired / 1000 <= 1.0
+
+
+def test_mean_stats_gives_no_interval_to_values_without_spread():
+    """Six paired changes of exactly +1 action tick: the t interval would be [1, 1] and its p 0, a certainty the data
+    cannot give; no interval, and the exact sign test's p (6 of 6 positive: 2 / 64)."""
+    from lq_ros.scoring.aggregate import ci_text
+    from lq_ros.scoring.intervals import mean_stats
+
+    out = mean_stats(np.ones(6), "d")
+    assert out["d_mean"] == 1.0 and math.isnan(out["d_ci_lo"]) and math.isnan(out["d_ci_hi"])
+    assert out["d_p"] == pytest.approx(2 / 64)
+    assert mean_stats(np.zeros(6), "d")["d_p"] == 1.0
+    assert ci_text(out, "d", 1, signed=True) == "+1.0 (n=6, all equal)"
+    spread = mean_stats(np.array([1.0, 2, 1, 2, 1, 2]), "d")
+    assert spread["d_ci_lo"] < 1.5 < spread["d_ci_hi"]
+    assert ci_text(spread, "d", 2).startswith("1.50 [")
