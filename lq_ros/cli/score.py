@@ -18,7 +18,7 @@ from lq_ros.cli.common import (
 )
 from lq_ros.scoring.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
-#: Largest --n-boot of lq score: the bootstrap holds n_boot x episodes draws per cell in memory.
+#: Largest --n-boot lq score accepts (the option is unused: kept for scripts that pass it).
 MAX_N_BOOT = 100_000
 
 
@@ -49,8 +49,10 @@ def score(
     overhead_w: Annotated[float, typer.Option(help="Constant overhead power, W.")] = OVERHEAD_POWER_W,
     out: Annotated[Path | None, typer.Option(help="Where tables go (directory input: default PATH).")] = None,
     jobs: Annotated[int, typer.Option(help="Scoring processes.")] = 1,
-    n_boot: Annotated[int, typer.Option(help="Bootstrap resamples per confidence interval, 1..100000.")] = 2000,
-    seed: Annotated[int, typer.Option(help="Bootstrap seed.")] = 0,
+    # No interval of lq score resamples any more (docs/design/statistics.md): both options change nothing, and stay
+    # (hidden, still checked) so that scripts passing them keep running.
+    n_boot: Annotated[int, typer.Option(hidden=True, help="Unused (no interval resamples), 1..100000.")] = 2000,
+    seed: Annotated[int, typer.Option(hidden=True, help="Unused (no interval resamples).")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per episode on stdout.")] = False,
 ) -> None:
     """Score bags. A folder of bags (even of one) also gets per (policy, mode, Δt_sim, suite, task) aggregates with
