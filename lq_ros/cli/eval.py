@@ -25,6 +25,7 @@ from lq_ros.cli.common import (
     print_error_reasons,
     stdout_console,
 )
+from lq_ros.cli.report import print_skipped
 from lq_ros.cli.sweep import _run_sweep_with_progress
 from lq_ros.core.merge import Merge
 from lq_ros.core.run_config import DEFAULT_CAMERA_SIZE_PX
@@ -228,6 +229,7 @@ def eval_(
     infos = write_eval_info(result.episodes, out)  # lerobot-eval's eval_info.json, one per protocol cell
     print_eval_table(result, f"{policy} on {suite}")
     print_error_reasons(result.episodes.to_dict("records"))
+    print_skipped(result.skipped)
     console.print(
         f"report: {result.files['report.html']}  (markdown: {result.files['report.md'].name})", highlight=False
     )

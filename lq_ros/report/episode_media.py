@@ -9,14 +9,15 @@ folder, so links survive moving it.
 
 from __future__ import annotations
 
+import hashlib
 import html
-import json
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import pandas as pd
 
+from lq_ros.core.bounded_file import FileRefused, read_results_json
 from lq_ros.report.replay import DEFAULT_CAMERAS, DEFAULT_SIZE_PX, ReplayRefused
 
 #: Columns added to the episode table: figure path, video path, replay verdict.
@@ -41,6 +42,23 @@ def _bag_path(results_dir: Path, bag) -> Path | None:
         return None
     path = results_dir / bag
     return path if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) else None
+
+
+def media_names(bags: dict, results_dir: Path) -> dict:
+    """A file name stem per episode, unique in the report: the bag folder's name, and where two bags share it
+    (``a/ep`` and ``b/ep``), that name with a hash of the bag's path below ``results_dir`` (stable across runs,
+    so the cache of figures and videos still finds them)."""
+    names = {i: bag.name for i, bag in bags.items() if bag is not None}
+    counts: dict[str, int] = {}
+    for name in names.values():
+        counts[name] = counts.get(name, 0) + 1
+    out = {}
+    for i, name in names.items():
+        if counts[name] > 1:
+            where = bags[i].relative_to(results_dir) if bags[i].is_relative_to(results_dir) else bags[i]
+            name = f"{name}-{hashlib.sha256(str(where).encode()).hexdigest()[:10]}"
+        out[i] = name
+    return out
 
 
 def pick_video_episodes(episodes: pd.DataFrame, k: int, cell_keys: Sequence[str]) -> list:
@@ -81,9 +99,10 @@ def add_episode_media(
     warnings: list[str] = []
     bags = {i: _bag_path(results_dir, b) for i, b in out.get("bag", pd.Series(dtype=object)).items()}
     todo = [i for i, b in bags.items() if b is not None]
+    names = media_names(bags, results_dir)
     for n, i in enumerate(todo):
         bag = bags[i]
-        png = out_dir / FIGURE_DIR / f"{bag.name}.png"
+        png = out_dir / FIGURE_DIR / f"{names[i]}.png"
         try:
             if not _fresh(png, bag):
                 write_episode_figure(bag, png)
@@ -99,12 +118,11 @@ def add_episode_media(
     total, done = sum(ticks.values()), 0
     for i in chosen:
         bag = bags[i]
-        mp4 = out_dir / VIDEO_DIR / f"{bag.name}.mp4"
+        mp4 = out_dir / VIDEO_DIR / f"{names[i]}.mp4"
         verdict = mp4.with_suffix(".json")
         try:
-            if _fresh(mp4, bag) and _fresh(verdict, bag):
-                result = json.loads(verdict.read_text())
-            else:
+            result = _cached_verdict(verdict) if _fresh(mp4, bag) and _fresh(verdict, bag) else None
+            if result is None:
                 base = done
 
                 def tick(k: int, _n: int, base: int = base) -> None:
@@ -125,6 +143,19 @@ def add_episode_media(
         if progress:
             progress("replay videos", done, total)
     return out, warnings
+
+
+def _cached_verdict(path: Path) -> dict | None:
+    """A replay's verdict written by an earlier report, or None (replayed again) when it cannot be used."""
+    try:
+        result = read_results_json(path, "replay verdict")
+    except FileRefused:
+        return None
+    if not isinstance(result, dict) or not isinstance(result.get("equal"), bool):
+        return None
+    d = result.get("divergence")
+    numbers = isinstance(d, dict) and all(isinstance(d.get(k), int | float) for k in ("tick", "position_error_m"))
+    return result if d is None or numbers else None
 
 
 def replay_verdict(result: dict) -> str:

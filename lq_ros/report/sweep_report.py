@@ -24,6 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from lq_ros.core.bounded_file import FileRefused  # noqa: E402
 from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
@@ -39,34 +40,53 @@ from lq_ros.report.tables import (  # noqa: E402
     per_task_view,
     summary_table,
 )
+from lq_ros.run.sweep.record_check import read_manifest  # noqa: E402
 from lq_ros.run.sweep.spec import MAX_SPEC_BYTES  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
 from lq_ros.scoring import failure_aggregate, intervals, labels, paired_tests  # noqa: E402
 from lq_ros.scoring.attribution import decompose, decomposition_table  # noqa: E402
 from lq_ros.scoring.decisions import AnalysisPlan, PlanError, parse_analysis  # noqa: E402
+from lq_ros.scoring.row_check import row_problem  # noqa: E402
 
 # -- data ------------------------------------------------------------------------------------
 
 
-def sweep_manifest(results_dir: Path) -> set[str] | None:
-    """Episode keys of the sweep's current spec (None: not a sweep folder)."""
+def sweep_manifest(results_dir: Path, skipped: list[str] | None = None) -> set[str] | None:
+    """Episode keys of the sweep's current spec (None: not a sweep folder, or a manifest that cannot be read,
+    which is named in ``skipped``)."""
     path = Path(results_dir) / "manifest.json"
-    return set(json.loads(path.read_text())["episodes"]) if path.exists() else None
+    if not os.path.lexists(path):
+        return None
+    try:
+        return read_manifest(path)
+    except FileRefused as exc:
+        if skipped is not None:
+            skipped.append(f"{exc}; every finished episode is used")
+        return None
 
 
 def load_episodes(results_dir: Path, *, all_episodes: bool = False) -> pd.DataFrame:
-    """Per-episode rows of a sweep folder (from its store) or of every bag below ``results_dir``.
+    """The rows of :func:`load_checked_episodes` (what it skipped is left out)."""
+    return load_checked_episodes(results_dir, all_episodes=all_episodes)[0]
+
+
+def load_checked_episodes(results_dir: Path, *, all_episodes: bool = False) -> tuple[pd.DataFrame, list[str]]:
+    """Per-episode rows of a sweep folder (from its store) or of every bag below ``results_dir``, and what was
+    skipped, one line each naming the file and why.
 
     In a sweep folder only the episodes of its current spec (manifest.json) are used, so every
-    series pools the same tasks; ``all_episodes`` takes every finished record in the store.
+    series pools the same tasks; ``all_episodes`` takes every finished record in the store. A results file that
+    is not a regular file, is too large or fails a field's check (lq_ros/run/sweep/record_check.py), and a bag
+    whose row cannot be placed in a cell or contradicts itself (lq_ros/scoring/row_check.py), are skipped.
     ``bag`` is kept relative to ``results_dir`` so the report's links survive moving the folder.
     """
     from lq_ros.run.sweep import ResultStore
 
     results_dir = Path(results_dir)
     store = ResultStore(results_dir)
+    skipped: list[str] = []
     if store.results.is_dir():
-        wanted = None if all_episodes else sweep_manifest(results_dir)
+        wanted = None if all_episodes else sweep_manifest(results_dir, skipped)
         rows = []
         for record in store.records():
             if wanted is not None and record["key"] not in wanted:
@@ -75,6 +95,7 @@ def load_episodes(results_dir: Path, *, all_episodes: bool = False) -> pd.DataFr
             row.update(bag=record.get("bag"), key=record["key"], attempts=len(record.get("attempts", [])))
             row["log"] = record["attempts"][-1].get("log") if record.get("attempts") else None
             rows.append(row)
+        skipped += store.refused.values()
         for row in rows:
             versions = row.get("versions") or {}
             row["git_commit"] = versions.get("git_commit") if isinstance(versions, dict) else None
@@ -83,12 +104,19 @@ def load_episodes(results_dir: Path, *, all_episodes: bool = False) -> pd.DataFr
                     row[key] = json.dumps(row[key], sort_keys=True, default=str)
         frame = agg.episodes_frame(rows)
     else:
-        frame = agg.score_directory(results_dir)
-        if "bag" in frame:
-            frame["bag"] = [os.path.relpath(b, results_dir) if isinstance(b, str) else b for b in frame["bag"]]
+        rows = []
+        for row in agg.score_rows(results_dir):
+            row["bag"] = os.path.relpath(row["bag"], results_dir)
+            problem = row_problem(row)
+            if problem is None:
+                rows.append(row)
+            else:
+                skipped.append(f"bag {row['bag']}: {problem}")
+        frame = agg.episodes_frame(rows)
     if frame.empty or frame["status"].isna().all():
-        raise FileNotFoundError(f"no scored episodes in {results_dir} (neither results/*.json nor bags)")
-    return add_energy_parts_per_step(frame)
+        why = f"; skipped: {'; '.join(skipped)}" if skipped else ""
+        raise FileNotFoundError(f"no scored episodes in {results_dir} (neither results/*.json nor bags){why}")
+    return add_energy_parts_per_step(frame), skipped
 
 
 def add_energy_parts_per_step(episodes: pd.DataFrame) -> pd.DataFrame:
@@ -223,9 +251,11 @@ def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
     for raw in episodes.get("versions", pd.Series(dtype=object)).dropna():
         try:
             v = json.loads(raw) if isinstance(raw, str) else raw
-        except ValueError:
+        except (ValueError, RecursionError):
             continue
-        for k, val in (v or {}).items():
+        if not isinstance(v, dict):  # (a row's versions are an object; anything else says nothing)
+            continue
+        for k, val in v.items():
             versions.setdefault(k, set()).add(str(val))
     for k in sorted(versions):
         out[k] = ", ".join(sorted(versions[k]))
@@ -238,7 +268,7 @@ def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
     if spec.exists():
         out["sweep spec"] = str(spec.name)
     out["episodes"] = str(len(episodes))
-    manifest = sweep_manifest(results_dir)
+    manifest = sweep_manifest(results_dir)  # (a manifest that cannot be read is listed among the skipped files)
     if manifest is not None:
         done = set(episodes["key"].dropna()) if "key" in episodes else set()
         out["episodes of the spec not finished"] = str(len(manifest - done))
@@ -247,6 +277,18 @@ def provenance(episodes: pd.DataFrame, results_dir: Path) -> dict[str, str]:
 
 def _link(bag, prefix: str) -> str:
     return f"{prefix}{bag}/" if isinstance(bag, str) and bag else ""
+
+
+SKIPPED_TITLE = "Skipped files"
+SKIPPED_NOTE = (
+    "These files of the folder were left out of every figure and table, each with why: a results file or bag that "
+    "is not a regular file, is too large, cannot be read, or whose fields are wrong or contradict each other."
+)
+
+
+def _md_text(text: str) -> str:
+    """``text`` (a file name and reason from a folder anyone may write) as literal markdown on one line."""
+    return re.sub(r"([\\`*_{}\[\]<>()#+!|~])", r"\\\1", " ".join(str(text).split()))
 
 
 FAILURE_FIGURE = "fig10_failure_modes"
@@ -263,10 +305,13 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
                    prefix: str, paired: pd.DataFrame | None = None,
                    comparisons: pd.DataFrame | None = None,
                    attribution: pd.DataFrame | None = None,
-                   failures: list[str] | None = None) -> None:  # fmt: skip
-    """``failures``: the failure-mode sentences, given when the failure-mode figure was drawn."""
+                   failures: list[str] | None = None, skipped: list[str] | None = None) -> None:  # fmt: skip
+    """``failures``: the failure-mode sentences, given when the failure-mode figure was drawn; ``skipped``: the
+    files left out, each with why."""
     lines = ["# LIBERO-LQ sweep report", ""]
     lines += [INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
+    if skipped:
+        lines += [f"## {SKIPPED_TITLE}", "", SKIPPED_NOTE, ""] + [f"- {_md_text(line)}" for line in skipped] + [""]
     if comparisons is not None and not comparisons.empty:
         lines += ["## Policies and protocols compared (paired)", ""]
         lines += [f"- {s}" for s in comparison_sentences(comparisons)] + [""]
@@ -314,11 +359,15 @@ def _bold_html(markdown: str) -> str:
 def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: dict, episodes: pd.DataFrame,
                prefix: str, paired: pd.DataFrame | None = None,
                comparisons: pd.DataFrame | None = None, attribution: pd.DataFrame | None = None,
-               failures: list[str] | None = None) -> None:  # fmt: skip
+               failures: list[str] | None = None, skipped: list[str] | None = None) -> None:  # fmt: skip
     e = html.escape
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>LIBERO-LQ sweep report</title>",
              f"<style>{_CSS}</style></head><body><h1>LIBERO-LQ sweep report</h1>",
              f"<p>{html.escape(INTRO)}</p>", "<ul>", *(f"<li>{e(n)}</li>" for n in NOTES), "</ul>"]  # fmt: skip
+    if skipped:
+        parts.append(f"<h2>{e(SKIPPED_TITLE)}</h2><p>{e(SKIPPED_NOTE)}</p><ul class='error'>")
+        parts += [f"<li>{e(line)}</li>" for line in skipped]
+        parts.append("</ul>")
     has_paired = paired is not None and not paired.empty
     has_comparisons = comparisons is not None and not comparisons.empty
     if has_comparisons:
@@ -374,6 +423,8 @@ class Report:
     media_warnings: list[str] | None = None
     #: Paired changes of every latency > 0 cell against its zero-latency cell (paired_aggregates).
     paired: pd.DataFrame | None = None
+    #: Files of the folder left out (damaged, foreign or contradictory), one line each naming the file and why.
+    skipped: list[str] | None = None
 
 
 def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int = 2000, seed: int = 0,
@@ -386,7 +437,7 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     results_dir = Path(results_dir)
     out_dir = Path(out_dir) if out_dir else results_dir / "report"
     out_dir.mkdir(parents=True, exist_ok=True)
-    episodes = load_episodes(results_dir, all_episodes=all_episodes)
+    episodes, skipped = load_checked_episodes(results_dir, all_episodes=all_episodes)
     pooled = figure_aggregates(episodes, n_boot=n_boot, seed=seed)
     per_task = agg.aggregate(episodes, n_boot=n_boot, seed=seed)
     files = agg.write_tables(episodes, per_task, out_dir)
@@ -432,8 +483,8 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     files["report.md"] = out_dir / "report.md"
     attribution_view = decomposition_table(attribution)
     write_markdown(files["report.md"], summary, agg.markdown_table(per_task), prov, episodes, prefix, paired,
-                   comparisons, attribution_view, failures)  # fmt: skip
+                   comparisons, attribution_view, failures, skipped)  # fmt: skip
     files["report.html"] = out_dir / "report.html"
     write_html(files["report.html"], summary, per_task_view(per_task), prov, episodes, prefix, paired, comparisons,
-               attribution_view, failures)  # fmt: skip
-    return Report(out_dir, files, episodes, pooled, figures if keep_figures else {}, media_warnings, paired)
+               attribution_view, failures, skipped)  # fmt: skip
+    return Report(out_dir, files, episodes, pooled, figures if keep_figures else {}, media_warnings, paired, skipped)

@@ -140,13 +140,16 @@ def score_directory(
     path: Path, *, jobs: int = 1, references: pd.DataFrame | None = None, **score_kwargs
 ) -> pd.DataFrame:
     """One row per episode bag at or below ``path`` (unreadable bags become error rows)."""
+    return episodes_frame(score_rows(path, jobs=jobs, **score_kwargs), references)
+
+
+def score_rows(path: Path, *, jobs: int = 1, **score_kwargs) -> list[dict]:
+    """The rows of :func:`score_directory` before they are labelled and tabled (``bag``: each bag's path)."""
     bags = find_bags(Path(path))
     if jobs > 1 and len(bags) > 1:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            rows = list(pool.map(_score_one, bags, [score_kwargs] * len(bags)))
-    else:
-        rows = [_score_one(bag, score_kwargs) for bag in bags]
-    return episodes_frame(rows, references)
+            return list(pool.map(_score_one, bags, [score_kwargs] * len(bags)))
+    return [_score_one(bag, score_kwargs) for bag in bags]
 
 
 def episodes_frame(rows: Iterable[dict], references: pd.DataFrame | None = None) -> pd.DataFrame:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import shutil
+import signal
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -111,6 +115,7 @@ def test_pages_tables_provenance_and_links(report, sweep_dir):
     for table in ("episodes.csv", "episodes.parquet", "aggregates.csv", "aggregates.parquet", "aggregates_pooled.csv",
                   "paired_vs_zero_latency.csv"):  # fmt: skip
         assert report.files[table].stat().st_size > 100
+    assert report.skipped == []  # every real record passes its checks
     assert len(report.pooled) == 4 and set(report.pooled["n"]) == {2}
     # Every 0.1 s cell against its 0 s cell over the two init states (both succeed at both latencies).
     assert len(report.paired) == 2 and set(report.paired["n_pairs"]) == {2}
@@ -127,3 +132,77 @@ def test_report_of_a_plain_bag_folder(sweep_dir, tmp_path):
 def test_empty_folder_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no scored episodes"):
         rp.build_report(tmp_path)
+
+
+@pytest.fixture
+def no_hang():
+    """Fail a test that blocks (a FIFO read) after 60 s instead of hanging the run."""
+
+    def hung(*_):
+        raise TimeoutError("blocked for 60 s")
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(60)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
+
+
+def test_hostile_results_are_skipped_by_name_and_the_rest_reported(sweep_dir, tmp_path, no_hang):
+    """FIFOs, a link to /dev/zero and records that contradict themselves: the report is written for the rest."""
+    folder = tmp_path / "sweep"
+    shutil.copytree(sweep_dir, folder, symlinks=True, ignore=shutil.ignore_patterns("report"))
+    (folder / "manifest.json").unlink()
+    os.mkfifo(folder / "manifest.json")  # would block a plain open() forever
+    os.mkfifo(folder / "results" / "fifo.json")
+    (folder / "results" / "zero.json").symlink_to("/dev/zero")
+    paths = sorted((folder / "results").glob("*.json"))
+    paths = [p for p in paths if p.name not in ("fifo.json", "zero.json")]
+    records = {p: json.loads(p.read_text()) for p in paths}
+    damage = {
+        "status error but the row's status is success": lambda r: r.update(status="error"),
+        "row: completion_time_s -2.5 is negative": lambda r: r["row"].update(completion_time_s=-2.5),
+        "row: task '0' is not a whole number >= 0": lambda r: r["row"].update(task="0"),
+        "row: the row is a list, not an object of fields": lambda r: r.update(row=[r["row"]]),
+        "attempts is a str, not a list": lambda r: r.update(attempts="none"),
+    }
+    for path, change in zip(paths, damage.values(), strict=False):
+        change(records[path])
+        path.write_text(json.dumps(records[path]))
+    result = rp.build_report(folder, n_boot=50)
+    assert len(result.episodes) == len(paths) - len(damage)
+    expected = [f"results file {path}: {why}" for path, why in zip(paths, damage, strict=False)]
+    expected += [
+        f"manifest {folder / 'manifest.json'}: not a regular file; every finished episode is used",
+        f"results file {folder / 'results' / 'fifo.json'}: not a regular file",
+        f"results file {folder / 'results' / 'zero.json'}: a link, not a regular file",
+    ]
+    assert sorted(result.skipped) == sorted(expected)
+    md = result.files["report.md"].read_text()
+    html = result.files["report.html"].read_text()
+    assert "## Skipped files" in md and "<h2>Skipped files</h2>" in html
+    for line in expected:
+        assert rp._md_text(line) in md
+    assert "zero.json: a link, not a regular file" in html
+
+
+def test_damaged_foreign_and_same_named_bags_in_a_bag_folder(sweep_dir, tmp_path, no_hang):
+    """A bag without metadata.yaml and a truncated one are skipped by name; two bags of one folder name (under
+    a/ and b/) get a figure each."""
+    bags = sorted(p for p in (sweep_dir / "bags").iterdir() if (p / "metadata.yaml").exists())
+    folder = tmp_path / "bags"
+    for where, bag in [("a", bags[0]), ("b", bags[0]), ("a", bags[1]), ("c", bags[2]), ("c", bags[3])]:
+        shutil.copytree(bag, folder / where / bag.name)
+    (folder / "c" / bags[2].name / "metadata.yaml").unlink()  # a recorder that died: a plain MCAP
+    damaged = folder / "c" / bags[3].name
+    (damaged / "metadata.yaml").unlink()
+    for mcap in damaged.glob("*.mcap"):
+        mcap.write_bytes(mcap.read_bytes()[:300])
+    result = rp.build_report(folder, n_boot=50)
+    assert len(result.episodes) == 3 and len(result.skipped) == 2
+    assert [line.split(":")[0] for line in sorted(result.skipped)] == [f"bag c/{bags[2].name}", f"bag c/{bags[3].name}"]
+    assert all("no run configuration" in line for line in result.skipped)
+    plots = list(result.episodes["plot"])
+    assert len(set(plots)) == 3 and all((result.out_dir / p).is_file() for p in plots)
+    md = result.files["report.md"].read_text()
+    assert len(set(re.findall(r"\[plot\]\(([^)]+)\)", md))) == 3

@@ -1,7 +1,8 @@
 """The durable store of a sweep folder: one atomically written record per finished episode.
 
-An episode counts as finished only when ``results/<key>.json`` parses, names its key and its bag
-exists; anything else (a half-written file, a bag without a record) is run again.
+An episode counts as finished only when ``results/<key>.json`` is a regular file that parses, names its key, passes
+lq_ros/run/sweep/record_check.py field by field and its bag exists; anything else (a half-written file, a bag without
+a record, a FIFO or a link where the record should be) is run again, and a refused file is named in ``refused``.
 """
 
 from __future__ import annotations
@@ -14,10 +15,11 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from lq_ros.core.bounded_file import FileRefused, read_results_json
 from lq_ros.core.run_config import RunConfig
 from lq_ros.recording.episode_folder import episode_folders
+from lq_ros.run.sweep.record_check import attempt_problem, read_record
 
-FINAL_STATUSES = ("success", "failure", "error")
 RECORD_FORMAT = 1
 #: The lock file in a sweep folder: a running sweep holds an exclusive flock on it (its pid inside).
 LOCK_FILE = ".lock"
@@ -76,6 +78,8 @@ class ResultStore:
         self.bags = self.root / "bags"
         self.attempts = self.root / "attempts"
         self.logs = self.root / "logs"
+        #: Files of the folder that were not used, each with the one-line reason (FileRefused's text).
+        self.refused: dict[str, str] = {}
 
     @contextlib.contextmanager
     def lock(self):
@@ -111,15 +115,18 @@ class ResultStore:
         return self.results / f"{key}.json"
 
     def load(self, key: str) -> dict | None:
-        """The finished record of ``key``, or None when missing, half-written or pointing at a lost bag."""
+        """The finished record of ``key``, or None when missing, refused (named in ``refused``: not a regular file,
+        too large, not JSON, a field that is wrong) or pointing at a lost bag."""
+        path = self.record_path(key)
         try:
-            record = json.loads(self.record_path(key).read_text())
-        except (OSError, ValueError):
-            return None
-        if not isinstance(record, dict) or record.get("key") != key or record.get("status") not in FINAL_STATUSES:
+            record = read_record(path)
+        except FileRefused as exc:
+            if os.path.lexists(path):  # (a missing record is an episode not run yet)
+                self.refused[str(path.relative_to(self.root))] = str(exc)
             return None
         bag = record.get("bag")
         if bag and not (self.root / bag / "metadata.yaml").exists():
+            self.refused[str(path.relative_to(self.root))] = f"results file {path}: its bag {bag} has no metadata.yaml"
             return None
         return record
 
@@ -139,8 +146,16 @@ class ResultStore:
         """Crashed earlier attempts of an unfinished episode (survive a restart of the sweep)."""
         out = []
         for path in sorted(self.attempts.glob(f"{key}.a*.json")):
-            with contextlib.suppress(OSError, ValueError):
-                out.append(json.loads(path.read_text()))
+            try:
+                attempt = read_results_json(path, "attempt record")
+            except FileRefused as exc:
+                self.refused[str(path.relative_to(self.root))] = str(exc)
+                continue
+            problem = attempt_problem(len(out), attempt)
+            if problem is not None:
+                self.refused[str(path.relative_to(self.root))] = f"attempt record {path}: {problem}"
+                continue
+            out.append(attempt)
         return out
 
     def keep_failed_attempt(self, key: str, attempt: dict, bag: Path | None) -> dict:

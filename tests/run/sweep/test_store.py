@@ -3,24 +3,103 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+
+import pytest
 
 from lq_ros.run import sweep as sw
+from lq_ros.run.sweep.identity import CODE_FIELD, identities
+from lq_ros.run.sweep.record_check import FINAL_STATUSES
 from tests.run.sweep.test_spec import small_spec
+
+
+def record(cfg, status: str = "failure", **changes) -> dict:
+    """A record as the orchestrator writes it, of ``cfg`` (its row: the fields a row is read by)."""
+    success = {"success": True, "failure": False}.get(status)
+    cell = {k: getattr(cfg, k) for k in ("policy", "mode", "latency_s", "suite", "task", "init", "seed")}
+    row = {"episode": cfg.episode_name(), "status": status, "success": success, **cell}
+    out = {"format": 1, "key": cfg.key(), "status": status, "bag": None, "row": row, "attempts": [],
+           "config": cfg.to_dict(), CODE_FIELD: identities([cfg])[cfg.key()]}  # fmt: skip
+    out.update(changes)
+    return out
+
+
+@pytest.fixture
+def no_hang():
+    """Fail a test that blocks (a FIFO read) after 10 s instead of hanging the run."""
+
+    def hung(*_):
+        raise TimeoutError("blocked for 10 s")
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(10)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
 
 
 def test_half_written_or_orphaned_results_do_not_count_as_finished(tmp_path):
     spec = sw.expand_spec(small_spec())
     store, jobs, done = sw.prepare(spec, tmp_path)
     assert done == 0 and len(jobs) == 4
-    a, b, c, d = (cfg.key() for cfg in spec.configs)
-    full = {"key": a, "status": "failure", "bag": None, "row": {}, "attempts": [], "code": jobs[0].code}
-    store.write(full)
-    text = json.dumps({**full, "key": b})
-    store.record_path(b).write_text(text[: len(text) // 2])  # killed while writing (without atomic rename)
-    (store.results / f".{c}.json.123.tmp").write_text(json.dumps({**full, "key": c}))  # rename never happened
-    store.write({**full, "key": d, "bag": "bags/gone"})  # points at a bag that is not there
-    assert store.load(a) is not None
-    assert store.load(b) is None and store.load(c) is None and store.load(d) is None
+    a, b, c, d = spec.configs
+    store.write(record(a))
+    text = json.dumps(record(b))
+    store.record_path(b.key()).write_text(text[: len(text) // 2])  # killed while writing (without atomic rename)
+    (store.results / f".{c.key()}.json.123.tmp").write_text(json.dumps(record(c)))  # rename never happened
+    store.write(record(d, bag="bags/gone"))  # points at a bag that is not there
+    assert store.load(a.key()) is not None
+    assert store.load(b.key()) is None and store.load(c.key()) is None and store.load(d.key()) is None
     _, jobs, done = sw.prepare(spec, tmp_path)
-    assert done == 1 and {j.key for j in jobs} == {b, c, d}
-    assert json.loads((tmp_path / "manifest.json").read_text())["episodes"].keys() == {a, b, c, d}
+    assert done == 1 and {j.key for j in jobs} == {b.key(), c.key(), d.key()}
+    assert json.loads((tmp_path / "manifest.json").read_text())["episodes"].keys() == {x.key() for x in spec.configs}
+
+
+def test_a_run_errors_row_without_its_configuration_takes_it_from_the_record(tmp_path):
+    """A node that died before recording leaves a row of three fields: the record's config places it in its cell."""
+    spec = sw.expand_spec(small_spec())
+    store, _, _ = sw.prepare(spec, tmp_path)
+    cfg = spec.configs[0]
+    store.write(record(cfg, "error", row={"episode": cfg.episode_name(), "status": "error", "success": None}))
+    loaded = store.load(cfg.key())
+    assert loaded is not None and loaded["row"]["policy"] == "sine" and loaded["row"]["latency_s"] == cfg.latency_s
+    assert store.refused == {}
+
+
+def test_a_fifo_or_a_link_to_dev_zero_in_results_is_refused_by_name_and_run_again(tmp_path, no_hang):
+    """A resumed sweep neither hangs on a FIFO (the hung sweep would keep its folder locked) nor reads /dev/zero."""
+    spec = sw.expand_spec(small_spec())
+    store, _, _ = sw.prepare(spec, tmp_path)
+    a, b, c, _ = spec.configs
+    store.write(record(a))
+    os.mkfifo(store.record_path(b.key()))
+    store.record_path(c.key()).symlink_to("/dev/zero")
+    os.mkfifo(store.attempts / f"{a.key()}.a1.json")
+    store, jobs, done = sw.prepare(spec, tmp_path)
+    assert done == 1 and {j.key for j in jobs} == {x.key() for x in spec.configs[1:]}
+    assert store.refused == {
+        f"results/{b.key()}.json": f"results file {store.record_path(b.key())}: not a regular file",
+        f"results/{c.key()}.json": f"results file {store.record_path(c.key())}: a link, not a regular file",
+    }
+    assert [r["key"] for r in store.records()] == [a.key()]
+    assert store.failed_attempts(a.key()) == [] and f"attempts/{a.key()}.a1.json" in store.refused
+
+
+def test_a_contradictory_record_is_not_finished_and_says_why(tmp_path):
+    spec = sw.expand_spec(small_spec())
+    store, _, _ = sw.prepare(spec, tmp_path)
+    a, b, c, d = spec.configs
+    bad_row = record(a)["row"] | {"status": "success", "success": True}
+    store.write(record(a, "error", row=bad_row))  # the record says error, its row success
+    store.write(record(b, attempts=[{"attempt": "1", "status": "error"}]))
+    store.write(record(c, row=[record(c)["row"]]))
+    store.write(record(d, "done"))
+    assert [store.load(x.key()) for x in spec.configs] == [None] * 4
+    why = {k.split("/")[1].split(".")[0]: v.split(": ", 1)[1] for k, v in store.refused.items()}
+    assert why == {
+        a.key(): "status error but the row's status is success",
+        b.key(): "attempts[0].attempt '1' is not a whole number >= 1",
+        c.key(): "row: the row is a list, not an object of fields",
+        d.key(): f"status 'done'; expected one of {', '.join(FINAL_STATUSES)}",
+    }

@@ -1,0 +1,102 @@
+"""Whether a per-episode row (a scored bag, or the ``row`` of a sweep's results record) can be pooled, field by field.
+
+Rows read back from a folder may come from anyone (a damaged bag, a foreign MCAP, a hand-edited results file).
+:func:`row_problem` names the first field that makes a row unusable: no run configuration to place it in a cell, a
+value of the wrong type (a task as text, a list where a number goes), a negative time or count, or a row that
+contradicts itself (status success with ``success`` false). The report skips such a row and lists it by name
+(lq_ros/report/sweep_report.py); it never pools it, never crashes on it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from lq_ros.core.run_config import VARIANT_FIELDS
+from lq_ros.scoring.aggregate import CONTINUOUS_METRICS
+
+#: Statuses a scored row may carry ("unknown": a bag without episode events; counted as an error).
+ROW_STATUSES = ("success", "failure", "error", "unknown")
+#: What ``success`` must be for each status (an error or unknown row may say False or nothing).
+SUCCESS_OF_STATUS = {"success": (True,), "failure": (False,), "error": (None, False), "unknown": (None, False)}
+#: Text fields that place a row in its cell.
+IDENTITY_TEXT = ("policy", "mode", "suite")
+#: Whole numbers >= 0: the task places a row in its cell; init state and seed may be missing (a foreign bag).
+IDENTITY_INDEX = ("task",)
+OPTIONAL_INDEX = ("init", "seed")
+#: Metrics that may be negative (smoothness: SPARC and LDLJ are negative by definition); every other
+#: continuous metric is a time, a count, a length, an energy or a ratio of them, >= 0.
+SIGNED_METRICS = frozenset({"sparc", "ldlj"})
+#: Numbers besides the continuous metrics: each >= 0 (the latency s, the sampling Hz, tick budgets and counts).
+OTHER_NUMBERS = ("latency_s", "trajectory_rate_hz", "step_budget", "completion_steps", "fresh_actions_executed")
+#: Fields that hold one scalar (or nothing): a list or object there is not a value a cell can be keyed by.
+SCALAR_FIELDS = ("episode", "latency_dist", "energy_sampling", "transport", *(f for f in VARIANT_FIELDS
+                                                                             if f != "policy_args"))  # fmt: skip
+
+
+def kind_of(value) -> str:
+    """'a list', 'an int', ...: what a value is, for a message."""
+    name = type(value).__name__
+    return f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
+
+
+def _missing(value) -> bool:
+    return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _is_index(value) -> bool:
+    """A whole number >= 0 (an int, or a float holding one: a table column with gaps holds floats)."""
+    if isinstance(value, bool) or not _is_number(value):
+        return False
+    return math.isfinite(value) and value >= 0 and float(value).is_integer()
+
+
+def row_problem(row) -> str | None:
+    """Why ``row`` cannot be pooled (one phrase naming the field and its value), or None when it can.
+
+    None and NaN both mean "not measured" for a metric (a null with its reason in ``null_reasons``)."""
+    if not isinstance(row, Mapping):
+        return f"the row is {kind_of(row)}, not an object of fields"
+    row = {k: v.item() if isinstance(v, np.generic) else v for k, v in row.items()}  # a table's row: NumPy scalars
+    status = row.get("status")
+    if status not in ROW_STATUSES:
+        return f"status {status!r}; expected one of {', '.join(ROW_STATUSES)}"
+    missing = [k for k in (*IDENTITY_TEXT, *IDENTITY_INDEX, "latency_s") if _missing(row.get(k))]
+    if missing:
+        reason = row.get("error_reason")
+        because = f" ({' '.join(str(reason).split())})" if isinstance(reason, str) and reason else ""
+        return f"no run configuration ({', '.join(missing)} missing){because}"
+    for key in IDENTITY_TEXT:
+        if not isinstance(row[key], str) or not row[key]:
+            return f"{key} {row[key]!r} is not a name"
+    for key in IDENTITY_INDEX:
+        if not _is_index(row[key]):
+            return f"{key} {row[key]!r} is not a whole number >= 0"
+    for key in OPTIONAL_INDEX:
+        if not _missing(row.get(key)) and not _is_index(row[key]):
+            return f"{key} {row[key]!r} is not a whole number >= 0"
+    success = row.get("success")
+    success = None if _missing(success) else success
+    if not any(success is allowed for allowed in SUCCESS_OF_STATUS[status]):
+        return f"status {status} with success {success!r}"
+    for key in SCALAR_FIELDS:
+        value = row.get(key)
+        if value is not None and not isinstance(value, str | int | float | bool):
+            return f"{key} is {kind_of(value)}, not one value"
+    for key in (*CONTINUOUS_METRICS, *OTHER_NUMBERS):
+        value = row.get(key)
+        if _missing(value):
+            continue
+        if not _is_number(value):
+            return f"{key} {value!r} is not a number"
+        if not math.isfinite(value):
+            return f"{key} is {value}"
+        if value < 0 and key not in SIGNED_METRICS:
+            return f"{key} {value!r} is negative"
+    return None
