@@ -29,7 +29,7 @@ from rosbags.serde import SerdeError
 
 from lq_ros.core.control import ControlMode, ControlStart
 from lq_ros.core.cpu import SIMD_FLAGS
-from lq_ros.core.executor_protocol import Source
+from lq_ros.core.executor_protocol import Source, validate_chunk
 from lq_ros.core.run_config import TRANSPORTS, cpu_info
 from lq_ros.core.suite_constants import CONTROL_DT_S, FPS
 from lq_ros.recording.episode_bag import RUN_METADATA_KEY, read_run_metadata
@@ -247,6 +247,10 @@ def check_replayable(rec: Recording) -> ReplaySetup:
                             f"{len(ticks)} commands)")  # fmt: skip
     if 0 not in rec.poses:
         raise ReplayRefused(f"no {m.EE_POSE.name} at tick 0")
+    for c in rec.commands:  # the executor's own check of a chunk, on each recorded command (a one-row chunk)
+        problem = validate_chunk(c.action.reshape(1, -1), control_mode=setup.control_mode)
+        if problem is not None:
+            raise ReplayRefused(f"the command of tick {c.tick} would not reach a robot: {problem}")
     return setup
 
 
@@ -390,12 +394,24 @@ def replay(
     ``env``: a LiberoEnv of the bag's suite and task to reuse (with those cameras when rendering).
     ``on_tick(done, total)`` reports progress. Raises ReplayRefused when the bag cannot be replayed.
     """
-    from lq_ros.core.run_config import versions
+    import mujoco
 
     rec = read_recording(bag)
     cfg = check_replayable(rec)
     if video is not None and not cameras:
         raise ReplayRefused("a video needs at least one camera")
+    try:
+        return _replay(rec, cfg, video, cameras, size_px, env, on_tick)
+    except mujoco.FatalError as exc:  # e.g. MuJoCo could not allocate its model or data: one line, not a traceback
+        raise ReplayRefused(f"MuJoCo failed: {' '.join(str(exc).split())}") from None
+    except MemoryError:
+        raise ReplayRefused("out of memory while re-simulating") from None
+
+
+def _replay(rec: Recording, cfg: ReplaySetup, video, cameras, size_px, env, on_tick) -> ReplayResult:
+    """The body of :func:`replay` once the bag is known to be replayable."""
+    from lq_ros.core.run_config import versions
+
     own_env = env is None
     if env is None:
         from lq_ros.sim.libero_env import LiberoEnv

@@ -64,8 +64,11 @@ def test_replay_equals_the_recording(bags, mode):
     assert result.summary().startswith(f"replay equals the bag: {MAX_STEPS} ticks")
 
 
-def _copy_bag(src: Path, dst: Path, *, tamper_tick: int | None = None, metadata: dict | None = None) -> Path:
-    """Rewrite ``src`` into ``dst`` (rosbags), optionally changing the command of one tick or the run metadata."""
+def _copy_bag(
+    src: Path, dst: Path, *, tamper_tick: int | None = None, metadata: dict | None = None, action: list | None = None
+) -> Path:
+    """Rewrite ``src`` into ``dst`` (rosbags), optionally changing the command of one tick (its z, or the whole
+    ``action``) or the run metadata."""
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
     meta = read_run_metadata(src) if metadata is None else metadata
@@ -77,9 +80,9 @@ def _copy_bag(src: Path, dst: Path, *, tamper_tick: int | None = None, metadata:
             if conn.topic == m.COMMAND.name and tamper_tick is not None:
                 msg = m.deserialize(raw, conn.msgtype)
                 if msg.tick == tamper_tick:
-                    action = np.array(msg.action)
-                    action[2] = 0.5 if action[2] < 0 else -0.5  # a different z command
-                    msg.action = action
+                    changed = np.array(msg.action)
+                    changed[2] = 0.5 if changed[2] < 0 else -0.5  # a different z command
+                    msg.action = changed if action is None else np.array(action, dtype=np.float64)
                     raw = m.serialize(msg, conn.msgtype)
             writer.write(conns[conn.id], t_ns, bytes(raw))
     writer.set_custom_data(RUN_METADATA_KEY, json.dumps(meta, sort_keys=True))
@@ -211,3 +214,45 @@ def test_report_links_resolve_and_videos_play(bags, tmp_path):
     stamps = {p: p.stat().st_mtime_ns for p in report.out_dir.glob("*/*.*")}
     build_report(folder, n_boot=50, videos=1)
     assert {p: p.stat().st_mtime_ns for p in report.out_dir.glob("*/*.*")} == stamps
+
+
+@pytest.mark.parametrize(
+    ("action", "problem"),
+    [
+        ([0.0, 0.0, float("nan"), 0.0, 0.0, 0.0, -1.0], "non-finite value nan at row 0, column 2"),
+        ([0.0, 0.0, 1e308, 0.0, 0.0, 0.0, -1.0], "outside the action bounds"),
+        ([0.0, 0.0, 0.1], "shape (1, 3), expected (H>=1, 7)"),
+    ],
+)
+def test_a_recorded_command_the_executor_would_refuse_is_not_simulated(bags, tmp_path, action, problem):
+    """Read, not run: the executor's chunk check on every recorded command, before the simulator sees one."""
+    bag = _copy_bag(bags["sync"], tmp_path / "hostile", tamper_tick=5, action=action)
+    run = CliRunner().invoke(_app(), ["replay", str(bag)])
+    assert run.exit_code == 2, run.output
+    lines = [line for line in run.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in run.output, run.output
+    assert f"{bag}: the command of tick 5 would not reach a robot" in " ".join(run.output.split())
+    assert problem in run.output
+
+
+def test_a_mujoco_failure_is_one_line_naming_the_bag(bags, monkeypatch):
+    """MuJoCo's own FatalError (its arena overflows, as when it cannot allocate) while re-simulating: one line."""
+    import mujoco
+
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    bodies = "".join(f'<body pos="0 0 {0.05 * i}"><freejoint/><geom size="0.1"/></body>' for i in range(30))
+    crowded = mujoco.MjModel.from_xml_string(f'<mujoco><size memory="20K"/><worldbody>{bodies}</worldbody></mujoco>')
+
+    def overflowing_step(self, action):
+        mujoco.mj_step(crowded, mujoco.MjData(crowded))  # raises mujoco.FatalError (mj_stackAlloc: stack overflow)
+        raise AssertionError("MuJoCo did not fail")
+
+    monkeypatch.setattr(LiberoEnv, "step", overflowing_step)
+    run = CliRunner().invoke(_app(), ["replay", str(bags["sync"])])
+    assert run.exit_code == 2, run.output
+    assert "Traceback" not in run.output and not isinstance(run.exception, mujoco.FatalError), run.output
+    # (LIBERO's own note on building the task goes to stderr first; the refusal is the one line after it)
+    (line,) = [line for line in run.output.splitlines() if "cannot replay" in line]
+    assert line == run.output.strip().splitlines()[-1]
+    assert f"cannot replay {bags['sync']}: MuJoCo failed: mj_stackAlloc: stack overflow" in line
