@@ -25,6 +25,12 @@ server answers ``{"spawned": pid}`` with a pidfd of the child, and later ``{"exi
 
 The node modules are not on its command line: tools that find a node by its module in ``/proc/PID/cmdline`` find
 the node, not the server.
+
+A server that stops answering never stalls the stack for long: a fork is answered within :data:`SPAWN_REPLY_S`, and a
+server stopped (SIGSTOP, state T) for :data:`STOPPED_GIVE_UP_S` is given up at once, at start or at a spawn; either is
+a ForkServerError, and the stack executes its nodes afresh. The launcher is its nodes' subreaper
+(PR_SET_CHILD_SUBREAPER): when the server dies, its forks become the launcher's children, and the launcher reaps them
+(with their real exit status), so none is left a zombie where PID 1 does not reap.
 """
 
 from __future__ import annotations
@@ -58,6 +64,15 @@ LTTNG_UST_PREFIX = "liblttng-ust-"
 TITLE_ROOM = 400
 #: The threads LTTng-UST starts when it loads (its listeners for a global and a per-user session daemon).
 LTTNG_UST_LISTENERS = 2
+#: How long a spawn waits for the server's answer, s (a fork takes milliseconds; a busy machine, well under this).
+SPAWN_REPLY_S = 10.0
+#: How long the server may be seen stopped (SIGSTOP, a debugger) before it is given up, s.
+STOPPED_GIVE_UP_S = 1.0
+#: How often a wait for the server checks whether it is stopped, s.
+STOPPED_POLL_S = 0.2
+#: How long closing waits for the forks of a dead server to end (their parent-death signal), s, to reap them.
+FORKS_END_WAIT_S = 5.0
+_PR_SET_CHILD_SUBREAPER = 36
 
 
 class ForkServerError(RuntimeError):
@@ -191,6 +206,22 @@ def main() -> None:
 # -- the launcher's side -----------------------------------------------------------------------------------------
 
 
+def become_subreaper() -> None:
+    """Adopt this process's orphaned descendants (PR_SET_CHILD_SUBREAPER): a dead fork server's children become ours
+    to reap. A no-op where prctl does not exist (not Linux)."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)
+
+
+def is_stopped(pid: int) -> bool:
+    """Whether process ``pid`` is stopped (state T: SIGSTOP; t: traced) per /proc; False if it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rfind(")") + 2 : stat.rfind(")") + 3] in ("T", "t")
+
+
 class ForkedProcess:
     """A node forked by a :class:`ForkServer`, with the part of ``subprocess.Popen``'s interface the stack uses.
 
@@ -211,6 +242,17 @@ class ForkedProcess:
     def _gone(self) -> bool:
         """Whether the process has ended (its pidfd is readable), for when its parent can no longer say how."""
         return bool(select.select([self.pidfd], [], [], 0)[0])
+
+    def _reap(self) -> int:
+        """The exit code of an ended child whose server died: reaped here (the launcher is its subreaper, so it
+        is no zombie); EXIT_STATUS_LOST when another process reaped it."""
+        try:
+            info = os.waitid(os.P_PIDFD, self.pidfd, os.WEXITED | os.WNOHANG)
+        except OSError:  # (ChildProcessError: not ours, e.g. the server reaped it before it died)
+            return EXIT_STATUS_LOST
+        if info is None:
+            return EXIT_STATUS_LOST
+        return info.si_status if info.si_code == os.CLD_EXITED else -info.si_status
 
     def poll(self) -> int | None:
         if self.returncode is None:
@@ -247,6 +289,7 @@ class ForkServer:
     """
 
     def __init__(self, modules: list[str], env: dict[str, str], pass_fds: tuple[int, ...], log, timeout_s=60.0):
+        become_subreaper()  # before any fork: the server's children are ours to reap if it dies
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self.sock = ours
         self.children: dict[int, ForkedProcess] = {}
@@ -264,15 +307,40 @@ class ForkServer:
         finally:
             theirs.close()
         self.sock.send(json.dumps({"preload": modules}).encode())
-        ready = self._receive(timeout_s)
+        ready = self._receive(timeout_s, watch=True)
         if ready is None or "ready" not in ready[0]:
             why = "it exited" if ready is None else ready[0].get("declined", ready[0])
+            if ready is None and not self.dead:
+                why = "it is stopped" if is_stopped(self.proc.pid) else f"no answer within {timeout_s:g} s"
             self.close()
             raise ForkServerError(f"the node fork server did not start: {why}")
 
-    def _receive(self, timeout_s: float | None) -> tuple[dict, list[int]] | None:
-        """The next packet (and its descriptors), or None on EOF or when ``timeout_s`` passes first."""
-        if not select.select([self.sock], [], [], timeout_s)[0]:
+    def _readable(self, timeout_s: float | None, watch: bool) -> bool:
+        """Whether a packet arrives within ``timeout_s``; ``watch``: give up early (False) once the server has been
+        seen stopped for STOPPED_GIVE_UP_S (it would not answer before someone continues it)."""
+        if not watch:
+            return bool(select.select([self.sock], [], [], timeout_s)[0])
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        stopped_since = None
+        while True:
+            now = time.monotonic()
+            wait = STOPPED_POLL_S if deadline is None else max(0.0, min(STOPPED_POLL_S, deadline - now))
+            if select.select([self.sock], [], [], wait)[0]:
+                return True
+            now = time.monotonic()
+            if deadline is not None and now >= deadline:
+                return False
+            if not is_stopped(self.proc.pid):
+                stopped_since = None
+            elif stopped_since is None:
+                stopped_since = now
+            elif now - stopped_since >= STOPPED_GIVE_UP_S:
+                return False
+
+    def _receive(self, timeout_s: float | None, watch: bool = False) -> tuple[dict, list[int]] | None:
+        """The next packet (and its descriptors), or None on EOF or when ``timeout_s`` passes first (``watch``: or
+        once the server is seen stopped, see _readable)."""
+        if not self._readable(timeout_s, watch):
             return None
         try:
             message, fds, _, _ = socket.recv_fds(self.sock, PACKET_BYTES, 1)
@@ -288,7 +356,7 @@ class ForkServer:
         self.dead = True
         for child in self.children.values():
             if child.returncode is None and child._gone():
-                child._exited(EXIT_STATUS_LOST)
+                child._exited(child._reap())
 
     def pump(self, timeout_s: float) -> None:
         """Take in the server's exit reports: wait up to ``timeout_s`` for the first, then take what is there."""
@@ -337,9 +405,12 @@ class ForkServer:
             for fd in theirs:
                 os.close(fd)
         while True:
-            packet = self._receive(60.0)
+            packet = self._receive(SPAWN_REPLY_S, watch=True)
             if packet is None:
-                raise ForkServerError("the node fork server did not answer")
+                if self.dead:
+                    raise ForkServerError("the node fork server has exited")
+                why = "it is stopped" if is_stopped(self.proc.pid) else f"not within {SPAWN_REPLY_S:g} s"
+                raise ForkServerError(f"the node fork server did not answer ({why})")
             message, fds = packet
             if "spawned" in message:
                 child = ForkedProcess(self, message["spawned"], fds[0], [module, *args], **ends)
@@ -348,14 +419,22 @@ class ForkServer:
             self._take_report(message, fds)
 
     def close(self) -> None:
-        """End the server (its children, if any are left, get their parent-death signal)."""
+        """End the server (its children, if any are left, get their parent-death signal, end, and are reaped)."""
         self.sock.close()
         self.dead = True
+        if is_stopped(self.proc.pid):  # (a stopped server would not see its socket close)
+            self.proc.kill()
         with contextlib.suppress(subprocess.TimeoutExpired):
             self.proc.wait(timeout=5.0)
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait()
+        deadline = time.monotonic() + FORKS_END_WAIT_S
+        while True:
+            self._died()  # reaps the forks that have ended
+            if all(c.returncode is not None for c in self.children.values()) or time.monotonic() > deadline:
+                return
+            time.sleep(0.02)
 
 
 if __name__ == "__main__":

@@ -458,6 +458,12 @@ class RosStack:
         Every episode calls it; calling it before the first one starts the processes early. A node found dead
         here is replaced (and counted in ``restarts``): its PID is not the one noted before.
         """
+        forking = self._forks is not False  # (None: the server starts with the first node)
+        self._start_missing()
+        if forking and self._forks is False:  # the fork server was given up meanwhile: its forks ended with it
+            self._start_missing()
+
+    def _start_missing(self) -> None:
         # The sim first: its env is the longest to build, and the processes start on the same cores.
         for name in (*sorted(self.roles, key=lambda role: role != "sim"), MANAGER):
             p = self.procs.get(name)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from lq_ros.transport.ros.fork_server import EXIT_STATUS_LOST, ForkServer, ForkServerError
+from lq_ros.transport.ros.fork_server import SPAWN_REPLY_S, ForkServer, ForkServerError
 
 PROGRAM = """
 import os, sys, time
@@ -101,7 +101,8 @@ def test_a_dead_server_ends_its_children_and_is_reported(toy_env: dict[str, str]
     child.stdin.write(b"sleep\n")
     child.stdin.flush()
     os.kill(server.proc.pid, signal.SIGKILL)
-    assert child.wait(timeout=10) == EXIT_STATUS_LOST  # its parent-death signal ended it; nobody could say how
+    # Its parent-death signal ended it; the launcher, its subreaper, reaped it and says how.
+    assert child.wait(timeout=10) == -signal.SIGTERM
     with pytest.raises(ForkServerError, match="exited"):
         server.spawn("toy_program", [], subprocess.DEVNULL, subprocess.DEVNULL, subprocess.DEVNULL)
     server.close()
@@ -110,3 +111,60 @@ def test_a_dead_server_ends_its_children_and_is_reported(toy_env: dict[str, str]
 def test_a_thread_it_cannot_fork_safely_makes_it_decline(toy_env: dict[str, str], tmp_path: Path) -> None:
     with open(tmp_path / "server.log", "wb") as log, pytest.raises(ForkServerError, match="threads after the imports"):
         ForkServer(["threaded_program"], toy_env, (), log)
+
+
+def test_a_stopped_server_is_given_up_within_seconds(toy_env: dict[str, str], tmp_path: Path) -> None:
+    """SIGSTOP: the spawn fails (the stack then executes its nodes afresh) in seconds, not after a minute."""
+    with open(tmp_path / "server.log", "wb") as log:
+        server = ForkServer(["toy_program"], toy_env, (), log)
+    os.kill(server.proc.pid, signal.SIGSTOP)
+    started = time.monotonic()
+    with pytest.raises(ForkServerError, match=r"did not answer \(it is stopped\)"):
+        server.spawn("toy_program", [], subprocess.DEVNULL, subprocess.DEVNULL, subprocess.DEVNULL)
+    server.close()  # (kills it at once: a stopped server would not see its socket close)
+    assert time.monotonic() - started < SPAWN_REPLY_S
+    assert server.proc.returncode == -signal.SIGKILL
+
+
+def test_a_server_stopped_while_it_starts_is_given_up_within_seconds(toy_env, tmp_path: Path) -> None:
+    (tmp_path / "stopping_program.py").write_text("import os, signal\nos.kill(os.getpid(), signal.SIGSTOP)\n")
+    started = time.monotonic()
+    with (
+        open(tmp_path / "server.log", "wb") as log,
+        pytest.raises(ForkServerError, match="did not start: it is stopped"),
+    ):
+        ForkServer(["stopping_program"], toy_env, (), log)
+    assert time.monotonic() - started < 10.0
+
+
+LAUNCHER = """
+import os, signal, subprocess, sys
+from pathlib import Path
+from lq_ros.transport.ros.fork_server import ForkServer
+with open(sys.argv[1], "wb") as log:
+    server = ForkServer(["toy_program"], dict(os.environ), (), log)
+child = server.spawn("toy_program", [], subprocess.PIPE, subprocess.DEVNULL, subprocess.DEVNULL)
+child.stdin.write(b"sleep\\n")
+child.stdin.flush()
+os.kill(server.proc.pid, signal.SIGKILL)
+code = child.wait(timeout=10)
+stat = Path(f"/proc/{child.pid}/stat")
+state = stat.read_text().rsplit(")", 1)[1].split()[0] if stat.exists() else "gone"
+print(f"code={code} state={state}", flush=True)
+server.close()
+"""
+
+
+def test_a_killed_servers_children_leave_no_zombie_where_init_does_not_reap(toy_env, tmp_path: Path) -> None:
+    """Under an ancestor that adopts orphans and never reaps them (PID 1 of many containers), the nodes of a killed
+    server are reaped by the launcher: none is left a zombie (state Z)."""
+    (tmp_path / "launcher.py").write_text(LAUNCHER)
+    init = (
+        "import ctypes, subprocess, sys; ctypes.CDLL('libc.so.6').prctl(36, 1, 0, 0, 0); "
+        "sys.exit(subprocess.call([sys.executable, *sys.argv[1:]]))"
+    )
+    env = {**toy_env, "PYTHONPATH": f"{toy_env['PYTHONPATH']}:{Path(__file__).resolve().parents[3]}"}
+    run = subprocess.run([sys.executable, "-c", init, str(tmp_path / "launcher.py"), str(tmp_path / "server.log")],
+                         env=env, capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == f"code={-signal.SIGTERM} state=gone", run.stdout
