@@ -217,11 +217,39 @@ def test_a_killed_fork_server_takes_its_idle_nodes_and_the_next_episode_runs_on_
         while any(proc.poll() is None for proc in stack.procs.values()) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert all(proc.poll() is not None for proc in stack.procs.values()), "a node outlived its fork server"
+        # The launcher, their subreaper, reaped them: no zombie left for a PID 1 that may never reap.
+        zombies = [p.pid for p in stack.procs.values() if Path(f"/proc/{p.pid}").exists() and zombie(p.pid)]
+        assert zombies == [], zombies
         second, _ = run_episode(cfg, tmp_path / "second", "ros", stack=stack)
         assert not any(isinstance(proc, ForkedProcess) for proc in stack.procs.values())
     assert first.status == second.status == "failure"
     assert comparable(first.bag_path) == comparable(second.bag_path)
     assert "the node fork server has exited" in (second.bag_path / "logs" / "launcher.log").read_text()
+
+
+def zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return False
+
+
+def test_a_stopped_fork_server_is_given_up_in_seconds_and_the_stack_starts_executed_afresh(tmp_path):
+    """SIGSTOP of the fork server before the nodes start: the stack start gives it up within seconds (a stopped
+    server would never answer; it used to wait 60 s), ends it, and the episode runs on nodes executed afresh."""
+    cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
+    with RosStack() as stack:
+        server = stack._fork_server()  # (started and ready, no node forked yet)
+        os.kill(server.proc.pid, signal.SIGSTOP)
+        started = time.monotonic()
+        stack.start()
+        assert time.monotonic() - started < 30.0
+        assert server.proc.returncode == -signal.SIGKILL
+        assert not any(isinstance(proc, ForkedProcess) for proc in stack.procs.values())
+        outcome, _ = run_episode(cfg, tmp_path / "ros", "ros", stack=stack)
+    assert outcome.status == "failure"  # (the sine policy's, as in process)
+    log = (outcome.bag_path / "logs" / "launcher.log").read_text()
+    assert "the node fork server did not answer (it is stopped); the nodes are executed afresh" in log, log
 
 
 def test_same_config_and_seed_give_identical_bags_and_scores(tmp_path):
