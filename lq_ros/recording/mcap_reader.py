@@ -81,12 +81,24 @@ class TopicBudget:
     bytes: dict[str, int]
     #: what the budget follows, for the damage line (e.g. "an episode of at most 220 ticks")
     why: str
+    #: records the readers may still walk one by one (chunks without a usable message index: a Python loop per
+    #: record, whatever topic it holds); None: no limit
+    records: int | None = None
     #: the limits as given, and the topics that held more
     limits: dict[str, tuple[int, int]] = field(init=False)
+    record_limit: int | None = field(init=False)
     exceeded: set[str] = field(default_factory=set)
 
     def __post_init__(self) -> None:
         self.limits = {t: (self.messages[t], self.bytes[t]) for t in self.messages}
+        self.record_limit = self.records
+
+    def walked(self) -> bool:
+        """Count one record walked; False once more than the limit were."""
+        if self.records is None:
+            return True
+        self.records -= 1
+        return self.records >= 0
 
     def spent(self, topic: str) -> bool:
         return topic in self.messages and (self.messages[topic] <= 0 or self.bytes[topic] <= 0)
@@ -106,6 +118,12 @@ class TopicBudget:
         return (
             f"{topic}: more than the {messages} messages or {size / 2**20:.3g} MiB that {self.why} may hold on it "
             "(a flood); the rest skipped"
+        )
+
+    def walk_damage(self) -> str:
+        return (
+            f"more than the {self.record_limit} records that {self.why} may hold walked one by one (chunks without "
+            "a usable message index); the rest of the file skipped"
         )
 
 
@@ -264,6 +282,9 @@ class StreamingMcapReader:
         while True:
             if len(self.damage) >= MAX_DAMAGE:
                 self._damaged(f"more than {MAX_DAMAGE} problems: reading stopped at byte {at}")
+                return
+            if self.budget is not None and self.budget.records is not None and self.budget.records < 0:
+                self._damaged(self.budget.walk_damage())
                 return
             f.seek(at)
             head = f.read(9)
@@ -465,6 +486,9 @@ class StreamingMcapReader:
         while off < len(data):
             if len(self.damage) >= MAX_DAMAGE:
                 self._damaged(f"more than {MAX_DAMAGE} problems: reading stopped in the chunk at byte {at}")
+                return
+            if self.budget is not None and not self.budget.walked():
+                self._damaged(self.budget.walk_damage())
                 return
             if off + 9 > len(data):
                 self._damaged(f"chunk at byte {at}: record header cut at chunk offset {off}")

@@ -30,6 +30,9 @@ MAX_CHUNK_BYTES = 256 << 20
 #: A chunk declaring more than this is decompressed in steps of this size, its record headers checked as they
 #: arrive: a zero-filled chunk (a decompression bomb) is stopped after its first step.
 _STEP_BYTES = 8 << 20
+#: Record headers checked as such a chunk arrives (a Python step each): past them the chunk is decompressed up to
+#: its declared size and its walk stops at the first invalid header (4M tiny records took 5 s to check).
+_MAX_CHECKED_HEADERS = 1 << 16
 #: The largest chunk record read: the largest chunk, compressed (zstd and lz4 grow incompressible data by less
 #: than 1/128), plus its header. A longer record is skipped without being read.
 MAX_CHUNK_RECORD_BYTES = MAX_CHUNK_BYTES + (MAX_CHUNK_BYTES >> 7) + 4096
@@ -191,14 +194,16 @@ def _zstd_decompressor():
     return _THREAD.zstd
 
 
-def _check_headers(data: bytearray, off: int, at: int) -> int:
-    """Check the record headers of a chunk being decompressed from ``off`` on; the next header's offset."""
-    while off + 9 <= len(data):
+def _check_headers(data: bytearray, off: int, at: int, left: int) -> tuple[int, int]:
+    """Check at most ``left`` record headers of a chunk being decompressed, from ``off`` on; the next header's
+    offset and how many more may be checked."""
+    while off + 9 <= len(data) and left > 0:
         op, length = _RECORD_HEADER.unpack_from(data, off)
         if problem := _record_problem(op, length):
             raise ValueError(f"chunk at byte {at}: {problem} at chunk offset {off}; chunk skipped")
         off += 9 + length
-    return off
+        left -= 1
+    return off, left
 
 
 def _decompress(compression: str, payload: memoryview, raw_size: int, at: int) -> bytes | bytearray | memoryview:
@@ -228,14 +233,14 @@ def _decompress(compression: str, payload: memoryview, raw_size: int, at: int) -
         parts = bytearray(first)
     else:
         parts = bytearray()
-    checked = 0
+    checked, left = 0, _MAX_CHECKED_HEADERS
     while len(parts) < limit:
         piece = read(min(_STEP_BYTES, limit - len(parts)))
         if not piece:
             break
         parts += piece
         if raw_size > _STEP_BYTES:
-            checked = _check_headers(parts, checked, at)
+            checked, left = _check_headers(parts, checked, at, left)
     return parts
 
 

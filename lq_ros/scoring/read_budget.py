@@ -37,6 +37,11 @@ BYTES_PER_TICK = {
 }  # fmt: skip
 
 
+#: Records the reader may walk one by one per tick (those of chunks without a usable message index, every topic's:
+#: a Python step each, ~5 us). This stack's bags hold ~60 records a tick with the physics-rate topics.
+RECORDS_PER_TICK = 256
+
+
 def run_step_budget(cfg: dict) -> int | None:
     """The run's step budget from its configuration: ``max_steps``, else its preset's budget for its suite (the
     paper's for bags from before presets); None when unknown or not a positive whole number (hostile metadata)."""
@@ -68,5 +73,6 @@ def topic_budget(roles: dict[str, str], metadata: dict) -> TopicBudget:
     return TopicBudget(
         messages={topic: MESSAGES_PER_TICK[role] * ticks for topic, role in roles.items()},
         bytes={topic: BYTES_PER_TICK[role] * ticks for topic, role in roles.items()},
+        records=RECORDS_PER_TICK * ticks,
         why=why,
     )

@@ -145,3 +145,26 @@ def test_task_states_with_too_many_objects_are_skipped_as_undecodable(tmp_path):
     row = score_bag(bag)
     assert row["partial"] is True and row["damaged_topics"] == [m.TASK_STATE.name]
     assert any(f"3 undecodable {m.TASK_STATE.name} messages" in w and "300 objects" in w for w in row["warnings"])
+
+
+def test_chunks_of_millions_of_tiny_records_without_an_index_are_walked_up_to_the_budget(tmp_path):
+    """Three chunks of 4,000,000 empty messages of an unknown channel each (a 40 KB bag): each record is a Python
+    step of the walk (21 s a chunk); the walk stops at the budget, the episode before them is intact."""
+    import struct
+
+    import zstandard
+
+    from lq_ros.scoring.read_budget import RECORDS_PER_TICK
+    from tests.recording.test_hostile_bags import chunk_record, insert_before_data_end
+
+    bag = rewritten(tmp_path / "ep", [])
+    records = (struct.pack("<BQ", 0x05, 26) + struct.pack("<HIQQ", 999, 0, 0, 0) + bytes(4)) * 4_000_000
+    chunk = chunk_record("zstd", zstandard.ZstdCompressor().compress(records), len(records))
+    for _ in range(3):
+        insert_before_data_end(bag, chunk)
+    assert sum(f.stat().st_size for f in bag.iterdir()) < 60_000
+    row, cost = scored(bag)
+    assert cost["wall_s"] < 60 and cost["rss_mb"] < 1024, cost
+    assert row["status"] == "success" and row["jerk_mean"] is not None and row["partial"] is True
+    walked = f"more than the {RECORDS_PER_TICK * TICKS_READ} records that an episode of at most 220 ticks"
+    assert any(walked in w for w in row["warnings"]), row["warnings"]
