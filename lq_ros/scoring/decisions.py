@@ -6,7 +6,8 @@ Two kinds of p-value, two populations:
 - the exact McNemar test (lq_ros/scoring/paired_tests.py) treats the paired episodes as independent draws: it
   speaks for **these tasks, at other init states**. Episodes cluster in tasks (one task 0/10, another 10/10), so
   read as a claim about the method on the suite it is anti-conservative (with 10 tasks and a task-to-task spread
-  of SD 0.2 in the true difference it rejects a zero mean effect in about 18% of samples at nominal 5%);
+  of SD 0.2 in the true difference it rejects a zero mean effect in 14% of samples at nominal 5%,
+  benchmarks/cluster_test_size.py);
 - :func:`sign_flip_p`, the **within-task sign-flip permutation test** of the per-task mean differences, takes the
   task as the unit: under "no effect on average over tasks drawn from the suite" (and per-task differences
   symmetric about 0) each task's mean difference is as likely negated, so the p-value is the share of the 2^k sign
