@@ -28,7 +28,7 @@ def _store(root: Path) -> None:
                 ok = arm == "lookahead" or task == 4
                 row = {"policy": "oft", "policy_args": args, "mode": "async", "latency_s": 0.2,
                        "latency_dist": "constant", "suite": "libero_object", "task": task, "init": init, "seed": 7,
-                       "status": "success" if ok else "failure", "completion_steps": 100 if ok else 280,
+                       "status": "success" if ok else "failure", "success": ok, "completion_steps": 100 if ok else 280,
                        "completion_time_s": 5.0 if ok else 14.0, "action_ticks": 90, "energy_total_j": 500.0,
                        "step_budget": 280, "git_commit": "abc", "cpu_class": "x86", "versions": "{}"}  # fmt: skip
                 key = f"{arm}-{task}-{init}"
