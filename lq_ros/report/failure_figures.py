@@ -44,7 +44,7 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
     rows = sorted({(s, p) for s, p in zip(frame["suite"], frame["policy"], strict=True)}, key=str)
     protocols = [p for p in PROTOCOLS if p in set(frame["mode"])]
     latencies = sorted(frame["latency_s"].dropna().unique())
-    fig, axes = plt.subplots(len(rows), len(protocols), figsize=(4.2 * len(protocols) + 1.8, 2.3 * len(rows) + 0.9),
+    fig, axes = plt.subplots(len(rows), len(protocols), figsize=(4.2 * len(protocols) + 2.6, 2.3 * len(rows) + 1.2),
                              squeeze=False, sharex=True, sharey=True)  # fmt: skip
     x = np.arange(len(latencies))
     small = found_degenerate = False
@@ -97,14 +97,17 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
                title_fontsize=8)  # fmt: skip
     note = (
         "Bar height: the cell's failure rate; its parts: the failure modes (docs/guide/failure_modes.md). "
-        "* not validated against an observer: the classifier's reading of the task state. Hatched, above a gap: "
+        "* not validated against an observer: the classifier's reading of the task state (the others are validated "
+        "on LIBERO-Spatial and LIBERO-Object only). Hatched, above a gap: "
         "no fresh action ran (the protocol starved the arm), not a policy failure."
     )
     if small:
         note += f" Hatched outline: fewer than {MIN_JOIN_N} classified episodes, no bar."
     if found_degenerate:
         note += " Red: episodes of a degenerate async protocol (chunks no longer than N: the arm never moves)."
-    fig.text(0.01, 0.005, textwrap.fill(note, 170), fontsize=7, va="bottom")
+    width = int(fig.get_figwidth() * 17)  # characters of 7 pt text per line across the figure
+    fig.text(0.01, 0.005, textwrap.fill(note, width), fontsize=7, va="bottom")
     fig.suptitle("Failure modes by latency", fontsize=11)
-    fig.tight_layout(rect=(0, 0.05, 0.83, 0.97))
+    legend_in = 2.4  # the legend's column, in
+    fig.tight_layout(rect=(0, 0.03 + 0.45 / fig.get_figheight(), 1 - legend_in / fig.get_figwidth(), 0.97))
     return fig
