@@ -12,7 +12,6 @@ the bag is opened (provisional: every topic, the run metadata, no counts) and is
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -161,14 +160,15 @@ def _metadata_document(files: list[_FileStats], custom_data: dict[str, str]) -> 
 
 
 def _write_metadata(bag: Path, document: dict) -> None:
-    """Replace metadata.yaml atomically (write + rename): a kill leaves the old or the new file, whole."""
+    """Replace metadata.yaml atomically (write + rename): a kill leaves the old or the new file, whole; never
+    written through a link (``lq reindex`` writes into bag folders that may come from anyone)."""
     import yaml
+
+    from lq_ros.core.safe_write import write_text
 
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
     text = yaml.dump(document, Dumper=dumper, sort_keys=False, default_flow_style=False, width=120)
-    tmp = bag / ".metadata.yaml.tmp"
-    tmp.write_text(text)
-    os.replace(tmp, bag / "metadata.yaml")
+    write_text(bag / "metadata.yaml", text)
 
 
 # -- the writer ---------------------------------------------------------------------------------------------

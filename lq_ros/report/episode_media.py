@@ -18,6 +18,7 @@ from pathlib import Path
 import pandas as pd
 
 from lq_ros.core.bounded_file import FileRefused, read_results_json
+from lq_ros.core.safe_write import output_folder
 from lq_ros.report.replay import DEFAULT_CAMERAS, DEFAULT_SIZE_PX, ReplayRefused
 
 #: Columns added to the episode table: figure path, video path, replay verdict.
@@ -116,6 +117,8 @@ def add_episode_media(
     steps = out.get("completion_steps", pd.Series(dtype=float))
     ticks = {i: int(steps[i]) if pd.notna(steps.get(i)) else 1 for i in chosen}
     total, done = sum(ticks.values()), 0
+    if chosen:
+        output_folder(out_dir / VIDEO_DIR, "video folder", follow=False)  # (in a report folder: never a link)
     for i in chosen:
         bag = bags[i]
         mp4 = out_dir / VIDEO_DIR / f"{names[i]}.mp4"

@@ -22,6 +22,7 @@ import numpy as np  # noqa: E402
 from numpy.typing import ArrayLike, NDArray  # noqa: E402
 
 from lq_ros.core.executor_protocol import Source  # noqa: E402
+from lq_ros.core.safe_write import output_folder, save_figure  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S, NUM_WAIT_STEPS  # noqa: E402
 from lq_ros.report.replay import SOURCE_STYLE, ReplayRefused, read_recording  # noqa: E402
 from lq_ros.scoring import metrics  # noqa: E402
@@ -351,8 +352,8 @@ def write_episode_figure(bag: Path, path: Path, dpi: int = DPI) -> Path:
     """Draw ``bag``'s figure into ``path`` (PNG); returns the path."""
     fig = episode_figure(load_episode_view(bag))
     try:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=dpi)
+        output_folder(Path(path).parent, "figure folder", follow=False)  # (in a report folder: never a link)
+        save_figure(fig, path, dpi=dpi)
     finally:
         plt.close(fig)
     return Path(path)

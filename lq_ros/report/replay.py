@@ -31,6 +31,7 @@ from lq_ros.core.control import ControlMode, ControlStart
 from lq_ros.core.cpu import SIMD_FLAGS
 from lq_ros.core.executor_protocol import Source, validate_chunk
 from lq_ros.core.run_config import TRANSPORTS, cpu_info
+from lq_ros.core.safe_write import commit, output_folder, reserve_temporary, write_text
 from lq_ros.core.suite_constants import CONTROL_DT_S, FPS
 from lq_ros.recording.episode_bag import RUN_METADATA_KEY, read_run_metadata
 from lq_ros.wire import messages as m
@@ -422,8 +423,11 @@ def _replay(rec: Recording, cfg: ReplaySetup, video, cameras, size_px, env, on_t
             raise ReplayRefused(f"cannot build the recorded task: {exc}") from exc
     writer = None
     total = rec.ticks
-    # Written under a temporary name, renamed when complete: a stopped replay leaves no truncated video.
-    partial = Path(video).with_name(Path(video).name + ".part") if video is not None else None
+    # Written under a fresh temporary name (never through a link), renamed when complete: a stopped replay leaves
+    # no truncated video.
+    if video is not None:
+        output_folder(Path(video).parent, "video folder")
+    partial = reserve_temporary(video) if video is not None else None
     try:
         try:
             state = env.reset(cfg.init, cfg.seed, control_mode=cfg.control_mode)
@@ -473,7 +477,7 @@ def _replay(rec: Recording, cfg: ReplaySetup, video, cameras, size_px, env, on_t
         if writer is not None:
             writer.close()
             writer = None
-            partial.replace(video)
+            commit(partial, video)
     finally:
         if writer is not None:
             writer.close()
@@ -644,4 +648,4 @@ class Overlay:
 
 def write_sidecar(result: ReplayResult, path: Path) -> None:
     """The replay verdict as JSON next to its video (the report reads it back instead of replaying)."""
-    path.write_text(json.dumps(result.to_dict(), indent=1, sort_keys=True))
+    write_text(path, json.dumps(result.to_dict(), indent=1, sort_keys=True))

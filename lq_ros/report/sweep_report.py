@@ -25,6 +25,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from lq_ros.core.bounded_file import FileRefused  # noqa: E402
+from lq_ros.core.safe_write import output_folder, save_figure, write_csv, write_text  # noqa: E402
 from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
@@ -343,7 +344,7 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
         cell = f"[bag]({_link(bag, prefix)})" if isinstance(bag, str) and bag else "–"
         cells = [*(fmt_cell(r[c]).replace("|", "/") for c in header), cell, *media.md_cells(r)]
         lines.append("| " + " | ".join(cells) + " |")
-    path.write_text("\n".join(lines) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
 
 
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}
@@ -409,7 +410,7 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
         )
         parts.append(f"<tr{cls}>{cells}<td style='text-align:left'>{link}</td>{media.html_cells(r)}</tr>")
     parts.append("</table></body></html>")
-    path.write_text("\n".join(parts))
+    write_text(path, "\n".join(parts))
 
 
 @dataclass
@@ -435,34 +436,35 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
     ``all_episodes``: see load_episodes. Every episode gets a figure; ``videos``: replay videos per
     (policy, protocol, Δt_sim) cell (lq_ros/report/episode_media.py); ``progress(stage, done, total)`` follows both."""
     results_dir = Path(results_dir)
-    out_dir = Path(out_dir) if out_dir else results_dir / "report"
-    out_dir.mkdir(parents=True, exist_ok=True)
+    # A folder of this user's; the default one inside RESULTS_DIR (which may come from anyone) never a link.
+    out_dir = output_folder(out_dir, "--out") if out_dir else output_folder(results_dir / "report", "report folder",
+                                                                          follow=False)  # fmt: skip
     episodes, skipped = load_checked_episodes(results_dir, all_episodes=all_episodes)
     pooled = figure_aggregates(episodes, n_boot=n_boot, seed=seed)
     per_task = agg.aggregate(episodes, n_boot=n_boot, seed=seed)
     files = agg.write_tables(episodes, per_task, out_dir)
     pooled_csv = out_dir / "aggregates_pooled.csv"
-    pooled.to_csv(pooled_csv, index=False)
+    write_csv(pooled, pooled_csv)
     files["aggregates_pooled.csv"] = pooled_csv
     paired = paired_aggregates(episodes, pooled, n_boot=n_boot, seed=seed)
     paired_csv = out_dir / "paired_vs_zero_latency.csv"
-    paired.to_csv(paired_csv, index=False)
+    write_csv(paired, paired_csv)
     files[paired_csv.name] = paired_csv
     plan = analysis_plan(results_dir)
     comparisons = policy_comparisons(episodes, n_boot=n_boot, seed=seed, plan=plan)
     comparisons_csv = out_dir / "paired_policies.csv"
-    comparisons.to_csv(comparisons_csv, index=False)
+    write_csv(comparisons, comparisons_csv)
     files[comparisons_csv.name] = comparisons_csv
     attribution = budget_decomposition(episodes, n_boot=n_boot, seed=seed)
     if not attribution.empty:
         attribution_csv = out_dir / "attribution.csv"
-        attribution.to_csv(attribution_csv, index=False)
+        write_csv(attribution, attribution_csv)
         files[attribution_csv.name] = attribution_csv
     fractions = failure_aggregate.mode_fractions(episodes, FIGURE_KEYS, n_boot=n_boot, seed=seed)
     failures = None
     if not fractions.empty:
         fractions_csv = out_dir / "failure_modes.csv"
-        fractions.to_csv(fractions_csv, index=False)
+        write_csv(fractions, fractions_csv)
         files[fractions_csv.name] = fractions_csv
     figures = make_figures(pooled, episodes) | report_async.make_boundary_figures(episodes, n_boot=n_boot, seed=seed)
     failure_figure = fig_failure_modes(fractions)
@@ -471,7 +473,7 @@ def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int 
         failures = failure_aggregate.shift_sentences(fractions, ("suite", "policy", "mode"), episodes=episodes)
     for name, fig in figures.items():
         path = out_dir / f"{name}.png"
-        fig.savefig(path, dpi=110)
+        save_figure(fig, path, dpi=110)
         files[path.name] = path
         if not keep_figures:
             plt.close(fig)

@@ -38,6 +38,7 @@ import pandas as pd
 from numpy.typing import ArrayLike
 
 from lq_ros.core.run_config import GROUP_KEYS
+from lq_ros.core.safe_write import output_folder, replacing, write_csv
 from lq_ros.core.suite_constants import CONTROL_DT_S
 from lq_ros.scoring.bag_scorer import BagError, find_bags, score_bag
 from lq_ros.scoring.budget import (
@@ -343,20 +344,19 @@ def _columnar(column: pd.Series) -> pd.Series:
 
 
 def write_tables(episodes: pd.DataFrame, aggregates: pd.DataFrame, out_dir: Path) -> dict[str, Path]:
-    """episodes.{csv,parquet} and aggregates.{csv,parquet} in ``out_dir``."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    """episodes.{csv,parquet} and aggregates.{csv,parquet} in ``out_dir`` (a folder of this user's, made if
+    missing), each whole or not at all and never through a link (the folder may be a bag folder from anyone)."""
+    out_dir = output_folder(out_dir, "output folder")
     written = {}
     for name, frame in (("episodes", episodes), ("aggregates", aggregates)):
         frame = frame.copy()
         for column in frame.columns:
             frame[column] = _columnar(frame[column])
-        for ext in ("csv", "parquet"):
-            path = out_dir / f"{name}.{ext}"
-            tmp = path.with_suffix(f".{ext}.tmp")
-            frame.to_csv(tmp, index=False) if ext == "csv" else frame.to_parquet(tmp, index=False)
-            tmp.replace(path)  # atomic: a reader never sees half a table
-            written[f"{name}.{ext}"] = path
+        csv_path, parquet_path = out_dir / f"{name}.csv", out_dir / f"{name}.parquet"
+        write_csv(frame, csv_path)
+        with replacing(parquet_path, binary=True) as f:
+            frame.to_parquet(f, index=False)
+        written |= {csv_path.name: csv_path, parquet_path.name: parquet_path}
     return written
 
 

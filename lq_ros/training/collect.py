@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lq_ros.core.safe_write import replacing
 from lq_ros.core.suite_constants import ACTION_DIM, ACTION_HIGH, ACTION_LOW
 from lq_ros.policies.learned.features import layout_for, raw_from_observation
 from lq_ros.training.dataset import Episode, write_dataset
@@ -376,10 +377,8 @@ def _collect_task_star(args: tuple[CollectConfig, int, Path]):
             return result
     result = collect_task(cfg, task_id)
     shard.parent.mkdir(parents=True, exist_ok=True)
-    tmp = shard.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
+    with replacing(shard, binary=True) as f:  # never through a link (as every file written in --out)
         pickle.dump((cfg.to_dict(), result), f)
-    tmp.replace(shard)
     return result
 
 

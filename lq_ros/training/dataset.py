@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lq_ros.core.safe_write import replacing, write_text
 from lq_ros.core.suite_constants import FPS
 
 CODEBASE_VERSION = "v2.1"
@@ -96,7 +97,8 @@ def write_dataset(root: Path, episodes: list[Episode], info_extra: dict, tasks: 
         if flat.shape[1] != widths[name]:
             raise ValueError(f"{name}: width {flat.shape[1]} != {widths[name]}")
         arrays[name] = pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), widths[name])
-    pq.write_table(pa.table(arrays), root / DATA_FILE)
+    with replacing(root / DATA_FILE, binary=True) as f:  # never through a link (as every file written in --out)
+        pq.write_table(pa.table(arrays), f)
 
     features = {name: {"dtype": dtype, "shape": [1], "names": None} for name, dtype in SCALAR_COLUMNS.items()}
     for name in VECTOR_COLUMNS:
@@ -112,8 +114,8 @@ def write_dataset(root: Path, episodes: list[Episode], info_extra: dict, tasks: 
         "features": features,
         **info_extra,
     }
-    (root / "meta" / "info.json").write_text(json.dumps(info, indent=1, default=str))
-    with open(root / "meta" / "episodes.jsonl", "w") as f:
+    write_text(root / "meta" / "info.json", json.dumps(info, indent=1, default=str))
+    with replacing(root / "meta" / "episodes.jsonl") as f:
         for ei, ep in enumerate(episodes):
             row = {
                 "episode_index": ei,
@@ -126,7 +128,7 @@ def write_dataset(root: Path, episodes: list[Episode], info_extra: dict, tasks: 
                 **ep.extra,
             }
             f.write(json.dumps(row) + "\n")
-    with open(root / "meta" / "tasks.jsonl", "w") as f:
+    with replacing(root / "meta" / "tasks.jsonl") as f:
         for ti in sorted(tasks):
             f.write(json.dumps({"task_index": ti, "task": tasks[ti]}) + "\n")
     return info

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lq_ros.core.safe_write import replacing, save_figure, write_text
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.policies.learned.features import FeatureLayout, features, goal_slots
 from lq_ros.training.dataset import read_frames
@@ -282,7 +283,8 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     name = cfg.run_name(layout.suite)
     weights = out / f"{name}.pt"
-    torch.save(final.state_dict(), weights)
+    with replacing(weights, binary=True) as f:  # never through a link (as every file written in --out)
+        torch.save(final.state_dict(), f)
     write_loss_curves(out / name, log, f"{name}: {cfg.policy}, H={cfg.horizon}, {n_params} parameters")
     meta = {
         "format": CHECKPOINT_FORMAT,
@@ -332,7 +334,7 @@ def train(cfg: TrainConfig, data: list[Path], out: Path) -> dict:
         },
         "versions": versions(),
     }
-    (out / f"{name}.json").write_text(json.dumps(meta, indent=1))
+    write_text(out / f"{name}.json", json.dumps(meta, indent=1))
     _log(f"wrote {weights} ({weights.stat().st_size / 1e6:.2f} MB, {n_params} parameters)")
     return meta
 
@@ -352,7 +354,7 @@ def write_loss_curves(stem: Path, log: list[dict], title: str) -> None:
 
     keys = ("step", "train_loss", "val_loss", "wall_s")
     lines = [",".join(keys)] + [",".join("" if e[k] is None else f"{e[k]:.6g}" for k in keys) for e in log]
-    stem.with_name(stem.name + ".loss.csv").write_text("\n".join(lines) + "\n")
+    write_text(stem.with_name(stem.name + ".loss.csv"), "\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=80)
     steps = [e["step"] for e in log]
     marker = "o" if len(log) < 10 else None  # a short log is a few points: show them
@@ -366,5 +368,5 @@ def write_loss_curves(stem: Path, log: list[dict], title: str) -> None:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(stem.with_name(stem.name + ".loss.png"))
+    save_figure(fig, stem.with_name(stem.name + ".loss.png"))
     plt.close(fig)

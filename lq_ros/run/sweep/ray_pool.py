@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 from lq_ros.core.run_config import RunConfig
+from lq_ros.core.safe_write import write_text
 from lq_ros.recording.episode_folder import episode_folders
 from lq_ros.run.sweep.worker import EpisodeWorker, default_workers
 from lq_ros.transport.processes import (
@@ -294,7 +295,7 @@ class RayPool:
                 if isinstance(exc, ray.exceptions.RayActorError | ray.exceptions.WorkerCrashedError):
                     self._actors[slot] = self._actor_cls.remote(*self._args)
             Path(log_path).parent.mkdir(parents=True, exist_ok=True)
-            Path(log_path).write_text(result.pop("log_text", ""))
+            write_text(Path(log_path), result.pop("log_text", ""))  # (never through a link)
             for data in result.pop("tars", []):
                 _unpack_dir(data, self._bags_dir)
             if result.get("bag"):
