@@ -5,6 +5,7 @@ from __future__ import annotations
 import atexit
 import os
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -19,6 +20,8 @@ from lq_ros.cli.report import report
 from lq_ros.cli.run import run
 from lq_ros.cli.score import score
 from lq_ros.cli.sweep import sweep
+from lq_ros.core.bounded_file import FileRefused
+from lq_ros.core.safe_write import WriteRefused
 from lq_ros.training import cli as _learned_cli
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="LIBERO-LQ: latency-aware VLA evaluation on ROS 2.")
@@ -82,9 +85,11 @@ def main() -> int:
         return 2
     _importable_current_directory()
     if not sys.stdout.isatty() and "TERMINAL_WIDTH" not in os.environ and may_print_help(sys.argv[1:]):
-        import typer.rich_utils  # (with rich's markdown renderer: imported only for help, not for every command)
+        # (with rich's markdown renderer: imported only for help, not for every command). Not ``import
+        # typer.rich_utils``, which would make ``typer`` a local name of main() for the whole function.
+        from typer import rich_utils
 
-        typer.rich_utils.MAX_WIDTH = PIPED_WIDTH  # --help piped: no option name cut short
+        rich_utils.MAX_WIDTH = PIPED_WIDTH  # --help piped: no option name cut short
     from lq_ros.run.quiet import quiet_simulator_banners
 
     quiet_simulator_banners()
@@ -107,6 +112,38 @@ def main() -> int:
     except typer.Abort:
         console.print("Aborted!")
         return 1
+    except (WriteRefused, FileRefused) as exc:  # a file or folder the stack will not write or read: one line
+        from rich.markup import escape
+
+        console.print(f"[red]error:[/red] {escape(' '.join(str(exc).split()))}", soft_wrap=True, highlight=False)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - a bug: one line and where its traceback is, never a traceback
+        return _unexpected(exc)
+
+
+def _unexpected(exc: Exception) -> int:
+    """An exception nobody expected (a bug): one line on stderr naming it and the file holding its traceback (in
+    this user's private temporary folder); exit code 1."""
+    import tempfile
+    import time
+    import traceback
+
+    from rich.markup import escape
+
+    from lq_ros.core.safe_write import write_text
+    from lq_ros.transport.processes import private_folder
+
+    what = " ".join(f"{type(exc).__name__}: {exc}".split())[:300]
+    try:
+        folder = private_folder(Path(tempfile.gettempdir()) / f"lq_ros_errors-{os.getuid()}")
+        log = folder / f"lq-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.log"
+        write_text(log, f"lq {' '.join(sys.argv[1:])}\n" + "".join(traceback.format_exception(exc)))
+        where = f"the traceback: {log}"
+    except Exception as failed:  # noqa: BLE001 - the message must still reach the user
+        where = f"no traceback file ({type(failed).__name__}: {failed})"
+    console.print(f"[red]error:[/red] unexpected {escape(what)} (a bug in lq; {escape(where)})", soft_wrap=True,
+                  highlight=False)  # fmt: skip
+    return 1
 
 
 def may_print_help(args: list[str]) -> bool:

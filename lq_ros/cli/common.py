@@ -110,6 +110,18 @@ def _refuse(message: str) -> None:
     raise typer.Exit(2)
 
 
+def _out_folder(path: Path, flag: str = "--out") -> Path:
+    """``path`` as this user's output folder, made if missing; a regular file, a dangling link or another user's
+    folder is refused in one line (lq_ros/core/safe_write.py)."""
+    from lq_ros.core.safe_write import WriteRefused, output_folder
+
+    try:
+        return output_folder(path, flag)
+    except WriteRefused as exc:
+        _refuse(str(exc))
+    return path
+
+
 def _make_room(bag: Path, overwrite: bool) -> None:
     """The episode's bag folder must be new: refuse a rerun into the same --out, or replace it on request."""
     import shutil

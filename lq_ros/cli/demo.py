@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from lq_ros.cli.common import POLICY_HELP, Transport, _make_room, _refuse, console, print_rows
+from lq_ros.cli.common import POLICY_HELP, Transport, _make_room, _out_folder, _refuse, console, print_rows
 from lq_ros.cli.run import run_episode
 from lq_ros.core.run_config import RunConfig
 
@@ -32,6 +32,7 @@ def demo(
         validate.check_run(configs[0])
     except ValueError as exc:
         _refuse(str(exc))
+    _out_folder(out)
     rows = []
     with contextlib.ExitStack() as keep:
         # One long-lived node stack for the four episodes (docs/design/lifecycle.md), as a sweep worker keeps one.

@@ -19,6 +19,7 @@ from lq_ros.cli.common import (
     SUITE_HELP,
     Budgets,
     Transport,
+    _out_folder,
     _parse_policy_args,
     _refuse,
     console,
@@ -57,7 +58,7 @@ def _csv(text: str, flag: str, kind=str) -> list:
     """``a,b,c`` -> [a, b, c] converted by ``kind``; a bad item is one line naming the flag."""
     items = [t for t in (x.strip() for x in text.split(",")) if t]
     try:
-        return [kind(t) for t in items]
+        return [kind(t if kind is str or t.isascii() else "not ASCII") for t in items]  # numbers: digits 0-9 only
     except ValueError:
         _refuse(f"{flag}: expected a comma-separated list of {kind.__name__}s, got {text!r}")
     return []
@@ -66,7 +67,7 @@ def _csv(text: str, flag: str, kind=str) -> list:
 def _number_or_text(text: str) -> float | str:
     """A latency as YAML should hold it: seconds as a number, a distribution as its text."""
     try:
-        return float(text)
+        return float(text if text.isascii() else "not ASCII")  # another script's digits stay text (then refused)
     except ValueError:
         return text
 
@@ -217,11 +218,14 @@ def eval_(
         sw.check_policies(spec.configs)
     except sw.SpecError as exc:
         _refuse(str(exc))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / EVAL_SPEC_FILE).write_text(yaml.safe_dump(raw, sort_keys=False, allow_unicode=True))
-    console.print(f"{len(spec.configs)} episodes; the spec: {out / EVAL_SPEC_FILE}", highlight=False)
+    _out_folder(out)
     try:
-        summary = _run_sweep_with_progress(spec, out, workers=workers, transport=transport.value, overwrite=overwrite)
+        # The folder's lock first: a refused lq eval (another sweep runs there) writes nothing, not even the spec.
+        with sw.ResultStore(out).lock():
+            sw.atomic_write_text(out / EVAL_SPEC_FILE, yaml.safe_dump(raw, sort_keys=False, allow_unicode=True))
+            console.print(f"{len(spec.configs)} episodes; the spec: {out / EVAL_SPEC_FILE}", highlight=False)
+            summary = _run_sweep_with_progress(spec, out, workers=workers, transport=transport.value,
+                                               overwrite=overwrite)  # fmt: skip
     except (sw.RayConnectError, sw.StoreError) as exc:
         _refuse(str(exc))
     with contextlib.redirect_stdout(sys.stderr):

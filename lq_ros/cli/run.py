@@ -26,6 +26,7 @@ from lq_ros.cli.common import (
     LatencyRounding,
     Transport,
     _make_room,
+    _out_folder,
     _parse_policy_args,
     _refuse,
     console,
@@ -140,7 +141,7 @@ def run(
     latency_fields: dict = {"latency_dist": latency}  # a distribution (RunConfig parses and checks it)
     if ":" not in latency:
         try:
-            seconds = float(latency)
+            seconds = float(latency if latency.isascii() else "not ASCII")  # digits 0-9 only
         except ValueError:
             _refuse(f"--latency {latency!r}: expected seconds or a distribution (docs/design/async.md)")
         bounded = 0 <= seconds <= MAX_LATENCY_S  # else RunConfig refuses it in one line
@@ -189,6 +190,7 @@ def run(
         _refuse(str(exc))
     from lq_ros.transport.processes import ResourceBusy, claimed
 
+    _out_folder(out)
     try:  # one run per bag folder (a second lq run of this configuration into this --out), a domain id held: one line
         with claimed(out / cfg.episode_name(), "bag folder"):
             _make_room(out / cfg.episode_name(), overwrite)

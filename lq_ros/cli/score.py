@@ -16,6 +16,7 @@ from lq_ros.cli.common import (
     print_error_reasons,
     print_rows,
 )
+from lq_ros.core.safe_write import WriteRefused, output_folder
 from lq_ros.scoring.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
 #: Largest --n-boot lq score accepts (the option is unused: kept for scripts that pass it).
@@ -77,6 +78,12 @@ def score(
     bags = find_bags(path)
     if not bags:
         _refuse(f"no rosbag2 MCAP bag at or below {path}")
+    single_bag = bags == [path] and out is None
+    if not single_bag:  # where the tables go: checked before any bag is scored
+        try:
+            output_folder(out, "--out") if out else output_folder(path if path.is_dir() else path.parent, "folder")
+        except WriteRefused as exc:
+            _refuse(f"{exc}; the tables go there (or give --out)" if out is None else str(exc))
     references = _read_references(efficiency_reference) if efficiency_reference else None
     kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate.value,
                   energy_rate=energy_rate.value, elec_coeff=elec_coeff, overhead_w=overhead_w)  # fmt: skip
@@ -87,8 +94,7 @@ def score(
     for row in rows:
         for warning in json.loads(row.get("warnings") or "[]"):
             console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
-    # One bag given as such: its row. A folder of bags, even of one: the aggregates too.
-    single_bag = bags == [path] and out is None
+    # One bag given as such: its row. A folder of bags, even of one: the aggregates too (single_bag above).
     if as_json:
         from lq_ros.scoring.bag_scorer import to_json
 

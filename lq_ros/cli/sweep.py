@@ -41,7 +41,7 @@ def sweep(
         sw.check_policies(sweep_spec.configs)
     except sw.SpecError as exc:
         _refuse(str(exc) if str(exc).startswith(str(spec)) else f"{spec}: {exc}")
-    out = out or Path("bags/sweeps") / sweep_spec.name
+    out = out or Path("bags/sweeps") / sweep_spec.name  # (checked, and made, under its lock: ResultStore.lock)
     try:
         summary = _run_sweep_with_progress(
             sweep_spec, out, workers=workers, transport=transport.value if transport else None,

@@ -87,9 +87,9 @@ def applied_seconds(ticks: int, control_dt_s: float = CONTROL_DT_S) -> float:
 
 def _number(text: str, what: str, spec: str) -> float:
     try:
-        value = float(text)
+        value = float(text if text.isascii() else "not ASCII")  # float() takes any script's digits: only 0-9 here
     except ValueError:
-        raise LatencyError(f"latency {spec!r}: {what} {text!r} is not a number") from None
+        raise LatencyError(f"latency {spec!r}: {what} {text!r} is not a number (digits 0-9)") from None
     if not math.isfinite(value):
         raise LatencyError(f"latency {spec!r}: {what} must be finite, got {text}")
     return value
@@ -128,7 +128,7 @@ def _read_trace(path: Path, spec: str) -> tuple[tuple[float, ...], str]:
         if not text:
             continue
         try:
-            value = float(text)
+            value = float(text if text.isascii() else "not ASCII")  # digits 0-9 only
         except ValueError:
             raise LatencyError(f"latency trace {path}, line {i}: {text!r} is not a number of seconds") from None
         if not (math.isfinite(value) and 0 <= value <= MAX_LATENCY_S):

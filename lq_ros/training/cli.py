@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from lq_ros.core.safe_write import output_folder
 from lq_ros.training.recipe import KIND_RECIPE, TrainConfig, parse_ids
 
 #: TrainConfig's defaults (the shipped recipe): `lq train`'s option defaults, so the two cannot drift apart.
@@ -83,7 +84,7 @@ def collect(
     from lq_ros.training.collect import collect as run_collect
 
     try:
-        levels = tuple(float(x) for x in noise.split(","))
+        levels = tuple(float(x if x.isascii() else "not ASCII") for x in noise.split(","))  # digits 0-9 only
         cfg = CollectConfig(
             suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, repeats=repeats, fresh=fresh,
             seed=seed, expert=expert, chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,
@@ -93,6 +94,7 @@ def collect(
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
+    output_folder(out)  # not a file, a dangling link or another user's folder (one line)
     info = run_collect(cfg, out)
     stats = info["collection"]["per_task"]
     for task, s in stats.items():
@@ -170,6 +172,7 @@ def train(
         )  # fmt: skip
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
+    output_folder(out)  # not a file, a dangling link or another user's folder (one line)
     meta = run_train(cfg, data, out)
     m = meta["metrics"]
     print(json.dumps({k: m[k] for k in ("params", "train_wall_s", "final_train_loss", "final_val_loss")}))

@@ -130,6 +130,8 @@ def parse_ids(spec: str) -> tuple[int, ...]:
     ValueError if it is not such a selection."""
     out: list[int] = []
     try:
+        if not str(spec).isascii():  # int() takes any script's digits: 0-9 only
+            raise ValueError
         for part in str(spec).split(","):
             lo, sep, hi = part.strip().partition("-")
             out += range(int(lo), int(hi) + 1) if sep else [int(lo)]

@@ -115,7 +115,8 @@ def index_list(value, where: str, lo: int, hi: int) -> list[int]:
     out: list[int] = []
     for part in value.replace(" ", "").split(","):
         first, dash, last = part.partition("-")
-        if not first.isdigit() or (dash and not last.isdigit()) or len(part) > 12:
+        # isdigit() is true for any script's digits (and int() takes them): ASCII 0-9 only, never another script's.
+        if not (part.isascii() and first.isdigit()) or (dash and not last.isdigit()) or len(part) > 12:
             raise SpecError(f"{where}: expected integers or ranges like 0-49 (or 'all'), got {value!r}")
         a, b = int(first), int(last) if dash else int(first)
         if not lo <= a <= b <= hi:
@@ -350,7 +351,7 @@ def _latencies(raw: dict) -> list[dict]:
             continue
         if isinstance(v, str):
             try:
-                v = float(v)
+                v = float(v if v.isascii() else "not ASCII")  # float() takes any script's digits: only 0-9 here
             except ValueError:
                 raise SpecError(f"latencies_s: expected seconds or a distribution, got {v!r}") from None
         if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or not 0 <= v <= MAX_LATENCY_S:

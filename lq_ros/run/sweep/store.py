@@ -8,21 +8,27 @@ a record, a FIFO or a link where the record should be) is run again, and a refus
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 from lq_ros.core.bounded_file import FileRefused, read_results_json
 from lq_ros.core.run_config import RunConfig
+from lq_ros.core.safe_write import WriteRefused, output_folder, write_text
 from lq_ros.recording.episode_folder import episode_folders
 from lq_ros.run.sweep.record_check import attempt_problem, read_record
+from lq_ros.transport.processes import open_lock_file
 
 RECORD_FORMAT = 1
 #: The lock file in a sweep folder: a running sweep holds an exclusive flock on it (its pid inside).
 LOCK_FILE = ".lock"
+
+
+#: Sweep folders (real paths) whose lock this process holds: taking it again in the same process is a no-op.
+_HELD: set[str] = set()
 
 
 class StoreError(RuntimeError):
@@ -42,21 +48,10 @@ def _fsync_dir(path: Path) -> None:
 
 
 def atomic_write_text(path: Path, text: str) -> None:
-    """Write-then-rename with fsync: after a crash the file is either the old one or the whole new one."""
+    """Write-then-rename with fsync: after a crash the file is either the old one or the whole new one; never
+    written through a link (lq_ros/core/safe_write.py)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; results are for everyone who can read the folder
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    _fsync_dir(path.parent)
+    write_text(path, text)
 
 
 def fsync_tree(path: Path) -> None:
@@ -87,23 +82,34 @@ class ResultStore:
         block ends or the process dies (the kernel drops it; no stale lock after a kill -9). StoreLocked while
         another sweep holds it."""
         try:
-            self.root.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+            output_folder(self.root, "sweep folder")  # made if missing; not a file, a dangling link, another user's
+        except WriteRefused as exc:
+            raise StoreError(str(exc)) from None
+        held = os.path.realpath(self.root)
+        if held in _HELD:  # this process holds it already (lq eval writes its spec under the lock, then runs)
+            yield self
+            return
+        try:
+            fd = open_lock_file(self.root / LOCK_FILE, 0o644)  # never through a link, never truncated
         except OSError as exc:
-            raise StoreError(f"{self.root}: cannot use this sweep folder ({exc.strerror})") from None
+            why = "a symbolic link, not followed" if exc.errno == errno.ELOOP else exc.strerror
+            raise StoreError(f"{self.root}: cannot use this sweep folder's {LOCK_FILE} ({why})") from None
         try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-                by = f" (pid {holder})" if holder.isdigit() else ""
+                holder = os.pread(fd, 32, 0).decode(errors="replace").split("\n")[0].strip()
+                by = f" (pid {holder})" if holder.isascii() and holder.isdigit() else ""
                 raise StoreLocked(
                     f"{self.root}: another lq sweep is running on this folder{by}; wait for it to finish or give "
                     "another --out"
                 ) from None
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-            yield self
+            os.pwrite(fd, f"{os.getpid():<20}\n".encode(), 0)  # fixed width: overwrites the last holder's pid
+            _HELD.add(held)
+            try:
+                yield self
+            finally:
+                _HELD.discard(held)
         finally:
             os.close(fd)
 

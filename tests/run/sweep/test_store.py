@@ -103,3 +103,28 @@ def test_a_contradictory_record_is_not_finished_and_says_why(tmp_path):
         c.key(): "row: the row is a list, not an object of fields",
         d.key(): f"status 'done'; expected one of {', '.join(FINAL_STATUSES)}",
     }
+
+
+def test_the_lock_is_never_taken_through_a_link_nor_truncated(tmp_path):
+    """The lock file was opened following links (O_RDWR | O_CREAT) and truncated: a planted .lock link emptied the
+    file it pointed at."""
+    outside = tmp_path / "outside.sh"
+    outside.write_text("echo mine\n")
+    folder = tmp_path / "sweep"
+    folder.mkdir()
+    (folder / sw.store.LOCK_FILE).symlink_to(outside)
+    with pytest.raises(sw.StoreError, match=r"\.lock \(a symbolic link, not followed\)"), sw.ResultStore(folder).lock():
+        pass
+    assert outside.read_text() == "echo mine\n"
+    (folder / sw.store.LOCK_FILE).unlink()
+    (folder / sw.store.LOCK_FILE).hardlink_to(outside)  # a second name of one of this user's files
+    with pytest.raises(sw.StoreError, match="one name"), sw.ResultStore(folder).lock():
+        pass
+    assert outside.read_text() == "echo mine\n"
+
+
+def test_the_lock_is_held_once_per_process(tmp_path):
+    """lq eval writes its spec under the folder's lock, then runs the sweep, which takes the same lock again."""
+    store = sw.ResultStore(tmp_path / "sweep")
+    with store.lock(), store.lock():
+        assert (tmp_path / "sweep" / sw.store.LOCK_FILE).read_text().split() == [str(os.getpid())]
