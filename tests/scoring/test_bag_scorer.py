@@ -161,15 +161,17 @@ def test_energy_constants_are_parameters(tmp_path):
 
 
 def write_episode_bag(
-    path: Path, n_ticks: int = 400, end_kind: int = m.EventKind.SUCCESS, end_after_ns: int = 0
-) -> Path:
+    path: Path, n_ticks: int = 400, end_kind: int = m.EventKind.SUCCESS, end_after_ns: int = 0,
+    config: dict | None = None, metadata: dict | None = None,
+) -> Path:  # fmt: skip
     """An episode bag from our writer: STARTED, n_ticks of state and commands, SUCCESS (or ``end_kind``) at the
     last sample (or ``end_after_ns`` after it)."""
     from lq_ros.core.executor_protocol import Command
 
     writer = EpisodeBagWriter(path, list(m.CORE_TOPICS))
-    config = {"policy": "synthetic", "mode": "sync", "latency_s": 0.0, "suite": "s", "task": 0, "init": 0, "seed": 7}
-    writer.set_run_metadata({"config": config, "versions": {"git_commit": "abc"}})
+    config = {"policy": "synthetic", "mode": "sync", "latency_s": 0.0, "suite": "s", "task": 0, "init": 0, "seed": 7,
+              **(config or {})}  # fmt: skip
+    writer.set_run_metadata({"config": config, "versions": {"git_commit": "abc"}, **(metadata or {})})
     writer.write(m.EPISODE_EVENTS, _stamp(0), m.event_msg(_stamp(0), m.EventKind.STARTED, 0))
     for i, pos in enumerate(_cubic_positions(n_ticks)):
         t_ns = _stamp(i)
@@ -187,6 +189,20 @@ def test_intact_episode_bag_scores_success(tmp_path):
     row = score_bag(write_episode_bag(tmp_path / "ep"))
     assert row["status"] == "success" and row["completion_steps"] == 399 and row["partial"] is False
     assert row["hold_ticks"] == 0 and row["policy"] == "synthetic"
+
+
+def test_the_row_records_where_the_protocol_came_from_the_budget_preset_and_the_policys_seed(tmp_path):
+    from lq_ros.core.seeding import LEROBOT_SEED_TAG, episode_seed
+
+    config = {"suite": "libero_spatial", "budgets": "lerobot", "replan_steps": 10, "replan_steps_source": "policy"}
+    metadata = {"camera_size_px": 360, "policy_params": {"seeding": "episode"}}
+    row = score_bag(write_episode_bag(tmp_path / "ep", config=config, metadata=metadata))
+    assert (row["budgets"], row["step_budget"]) == ("lerobot", 280)  # LeRobot 0.6's Spatial budget, not 220
+    assert (row["replan_steps"], row["replan_steps_source"]) == (10, "policy")
+    assert (row["camera_size_px"], row["camera_size_source"]) == (360, "policy")
+    assert row["policy_seed"] == episode_seed(7, "libero_spatial", 0, 0, LEROBOT_SEED_TAG)
+    plain = score_bag(write_episode_bag(tmp_path / "plain"))
+    assert plain["policy_seed"] is None and plain["replan_steps_source"] is None
 
 
 def _offsets_of(raw: bytes, opcode: int) -> list[int]:
