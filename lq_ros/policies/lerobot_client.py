@@ -101,6 +101,37 @@ DECODED_ACTION_TYPES = {"xvla": 10}
 RTC_TYPES = ("smolvla", "pi0", "pi05")
 
 
+#: LeRobot's RTC attention schedules (``lerobot.configs.types.RTCAttentionSchedule``), and what the RTC prefix is:
+#: the model's own leftover of its previous chunk (LeRobot's) or the executor's plan.
+RTC_SCHEDULES = ("linear", "exp", "ones", "zeros")
+RTC_PREFIXES = ("model", "executor")
+
+
+def whole_number(name: str, value: object) -> int:
+    """``value`` as a whole number >= 0 (from the CLI it may be text), else ValueError (one line)."""
+    try:
+        number = int(str(value))
+    except ValueError:
+        number = -1
+    if number < 0:
+        raise ValueError(f"{name} must be a whole number >= 0, got {value!r}")
+    return number
+
+
+def rtc_arguments(execution_horizon: object, schedule: object, max_guidance_weight: object) -> dict:
+    """The RTCConfig fields the user set, checked (ValueError, one line), under the server's option names."""
+    out: dict = {}
+    if execution_horizon is not None:
+        out["execution_horizon"] = int(positive_number("rtc_execution_horizon", execution_horizon, integer=True))
+    if schedule is not None:
+        if str(schedule).lower() not in RTC_SCHEDULES:
+            raise ValueError(f"rtc_schedule {schedule!r}: valid: {', '.join(RTC_SCHEDULES)}")
+        out["schedule"] = str(schedule).lower()
+    if max_guidance_weight is not None:
+        out["max_guidance_weight"] = float(positive_number("rtc_max_guidance_weight", max_guidance_weight))
+    return out
+
+
 def default_python() -> Path:
     """``$LQ_LEROBOT_PYTHON``, else ``.venv-lerobot/bin/python`` of the checkout this package runs from."""
     if os.environ.get(PYTHON_ENV):
@@ -195,7 +226,7 @@ def fetch_hub_config(python: Path, repo_id: str, timeout_s: float = HUB_TIMEOUT_
     return Path(done.stdout.strip().splitlines()[-1])
 
 
-def read_checkpoint(path: Path, rename: dict[str, str] | None = None) -> dict:
+def read_checkpoint(path: Path, rename: dict[str, str] | None = None, empty_cameras: int | None = None) -> dict:
     """A local checkpoint's ``config.json``, after every check this side can make; ValueError (one line) if not fit."""
     if not path.is_dir():
         raise ValueError(
@@ -208,7 +239,7 @@ def read_checkpoint(path: Path, rename: dict[str, str] | None = None) -> dict:
             f"lerobot path {str(path)!r} is not a LeRobot >= 0.4 save_pretrained folder: missing {', '.join(missing)} "
             "(a checkpoint without saved processors is migrated by lerobot's migrate_policy_normalization script)"
         )
-    return check_config(path / "config.json", str(path), rename)
+    return check_config(path / "config.json", str(path), rename, empty_cameras)
 
 
 def parse_rename(rename: object) -> dict[str, str]:
@@ -233,18 +264,19 @@ def parse_rename(rename: object) -> dict[str, str]:
     return out
 
 
-def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str) -> dict[str, str]:
+def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str, padded: int = 0) -> dict[str, str]:
     """The checkpoint's image keys -> LeRobot's LIBERO env cameras (``image`` agentview, ``image2`` wrist).
 
     ``rename`` (the user's) wins. Otherwise automatic where unambiguous: LeRobot's own names map to themselves; a
     key naming its camera (``wrist``, ``eye_in_hand``, ``agentview``, ``front``) maps to it; two keys that differ
     only in a number (``camera1``/``camera2``, as ``lerobot/smolvla_libero``) map in LIBERO's camera order,
-    agentview first, as LeRobot's own LIBERO evaluation of that checkpoint maps them. Anything else is refused,
-    asking for ``rename``. ValueError (one line).
+    agentview first, as LeRobot's own LIBERO evaluation of that checkpoint maps them. Up to ``padded`` inputs (the
+    checkpoint's ``empty_cameras``) may stay unfed: the policy pads them, as under ``lerobot-eval`` (with numbered
+    keys, the lowest two are fed). Anything else is refused, asking for ``rename``. ValueError (one line).
     """
     if rename is not None:
         unfed, stray = sorted(set(images) - set(rename)), sorted(set(rename) - set(images))
-        if unfed or stray:
+        if len(unfed) > padded or stray:
             raise ValueError(
                 f"lerobot path {where!r}: rename must map exactly the image inputs {images} (not mapped: {unfed}; "
                 f"not an input: {stray})"
@@ -262,10 +294,10 @@ def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str)
     rest = [key for key in images if key not in mapping]
     stems = {re.sub(r"\d+$", "", key) for key in rest}
     numbers = sorted((int(re.search(r"(\d+)$", key).group(1)), key) for key in rest if re.search(r"\d+$", key))
-    if len(rest) == 2 and len(numbers) == 2 and len(stems) == 1 and not mapping:
+    if 2 <= len(rest) <= 2 + padded and len(numbers) == len(rest) and len(stems) == 1 and not mapping:
         mapping.update({numbers[0][1]: "image", numbers[1][1]: "image2"})
-        rest = []
-    if rest or len(set(mapping.values())) != len(mapping):
+        rest = [key for _, key in numbers[2:]]
+    if len(rest) > padded or not mapping or len(set(mapping.values())) != len(mapping):
         raise ValueError(
             f"lerobot path {where!r}: cannot tell which LIBERO camera feeds the image inputs {images}; name them "
             "with --policy-arg rename=KEY:CAMERA,... (CAMERA: image = agentview, image2 = wrist), e.g. "
@@ -274,9 +306,12 @@ def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str)
     return mapping
 
 
-def check_config(config_file: Path, where: str, rename: dict[str, str] | None = None) -> dict:
+def check_config(
+    config_file: Path, where: str, rename: dict[str, str] | None = None, empty_cameras: int | None = None
+) -> dict:
     """``config_file`` parsed, if it describes a policy for LIBERO as lerobot-eval feeds it; else ValueError.
-    Its image keys -> env cameras are added as ``config["lq_cameras"]`` (see :func:`camera_mapping`)."""
+    Its image keys -> env cameras are added as ``config["lq_cameras"]`` (see :func:`camera_mapping`); up to
+    ``empty_cameras`` (default: the config's) image inputs may stay unfed, padded by the policy."""
     try:
         config = json.loads(config_file.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -288,12 +323,17 @@ def check_config(config_file: Path, where: str, rename: dict[str, str] | None = 
         raise ValueError(f"lerobot path {where!r}: config.json has no input_features/output_features")
     images = [key for key in inputs if key.startswith(IMAGE_PREFIX) and not key.startswith(EMPTY_CAMERA_PREFIX)]
     others = sorted(set(inputs) - {key for key in inputs if key.startswith(IMAGE_PREFIX)} - {LEROBOT_STATE_KEY})
-    if others or not images or len(images) > len(ENV_CAMERAS):
+    padded = config.get("empty_cameras") or 0 if empty_cameras is None else empty_cameras
+    if not isinstance(padded, int) or isinstance(padded, bool) or padded < 0:
+        raise ValueError(f"lerobot path {where!r}: empty_cameras is {padded!r}; valid: a whole number >= 0")
+    if others or not images or len(images) > len(ENV_CAMERAS) + padded:
         raise ValueError(
             f"lerobot path {where!r}: inputs {sorted(inputs)} are not LIBERO's as lerobot-eval gives them; "
-            f"valid: one or two camera images (see rename), empty cameras, and optionally {LEROBOT_STATE_KEY!r}"
+            f"valid: one or two camera images (see rename; more only as empty cameras the policy pads, empty_cameras "
+            f"{padded}), and optionally {LEROBOT_STATE_KEY!r}"
         )
-    config["lq_cameras"] = camera_mapping(images, rename, where)
+    config["lq_cameras"] = camera_mapping(images, rename, where, padded)
+    config["lq_empty_cameras"] = padded
     state_shape = (inputs.get(LEROBOT_STATE_KEY) or {}).get("shape", [LEROBOT_STATE_DIM])
     action_shape = (outputs.get("action") or {}).get("shape")
     states = EEF_MAT_TYPES.get(config["type"], ([LEROBOT_STATE_DIM],))
@@ -357,6 +397,11 @@ class LeRobotPolicy(OpenPIPolicy):
         full_chunk: bool = False,
         control_mode: str | None = None,
         clip: bool = True,
+        rtc_execution_horizon: int | None = None,
+        rtc_schedule: str | None = None,
+        rtc_max_guidance_weight: float | None = None,
+        rtc_prefix: str = "model",
+        empty_cameras: int | None = None,
     ) -> None:
         super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt, clip=clip)
         self.trust_processors = flag("trust_processors", trust_processors)
@@ -365,6 +410,13 @@ class LeRobotPolicy(OpenPIPolicy):
             None if n_action_steps is None else int(positive_number("n_action_steps", n_action_steps, integer=True))
         )
         self.rename = None if rename is None else parse_rename(rename)
+        #: LeRobot's RTCConfig fields the user sets (None: the checkpoint's rtc_config, else LeRobot's defaults).
+        self.rtc = rtc_arguments(rtc_execution_horizon, rtc_schedule, rtc_max_guidance_weight)
+        if rtc_prefix not in RTC_PREFIXES:
+            raise ValueError(f"rtc_prefix {rtc_prefix!r}: valid: {', '.join(RTC_PREFIXES)}")
+        self.rtc_prefix = rtc_prefix
+        #: Camera inputs the policy pads (``--policy.empty_cameras``); None: the checkpoint's config's.
+        self.empty_cameras = None if empty_cameras is None else whole_number("empty_cameras", empty_cameras)
         self.python = Path(python) if python else default_python()
         if not self.python.is_file():
             raise ValueError(f"lerobot: no Python at {self.python} for LeRobot's environment; {SETUP_HINT}")
@@ -372,16 +424,17 @@ class LeRobotPolicy(OpenPIPolicy):
         if repo is not None:  # LeRobot's venv fetches it (config now, the rest when the server loads it)
             self.path = str(path)
             config_file = fetch_hub_config(self.python, repo)
-            self.config = check_config(config_file, str(path), self.rename)
+            self.config = check_config(config_file, str(path), self.rename, self.empty_cameras)
         else:
             folder = Path(str(path)).expanduser()
-            self.config = read_checkpoint(folder, self.rename)
+            self.config = read_checkpoint(folder, self.rename, self.empty_cameras)
             if not self.trust_processors:
                 check_processor_steps(folder, str(path))
             self.path = str(folder.resolve())  # the server may run elsewhere: never a relative path
             config_file = folder / "config.json"
         #: The checkpoint's image key -> LeRobot's env camera that feeds it (``image``, ``image2``).
         self.cameras: dict[str, str] = self.config.pop("lq_cameras")
+        self.empty_cameras = self.config.pop("lq_empty_cameras")
         #: Its LIBERO state is built from the EE rotation matrix: an observation without one is refused.
         self.needs_eef_rot_mat = self.config["type"] in EEF_MAT_TYPES
         default_mode = ControlMode.ABSOLUTE if self.config["type"] in ABSOLUTE_TYPES else ControlMode.RELATIVE
@@ -525,6 +578,7 @@ class LeRobotPolicy(OpenPIPolicy):
             "control_mode": self.control_mode.value,
             "clip": self.clip,
             "cameras": self.cameras,
+            "empty_cameras": self.empty_cameras,
             "chunk_size": self.config.get("chunk_size", self.config.get("horizon")),
             "device": self.device,
             "threads": self.threads,
@@ -533,6 +587,7 @@ class LeRobotPolicy(OpenPIPolicy):
             "trust_processors": self.trust_processors,
             # The server is seeded per episode (reset): lq_ros.core.seeding.episode_seed with LEROBOT_SEED_TAG.
             "seeding": "episode",
+            "rtc": {**self.rtc, "prefix": self.rtc_prefix},
         }
 
     def close(self) -> None:
@@ -564,6 +619,8 @@ class LeRobotPolicy(OpenPIPolicy):
         command += ["--cameras", json.dumps(self.cameras)]
         command += ["--n-action-steps", str(self.n_action_steps)] if self.n_action_steps is not None else []
         command += ["--full-chunk"] if self.full_chunk else []
+        command += [f"--rtc-{key.replace('_', '-')}={value}" for key, value in self.rtc.items()]
+        command += ["--rtc-prefix", self.rtc_prefix, "--empty-cameras", str(self.empty_cameras)]
         try:
             self._server = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log,

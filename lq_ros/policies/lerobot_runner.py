@@ -29,8 +29,11 @@ from lerobot_request import (  # noqa: E402
     EMPTY_CAMERA_PREFIX,
     ENV_CAMERAS,
     MAX_OBS_STEPS,
-    PREFIX_SCHEDULES,
 )
+
+#: What the RTC prefix is: the model's own leftover actions of its previous chunk (LeRobot's RTC), or the executor's
+#: plan (normalized with the checkpoint's action statistics).
+RTC_PREFIXES = ("model", "executor")
 
 
 def reads_eef_mat(step) -> bool:
@@ -57,6 +60,9 @@ class LeRobotServer:
         cameras: dict[str, str] | None = None,
         n_action_steps: int | None = None,
         full_chunk: bool = False,
+        rtc: dict | None = None,
+        rtc_prefix: str = "model",
+        empty_cameras: int | None = None,
     ) -> None:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
@@ -65,6 +71,15 @@ class LeRobotServer:
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
         self.torch = torch
+        #: RTCConfig fields the user set (execution_horizon, prefix_attention_schedule, max_guidance_weight), and what
+        #: the RTC prefix is: the model's own leftover (LeRobot's) or the executor's plan.
+        self.rtc = dict(rtc or {})
+        if rtc_prefix not in RTC_PREFIXES:
+            raise ValueError(f"rtc_prefix {rtc_prefix!r}: valid: {', '.join(RTC_PREFIXES)}")
+        self.rtc_prefix = rtc_prefix
+        #: The model's last chunk (its original actions, before post-processing): LeRobot's RTC prefix comes from it.
+        self._last_chunk = None
+        self._rtc_ready = False
         path, local = checkpoint_source(path)
         if local:  # offline: the server's main set the switches before LeRobot was imported (go_offline)
             check_config_fields(Path(path) / "config.json")
@@ -85,6 +100,9 @@ class LeRobotServer:
             if not 1 <= n_action_steps <= self.chunk_size:
                 raise ValueError(f"n_action_steps {n_action_steps}: valid: 1 to the chunk size, {self.chunk_size}")
             config.n_action_steps = int(n_action_steps)
+        if empty_cameras is not None and hasattr(config, "empty_cameras"):  # as lerobot-eval --policy.empty_cameras
+            config.empty_cameras = int(empty_cameras)
+            config.validate_features()  # the policy's padded inputs (observation.images.empty_camera_<i>)
         self.cameras = self._camera_map(config, cameras)
         self.config = config
         self.policy = get_policy_class(config.type).from_pretrained(path, config=config)
@@ -121,6 +139,8 @@ class LeRobotServer:
         self.image_keys = sorted({f"observation.images.{camera}" for camera in self.cameras.values()})
         #: LeRobot's env processor for this policy reads the EE rotation matrix (X-VLA's LIBERO state is built from it).
         self.needs_eef_mat = any(reads_eef_mat(step) for step in self.env_preprocessor.steps)
+        if self.supports_rtc():
+            self._rtc_schedule = self.rtc_config().prefix_attention_schedule  # checks the user's values early
 
     @staticmethod
     def _camera_map(config, cameras: dict[str, str] | None) -> dict[str, str]:
@@ -132,7 +152,8 @@ class LeRobotServer:
         unfed = sorted(set(wanted) - set(cameras))
         stray = sorted(set(cameras) - set(wanted))
         bad = sorted(key for key, camera in cameras.items() if camera not in ENV_CAMERAS)
-        if unfed or stray or bad:
+        padded = int(getattr(config, "empty_cameras", 0) or 0)  # inputs the policy pads when they are missing
+        if len(unfed) > padded or stray or bad:
             raise ValueError(
                 f"cameras {cameras}: every image input {wanted} needs one of LIBERO's cameras {list(ENV_CAMERAS)} "
                 f"(not fed: {unfed}; not an input: {stray}; not a camera: {bad})"
@@ -156,6 +177,7 @@ class LeRobotServer:
             "full_chunk": self.full_chunk,
             "action_queue": self._action_queue() is not None,
             "rtc": self.supports_rtc(),
+            "rtc_config": self._rtc_description() if self.supports_rtc() else None,
             "state_from_eef_mat": self.needs_eef_mat,
             # What the hub library itself reads (it takes the switch once, when imported): True for a local checkpoint.
             "hub_offline": bool(huggingface_hub.constants.HF_HUB_OFFLINE),
@@ -252,29 +274,53 @@ class LeRobotServer:
         relative = bool(getattr(self.config, "use_relative_actions", False))
         return callable(supports) and bool(supports()) and not relative and not self.env_postprocessor.steps
 
+    def rtc_config(self):
+        """The RTC configuration the policy runs with: the checkpoint's ``rtc_config`` if it has one, else LeRobot's
+        ``RTCConfig`` defaults (0.6.1: LINEAR schedule, execution horizon 10, maximum guidance weight 10), with the
+        user's overrides (``rtc`` argument of the constructor) on top."""
+        import dataclasses
+
+        from lerobot.configs.types import RTCAttentionSchedule
+        from lerobot.policies.rtc.configuration_rtc import RTCConfig
+
+        saved = getattr(self.config, "rtc_config", None)
+        config = dataclasses.replace(saved) if saved is not None else RTCConfig()
+        config.enabled = True
+        for key, value in self.rtc.items():
+            if key == "prefix_attention_schedule":
+                value = RTCAttentionSchedule[str(value).upper()]
+            setattr(config, key, value)
+        return config
+
     def rtc_chunk(self, batch: dict, prefix: dict):
-        """The whole chunk, guided by LeRobot's RTC processor towards ``prefix`` (rows d.. of the executor's plan
-        weighted by its schedule). The prefix arrives in the env's action space and is normalized with the
-        checkpoint's own action statistics (the inverse of the post-processor's unnormalization) first."""
+        """The whole chunk, guided by LeRobot's RTC processor as LeRobot's RTC runs it: the prefix is the model's own
+        leftover of its previous chunk (the original actions not yet executed: its last L rows, where L is the length
+        of the executor's plan from the request tick on), weighted by the RTC configuration's schedule over its
+        execution horizon; ``rtc_hard`` uses the ZEROS schedule (the d executing rows only). With ``rtc_prefix``
+        ``executor`` (or no previous chunk of this episode) the executor's plan, normalized with the checkpoint's own
+        action statistics (the inverse of its post-processor), is the prefix instead."""
         if not self.supports_rtc():
             raise ValueError(
                 f"merge rtc: LeRobot's RTC is wired into SmolVLA, pi0 and pi0.5 (absolute actions); this checkpoint is "
                 f"{self.config.type}; use another merge strategy"
             )
         from lerobot.configs.types import RTCAttentionSchedule
-        from lerobot.policies.rtc.configuration_rtc import RTCConfig
 
         torch = self.torch
-        rows = prefix["actions"]
-        if self.policy.rtc_processor is None:
-            self.policy.config.rtc_config = RTCConfig(enabled=True, execution_horizon=self.chunk_size)
+        if not self._rtc_ready:  # the configuration in force (a saved rtc_config made a processor without ours)
+            self.policy.config.rtc_config = self.rtc_config()
             self.policy.init_rtc_processor()
+            self._rtc_ready = True
         self._enable_rtc(True)
-        rtc_config = self.policy.rtc_processor.rtc_config
-        rtc_config.prefix_attention_schedule = RTCAttentionSchedule[PREFIX_SCHEDULES[prefix["schedule"]]]
-        rtc_config.execution_horizon = max(len(rows), 1)
+        config = self.policy.rtc_processor.rtc_config
+        hard = prefix["schedule"] == "hard"
+        config.prefix_attention_schedule = RTCAttentionSchedule.ZEROS if hard else self._rtc_schedule
+        rows = prefix["actions"]
         left_over = None
-        if len(rows):
+        last = self._last_chunk
+        if len(rows) and self.rtc_prefix == "model" and last is not None and len(rows) <= last.shape[1]:
+            left_over = last[:, last.shape[1] - len(rows) :].clone()  # noqa: E203 - the model's unexecuted rows
+        elif len(rows):
             actions = torch.as_tensor(rows, dtype=torch.float32)[None].to(self.config.device)
             left_over = self._action_normalizer()._normalize_action(actions, inverse=False)
         # No inference_mode: RTC's guidance differentiates through the denoiser (it enables grad itself).
@@ -282,7 +328,18 @@ class LeRobotServer:
             chunk = self.policy.predict_action_chunk(
                 batch, inference_delay=prefix["delay"], prev_chunk_left_over=left_over
             )
+        self._last_chunk = chunk.detach().clone()
         return self.postprocessed(chunk.transpose(0, 1))
+
+    def _rtc_description(self) -> dict:
+        """The RTC configuration in force (as recorded with the run)."""
+        config = self.rtc_config()
+        return {
+            "execution_horizon": int(config.execution_horizon),
+            "prefix_attention_schedule": config.prefix_attention_schedule.name,
+            "max_guidance_weight": float(config.max_guidance_weight),
+            "prefix": self.rtc_prefix,
+        }
 
     def _enable_rtc(self, enabled: bool) -> None:
         """Switch the policy's RTC on (a request with a prefix) or off (one without) if it has an RTC config."""
@@ -303,6 +360,7 @@ class LeRobotServer:
         from lerobot.utils.random_utils import set_seed
 
         self.policy.reset()
+        self._last_chunk = None
         if seed is not None:
             set_seed(int(seed))
         for pipeline in (self.preprocessor, self.postprocessor, self.env_preprocessor, self.env_postprocessor):

@@ -20,8 +20,11 @@ the chunk is exactly the ``n_action_steps`` actions ``lerobot-eval`` would execu
 (``--n-action-steps`` overrides the checkpoint's). With ``--full-chunk``, and always for a policy that keeps no
 action queue (ACT with temporal ensembling: the stack's executor merges the chunks instead), the answer is the
 whole chunk of ``predict_action_chunk``. A request that carries a prefix (``--merge rtc``/``rtc_hard``) is
-answered by ``predict_action_chunk`` with LeRobot's own RTC processor guiding the chunk towards that prefix
-(SmolVLA, pi0, pi0.5: the flow-matching policies LeRobot wires RTC into).
+answered by ``predict_action_chunk`` with LeRobot's own RTC processor guiding the chunk (SmolVLA, pi0, pi0.5: the
+flow-matching policies LeRobot wires RTC into), as LeRobot's RTC runs it: the checkpoint's ``rtc_config`` or LeRobot's
+``RTCConfig`` defaults (schedule, execution horizon, maximum guidance weight; ``--rtc-*`` override them), and as the
+prefix the model's own leftover of its previous chunk, as many rows as the executor's plan has left (the request's
+``prefix/schedule`` ``hard``, ``--merge rtc_hard``, selects the ZEROS schedule; any other, the configured one).
 
 Observation history (``n_obs_steps`` n > 1: diffusion's default 2, VQ-BeT's 5): ``lerobot-eval`` calls
 ``select_action`` every tick, and the policy's observation queue keeps the last n observations (at reset, copies of
@@ -76,7 +79,8 @@ Modules (siblings of this file, imported by name since lq_ros is not installed i
 ``lerobot_runner.py`` is the loaded policy (what it is handed, the chunk it answers).
 
 Usage: ``python lerobot_server.py --path DIR|hub:ORG/NAME [--device cpu] [--threads N] [--port 0] [--cameras JSON]
-[--n-action-steps N] [--full-chunk]``; prints one
+[--n-action-steps N] [--full-chunk] [--rtc-execution-horizon N] [--rtc-schedule S] [--rtc-max-guidance-weight W]
+[--rtc-prefix model|executor]``; prints one
 JSON line ``{"ready": true, "port": ..., "token": ...}`` on stdout once the policy is loaded, or one ``error:``
 line on stderr and exits 2.
 """
@@ -248,7 +252,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cameras", default=None, help='JSON: image key -> env camera ("image" or "image2")')
     parser.add_argument("--n-action-steps", type=int, default=None, help="actions per chunk (default: the config's)")
     parser.add_argument("--full-chunk", action="store_true", help="answer with predict_action_chunk's whole chunk")
+    parser.add_argument("--rtc-execution-horizon", type=int, default=None, help="RTCConfig.execution_horizon")
+    parser.add_argument("--rtc-schedule", default=None, help="RTCConfig.prefix_attention_schedule (linear, exp, ...)")
+    parser.add_argument("--rtc-max-guidance-weight", type=float, default=None, help="RTCConfig.max_guidance_weight")
+    parser.add_argument("--rtc-prefix", default="model", help="model (LeRobot's: the leftover) or executor (the plan)")
+    parser.add_argument("--empty-cameras", type=int, default=None, help="camera inputs the policy pads (the config's)")
     args = parser.parse_args(argv)
+    rtc = {
+        key: value
+        for key, value in (
+            ("execution_horizon", args.rtc_execution_horizon),
+            ("prefix_attention_schedule", args.rtc_schedule),
+            ("max_guidance_weight", args.rtc_max_guidance_weight),
+        )
+        if value is not None
+    }
     # stdout carries the ready line alone: anything LeRobot prints ("Loading weights ...") goes to stderr.
     ready_out, sys.stdout = sys.stdout, sys.stderr
     if args.parent_pid:
@@ -270,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--cameras {args.cameras[:100]!r}: valid: a JSON object of image key -> camera name")
         server = LeRobotServer(
             args.path, device=args.device, suite=args.suite, trust_processors=args.trust_processors, cameras=cameras,
-            n_action_steps=args.n_action_steps, full_chunk=args.full_chunk,
+            n_action_steps=args.n_action_steps, full_chunk=args.full_chunk, rtc=rtc, rtc_prefix=args.rtc_prefix,
+            empty_cameras=args.empty_cameras,
         )  # fmt: skip
     except Exception as exc:  # noqa: BLE001 - one line for the client to show
         print(f"error: cannot load a LeRobot policy from {args.path}: {type(exc).__name__}: {exc}", file=sys.stderr)

@@ -93,3 +93,19 @@ def test_an_observation_history_beyond_ten_ticks_is_one_line(tmp_path, n_obs_ste
     with pytest.raises(ValueError, match=r"n_obs_steps is .*; valid: 1 to 10") as refused:
         check_config(path, "d")
     assert "\n" not in str(refused.value)
+
+
+def test_empty_cameras_let_the_policy_pad_inputs_libero_does_not_render(tmp_path):
+    """As lerobot-eval --policy.empty_cameras=1: a third numbered camera stays unfed (the policy pads it); the
+    config's own empty_cameras is the default, the argument overrides it."""
+    path = config_file(tmp_path, ["camera1", "camera2", "camera3"])
+    with pytest.raises(ValueError, match="not LIBERO's"):
+        check_config(path, "ckpt")
+    config = check_config(path, "ckpt", empty_cameras=1)
+    assert config["lq_cameras"] == {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
+    assert config["lq_empty_cameras"] == 1
+    (tmp_path / "own").mkdir()
+    padded = config_file(tmp_path / "own", ["camera1", "camera2", "camera3"], empty_cameras=1)
+    assert check_config(padded, "ckpt")["lq_empty_cameras"] == 1
+    with pytest.raises(ValueError, match="not LIBERO's"):
+        check_config(padded, "ckpt", empty_cameras=0)
