@@ -17,6 +17,10 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   queue-parity CKPT TICKS REQUESTS  a policy with n_obs_steps > 1: per-tick observations fed to select_action every
                                     tick (lerobot-eval) and, at the REQUESTS ticks (JSON list), requests carrying the
                                     ticks before them to our server: the observation queue the policy predicts from
+  rollout-parity CKPT CAMERAS TICKS lerobot-eval's per-tick rollout loop against our server asked every n_action_steps
+                                    ticks (the default sync protocol at 0 s), on the same observations: equal?
+  rtc-parity CKPT CAMERAS           two RTC requests to our server against LeRobot's RTC run by its own code (default
+                                    RTCConfig, the model's leftover as the prefix): equal?
   full-state CKPT [CAMERAS]         the policy's input from a request, and from the same observation with the fields
                                     LeRobot >= 0.6's LiberoEnv adds (EE rotation matrix, finger velocities): equal?
 """
@@ -402,6 +406,94 @@ def queue_parity(ckpt: str, ticks: int, requests: list[int]) -> dict:
     return result
 
 
+def rollout_parity(ckpt: str, cameras: dict | None, ticks: int) -> dict:
+    """lerobot-eval's rollout loop (every tick: the observation through LeRobot's processors, ``select_action``, the
+    post-processors; ``set_seed`` then the policy's reset) against our server asked as the stack's sync protocol asks
+    it at 0 s by default (a request every n_action_steps ticks, each chunk executed whole), on the same observations
+    (random, seeded: 0.6's venv has no LIBERO simulator). Equal action for action, bit for bit?"""
+    from lerobot.utils.random_utils import set_seed
+
+    prompt, seed = "pick up the black bowl", 3
+    reference = lerobot_server.LeRobotServer(ckpt, cameras=cameras)
+    observed = tick_requests(reference, ticks)
+    set_seed(seed)
+    reference.policy.reset()
+    for pipeline in (reference.preprocessor, reference.postprocessor, reference.env_preprocessor,
+                     reference.env_postprocessor):  # fmt: skip
+        pipeline.reset()
+    want = []
+    with torch.inference_mode():
+        for fields in observed:
+            action = reference.policy.select_action(reference.policy_batch({**fields, "prompt": prompt}))
+            want.append(reference.postprocessed([action])[0])
+    ours = lerobot_server.LeRobotServer(ckpt, cameras=cameras)
+    steps = int(ours.config.n_action_steps)
+    got: list = []
+    for tick in range(0, ticks, steps):
+        request = {**observed[tick], "prompt": prompt, "reset": tick == 0, "seed": seed, "token": "-"}
+        got.extend(ours.answer(lerobot_server.checked_request(request, ours.image_keys))["actions"][:steps])
+    got_array, want_array = np.array(got[:ticks]), np.array(want)
+    return {
+        "n_action_steps": steps,
+        "ticks": len(want),
+        "equal": bool(got_array.shape == want_array.shape and np.array_equal(got_array, want_array)),
+        "max_difference": float(np.abs(got_array - want_array).max()),
+    }
+
+
+def rtc_parity(ckpt: str, cameras: dict) -> dict:
+    """Two RTC requests to our server (the second carries the executor's plan after 3 executed actions, delay 2) against
+    LeRobot's RTC as its own code runs it: the default RTCConfig, the model's own leftover of its previous chunk as
+    the prefix. Equal bit for bit? And with the EXP schedule (our former default) instead?"""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.utils.random_utils import set_seed
+
+    prompt, seed, executed, delay = "pick up the black bowl", 5, 3, 2
+
+    def ours(**kwargs) -> tuple[np.ndarray, np.ndarray, dict]:
+        server = lerobot_server.LeRobotServer(ckpt, cameras=cameras, **kwargs)
+        first = {**observed[0], "prompt": prompt, "reset": True, "seed": seed, "token": "-",
+                 "prefix/actions": np.zeros((0, 7)), "prefix/delay": 0, "prefix/schedule": "exp"}  # fmt: skip
+        chunk = server.answer(lerobot_server.checked_request(first, server.image_keys))["actions"]
+        second = {**observed[1], "prompt": prompt, "token": "-", "prefix/actions": chunk[executed:].astype(np.float64),
+                  "prefix/delay": delay, "prefix/schedule": "exp"}  # fmt: skip
+        answer = server.answer(lerobot_server.checked_request(second, server.image_keys))["actions"]
+        return chunk, answer, server.metadata()["rtc_config"]
+
+    observed = tick_requests(lerobot_server.LeRobotServer(ckpt, cameras=cameras), 2)
+    first, guided, config = ours()
+    _, guided_exp, _ = ours(rtc={"prefix_attention_schedule": "exp"})
+
+    reference = lerobot_server.LeRobotServer(ckpt, cameras=cameras)  # its processors build the batches
+    policy_config = PreTrainedConfig.from_pretrained(ckpt)
+    policy_config.device, policy_config.rtc_config = "cpu", RTCConfig()
+    policy = get_policy_class(policy_config.type).from_pretrained(ckpt, config=policy_config)
+    policy.eval()
+    policy.reset()
+    set_seed(seed)
+    with torch.no_grad():
+        c1 = policy.predict_action_chunk(reference.policy_batch({**observed[0], "prompt": prompt}))
+        c2 = policy.predict_action_chunk(
+            reference.policy_batch({**observed[1], "prompt": prompt}), inference_delay=delay,
+            prev_chunk_left_over=c1[:, executed:],
+        )  # fmt: skip
+    want_first, want = reference.postprocessed(c1.transpose(0, 1)), reference.postprocessed(c2.transpose(0, 1))
+    return {
+        "first_equal": bool(np.array_equal(first, want_first)),
+        "equal": bool(np.array_equal(guided, want)),
+        "exp_equal": bool(np.array_equal(guided_exp, want)),
+        "max_difference": float(np.abs(guided - want).max()),
+        "config": config,
+        "lerobot_defaults": {
+            "execution_horizon": RTCConfig().execution_horizon,
+            "prefix_attention_schedule": RTCConfig().prefix_attention_schedule.name,
+            "max_guidance_weight": RTCConfig().max_guidance_weight,
+        },  # fmt: skip
+    }
+
+
 def main(argv: list[str]) -> None:
     command, args = argv[0], argv[1:]
     if command == "make":
@@ -422,6 +514,10 @@ def main(argv: list[str]) -> None:
         result = queue_parity(args[0], int(args[1]), json.loads(args[2]))
     elif command == "full-state":
         result = full_state(args[0], json.loads(args[1]) if len(args) > 1 else None)
+    elif command == "rollout-parity":
+        result = rollout_parity(args[0], json.loads(args[1]), int(args[2]))
+    elif command == "rtc-parity":
+        result = rtc_parity(args[0], json.loads(args[1]))
     elif command == "defaults":
         result = defaults()
     else:

@@ -217,6 +217,32 @@ def test_rtc_guided_chunk_follows_the_prefix(checkpoints):
     check_rtc_follows_the_prefix(policy06(checkpoints["smolvla"]), TASK_INFO, SMOLVLA_CHUNK, SMOLVLA_STEPS)
 
 
+@pytest.mark.parametrize("kind", ["act", "smolvla"])
+def test_the_default_protocol_executes_what_lerobot_evals_rollout_loop_executes(checkpoints, kind):
+    """At 0 s, sync, without flags (each chunk executed whole: the checkpoint's n_action_steps), our server's actions
+    equal, action for action and bit for bit, those of lerobot-eval's rollout loop on the same observations (0.6's
+    venv has no LIBERO simulator, so the observations are seeded random ones, not a closed loop)."""
+    smolvla_cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
+    cameras = smolvla_cameras if kind == "smolvla" else None
+    result = in_venv06("rollout-parity", checkpoints[kind], json.dumps(cameras), 16)
+    assert result["n_action_steps"] == policy06(checkpoints[kind]).reference().replan_steps
+    assert result["ticks"] == 16 and result["equal"], result
+
+
+def test_rtc_is_lerobots_rtc_as_its_code_runs_it(checkpoints):
+    """LeRobot's RTCConfig defaults (LINEAR, execution horizon 10, maximum guidance 10) and the model's own leftover
+    actions as the prefix: our server's guided chunk equals LeRobot's, bit for bit; our former EXP schedule's does
+    not."""
+    cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
+    result = in_venv06("rtc-parity", checkpoints["smolvla"], json.dumps(cameras))
+    assert result["config"] == {**result["lerobot_defaults"], "prefix": "model"}
+    assert result["lerobot_defaults"] == {
+        "execution_horizon": 10, "prefix_attention_schedule": "LINEAR", "max_guidance_weight": 10.0
+    }  # fmt: skip
+    assert result["first_equal"] and result["equal"], result
+    assert not result["exp_equal"]
+
+
 def test_rtc_is_refused_for_act(checkpoints):
     policy = policy06(checkpoints["act"])
     try:
@@ -259,9 +285,13 @@ def test_a_policy_of_two_observations_needs_the_tick_before(checkpoints):
     ("kind", "merge"), [("act", "replace"), ("diffusion", "replace"), ("diffusion2", "replace"), ("smolvla", "rtc")]
 )
 def test_async_episode(checkpoints, kind, merge, tmp_path):
+    # The tiny diffusion policies have no crop: their encoder takes the 256 px they were made for, not LeRobot 0.6's
+    # 360 (as under lerobot-eval 0.6 at its default size); the others run at the reference size.
+    size = 256 if kind.startswith("diffusion") else 0
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge=merge, policy="lerobot",
         policy_args={"path": str(checkpoints[kind]), "python": str(python06()), "threads": 1}, max_steps=30,
+        camera_size=size,
     )  # fmt: skip
     outcome, row = run_episode(cfg, tmp_path / kind, "inprocess")
     assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
