@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from lq_ros.run.sweep.store import atomic_write_text
+from lq_ros.core import safe_write
 
 #: The folder, inside an evaluation's output folder, that holds one ``<cell>/eval_info.json`` per protocol cell.
 EVAL_INFO_DIR = "eval_info"
@@ -89,6 +89,6 @@ def write_eval_info(episodes: pd.DataFrame, out: Path) -> list[Path]:
         folder = Path(out) / EVAL_INFO_DIR / cell_name(mode, latency_s, latency_dist)
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / EVAL_INFO_FILE
-        atomic_write_text(path, json.dumps(eval_info(group), indent=2, allow_nan=True) + "\n")
+        safe_write.write_text(path, json.dumps(eval_info(group), indent=2, allow_nan=True) + "\n")
         written.append(path)
     return written
