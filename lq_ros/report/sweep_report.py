@@ -202,7 +202,7 @@ def paired_aggregates(episodes: pd.DataFrame, pooled: pd.DataFrame, *, n_boot: i
     if paired.empty:
         return paired
     extra = ["latency_label", "series_policy", "budget_counts", "budget_decided", "budget_mark", "budget_decided_n",
-             "budget_proxy_n", "n_timeouts", "n_success", "n_failure",
+             "budget_proxy_n", "budget_twinned_n", "budget_consistent", "n_timeouts", "n_success", "n_failure",
              "n_budget_limited", "n_policy_limited", "n_budget_unattributed", "action_budget_n",
              "action_budget_success_rate"]  # fmt: skip
     cells = pooled[[*FIGURE_KEYS, *extra]].rename(columns={"n_success": "cell_n_success"})

@@ -125,7 +125,8 @@ def test_tables_and_sentences(synthetic):
     assert set(paired["p_adjustment"]) == {BH_ADJUSTMENT}  # paired_vs_zero_latency.csv names its correction
     sentences = prose.paired_sentences(paired)
     failed = [s for s in sentences if s.startswith("**scripted · sync, 0.2 s")][0]
-    assert "success 0/6 against 3/3 (◇ budget-decided" in failed and "no (task, init, seed) pair succeeds" in failed
+    note = "◇ budget-decided by the action-budget twins: 6/6 timeouts succeed under the action budget (100% [61, 100])"
+    assert f"success 0/6 against 3/3 ({note}" in failed and "no (task, init, seed) pair succeeds" in failed
     slower = [s for s in sentences if s.startswith("**scripted [budget_counts=action] · sync, 0.2 s")][0]
     # Action budget: 180 against 100, 101, 102 ticks per pair = +4.00, +3.95, +3.90 s.
     # Three pairs: no interval, no test, so no change is called (the values are listed).
