@@ -30,8 +30,9 @@ def _called(r, metric: str) -> bool:
 def _change(r, metric: str, name: str, decimals: int, scale: float, unit: str) -> str:
     text = f"{name}{f' ({unit})' if unit else ''} {agg.ci_text(r, f'{metric}_diff', decimals, scale, signed=True)}"
     tasks_p = r.get(f"{metric}_diff_cluster_p")  # the task as the unit: other tasks of the suite
-    return text + ("" if not _called(r, metric) or tasks_p is None or pd.isna(tasks_p)
-                   else f" (task-level p {tasks_p:.2g})")  # fmt: skip
+    if not _called(r, metric) or tasks_p is None or pd.isna(tasks_p):
+        return text
+    return text + f" (task-level p {tasks_p:.2g}{': these tasks only' if tasks_p >= ALPHA else ''})"
 
 
 def paired_sentences(paired: pd.DataFrame) -> list[str]:
