@@ -52,7 +52,7 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
         note = budget_note(r)
         text += f" ({note})" if note and note != "action budget" else ""
         n_all = r.get("n_pairs_all")
-        if n_all is not None and not pd.isna(n_all) and int(n_all):
+        if n_all is not None and not pd.isna(n_all) and int(n_all) and r.get(f"{RMST_METRIC}_diff_n"):
             time = _change(r, RMST_METRIC, "time to success", 2, 1.0, "s")
             verdict = "changed" if _called(r, RMST_METRIC) else "not shown to change"
             text += f"; over all {int(n_all)} pairs (a failure at the horizon), {verdict}: {time}"

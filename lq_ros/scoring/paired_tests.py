@@ -404,17 +404,18 @@ def paired_differences(
         # change without the survivor selection of the metrics below.
         outcomes = [i for i in group.index if status[i] in ("success", "failure")]
         every = [(i, zero_outcome[(*cell, pairs[i])]) for i in outcomes if (*cell, pairs[i]) in zero_outcome]
-        horizon = np.array([min(horizon_s[i], horizon_s[j]) for i, j in every], dtype=np.float64)
-        at_cell = np.array([min(time_s[i], horizon_s[i]) for i, _ in every], dtype=np.float64)
-        at_zero = np.array([min(time_s[j], horizon_s[j]) for _, j in every], dtype=np.float64)
-        change = np.fmin(at_cell, horizon) - np.fmin(at_zero, horizon)
-        ok = np.isfinite(change)
-        row["n_pairs_all"] = int(ok.sum())
+        horizon = np.minimum(horizon_s[[i for i, _ in every]], horizon_s[[j for _, j in every]])
+        at_cell = np.minimum(time_s[[i for i, _ in every]], horizon)  # NaN stays NaN
+        at_zero = np.minimum(time_s[[j for _, j in every]], horizon)
+        change = at_cell - at_zero
+        # Every pair or none: dropping the pairs without a time (no horizon recorded) would select the survivors.
+        ok = np.full(len(every), bool(every) and bool(np.isfinite(change).all()))
+        row["n_pairs_all"] = len(every)
         row.update(mean_stats(change[ok], f"{RMST_METRIC}_diff", confidence, n_boot, seed))
         tasks = np.array([task_of[i] for i, _ in every], dtype=object)[ok].astype(str)
         row[f"{RMST_METRIC}_diff_cluster_p"] = cluster_p(change[ok], tasks, seed=seed)
-        row[f"{RMST_METRIC}_zero_mean"] = float(np.fmin(at_zero, horizon)[ok].mean()) if ok.any() else math.nan
-        row[f"{RMST_METRIC}_cell_mean"] = float(np.fmin(at_cell, horizon)[ok].mean()) if ok.any() else math.nan
+        row[f"{RMST_METRIC}_zero_mean"] = float(at_zero.mean()) if ok.any() else math.nan
+        row[f"{RMST_METRIC}_cell_mean"] = float(at_cell.mean()) if ok.any() else math.nan
         for metric in metric_names:
             values = columns.get(metric, np.full(len(eps), math.nan))
             at_cell = np.array([values[i] for i, _ in matched], dtype=np.float64)

@@ -259,3 +259,13 @@ def test_time_to_success_against_zero_counts_every_pair_not_only_the_survivors()
     assert (
         row["time_to_success_s_diff_ci_lo"] < row["time_to_success_s_diff_mean"] < row["time_to_success_s_diff_ci_hi"]
     )
+
+
+def test_time_to_success_needs_every_pair_or_gives_none():
+    """A failure without a recorded horizon has no time: dropping it would keep the survivors only."""
+    rows = [_episode("success", steps=100 + 10 * i, init=i) for i in range(5)]  # no step budget: no horizon
+    rows += [_episode("success", latency=0.2, steps=100, init=i) for i in range(2)]
+    rows += [_episode("failure", latency=0.2, steps=220, init=i) for i in range(2, 5)]
+    row = paired_differences(episodes_frame(rows), n_boot=200).iloc[0]
+    assert row["n_pairs_all"] == 5 and row["time_to_success_s_diff_n"] == 0
+    assert math.isnan(row["time_to_success_s_diff_mean"])
