@@ -9,6 +9,7 @@ contradicts itself (status success with ``success`` false). The report skips suc
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 
@@ -34,6 +35,22 @@ OTHER_NUMBERS = ("latency_s", "trajectory_rate_hz", "step_budget", "completion_s
 #: Fields that hold one scalar (or nothing): a list or object there is not a value a cell can be keyed by.
 SCALAR_FIELDS = ("episode", "latency_dist", "energy_sampling", "transport", *(f for f in VARIANT_FIELDS
                                                                              if f != "policy_args"))  # fmt: skip
+
+
+#: Nested fields (stored as JSON text in a table): what each must hold.
+JSON_FIELDS = {"policy_args": dict, "versions": dict, "null_reasons": dict, "warnings": list}
+
+
+def _json_problem(value, kind: type) -> str | None:
+    """Why ``value`` (the object itself, its JSON text, or nothing) is not a ``kind``, or None."""
+    if _missing(value) or value == "":
+        return None
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except (ValueError, RecursionError):
+            return "is text that is not JSON"
+    return None if isinstance(value, kind) else f"is {kind_of(value)}, not {kind_of(kind())[2:]}"
 
 
 def kind_of(value) -> str:
@@ -89,6 +106,12 @@ def row_problem(row) -> str | None:
         value = row.get(key)
         if value is not None and not isinstance(value, str | int | float | bool):
             return f"{key} is {kind_of(value)}, not one value"
+        if isinstance(value, float) and math.isinf(value):
+            return f"{key} is {value}"
+    for key, kind in JSON_FIELDS.items():
+        problem = _json_problem(row.get(key), kind)
+        if problem is not None:
+            return f"{key} {problem}"
     for key in (*CONTINUOUS_METRICS, *OTHER_NUMBERS):
         value = row.get(key)
         if _missing(value):

@@ -206,3 +206,13 @@ def test_damaged_foreign_and_same_named_bags_in_a_bag_folder(sweep_dir, tmp_path
     assert len(set(plots)) == 3 and all((result.out_dir / p).is_file() for p in plots)
     md = result.files["report.md"].read_text()
     assert len(set(re.findall(r"\[plot\]\(([^)]+)\)", md))) == 3
+    # lq report names each skipped bag on the console, one line each, and writes the report for the rest.
+    from typer.testing import CliRunner
+
+    from lq_ros.cli import app
+
+    run = CliRunner().invoke(app, ["report", str(folder), "--out", str(tmp_path / "again")])
+    assert run.exit_code == 0, run.output
+    lines = [" ".join(line.split()) for line in run.output.splitlines() if line.startswith("skipped:")]
+    assert [line.split(":")[1].strip() for line in lines] == [f"bag c/{bags[2].name}", f"bag c/{bags[3].name}"]
+    assert "3 episodes ->" in run.output and "Traceback" not in run.output

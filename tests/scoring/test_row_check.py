@@ -18,6 +18,7 @@ def good_row(**changes) -> dict:
         "success": True, "completion_time_s": 2.5, "completion_steps": 50, "jerk_mean": 1.2, "sparc": -1.5,
         "ldlj": -7.0, "energy_total_j": 300.0, "traj_length": 0.4, "versions": '{"mujoco": "2.3.7"}',
         "error_reason": None, "policy_args": "{}", "replan_steps": 5, "traj_efficiency": math.nan,
+        "warnings": ["1 chunk rejected"], "null_reasons": {"sparc": "too short"},
     }  # fmt: skip
     row.update(changes)
     return row
@@ -54,6 +55,11 @@ def test_a_table_row_of_numpy_scalars_is_read_as_its_values():
         (good_row(status="done"), "status 'done'; expected one of success, failure, error, unknown"),
         (good_row(policy=["scripted"]), "policy ['scripted'] is not a name"),
         (good_row(replan_steps=[5]), "replan_steps is a list, not one value"),
+        (good_row(replan_steps=math.inf), "replan_steps is inf"),
+        (good_row(policy_args="chunk=8"), "policy_args is text that is not JSON"),
+        (good_row(policy_args="[8]"), "policy_args is a list, not dict"),
+        (good_row(versions=["2.3.7"]), "versions is a list, not dict"),
+        (good_row(warnings='{"a": 1}'), "warnings is a dict, not list"),
     ],
 )
 def test_a_wrong_or_contradictory_field_is_named(row, problem):
