@@ -88,6 +88,8 @@ def _run_sweep_with_progress(spec, out_dir: Path, **kwargs):
             state["task"] = progress.add_task(spec.name, total=pending, ok=0, fail=0, err=0, retried=0)
             if summary.skipped:
                 console.print(f"{summary.skipped} of {summary.total} episodes already finished in {out_dir}: skipped")
+            for why in summary.refused.values():  # (a name and reason from the folder: printed as they are)
+                console.print(f"[yellow]not used:[/yellow] {escape(' '.join(why.split()))}; run again", soft_wrap=True)
         c = summary.counts
         progress.update(state["task"], completed=summary.ran, ok=c["success"], fail=c["failure"], err=c["error"],
                         retried=summary.retried)  # fmt: skip

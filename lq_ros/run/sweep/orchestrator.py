@@ -86,6 +86,8 @@ class SweepSummary:
     retried: int = 0
     wall_s: float = 0.0
     out_dir: Path | None = None
+    #: Results files of the folder that were not used (name -> why, one line): their episodes run again.
+    refused: dict[str, str] = field(default_factory=dict)
 
 
 def _now() -> str:
@@ -136,6 +138,12 @@ def _refuse_other_code(store: ResultStore, spec: SweepSpec, codes: dict[str, dic
         finished += 1
         for change in changes(record.get(CODE_FIELD), codes[cfg.key()]):
             stale.setdefault(change, set()).add(cfg.key())
+    links = sorted(name for name in store.refused if (store.root / name).is_symlink())
+    if links:  # (its record could not be written either: a link is never written through)
+        raise StoreError(
+            f"{store.root / links[0]}: a link where a results file is written; not followed (remove it, or give "
+            "another --out)"
+        )
     if stale:
         n = len(set().union(*stale.values()))
         raise StoreError(
@@ -206,7 +214,7 @@ def _run_locked(
     on_progress: Callable[[SweepSummary, dict | None], None] | None,
 ) -> SweepSummary:
     store, jobs, done = prepare(spec, out_dir, retry_errors=retry_errors, overwrite=overwrite)
-    summary = SweepSummary(total=len(spec.configs), skipped=done, out_dir=store.root)
+    summary = SweepSummary(total=len(spec.configs), skipped=done, out_dir=store.root, refused=dict(store.refused))
     if on_progress:
         on_progress(summary, None)
     started = time.monotonic()

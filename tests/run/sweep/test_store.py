@@ -27,13 +27,13 @@ def record(cfg, status: str = "failure", **changes) -> dict:
 
 @pytest.fixture
 def no_hang():
-    """Fail a test that blocks (a FIFO read) after 10 s instead of hanging the run."""
+    """Fail a test that blocks (a FIFO read) after 120 s instead of hanging the run."""
 
     def hung(*_):
-        raise TimeoutError("blocked for 10 s")
+        raise TimeoutError("blocked for 120 s")
 
     old = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(10)
+    signal.alarm(120)
     yield
     signal.alarm(0)
     signal.signal(signal.SIGALRM, old)
@@ -76,8 +76,8 @@ def test_a_fifo_or_a_link_to_dev_zero_in_results_is_refused_by_name_and_run_agai
     os.mkfifo(store.record_path(b.key()))
     store.record_path(c.key()).symlink_to("/dev/zero")
     os.mkfifo(store.attempts / f"{a.key()}.a1.json")
-    store, jobs, done = sw.prepare(spec, tmp_path)
-    assert done == 1 and {j.key for j in jobs} == {x.key() for x in spec.configs[1:]}
+    store = sw.ResultStore(tmp_path)
+    assert [store.load(x.key()) is None for x in (a, b, c)] == [False, True, True]
     assert store.refused == {
         f"results/{b.key()}.json": f"results file {store.record_path(b.key())}: not a regular file",
         f"results/{c.key()}.json": f"results file {store.record_path(c.key())}: a link, not a regular file",
@@ -128,3 +128,25 @@ def test_the_lock_is_held_once_per_process(tmp_path):
     store = sw.ResultStore(tmp_path / "sweep")
     with store.lock(), store.lock():
         assert (tmp_path / "sweep" / sw.store.LOCK_FILE).read_text().split() == [str(os.getpid())]
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_a_resumed_sweep_runs_a_fifos_episode_again_and_refuses_a_link_before_it_starts(tmp_path, no_hang):
+    """The hung resume would have kept the folder locked: the FIFO is named and its episode runs again, the record
+    written in its place a regular file; a link to /dev/zero is refused in one line before anything runs."""
+    spec = sw.expand_spec(small_spec(latencies_s=[0.0], modes=["sync"]))
+    store = sw.ResultStore(tmp_path)
+    store.create()
+    (cfg,) = spec.configs
+    path = store.record_path(cfg.key())
+    path.symlink_to("/dev/zero")
+    with pytest.raises(sw.StoreError, match=r"\.json: a link where a results file is written; not followed"):
+        sw.run_sweep(spec, tmp_path, workers=1)
+    assert not list(store.bags.iterdir())  # nothing ran
+    path.unlink()
+    os.mkfifo(path)
+    summary = sw.run_sweep(spec, tmp_path, workers=1)
+    assert summary.ran == 1 and summary.skipped == 0
+    assert summary.refused == {f"results/{cfg.key()}.json": f"results file {path}: not a regular file"}
+    assert path.is_file() and [r["key"] for r in sw.ResultStore(tmp_path).records()] == [cfg.key()]
