@@ -120,3 +120,17 @@ def test_output_folder_refuses_another_users_folder(tmp_path):
     os.chown(theirs, 12345, 12345)
     with pytest.raises(WriteRefused, match="a folder of user id 12345, not this user's"):
         output_folder(theirs)
+
+
+def test_a_file_written_by_name_goes_to_a_fresh_temporary_then_refuses_a_linked_target(tmp_path, outside):
+    """lq replay's video is written by ffmpeg, which opens a name: a fresh file, then a rename onto the target."""
+    video = tmp_path / "ep.mp4"
+    tmp = safe_write.reserve_temporary(video)
+    assert tmp.parent == tmp_path and tmp.name.startswith(".ep.mp4.") and tmp.stat().st_size == 0
+    tmp.write_bytes(b"frames")
+    safe_write.commit(tmp, video)
+    assert video.read_bytes() == b"frames" and not tmp.exists()
+    (tmp_path / "linked.mp4").symlink_to(outside)
+    with pytest.raises(WriteRefused, match="linked.mp4: a symbolic link"):
+        safe_write.reserve_temporary(tmp_path / "linked.mp4")
+    assert outside.read_text() == "echo mine\n"
