@@ -57,6 +57,8 @@ RUN_CASES = {
     "not an integer": (["--task", "abc"], ["Invalid value for '--task'"]),
     "unknown option": (["--tsk", "1"], ["No such option: --tsk"]),
     "latency between ticks": (["--latency", "0.075"], ["not a whole number", "0.05 s or 0.1 s"]),
+    "negative timeout": (["--timeout", "-1"], ["--timeout: expected a number of seconds > 0, got -1.0"]),
+    "camera size beyond a spec's": (["--camera-size", "100000"], ["--camera-size: expected 0", "1..1024 px"]),
 }
 
 

@@ -164,6 +164,13 @@ def run(
         )  # fmt: skip
         if cfg.clock == "realtime" and transport is not Transport.ros:
             raise ValueError("--clock realtime runs through ROS only (--transport ros)")
+        from lq_ros.run.sweep.spec import MAX_CAMERA_SIZE_PX
+
+        if not 0 <= camera_size <= MAX_CAMERA_SIZE_PX:  # as a spec's camera_size
+            raise ValueError(f"--camera-size: expected 0 (the policy's) or 1..{MAX_CAMERA_SIZE_PX} px, got "
+                             f"{camera_size}")  # fmt: skip
+        if timeout is not None and not 0 < timeout < float("inf"):
+            raise ValueError(f"--timeout: expected a number of seconds > 0, got {timeout}")
         if cfg.robot:
             from lq_ros.robot.robot_config import load_robot_config
 

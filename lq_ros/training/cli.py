@@ -173,6 +173,9 @@ def train(
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     output_folder(out)  # not a file, a dangling link or another user's folder (one line)
-    meta = run_train(cfg, data, out)
+    try:
+        meta = run_train(cfg, data, out)
+    except FileNotFoundError as exc:  # no dataset at --data (the message says how to make one)
+        raise typer.BadParameter(str(exc)) from None
     m = meta["metrics"]
     print(json.dumps({k: m[k] for k in ("params", "train_wall_s", "final_train_loss", "final_val_loss")}))

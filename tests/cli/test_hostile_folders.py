@@ -198,6 +198,11 @@ def test_lq_run_refuses_a_latency_in_another_scripts_digits(tmp_path):
                       str(tmp_path / "o")), "is not a number (digits 0-9)")  # fmt: skip
 
 
+def test_lq_train_without_a_dataset_is_one_line(tmp_path):
+    result = lq("train", "--policy", "oft", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "w"))
+    assert_refused(result, "not a dataset", "lq collect")
+
+
 # -- a bug ------------------------------------------------------------------------------------------------------
 
 
