@@ -11,11 +11,13 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import yaml
 
 from lq_ros.core.executor_protocol import Command
 from lq_ros.recording.episode_bag import EpisodeBagWriter
 from lq_ros.run import sweep as sw
 from lq_ros.wire import messages as m
+from tests.run.sweep.test_spec import small_spec
 from tests.scoring.test_bag_scorer import TORQUE, VELOCITY, _cubic_positions, _stamp, write_episode_bag
 from tests.test_cli_errors import REPO, assert_refused, lq
 
@@ -133,13 +135,15 @@ EVAL = ["eval", "--policy", "scripted", "--tasks", "0", "--inits", "0", "--laten
 
 
 @pytest.mark.parametrize("case", list(OUT_CASES))
-@pytest.mark.parametrize("command", ["eval", "score", "report", "run"])
+@pytest.mark.parametrize("command", ["eval", "sweep", "score", "report", "run"])
 def test_an_unusable_out_is_refused_in_one_line(tmp_path, case, command):
     out, expected = OUT_CASES[case](tmp_path)
     bags = tmp_path / "bags"
     write_episode_bag(bags / "ep", n_ticks=40)
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump(small_spec()))
     args = {
         "eval": [*EVAL, "--transport", "inprocess"],
+        "sweep": ["sweep", str(tmp_path / "spec.yaml"), "--workers", "1"],
         "score": ["score", str(bags), "--n-boot", "20"],
         "report": ["report", str(bags)],
         "run": ["run", "--transport", "inprocess", "--max-steps", "2"],
