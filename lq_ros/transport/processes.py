@@ -142,13 +142,12 @@ def private_folder(path: Path) -> Path:
 
 def open_lock_file(path: Path, mode: int = 0o600) -> int:
     """A descriptor of the lock file ``path`` (made if missing): never through a link, never truncated, only a
-    regular file of this user with no other name (a hard link); OSError otherwise (a link: "Too many levels of
-    symbolic links")."""
+    regular file of this user; OSError otherwise (a link: "Too many levels of symbolic links")."""
     fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
     info = os.fstat(fd)
-    if not stat.S_ISREG(info.st_mode) or info.st_uid != os.getuid() or info.st_nlink != 1:
+    if not stat.S_ISREG(info.st_mode) or info.st_uid != os.getuid():
         os.close(fd)
-        raise OSError(errno.EPERM, "not a regular file of this user with one name")
+        raise OSError(errno.EPERM, "not a regular file of this user")
     return fd
 
 

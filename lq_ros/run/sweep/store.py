@@ -91,6 +91,9 @@ class ResultStore:
             return
         try:
             fd = open_lock_file(self.root / LOCK_FILE, 0o644)  # never through a link, never truncated
+            if os.fstat(fd).st_nlink != 1:  # its pid is written into it: never into a file that has another name
+                os.close(fd)
+                raise OSError(errno.EPERM, "a file with another name (a hard link)")
         except OSError as exc:
             why = "a symbolic link, not followed" if exc.errno == errno.ELOOP else exc.strerror
             raise StoreError(f"{self.root}: cannot use this sweep folder's {LOCK_FILE} ({why})") from None

@@ -118,7 +118,7 @@ def test_the_lock_is_never_taken_through_a_link_nor_truncated(tmp_path):
     assert outside.read_text() == "echo mine\n"
     (folder / sw.store.LOCK_FILE).unlink()
     (folder / sw.store.LOCK_FILE).hardlink_to(outside)  # a second name of one of this user's files
-    with pytest.raises(sw.StoreError, match="one name"), sw.ResultStore(folder).lock():
+    with pytest.raises(sw.StoreError, match="a hard link"), sw.ResultStore(folder).lock():
         pass
     assert outside.read_text() == "echo mine\n"
 
