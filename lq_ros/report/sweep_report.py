@@ -33,6 +33,7 @@ from lq_ros.report.failure_figures import fig_failure_modes  # noqa: E402
 from lq_ros.report.figures import ENERGY_PARTS, FIGURE_KEYS, FIGURES, make_figures  # noqa: E402
 from lq_ros.report.plot_rules import never_moved  # noqa: E402
 from lq_ros.report.prose import INTRO, NOTES, comparison_sentences, paired_sentences  # noqa: E402
+from lq_ros.report.runs import load_runs  # noqa: E402
 from lq_ros.report.tables import (  # noqa: E402
     comparison_table,
     episode_table,
@@ -428,18 +429,29 @@ class Report:
     skipped: list[str] | None = None
 
 
-def build_report(results_dir: Path, out_dir: Path | None = None, *, n_boot: int = 2000, seed: int = 0,
+def build_report(results_dir: Path | list[Path], out_dir: Path | None = None, *, n_boot: int = 2000, seed: int = 0,
                  keep_figures: bool = False, all_episodes: bool = False, videos: int = 0,
                  progress: media.Progress | None = None) -> Report:  # fmt: skip
-    """Write figures, tables, report.html and report.md for ``results_dir`` into ``out_dir``
-    (default ``results_dir/report``). ``keep_figures`` leaves the matplotlib figures open (tests);
-    ``all_episodes``: see load_episodes. Every episode gets a figure; ``videos``: replay videos per
-    (policy, protocol, Δt_sim) cell (lq_ros/report/episode_media.py); ``progress(stage, done, total)`` follows both."""
-    results_dir = Path(results_dir)
+    """Write figures, tables, report.html and report.md for ``results_dir`` (a folder, or a list of run folders
+    to compare) into ``out_dir`` (default ``results_dir/report``; required for several). ``keep_figures`` leaves
+    the matplotlib figures open (tests); ``all_episodes``: see load_episodes. Every episode gets a figure;
+    ``videos``: replay videos per (policy, protocol, Δt_sim) cell (lq_ros/report/episode_media.py);
+    ``progress(stage, done, total)`` follows both."""
+    dirs = [Path(results_dir)] if isinstance(results_dir, str | Path) else [Path(d) for d in results_dir]
+    if len(dirs) > 1 and out_dir is None:
+        raise ValueError("several run folders need an output folder (--out)")
     # A folder of this user's; the default one inside RESULTS_DIR (which may come from anyone) never a link.
-    out_dir = output_folder(out_dir, "--out") if out_dir else output_folder(results_dir / "report", "report folder",
+    out_dir = output_folder(out_dir, "--out") if out_dir else output_folder(dirs[0] / "report", "report folder",
                                                                           follow=False)  # fmt: skip
-    episodes, skipped = load_checked_episodes(results_dir, all_episodes=all_episodes)
+    # Several folders: one report comparing their runs (lq_ros/report/runs.py); links relative to their parent.
+    skipped: list[str] = []
+
+    def load(folder: Path) -> pd.DataFrame:
+        frame, lost = load_checked_episodes(folder, all_episodes=all_episodes)
+        skipped.extend(lost)
+        return frame
+
+    episodes, results_dir = load_runs(dirs, load)
     pooled = figure_aggregates(episodes, n_boot=n_boot, seed=seed)
     per_task = agg.aggregate(episodes, n_boot=n_boot, seed=seed)
     files = agg.write_tables(episodes, per_task, out_dir)
