@@ -309,9 +309,10 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
                    attribution: pd.DataFrame | None = None,
                    failures: list[str] | None = None, skipped: list[str] | None = None) -> None:  # fmt: skip
     """``failures``: the failure-mode sentences, given when the failure-mode figure was drawn; ``skipped``: the
-    files left out, each with why."""
-    lines = ["# LIBERO-LQ sweep report", ""]
-    lines += [INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
+    files left out, each with why. Results first (the summary, at most SUMMARY_LINES lines, then what was skipped),
+    then the figures and tables, the methods and provenance; the per-task and per-episode tables are in the CSV files
+    and report.html, not here (a sweep's would bury the page)."""
+    lines = ["# LIBERO-LQ sweep report", ""] + summary_markdown(summary, paired, comparisons, failures)
     if skipped:
         lines += [f"## {SKIPPED_TITLE}", "", SKIPPED_NOTE, ""] + [f"- {_md_text(line)}" for line in skipped] + [""]
     if comparisons is not None and not comparisons.empty:
@@ -324,7 +325,6 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     if failures is not None:
         lines += [f"## {FAILURE_TITLE}", "", FAILURE_NOTE, ""] + [f"- {sentence}" for sentence in failures]
         lines += ["", f"![{FAILURE_TITLE}]({FAILURE_FIGURE}.png)", ""]
-    lines += ["## Summary", "", summary.to_markdown(index=False), ""]
     if paired is not None and not paired.empty:
         lines += ["## Paired changes against 0 s", "", paired_table(paired).to_markdown(index=False), ""]
     if comparisons is not None and not comparisons.empty:
@@ -332,20 +332,41 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
                   comparison_table(comparisons).to_markdown(index=False), ""]  # fmt: skip
     if attribution is not None and not attribution.empty:
         lines += [f"## {ATTRIBUTION_TITLE}", "", ATTRIBUTION_NOTE, "", attribution.to_markdown(index=False), ""]
-    lines += ["## Per task", "", per_task_md, ""]
+    lines += ["## Methods", "", INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
     lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
     lines += media.videos_md(episodes, FIGURE_KEYS)
-    lines += ["## Episodes", ""]
-    table = episode_table(episodes)
-    header = [c for c in table.columns if c != "bag" and c not in media.MEDIA_COLUMNS]
-    links = media.link_headers(table)
-    lines += ["| " + " | ".join([*header, "bag", *links]) + " |", "|" + "---|" * (len(header) + 1 + len(links))]
-    for _, r in table.iterrows():
-        bag = r["bag"]
-        cell = f"[bag]({_link(bag, prefix)})" if isinstance(bag, str) and bag else "–"
-        cells = [*(fmt_cell(r[c]).replace("|", "/") for c in header), cell, *media.md_cells(r)]
-        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["## Episodes", "", f"{len(episodes)} episodes: one row each, with links to their bags and figures, in "
+              "report.html and episodes.csv; per task: aggregates.csv.", ""]  # fmt: skip
     write_text(path, "\n".join(lines) + "\n")
+
+
+#: The report's summary is at most this many lines (it reads in one screen); its table at most SUMMARY_ROWS rows.
+SUMMARY_LINES = 60
+SUMMARY_ROWS = 30
+SUMMARY_NOTE = "Intervals are 95%; n is the episodes of a cell. How each number is made: Methods, below."
+
+
+def summary_markdown(summary: pd.DataFrame, paired: pd.DataFrame | None, comparisons: pd.DataFrame | None,
+                     failures: list[str] | None) -> list[str]:  # fmt: skip
+    """``## Summary``: the success table (n per row), the comparisons called, the latency effects and the failure-mode
+    headline, before any method text; at most SUMMARY_LINES lines, the rest pointed to."""
+    shown = summary.head(SUMMARY_ROWS)
+    lines = ["## Summary", "", shown.to_markdown(index=False), ""]
+    if len(summary) > len(shown):
+        lines += [f"(the first {len(shown)} of {len(summary)} cells; all: aggregates_pooled.csv and report.html)", ""]
+    said = []
+    if comparisons is not None and not comparisons.empty:
+        called = comparisons.get("called", pd.Series(False, index=comparisons.index)).fillna(False).astype(bool)
+        said.append(f"Paired comparisons: {int(called.sum())} of {len(comparisons)} called a difference (Holm-adjusted "
+                    "p < 0.05; below, Policies and protocols compared).")  # fmt: skip
+    if paired is not None and not paired.empty:
+        said.append(f"Latency effects: {len(paired)} cells paired against 0 s (below, Latency effects).")
+    if failures:
+        said.append(f"Failure modes: {failures[0]}")
+    room = SUMMARY_LINES - len(lines) - 3
+    lines += [f"- {s}" for s in said[: max(0, room)]]
+    lines += ["", SUMMARY_NOTE, ""]
+    return lines
 
 
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}
@@ -362,10 +383,12 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
                prefix: str, paired: pd.DataFrame | None = None,
                comparisons: pd.DataFrame | None = None, attribution: pd.DataFrame | None = None,
                failures: list[str] | None = None, skipped: list[str] | None = None) -> None:  # fmt: skip
+    """The page, results first (as report.md), self-contained: its figures are embedded (data URIs), so the file
+    alone can be shared; only the per-episode links (bags, episode figures, videos) point beside it."""
     e = html.escape
     parts = ["<!doctype html><html><head><meta charset='utf-8'><title>LIBERO-LQ sweep report</title>",
              f"<style>{_CSS}</style></head><body><h1>LIBERO-LQ sweep report</h1>",
-             f"<p>{html.escape(INTRO)}</p>", "<ul>", *(f"<li>{e(n)}</li>" for n in NOTES), "</ul>"]  # fmt: skip
+             "<h2>Summary</h2>" + summary.to_html(index=False, na_rep="–"), f"<p>{e(SUMMARY_NOTE)}</p>"]  # fmt: skip
     if skipped:
         parts.append(f"<h2>{e(SKIPPED_TITLE)}</h2><p>{e(SKIPPED_NOTE)}</p><ul class='error'>")
         parts += [f"<li>{e(line)}</li>" for line in skipped]
@@ -381,12 +404,12 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
         parts += [f"<li>{_bold_html(sentence)}</li>" for sentence in paired_sentences(paired)]
         parts.append("</ul>")
     for name, title in FIGURES.items():
-        parts.append(f"<h2>{e(title)}</h2><img src='{name}.png' alt='{e(title)}'>")
+        parts.append(f"<h2>{e(title)}</h2><img src='{_embedded_png(path.parent / f'{name}.png')}' alt='{e(title)}'>")
     if failures is not None:
         parts.append(f"<h2>{e(FAILURE_TITLE)}</h2><p>{e(FAILURE_NOTE)}</p><ul>")
         parts += [f"<li>{e(sentence)}</li>" for sentence in failures]
-        parts.append(f"</ul><img src='{FAILURE_FIGURE}.png' alt='{e(FAILURE_TITLE)}'>")
-    parts.append("<h2>Summary</h2>" + summary.to_html(index=False, na_rep="–"))
+        png = _embedded_png(path.parent / f"{FAILURE_FIGURE}.png")
+        parts.append(f"</ul><img src='{png}' alt='{e(FAILURE_TITLE)}'>")
     if has_paired:
         parts.append("<h2>Paired changes against 0 s</h2>" + paired_table(paired).to_html(index=False, na_rep="–"))
     if has_comparisons:
@@ -395,6 +418,7 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
     if attribution is not None and not attribution.empty:
         parts.append(f"<h2>{e(ATTRIBUTION_TITLE)}</h2><p>{e(ATTRIBUTION_NOTE)}</p>" + attribution.to_html(index=False))
     parts.append("<h2>Per task</h2>" + per_task.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.4g}"))
+    parts += ["<h2>Methods</h2>", f"<p>{e(INTRO)}</p>", "<ul>", *(f"<li>{e(n)}</li>" for n in NOTES), "</ul>"]
     parts.append("<h2>Provenance</h2><table>")
     parts += [f"<tr><th>{e(k)}</th><td style='text-align:left'>{e(v)}</td></tr>" for k, v in prov.items()]
     parts.append("</table>" + media.videos_html(episodes, FIGURE_KEYS) + "<h2>Episodes</h2><table><tr>")
@@ -412,6 +436,16 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
         parts.append(f"<tr{cls}>{cells}<td style='text-align:left'>{link}</td>{media.html_cells(r)}</tr>")
     parts.append("</table></body></html>")
     write_text(path, "\n".join(parts))
+
+
+def _embedded_png(png: Path) -> str:
+    """A PNG as a data URI (the page carries its figures); its file name when it was not drawn."""
+    import base64
+
+    try:
+        return "data:image/png;base64," + base64.b64encode(png.read_bytes()).decode("ascii")
+    except OSError:
+        return png.name
 
 
 @dataclass

@@ -79,8 +79,8 @@ def test_figures_have_the_papers_panels_and_series(report):
     # Two episodes per cell: no band, the values as dots and n beside each point.
     assert "n=2" in [t.get_text() for t in fig5[0].texts]
     fig6 = figs["fig6_energy_decomposition"].axes
-    # 2 series x 2 latencies bars per stacked part: 3 parts in (a), 2 in (b)
-    assert [len(ax.patches) for ax in fig6] == [2 * 2 * 3, 2 * 2 * 2]
+    # A row per series (2), each (a) and (b): 2 latencies' bars per stacked part, 3 parts in (a), 2 in (b)
+    assert [len(ax.patches) for ax in fig6] == [2 * 3, 2 * 2, 2 * 3, 2 * 2]
     assert all(p.get_height() > 0 for p in fig6[0].patches)
     fig7 = figs["fig7_energy"].axes
     assert len(fig7) == 2 and [len(_hollow_means(ax)) for ax in fig7] == [4, 4]
@@ -101,13 +101,14 @@ def test_pages_tables_provenance_and_links(report, sweep_dir):
     html = report.files["report.html"].read_text()
     md = report.files["report.md"].read_text()
     for name in fg.FIGURES:
-        assert f"{name}.png" in html and f"({name}.png)" in md
+        assert f"({name}.png)" in md
+    assert html.count("<img src='data:image/png;base64,") >= len(fg.FIGURES)  # the page carries its figures
+    assert md.startswith("# LIBERO-LQ sweep report\n\n## Summary\n") and md.index("## Methods") > md.index("Fig. 4")
     links = re.findall(r"href='([^']+)'", html)
     assert len(links) == 8
     for link in links:
         assert (report.out_dir / link / "metadata.yaml").exists(), link
-    md_links = re.findall(r"\[bag\]\(([^)]+)\)", md)
-    assert sorted(md_links) == sorted(links)
+    assert re.findall(r"\[bag\]\(([^)]+)\)", md) == []  # per-episode rows: report.html and episodes.csv
     for key in ("mujoco", "git_commit", "seeds", "init states", "transports"):
         assert key in html and key in md
     assert "2.3.7" in html  # the MuJoCo version the episodes ran on
