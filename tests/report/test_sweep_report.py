@@ -205,8 +205,8 @@ def test_damaged_foreign_and_same_named_bags_in_a_bag_folder(sweep_dir, tmp_path
     assert all("no run configuration" in line for line in result.skipped)
     plots = list(result.episodes["plot"])
     assert len(set(plots)) == 3 and all((result.out_dir / p).is_file() for p in plots)
-    md = result.files["report.md"].read_text()
-    assert len(set(re.findall(r"\[plot\]\(([^)]+)\)", md))) == 3
+    page = result.files["report.html"].read_text()  # (report.md has no per-episode rows)
+    assert len(set(re.findall(r"href=[\"']([^\"']+[.]png)[\"']>plot<", page))) == 3
     # lq report names each skipped bag on the console, one line each, and writes the report for the rest.
     from typer.testing import CliRunner
 
