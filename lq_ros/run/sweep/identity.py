@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -76,8 +77,9 @@ def _current(cls: type) -> type:
 
 
 def _plain(value: object) -> object:
-    """A JSON value as a record holds it (a default that is no JSON value: its repr)."""
-    return json.loads(json.dumps(value, default=repr))
+    """A JSON value as a record holds it (a default that is no JSON value: its repr, without the memory address
+    an object's repr may carry, which differs in every process)."""
+    return json.loads(json.dumps(value, default=lambda v: re.sub(r" at 0x[0-9a-fA-F]+", "", repr(v))))
 
 
 def effective_args(cls: type, args: dict) -> dict:

@@ -61,6 +61,15 @@ def test_identity_holds_class_source_hash_effective_args_and_version(policy_modu
     assert code_identity(name, {"chunk_size": 6})["policy_source_sha256"] != before  # read from disk, not the cache
 
 
+def test_a_default_that_is_no_json_value_is_the_same_in_every_process():
+    from lq_ros.run.sweep.identity import _plain
+
+    class Thing:
+        pass
+
+    assert _plain({"x": Thing()}) == {"x": _plain({"x": Thing()})["x"]}  # (two objects, two addresses)
+
+
 def test_changes_name_each_difference():
     old = {"policy_class": "m:A", "policy_source_sha256": "1", "policy_args": {"gain": 0.1}, "lq_ros": "0.1.0",
            "git_commit": "abc"}  # fmt: skip
