@@ -2,7 +2,7 @@
 
 A user who exported ``ROS_DOMAIN_ID`` wants their ROS tools (``ros2 topic echo``, rqt) to see the run's nodes, so
 the exported id is honoured like ``--domain-id``: taken unless another lq run of this user holds it (then refused
-in one line, lq_ros.transport.ros.stack.reserved_domain). Without either, a free id is picked (DOMAIN_IDS), so
+in one line, lq_ros.transport.ros.reservations.reserved_domain). Without either, a free id is picked (DOMAIN_IDS), so
 concurrent runs never hear each other. Sweeps always pick free ids: their workers run at the same time.
 """
 

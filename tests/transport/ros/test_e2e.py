@@ -122,7 +122,7 @@ def test_the_sim_steps_a_lockstep_episode_on_its_own_cpu_and_any_cpu_between_epi
 
     The CPU locks are this test's own: stacks of other runs on the machine (a 2-worker sweep holds both CPUs of a
     2-core machine) would leave none to reserve, and the stack then rightly runs unpinned (tests/transport/ros/
-    test_domain_lock.py checks the reservation itself)."""
+    test_reservations.py checks the reservation itself)."""
     from lq_ros.transport.ros import stack as stack_module
 
     monkeypatch.setattr(stack_module, "CPU_LOCK_DIR", tmp_path / "cpus")
