@@ -123,37 +123,44 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
     left_out = [p for p in PANELS if p not in panels]
     n_cols = min(COLUMNS, len(panels))
     n_rows = -(-len(panels) // n_cols)
-    fig, grid = plt.subplots(n_rows, n_cols, figsize=(4.6 * n_cols, 4.0 * n_rows), squeeze=False)
-    axes = list(grid.flat)
-    for ax in axes[len(panels) :]:
-        ax.set_visible(False)
-    axes = axes[: len(panels)]
+    # Small multiples: the panels once per suite, one block of rows each (never two suites in one panel).
+    suites = sorted(pooled["suite"].unique()) if pooled["suite"].nunique() > 1 else [None]
+    fig, grid = plt.subplots(n_rows * len(suites), n_cols, figsize=(4.6 * n_cols, 4.0 * n_rows * len(suites)),
+                             squeeze=False)  # fmt: skip
+    blocks = []  # (suite or None, its panels' axes)
+    for k, suite_k in enumerate(suites):
+        block = list(grid[k * n_rows : (k + 1) * n_rows].flat)
+        for ax in block[len(panels) :]:
+            ax.set_visible(False)
+        blocks.append((suite_k, block[: len(panels)]))
+    axes = blocks[0][1]
     order = {m.value: i for i, m in enumerate(Merge)}
     lines = sorted({(str(s), str(b)) for s, b in zip(pooled["suite"], pooled["base"], strict=True)})
-    markers = dict(zip(lines, "osD^v<>p*h", strict=False))
+    markers = dict(zip(sorted({b for _, b in lines}), "osD^v<>p*h", strict=False))  # a variant's, in every suite
     several_bases = pooled["base"].nunique() > 1
-    several_suites = pooled["suite"].nunique() > 1
     latencies = sorted(pooled["latency_s"].astype(float).unique())
     found: set[str] = set()
     keys = sorted(pooled.groupby(list(SERIES)).groups, key=lambda k: (k[0], str(k[1]), order.get(k[2], 99), k[3]))
-    colour = series_colours(keys, order)
-    for ax, (metric, label, scale) in zip(axes, panels, strict=True):
+    # A series keeps its colour in every suite's panels (the panel names the suite).
+    colour = series_colours(sorted({("", *k[1:]) for k in keys}), order)
+    for suite_k, (ax, (metric, label, scale)) in ((s, p) for s, block in blocks for p in zip(block, panels)):
         for suite, base, merge, kind in keys:
+            if suite_k is not None and suite != suite_k:
+                continue
             rows = pooled[(pooled["suite"] == suite) & (pooled["base"] == base) & (pooled["merge"] == merge)
                           & (pooled["latency_kind"] == kind)].sort_values("latency_s")  # fmt: skip
             mean, lo, hi, n = _panel_values(rows, metric, scale)
             x = rows["latency_s"].astype(float).to_numpy()
             masked = None if metric == "success_rate" else pr.idle_cells(rows)
             name = f"{base} · {merge}" if several_bases else merge
-            name += f" · {suite}" if several_suites else ""
             name += "" if kind == "constant" else f" ({kind} latency)"
-            pr.mean_line(ax, x, mean, lo, hi, n, colour=colour[(suite, base, merge, kind)],
+            pr.mean_line(ax, x, mean, lo, hi, n, colour=colour[("", base, merge, kind)],
                          linestyle=KIND_STYLE.get(kind, "--"),
-                         marker=markers.get((str(suite), str(base)), "o"), label=name, masked=masked,
+                         marker=markers.get(str(base), "o"), label=name, masked=masked,
                          scale=scale)  # fmt: skip
             shown = np.asarray(mean, dtype=np.float64)
             if masked is not None and masked.any():
-                pr.mark_masked(ax, x[masked], colour[(suite, base, merge, kind)])
+                pr.mark_masked(ax, x[masked], colour[("", base, merge, kind)])
                 shown = np.where(masked, np.nan, shown)
                 found.add(pr.IDLE_NOTE)
             if n is not None and (np.isfinite(shown) & (np.nan_to_num(n.to_numpy(dtype=float)) < pr.MIN_JOIN_N)).any():
@@ -164,6 +171,8 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
             ax.axhline(1.0, color="grey", linewidth=0.8, linestyle=":")
         if metric == "success_rate":
             ax.set_ylim(-2, 102)
+        if suite_k is not None:
+            ax.set_title(suite_k, fontsize=9, loc="left")
         ax.set_ylabel(label, fontsize=9)
         ax.set_xlabel(f"applied latency Δt_sim (mean of a distribution) = N × {CONTROL_DT_S:g} s", fontsize=8)
         ax.set_xticks(latencies, [f"{v:g}\nN={v / CONTROL_DT_S:.3g}" for v in latencies])
@@ -172,10 +181,22 @@ def fig_chunk_boundary(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int 
              for metric, label, _ in left_out]  # fmt: skip
     notes.append("boundary metrics: means over every episode with an outcome whose arm moved; success over all")
     notes += [n for n in (pr.SMALL_N_NOTE, pr.IDLE_NOTE, pr.DEGENERATE_NOTE) if n in found]
-    legend = "merge strategy" if len(lines) == 1 else "policy · merge strategy"
+    legend = "merge strategy" if len({b for _, b in lines}) == 1 else "policy · merge strategy"
+    _one_legend(axes[0], [block[0] for _, block in blocks])
     pr.layout(fig, axes[:1], title=TITLE, legend_title=legend, ncol=min(3, len(keys)),
               note=pr.footnote(*notes))  # fmt: skip
     return fig
+
+
+def _one_legend(target, axes) -> None:
+    """Give ``target`` an (invisible) entry for every labelled line of ``axes`` it lacks: one legend for all suites."""
+    have = set(target.get_legend_handles_labels()[1])
+    for ax in axes:
+        for line in ax.get_lines():
+            if not line.get_label().startswith("_") and line.get_label() not in have:
+                have.add(line.get_label())
+                target.plot([], [], color=line.get_color(), linestyle=line.get_linestyle(), marker=line.get_marker(),
+                            label=line.get_label())  # fmt: skip
 
 
 def make_boundary_figures(episodes: pd.DataFrame, *, n_boot: int = 2000, seed: int = 0) -> dict[str, plt.Figure]:
