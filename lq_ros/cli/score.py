@@ -16,7 +16,7 @@ from lq_ros.cli.common import (
     print_error_reasons,
     print_rows,
 )
-from lq_ros.core.safe_write import WriteRefused, output_folder
+from lq_ros.core.safe_write import WriteRefused, output_folder, refuse_link
 from lq_ros.scoring.metrics import DEFAULT_OSC_WINDOW, ELEC_LOSS_COEFF_W_PER_NM2, OVERHEAD_POWER_W
 
 #: Largest --n-boot lq score accepts (the option is unused: kept for scripts that pass it).
@@ -81,7 +81,11 @@ def score(
     single_bag = bags == [path] and out is None
     if not single_bag:  # where the tables go: checked before any bag is scored
         try:
-            output_folder(out, "--out") if out else output_folder(path if path.is_dir() else path.parent, "folder")
+            tables = output_folder(out, "--out") if out else output_folder(path if path.is_dir() else path.parent,
+                                                                           "folder")  # fmt: skip
+            for name in ("episodes", "aggregates"):
+                for ext in ("csv", "parquet"):
+                    refuse_link(tables / f"{name}.{ext}")  # a link there is refused now, not after scoring
         except WriteRefused as exc:
             _refuse(f"{exc}; the tables go there (or give --out)" if out is None else str(exc))
     references = _read_references(efficiency_reference) if efficiency_reference else None

@@ -23,9 +23,10 @@ class WriteRefused(OSError):
     """A file or folder the stack will not write: one line naming it and why."""
 
 
-def _refuse_link(path: Path) -> None:
-    """WriteRefused if ``path`` is a link or a folder (rename would replace the link, but a link there was planted
-    by someone: say so rather than silently remove it)."""
+def refuse_link(path: Path) -> None:
+    """WriteRefused if ``path`` is a link or a folder. A rename would replace the link, but a link there was
+    planted by someone: say so rather than remove it silently. Every write checks; a caller may check earlier,
+    before long work."""
     try:
         info = os.lstat(path)
     except FileNotFoundError:
@@ -43,7 +44,7 @@ def replacing(path: Path | str, binary: bool = False, mode: int = 0o644) -> Iter
     all); written under a fresh temporary name in the same folder, never through a link. ``mode`` as for
     ``open``: the umask narrows it."""
     path = Path(path)
-    _refuse_link(path)
+    refuse_link(path)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, mode)
@@ -54,7 +55,7 @@ def replacing(path: Path | str, binary: bool = False, mode: int = 0o644) -> Iter
             yield f
             f.flush()
             os.fsync(f.fileno())
-        _refuse_link(path)  # planted while we wrote: still not removed silently
+        refuse_link(path)  # planted while we wrote: still not removed silently
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -76,7 +77,7 @@ def reserve_temporary(path: Path | str) -> Path:
     """A new, empty file next to ``path`` under a fresh random name (``O_EXCL | O_NOFOLLOW``), for a writer that
     opens files by name (ffmpeg); :func:`commit` renames it onto ``path`` when complete."""
     path = Path(path)
-    _refuse_link(path)
+    refuse_link(path)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(8)}.tmp")
     try:
         os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644))
@@ -88,7 +89,7 @@ def reserve_temporary(path: Path | str) -> Path:
 def commit(tmp: Path | str, path: Path | str) -> Path:
     """Rename the finished temporary file ``tmp`` onto ``path`` (refused if ``path`` is a link or a folder)."""
     path = Path(path)
-    _refuse_link(path)
+    refuse_link(path)
     os.replace(tmp, path)
     _fsync_dir(path.parent)
     return path
