@@ -64,15 +64,22 @@ def write_with_rosbags(path: Path, messages: list[tuple[str, str, int, bytes]]) 
 
 
 def write_with_mcap_library(
-    path: Path, messages: list[tuple[str, str, int, bytes]], chunk_size: int = 2048, compression: str = "ZSTD"
+    path: Path,
+    messages: list[tuple[str, str, int, bytes]],
+    chunk_size: int = 2048,
+    compression: str = "ZSTD",
+    index_types: str = "ALL",
 ) -> Path:
-    """A bag written by another tool: the ``mcap`` library, zstd chunks with CRCs, many small chunks."""
-    from mcap.writer import CompressionType, Writer
+    """A bag written by another tool: the ``mcap`` library, zstd chunks with CRCs, many small chunks
+    (``index_types`` "CHUNK": without message indexes)."""
+    from mcap.writer import CompressionType, IndexType, Writer
 
     path.mkdir(parents=True)
     store = m.typestore()
     with (path / f"{path.name}.mcap").open("wb") as f:
-        writer = Writer(f, chunk_size=chunk_size, compression=CompressionType[compression])
+        writer = Writer(
+            f, chunk_size=chunk_size, compression=CompressionType[compression], index_types=IndexType[index_types]
+        )
         writer.start(profile="ros2", library="test")
         channels: dict[str, int] = {}
         for topic, msgtype, t_ns, data in messages:

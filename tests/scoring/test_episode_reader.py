@@ -21,7 +21,7 @@ from lq_ros.scoring.bag_scorer import read_episode, score_bag
 from lq_ros.scoring.read_budget import MESSAGES_PER_TICK, SLACK_TICKS
 from lq_ros.wire import messages as m
 from tests.recording.test_hostile_bags import lq
-from tests.scoring.test_bag_scorer import _stamp, write_episode_bag
+from tests.scoring.test_bag_scorer import _stamp, write_episode_bag, write_with_mcap_library
 
 N_TICKS = 100
 EVENTS = m.EPISODE_EVENTS.name
@@ -49,22 +49,7 @@ def rewritten(path: Path, floods: list[tuple[str, str, int, bytes]], *, after_fi
 
 def write_unindexed(path: Path, messages: list[tuple[str, str, int, bytes]]) -> Path:
     """A bag of 1 MiB zstd chunks without message indexes (16 bytes a message: most of a flood's size)."""
-    from mcap.writer import CompressionType, IndexType, Writer
-
-    path.mkdir(parents=True)
-    store = m.typestore()
-    with (path / f"{path.name}.mcap").open("wb") as f:
-        writer = Writer(f, chunk_size=1 << 20, compression=CompressionType.ZSTD, index_types=IndexType.CHUNK)
-        writer.start(profile="ros2", library="test")
-        channels: dict[str, int] = {}
-        for topic, msgtype, t_ns, data in messages:
-            if topic not in channels:
-                text, _ = store.generate_msgdef(msgtype)
-                schema = writer.register_schema(name=msgtype, encoding="ros2msg", data=text.encode())
-                channels[topic] = writer.register_channel(topic=topic, message_encoding="cdr", schema_id=schema)
-            writer.add_message(channels[topic], log_time=t_ns, data=data, publish_time=t_ns)
-        writer.finish()
-    return path
+    return write_with_mcap_library(path, messages, chunk_size=1 << 20, index_types="CHUNK")
 
 
 def started(n: int) -> list[tuple[str, str, int, bytes]]:
