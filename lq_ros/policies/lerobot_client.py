@@ -77,8 +77,13 @@ HUB_TIMEOUT_S = 120.0
 SETUP_HINT = "run `make setup-lerobot` in the checkout (or pass python=PATH to a Python with lerobot 0.4.4 or 0.6)"
 #: LeRobot's LIBERO env camera names -> our cameras (``observation.images.<name>`` in ``lerobot-eval``).
 ENV_CAMERAS = {"image": AGENTVIEW, "image2": WRIST}
+#: LIBERO's other cameras (its scenes' MuJoCo cameras; a test compares), rendered for an input ``rename`` names them
+#: for, as ``lerobot-eval --env.camera_name`` renders them; under their own names on the wire.
+OTHER_LIBERO_CAMERAS = ("frontview", "birdview", "sideview", "galleryview", "robot0_robotview")
+ENV_CAMERAS |= {name: name for name in OTHER_LIBERO_CAMERAS}
 #: Names a ``rename`` may give a camera: LeRobot's env names, ours, and ``wrist``.
 CAMERA_NAMES = {"image": "image", "image2": "image2", AGENTVIEW: "image", WRIST: "image2", "wrist": "image2"}
+CAMERA_NAMES |= {name: name for name in OTHER_LIBERO_CAMERAS}
 IMAGE_PREFIX = "observation.images."
 #: The request field carrying ``Observation.eef_rot_mat`` (robosuite's ``controller.ee_ori_mat``), row-major.
 EEF_MAT_FIELD = "observation/eef_mat"
@@ -285,7 +290,7 @@ def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str,
     mapping: dict[str, str] = {}
     for key in images:
         name = key.removeprefix(IMAGE_PREFIX).lower()
-        if name in ENV_CAMERAS:
+        if name in ("image", "image2"):  # LeRobot's own names; another LIBERO camera only by rename
             mapping[key] = name
         elif any(word in name for word in WRIST_WORDS):
             mapping[key] = "image2"
@@ -300,7 +305,8 @@ def camera_mapping(images: list[str], rename: dict[str, str] | None, where: str,
     if len(rest) > padded or not mapping or len(set(mapping.values())) != len(mapping):
         raise ValueError(
             f"lerobot path {where!r}: cannot tell which LIBERO camera feeds the image inputs {images}; name them "
-            "with --policy-arg rename=KEY:CAMERA,... (CAMERA: image = agentview, image2 = wrist), e.g. "
+            "with --policy-arg rename=KEY:CAMERA,... (CAMERA: image = agentview, image2 = wrist, or another LIBERO "
+            f"camera: {', '.join(OTHER_LIBERO_CAMERAS)}), or let the policy pad it (empty_cameras), e.g. "
             f"rename={','.join(f'{key.removeprefix(IMAGE_PREFIX)}:image' for key in images[:1])}"
         )
     return mapping
@@ -329,8 +335,8 @@ def check_config(
     if others or not images or len(images) > len(ENV_CAMERAS) + padded:
         raise ValueError(
             f"lerobot path {where!r}: inputs {sorted(inputs)} are not LIBERO's as lerobot-eval gives them; "
-            f"valid: one or two camera images (see rename; more only as empty cameras the policy pads, empty_cameras "
-            f"{padded}), and optionally {LEROBOT_STATE_KEY!r}"
+            f"valid: camera images of LIBERO's {len(ENV_CAMERAS)} cameras (see rename) or empty cameras the policy "
+            f"pads (empty_cameras {padded}), and optionally {LEROBOT_STATE_KEY!r}"
         )
     config["lq_cameras"] = camera_mapping(images, rename, where, padded)
     config["lq_empty_cameras"] = padded

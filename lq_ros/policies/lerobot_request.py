@@ -16,8 +16,9 @@ STATE_FIELDS = {"eef_pos": 3, "eef_quat": 4, "gripper_qpos": 2, "joint_pos": Non
 EEF_MAT_FIELD = "observation/eef_mat"
 #: Longest error line sent to the client, characters.
 MAX_ERROR_CHARS = 300
-#: The camera names LeRobot's LIBERO env gives its pixel keys (``observation.images.<name>``).
-ENV_CAMERAS = ("image", "image2")
+#: The camera names LeRobot's LIBERO env gives its pixel keys (``observation.images.<name>``), then LIBERO's other
+#: cameras under their own names (the client's ENV_CAMERAS).
+ENV_CAMERAS = ("image", "image2", "frontview", "birdview", "sideview", "galleryview", "robot0_robotview")
 #: Image keys a policy pads itself (SmolVLA's, pi0's and pi0.5's ``empty_cameras``): never sent.
 EMPTY_CAMERA_PREFIX = "observation.images.empty_camera_"
 #: Longest prefix accepted, rows; the prefix schedules of lq_ros.core.merge.ActionPrefix and LeRobot's names for

@@ -75,7 +75,7 @@ def test_empty_cameras_are_the_policys_and_newer_fields_pass(tmp_path):
 
 
 def test_inputs_beyond_libero_are_refused(tmp_path):
-    with pytest.raises(ValueError, match="not LIBERO's"):
+    with pytest.raises(ValueError, match="cannot tell which LIBERO camera .* or another LIBERO camera: frontview"):
         check_config(config_file(tmp_path, ["image", "image2", "image3"]), "ckpt")
     with pytest.raises(ValueError, match="not LIBERO's"):
         check_config(config_file(tmp_path, ["empty_camera_0"]), "ckpt")
@@ -99,7 +99,7 @@ def test_empty_cameras_let_the_policy_pad_inputs_libero_does_not_render(tmp_path
     """As lerobot-eval --policy.empty_cameras=1: a third numbered camera stays unfed (the policy pads it); the
     config's own empty_cameras is the default, the argument overrides it."""
     path = config_file(tmp_path, ["camera1", "camera2", "camera3"])
-    with pytest.raises(ValueError, match="not LIBERO's"):
+    with pytest.raises(ValueError, match="cannot tell which LIBERO camera"):
         check_config(path, "ckpt")
     config = check_config(path, "ckpt", empty_cameras=1)
     assert config["lq_cameras"] == {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
@@ -107,5 +107,30 @@ def test_empty_cameras_let_the_policy_pad_inputs_libero_does_not_render(tmp_path
     (tmp_path / "own").mkdir()
     padded = config_file(tmp_path / "own", ["camera1", "camera2", "camera3"], empty_cameras=1)
     assert check_config(padded, "ckpt")["lq_empty_cameras"] == 1
-    with pytest.raises(ValueError, match="not LIBERO's"):
+    with pytest.raises(ValueError, match="cannot tell which LIBERO camera"):
         check_config(padded, "ckpt", empty_cameras=0)
+
+
+def test_a_camera_libero_renders_feeds_an_input_rename_names_it_for(tmp_path):
+    """As lerobot-eval --env.camera_name=...,frontview_image: a third input gets LIBERO's frontview camera."""
+    path = config_file(tmp_path, ["image", "image2", "image3"])
+    config = check_config(path, "ckpt", parse_rename("image:image,image2:wrist,image3:frontview"))
+    assert config["lq_cameras"]["observation.images.image3"] == "frontview"
+    with pytest.raises(ValueError, match="camera 'kitchen'; valid"):
+        parse_rename("image3:kitchen")
+
+
+def test_libero_has_the_cameras_we_render():
+    """The client's LIBERO cameras are MuJoCo cameras of LIBERO's scene (its model, loaded by our simulator)."""
+    from lq_ros.policies.lerobot_client import ENV_CAMERAS
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    env = LiberoEnv("libero_spatial", 0, camera_names=("frontview",), camera_size=32)
+    try:
+        env.reset(0, seed=0)
+        model = env._sim.model
+        cameras = {model.camera_id2name(i) for i in range(model.ncam)}
+        assert env.observe().images["frontview"].shape == (32, 32, 3)
+    finally:
+        env.close()
+    assert set(ENV_CAMERAS.values()) <= cameras, sorted(set(ENV_CAMERAS.values()) - cameras)
