@@ -11,7 +11,7 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   config-fields CONFIG...           what our server's config check says of each CONFIG here (null: accepted)
   lerobot-obs CKPT SUITE TASK OUT   LeRobot's LiberoEnv reset (init state 0) -> what the policy is handed
   server-obs CKPT PAYLOAD OUT       our server's conversion of a request payload -> what the policy is handed
-  eval-loop CKPT SUITE TASK STEPS SEED OUT
+  eval-loop CKPT SUITE TASK STEPS SEED OUT [POLICY_SEED]
                                     lerobot-eval's rollout() on LeRobot's LiberoEnv: the actions it executed
   defaults                          LeRobot's LIBERO defaults our client copies (render size, camera keys)
   queue-parity CKPT TICKS REQUESTS  a policy with n_obs_steps > 1: per-tick observations fed to select_action every
@@ -276,14 +276,18 @@ def server_obs(ckpt: str, payload: Path, out: Path) -> dict:
     return {"keys": sorted(arrays)}
 
 
-def eval_loop(ckpt: str, suite: str, task: int, steps: int, seed: int, out: Path) -> dict:
+def eval_loop(
+    ckpt: str, suite: str, task: int, steps: int, seed: int, out: Path, policy_seed: int | None = None
+) -> dict:
+    """lerobot-eval's rollout(): ``set_seed(policy_seed)`` (lerobot-eval's ``set_seed(cfg.seed)``; default ``seed``),
+    the env reset with ``seed``."""
     from lerobot.scripts.lerobot_eval import rollout
     from lerobot.utils.random_utils import set_seed
 
     torch.set_num_threads(1)
     server = lerobot_server.LeRobotServer(ckpt, suite=suite)
     env = libero_vector_env(suite, task, steps)
-    set_seed(seed)
+    set_seed(seed if policy_seed is None else policy_seed)
     result = rollout(
         env,
         server.policy,
@@ -505,7 +509,8 @@ def main(argv: list[str]) -> None:
     elif command == "server-obs":
         result = server_obs(args[0], Path(args[1]), Path(args[2]))
     elif command == "eval-loop":
-        result = eval_loop(args[0], args[1], int(args[2]), int(args[3]), int(args[4]), Path(args[5]))
+        policy_seed = int(args[6]) if len(args) > 6 else None
+        result = eval_loop(args[0], args[1], int(args[2]), int(args[3]), int(args[4]), Path(args[5]), policy_seed)
     elif command == "pi-configs":
         result = pi_configs(Path(args[0]))
     elif command == "config-fields":

@@ -133,9 +133,10 @@ def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind
     """diffusion2 (n_obs_steps 2): lerobot-eval's policy sees the tick before each replan from its own per-tick
     queue, ours from the request's history (the simulator's capture of that tick)."""
     reference = tmp_path / "eval.npz"
-    # Our server is seeded with the episode's seed (init 0, run seed 0); lerobot-eval's set_seed gets the same.
+    # The env is reset with the run seed (0) in both; our server seeds the policy with the episode's seed (init 0,
+    # run seed 0), so lerobot-eval's set_seed gets that one.
     seed = episode_seed(0, SUITE, TASK, 0, LEROBOT_SEED_TAG)
-    in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, seed, reference)
+    in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, 0, reference, seed)
     executed = np.load(reference)["actions"].astype(np.float64)
     assert executed.shape == (PARITY_STEPS, 7)
 
