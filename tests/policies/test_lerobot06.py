@@ -10,6 +10,7 @@ word-level tokenizer the helper script writes (no hub).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -150,6 +151,24 @@ def test_act_saved_by_06_answers_its_queue_a_full_chunk_or_n_action_steps(checkp
         policy06(checkpoints["diffusion"], full_chunk=1)
     with pytest.raises(ValueError, match="n_action_steps 9: valid: 1 to the checkpoint's chunk size, 8"):
         policy06(checkpoints["act"], n_action_steps=9)
+
+
+def test_another_libero_camera_feeds_the_input_rename_names_it_for(checkpoints):
+    """rename=camera1:frontview: the simulator's frontview image reaches the policy (the request carries it under
+    its own name); another image there gives another chunk from the same seed."""
+    obs = standin_observation(64, 0)
+    rng = np.random.default_rng(5)
+    chunks = []
+    for front in (obs.images["agentview"], rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)):
+        policy = policy06(checkpoints["smolvla"], rename="camera1:frontview,camera2:wrist")
+        try:
+            assert policy.camera_names == ("frontview", "robot0_eye_in_hand")
+            policy.reset(TASK_INFO, 0)
+            chunks.append(policy.infer(dataclasses.replace(obs, images={**obs.images, "frontview": front})))
+            assert policy.server_metadata["image_keys"] == ["observation.images.frontview", "observation.images.image2"]
+        finally:
+            policy.close()
+    assert chunks[0].shape == (SMOLVLA_STEPS, 7) and not np.allclose(chunks[0], chunks[1])
 
 
 def test_lerobot_06_budgets_and_render_size_are_ours():
