@@ -28,7 +28,7 @@ OTHER = {
     "hold": "repeat", "request_threshold": 2, "merge": "weighted_average", "policy": "scripted",
     "policy_args": {"amplitude": 0.5}, "camera_size": 128, "physics_rate": True, "max_steps": 10,
     "latency_dist": "uniform:0.1:0.3", "clock": "realtime", "robot": "standin", "budget_counts": "action",
-    "request_slack": 1,
+    "request_slack": 1, "budgets": "lerobot", "replan_steps_source": "flag",
 }  # fmt: skip
 #: Fields valid only with another one changed too.
 ALSO = {"robot": {"clock": "realtime"}}
