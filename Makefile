@@ -78,7 +78,7 @@ setup-all:
 
 test: setup-all
 	$(MAKE) bytecode
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -rfE --durations=25
 
 test-fast: setup-all
 	$(MAKE) bytecode
