@@ -411,6 +411,7 @@ def fig_energy(pooled: pd.DataFrame) -> plt.Figure:
             found |= _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}")
         ax.set_ylabel(f"{label} [95% CI]")
         _latency_axis(ax, pooled)
+        pr.no_zoom_into_noise(ax)
     pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig7_energy']} (successful episodes; {_rate_note(pooled)})",
               legend_title="policy · protocol", ncol=2, note=_notes(found, EPISODE_SET_NOTE))  # fmt: skip
     return fig

@@ -89,6 +89,20 @@ def ring_degenerate(ax, rows: pd.DataFrame, y, scale: float = 1.0) -> bool:
     return bool(bad.any())
 
 
+#: A value axis spans at least this fraction of the largest magnitude it shows, so that differences far below
+#: the values' own size (e.g. 0.0006 J on 4 J per step) are not drawn as if they were large.
+MIN_RELATIVE_SPAN = 0.1
+
+
+def no_zoom_into_noise(ax, min_relative_span: float = MIN_RELATIVE_SPAN) -> None:
+    """Widen ``ax``'s y range about its centre to at least ``min_relative_span`` of its largest magnitude."""
+    low, high = ax.get_ylim()
+    need = min_relative_span * max(abs(low), abs(high))
+    if high - low < need:
+        centre = (low + high) / 2
+        ax.set_ylim(centre - need / 2, centre + need / 2)
+
+
 def has_data(values) -> bool:
     return bool(np.isfinite(np.asarray(values, dtype=np.float64)).any())
 

@@ -248,3 +248,17 @@ def test_fig4_band_is_task_clustered_when_every_cell_has_that_interval(close_all
         assert [c for c in fig.axes[0].collections if c.get_hatch() == "///"]
     for bound in 100 * want.to_numpy().ravel():
         assert np.isclose(edges, bound).any(), bound
+
+
+def test_no_axis_zooms_into_noise(close_all):
+    """A per-step energy of 4.2500-4.2506 J (the 85 W overhead dominates) is drawn on an axis at least a tenth of
+    its size wide, not stretched so 0.0006 J fills the panel."""
+    fig, ax = plt.subplots()
+    ax.plot([0.0, 0.1, 0.2], [4.2500, 4.2503, 4.2506])
+    assert ax.get_ylim()[1] - ax.get_ylim()[0] < 0.01  # matplotlib's own range: the noise fills the panel
+    pr.no_zoom_into_noise(ax)
+    low, high = ax.get_ylim()
+    assert high - low >= 0.1 * 4.2506 * 0.999 and low < 4.2500 and high > 4.2506
+    ax.set_ylim(0, 10)
+    pr.no_zoom_into_noise(ax)  # a range that is already wide stays as it is
+    assert ax.get_ylim() == (0, 10)
