@@ -242,9 +242,11 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
     for r, suite in enumerate(suites):
         for c, mode in enumerate(modes):
             ax = axes[r][c]
+            drawn = 0
             for line_suite, m, base, label, budget, rows in lines:
                 if m != mode or (several and line_suite != suite):
                     continue
+                drawn += 1
                 colour = colours[base]
                 style = ACTION_BUDGET_STYLE if budget == "action" else None
                 lo, hi, band = _success_band(rows)
@@ -259,6 +261,9 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
                 found |= _budget_mark_points(ax, rows, colour, mode)
                 _distribution_labels(ax, rows, colour)
             ax.set_title(f"{suite} · {mode} execution" if several else f"{mode} execution", fontsize=10)
+            if not drawn:  # a cell of the grid this run has no episodes for: say so rather than leave it blank
+                ax.text(0.5, 0.5, f"no {mode} episodes\nof this suite in this run", transform=ax.transAxes,
+                        ha="center", va="center", color="#777777", fontsize=9)  # fmt: skip
             ax.set_ylim(-2, 102)
             ax.margins(x=0.12)
             _latency_axis(ax, pooled)

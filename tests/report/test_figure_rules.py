@@ -262,3 +262,15 @@ def test_no_axis_zooms_into_noise(close_all):
     ax.set_ylim(0, 10)
     pr.no_zoom_into_noise(ax)  # a range that is already wide stays as it is
     assert ax.get_ylim() == (0, 10)
+
+
+def test_fig4_says_why_a_panel_of_its_grid_is_empty(close_all):
+    """Spatial run in both protocols, Object in async only: Object's sync panel says it has no episodes."""
+    spatial = [_row("libero_spatial", mode=m, latency=lat, init=i) for m in ("sync", "async") for lat in (0.0, 0.1)
+               for i in range(6)]  # fmt: skip
+    obj = [_row("libero_object", latency=lat, init=i) for lat in (0.0, 0.1) for i in range(6)]
+    episodes = pd.concat([_frame(spatial), _frame(obj)], ignore_index=True)
+    fig = _figures(episodes)["fig4_success"]
+    texts = {ax.get_title(): " ".join(t.get_text() for t in ax.texts) for ax in fig.axes if ax.get_title()}
+    assert "no sync episodes" in texts["libero_object · sync execution"]
+    assert "no " not in texts["libero_spatial · sync execution"]
