@@ -46,7 +46,11 @@ def scored(lq: Path, folder: str, cwd: Path, env: dict) -> list[dict]:
 
 
 def clone_venv(src: Path, dest: Path) -> None:
-    """A venv at ``dest`` holding ``src``'s packages and libraries (hard links; a copy across file systems)."""
+    """A venv at ``dest`` holding ``src``'s packages and libraries (hard links; a copy across file systems).
+
+    ``src`` is resolved first: a venv that is a link (``.venv -> elsewhere``) would otherwise be copied as the
+    link, and removing the copy's ``bin`` below would remove the real venv's."""
+    src = Path(src).resolve()
     if subprocess.run(["cp", "-al", src, dest], capture_output=True).returncode != 0:
         shutil.rmtree(dest, ignore_errors=True)
         subprocess.run(["cp", "-a", src, dest], check=True)

@@ -30,7 +30,7 @@ import pandas as pd
 import pytest
 
 from lq_ros.core.redact import REDACTED, redact_args, strip_userinfo
-from lq_ros.core.run_config import _KEY_OPTIONAL_FIELDS, RunConfig
+from lq_ros.core.run_config import _KEY_OPTIONAL_FIELDS, PROVENANCE_FIELDS, RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import PolicyError, make_policy
 from lq_ros.policies.remote_wire import MAX_REPLY_BYTES, UnsafeReply, loads_json_numpy, unpack_msgpack_numpy
@@ -429,8 +429,12 @@ def test_redact_args():
 
 
 def _old_key(cfg: RunConfig) -> str:
-    """RunConfig.key() as computed before redaction existed."""
-    fields = {k: v for k, v in cfg.to_dict().items() if _KEY_OPTIONAL_FIELDS.get(k, object()) != v}
+    """RunConfig.key() as computed before redaction existed (and before provenance fields, which no key holds)."""
+    fields = {
+        k: v
+        for k, v in cfg.to_dict().items()
+        if _KEY_OPTIONAL_FIELDS.get(k, object()) != v and k not in PROVENANCE_FIELDS
+    }
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
 

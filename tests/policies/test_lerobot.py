@@ -283,7 +283,7 @@ def test_unsupported_inputs_and_too_long_a_history_are_refused(checkpoints, tmp_
     config = json.loads((checkpoints["act"] / "config.json").read_text())
     front = {"observation.images.front": {"type": "VISUAL", "shape": [3, 9, 9]}}
     for name, change, message in [
-        ("front", {"input_features": {**config["input_features"], **front}}, "not LIBERO's"),
+        ("front", {"input_features": {**config["input_features"], **front}}, "cannot tell which LIBERO camera feeds"),
         ("history", {"n_obs_steps": 11}, "n_obs_steps is 11; valid: 1 to 10"),
         ("action6", {"output_features": {"action": {"type": "ACTION", "shape": [6]}}}, "action shape"),
     ]:  # fmt: skip

@@ -123,9 +123,9 @@ def test_the_sim_steps_a_lockstep_episode_on_its_own_cpu_and_any_cpu_between_epi
     The CPU locks are this test's own: stacks of other runs on the machine (a 2-worker sweep holds both CPUs of a
     2-core machine) would leave none to reserve, and the stack then rightly runs unpinned (tests/transport/ros/
     test_reservations.py checks the reservation itself)."""
-    from lq_ros.transport.ros import stack as stack_module
+    from lq_ros.transport.ros import reservations
 
-    monkeypatch.setattr(stack_module, "CPU_LOCK_DIR", tmp_path / "cpus")
+    monkeypatch.setattr(reservations, "CPU_LOCK_DIR", tmp_path / "cpus")
     cfg = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=30, replan_steps=3)
     seen: set[frozenset[int]] = set()
     with RosStack() as stack:
