@@ -2,6 +2,7 @@
 
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 
@@ -38,6 +39,20 @@ def pytest_collection_modifyitems(items) -> None:
     for item in items:
         if item.path.is_relative_to(ROS_TESTS):
             item.add_marker(pytest.mark.ros)
+
+
+@pytest.fixture
+def no_hang():
+    """Fail a test that blocks (a FIFO read) after 120 s instead of hanging the run."""
+
+    def hung(*_):
+        raise TimeoutError("blocked for 120 s")
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(120)
+    yield
+    signal.alarm(0)
+    signal.signal(signal.SIGALRM, old)
 
 
 @pytest.fixture(scope="session")

@@ -6,7 +6,6 @@ import json
 import os
 import re
 import shutil
-import signal
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -133,20 +132,6 @@ def test_report_of_a_plain_bag_folder(sweep_dir, tmp_path):
 def test_empty_folder_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no scored episodes"):
         rp.build_report(tmp_path)
-
-
-@pytest.fixture
-def no_hang():
-    """Fail a test that blocks (a FIFO read) after 60 s instead of hanging the run."""
-
-    def hung(*_):
-        raise TimeoutError("blocked for 60 s")
-
-    old = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(60)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 def test_hostile_results_are_skipped_by_name_and_the_rest_reported(sweep_dir, tmp_path, no_hang):

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 
 import pytest
 
@@ -23,20 +22,6 @@ def record(cfg, status: str = "failure", **changes) -> dict:
            "config": cfg.to_dict(), CODE_FIELD: identities([cfg])[cfg.key()]}  # fmt: skip
     out.update(changes)
     return out
-
-
-@pytest.fixture
-def no_hang():
-    """Fail a test that blocks (a FIFO read) after 120 s instead of hanging the run."""
-
-    def hung(*_):
-        raise TimeoutError("blocked for 120 s")
-
-    old = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(120)
-    yield
-    signal.alarm(0)
-    signal.signal(signal.SIGALRM, old)
 
 
 def test_half_written_or_orphaned_results_do_not_count_as_finished(tmp_path):
