@@ -1,8 +1,10 @@
-"""The held-out delay study's tables (docs/design/heldout_delay_study.md): every arm's success, and the comparisons
-its plan fixed before the episodes ran, paired on (task, init state, seed): exact McNemar p-values (these tasks, other
-init states) and the task-level sign-flip p (``cluster_p``: other tasks of the suite), each adjusted by Holm over the
-family. A comparison of identical episodes (the same arm under two names, or the same comparison listed twice) is
-printed but in no family.
+"""The held-out delay study's tables (docs/design/heldout_delay_study.md): every arm's success, and the comparisons its
+plan fixed before the episodes ran, paired on (task, init state, seed): the paired difference with its 95% interval (the
+current method, lq_ros/scoring/intervals.paired_success_ci: the hull of the cluster-robust t interval over tasks and
+Tango's score interval; the study's published intervals were made with the earlier bootstrap, see its "Deviations from
+plan"), exact McNemar p-values (these tasks, other init states) and the task-level sign-flip p (``cluster_p``: other
+tasks of the suite), each adjusted by Holm over the family. A comparison of identical episodes (the same arm under two
+names, or the same comparison listed twice) is printed but in no family.
 
 Usage: python benchmarks/heldout_delay_table.py [SWEEP_DIR]        (default: bags/sweeps/heldout_delay)
 
@@ -43,7 +45,6 @@ COMPARISONS = [
 ] + [(JITTER, "delay + lookahead", JITTER, "naive"),
      (JITTER, "delay + lookahead", "0.2 s", "delay + lookahead")]  # fmt: skip
 PAIR = ["task", "init", "seed"]
-N_BOOT = 4000
 
 
 def arm_of(row: pd.Series) -> tuple[str, str, str]:
@@ -70,7 +71,7 @@ def success_line(rows: pd.DataFrame) -> dict:
     k, n = int((ok.status == "success").sum()), len(ok)
     lo, hi = wilson_interval(k, n) if n else (np.nan, np.nan)
     per_task = ok.groupby(level="task").status.apply(lambda s: (s == "success").to_numpy(float))
-    clo, chi = clustered_success_ci(list(per_task), n_boot=N_BOOT, seed=0) if n else (np.nan, np.nan)
+    clo, chi = clustered_success_ci(list(per_task)) if n else (np.nan, np.nan)
     return {"n": n, "errors": int((rows.status == "error").sum()), "success": k,
             "success %": f"{100 * k / n:.0f}" if n else "-", "Wilson 95%": f"[{100 * lo:.0f}, {100 * hi:.0f}]",
             "task-clustered 95%": f"[{100 * clo:.0f}, {100 * chi:.0f}]"}  # fmt: skip
@@ -78,7 +79,7 @@ def success_line(rows: pd.DataFrame) -> dict:
 
 def compare(a: pd.DataFrame, b: pd.DataFrame) -> dict:
     """Paired comparison of two arms' successes (lq_ros.scoring.paired_tests.compare_pairs), as table text."""
-    out = compare_pairs(a.reset_index(), b.reset_index(), n_boot=N_BOOT, seed=0)
+    out = compare_pairs(a.reset_index(), b.reset_index(), seed=0)
     pct = (lambda v: f"{100 * v:.0f}") if out["n_pairs"] else (lambda v: "-")
     return {"pairs": out["n_pairs"], "A only": out["a_only"], "B only": out["b_only"], "A %": pct(out["success_a"]),
             "B %": pct(out["success_b"]), "A - B (points)": pct(out["diff"]),
@@ -108,7 +109,11 @@ def main() -> None:
                 if arm == "naive + slack" and SLACK[(family, lat)] == 0:
                     name += " (= naive)"
                 lines.append({"family": family, "latency": lat, "arm": name, **success_line(rows)})
-    print("\nSuccess per arm (Wilson: episodes independent; task-clustered: bootstrap over the 10 tasks)")
+    print(
+        f"\nSuccess per arm. Wilson 95%: the episodes as independent draws (these tasks, other init states);"
+        f" task-clustered 95%: the hull of the cluster-robust t interval over the {len(tasks)} tasks"
+        f" (t with {len(tasks) - 1} df) and Wilson (other tasks of the suite; lq_ros/scoring/intervals.py)"
+    )
     print(pd.DataFrame(lines).to_markdown(index=False))
     errors = episodes[episodes.status == "error"]
     for _, r in errors.iterrows():
@@ -140,8 +145,10 @@ def main() -> None:
         table[col] = table[col].map(lambda v: "-" if np.isnan(v) else f"{v:.2g}")
     table = table.drop(columns=["identical"])
     print(
-        f"\nPlanned comparisons, paired on (task, init, seed); exact McNemar p and task-level sign-flip p, Holm over"
-        f" the {int(family_rows.sum())} in the family"
+        f"\nPlanned comparisons, paired on (task, init, seed): A - B with the hull of the cluster-robust t interval"
+        f" over tasks and Tango's paired score interval; exact McNemar p (these tasks, other init states) and"
+        f" task-level sign-flip p (cluster_p: other tasks of the suite), each Holm over the {int(family_rows.sum())}"
+        f" in the family"
     )
     print(table.to_markdown(index=False))
     commits = sorted(set(episodes.git_commit.dropna()))

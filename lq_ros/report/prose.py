@@ -99,8 +99,9 @@ def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
     for _, r in comparisons[comparisons.get("equivalent", pd.Series(dtype=object)) == True].iterrows():  # noqa: E712
         lines.append(
             f"**{r['arm_a']} · {r['mode_a']}** and **{r['arm_b']} · {r['mode_b']}** ({_where(r)}) are equivalent "
-            f"within ±{100 * r['equivalence_margin']:.0f} points (TOST at the spec's margin: the 95% interval "
-            f"{100 * r['diff']:+.0f} [{100 * r['diff_ci_lo']:+.0f}, {100 * r['diff_ci_hi']:+.0f}] lies inside it)."
+            f"within ±{100 * r['equivalence_margin']:.0f} points (TOST at the spec's margin, each one-sided test at "
+            f"2.5%, conservative: the 95% interval {100 * r['diff']:+.0f} [{100 * r['diff_ci_lo']:+.0f}, "
+            f"{100 * r['diff_ci_hi']:+.0f}] lies inside it)."
         )
     all_ = pd.Series(True, index=comparisons.index)  # a table from before the Holm family was restricted
     testable = comparisons["testable"].astype(bool) if "testable" in comparisons else all_
@@ -200,7 +201,9 @@ NOTES = (
     "(analysis.primary, paired_policies.csv column primary); the rest are exploratory, Holm-adjusted among "
     "themselves over those with at least 6 discordant pairs, the fewest that can reach p < 0.05; two names for "
     "identical episodes are in no family. Two arms are called equivalent only when a TOST at the spec's "
-    'analysis.equivalence_margin passes; otherwise a non-significant comparison is "no difference detected", with '
+    "analysis.equivalence_margin passes (the 95% interval inside the margin: each one-sided test at 2.5%, "
+    "conservative against the usual 5% TOST, which takes the 90% interval); otherwise a non-significant comparison "
+    'is "no difference detected", with '
     "its interval. The changes against 0 s are secondary: Benjamini-Hochberg adjusted over completion time, action "
     "ticks, the trajectory metrics and the actuator energy (energy net of the constant 85 W overhead, whose change "
     "would repeat the change of time; the totals stay in the tables, untested), called (and starred in the paired "
