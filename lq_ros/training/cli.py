@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -26,6 +27,25 @@ def _ints(spec: str) -> tuple[int, ...]:
         return parse_ids(spec)
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from None
+
+
+def _noise_levels(spec: str) -> tuple[float, ...]:
+    """``"0,0.1,0.2"`` -> action-noise std values (finite, >= 0, ASCII digits), else one line naming the bad value
+    and what is valid."""
+    levels = []
+    for item in spec.split(","):
+        try:
+            value = float(item) if item.strip().isascii() else math.nan  # "٠.١" is not taken as 0.1
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value >= 0.0):
+            raise typer.BadParameter(
+                f"{item.strip()!r}{f' (in {spec!r})' if ',' in spec else ''} is not a noise std; expected numbers"
+                " >= 0 separated by commas, e.g. '0,0.1,0.2'",
+                param_hint="'--noise'",
+            )
+        levels.append(value)
+    return tuple(levels)
 
 
 def _driver(spec: str) -> dict:
@@ -84,7 +104,7 @@ def collect(
     from lq_ros.training.collect import collect as run_collect
 
     try:
-        levels = tuple(float(x if x.isascii() else "not ASCII") for x in noise.split(","))  # digits 0-9 only
+        levels = _noise_levels(noise)
         cfg = CollectConfig(
             suite=suite, tasks=_ints(tasks), inits=_ints(inits), noise_levels=levels, repeats=repeats, fresh=fresh,
             seed=seed, expert=expert, chunk_rows=chunk_rows, max_steps=max_steps, workers=workers,

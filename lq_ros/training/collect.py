@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from lq_ros.core.safe_write import replacing
-from lq_ros.core.suite_constants import ACTION_DIM, ACTION_HIGH, ACTION_LOW
+from lq_ros.core.suite_constants import ACTION_DIM, ACTION_HIGH, ACTION_LOW, NUM_INIT_STATES, NUM_TASKS
 from lq_ros.policies.learned.features import layout_for, raw_from_observation
 from lq_ros.training.dataset import Episode, write_dataset
 
@@ -82,6 +82,14 @@ class CollectConfig:
         if self.chunk_rows < 1 or self.workers < 1 or self.repeats < 1:
             raise ValueError("chunk_rows, workers and repeats must be >= 1")
         layout_for(self.suite)  # fails early for a suite without a feature layout
+        n_tasks = NUM_TASKS.get(self.suite, 0)
+        if bad := [t for t in self.tasks if not 0 <= t < n_tasks]:
+            raise ValueError(f"task {bad[0]} is out of range: {self.suite} has tasks 0..{n_tasks - 1}")
+        if not self.fresh and (bad := [i for i in self.inits if not 0 <= i < NUM_INIT_STATES]):
+            raise ValueError(
+                f"init state {bad[0]} is out of range: every task has init states 0..{NUM_INIT_STATES - 1}"
+                " (--fresh takes any seed)"
+            )
         if any(n < 0 for n in self.latency_ticks) or any(m not in ("sync", "async") for m in self.modes):
             raise ValueError(f"latency ticks must be >= 0 and modes sync/async, got {self.latency_ticks} {self.modes}")
         if self.latency_ticks and (not self.modes or not self.latency_drivers):
