@@ -3,6 +3,7 @@ per episode whose chunks were rejected, and Ctrl-C as one line saying how to res
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -61,6 +62,13 @@ def test_an_edited_policy_is_refused_on_resume_and_overwrite_reruns(tmp_path):
     assert first.returncode == 0, first.stderr[-3000:]
     warning = [line for line in first.stderr.splitlines() if line.startswith("warning")]
     assert len(warning) == 1 and "1 chunk rejected, the robot held instead (first: " in warning[0], first.stderr
+    # Another commit of the same code (e.g. a docs-only commit) resumes: the commit is provenance, not identity.
+    (record,) = (tmp_path / "out" / "results").glob("*.json")
+    made = json.loads(record.read_text())
+    made["code"]["git_commit"] = "0" * 40
+    record.write_text(json.dumps(made))
+    resumed = lq_in(tmp_path, *EVAL)
+    assert resumed.returncode == 0 and "1 of 1 episodes already finished" in resumed.stderr, resumed.stderr[-3000:]
     (tmp_path / "mine_policy.py").write_text(textwrap.dedent(POLICY.format(gain=0.3)))  # a default changed
     refused = lq_in(tmp_path, *EVAL)
     lines = refused.stderr.strip().splitlines()

@@ -55,7 +55,7 @@ def test_identity_holds_class_source_hash_effective_args_and_version(policy_modu
     ident = code_identity(name, {"chunk_size": 6})
     assert ident["policy_class"] == f"{module}:Mine"
     assert ident["policy_args"] == {"gain": 0.1, "chunk_size": 6}  # the default is recorded, not only the given
-    assert ident["lq_ros"] and ident["git_commit"]
+    assert ident["lq_ros"] and ident["git_commit"] and len(ident["lq_ros_source_sha256"]) == 16
     before = ident["policy_source_sha256"]
     (folder / f"{module}.py").write_text((folder / f"{module}.py").read_text() + "\n# an edit\n")
     assert code_identity(name, {"chunk_size": 6})["policy_source_sha256"] != before  # read from disk, not the cache
@@ -72,11 +72,47 @@ def test_a_default_that_is_no_json_value_is_the_same_in_every_process():
 
 def test_changes_name_each_difference():
     old = {"policy_class": "m:A", "policy_source_sha256": "1", "policy_args": {"gain": 0.1}, "lq_ros": "0.1.0",
-           "git_commit": "abc"}  # fmt: skip
+           "lq_ros_source_sha256": "p1", "git_commit": "abc"}  # fmt: skip
     assert changes(old, dict(old)) == []
-    new = old | {"policy_source_sha256": "2", "policy_args": {"gain": 0.2}}
-    assert changes(old, new) == ["the source of m:A changed", "policy_args.gain 0.1 -> 0.2"]
+    new = old | {"policy_source_sha256": "2", "policy_args": {"gain": 0.2}, "lq_ros_source_sha256": "p2"}
+    assert changes(old, new) == ["the source of m:A changed", "policy_args.gain 0.1 -> 0.2",
+                                 "the source of lq_ros changed"]  # fmt: skip
     assert changes(None, new) == ["the results record no code identity (made by an older lq)"]
+
+
+def test_a_commit_that_changes_no_code_is_no_change():
+    """The commit is provenance: a docs-only commit (or a checkout's +dirty from a docs edit) is the same code."""
+    old = {"policy_class": "m:A", "policy_source_sha256": "1", "policy_args": {}, "lq_ros": "0.1.0",
+           "lq_ros_source_sha256": "p1", "git_commit": "abc"}  # fmt: skip
+    assert changes(old, old | {"git_commit": "def+dirty"}) == []
+    # A record made before the project's source was hashed is compared by its commit, as it was then.
+    legacy = {k: v for k, v in old.items() if k != "lq_ros_source_sha256"}
+    assert changes(legacy, old | {"git_commit": "def"}) == ["git_commit abc -> def"]
+    assert changes(legacy, old) == []
+
+
+def test_the_project_source_hash_follows_code_files_only(tmp_path, monkeypatch):
+    import lq_ros
+    from lq_ros.run.sweep import identity
+
+    root = tmp_path / "checkout"
+    (root / "lq_ros" / "core").mkdir(parents=True)
+    (root / "nodes").mkdir()
+    (root / "docs").mkdir()
+    (root / "lq_ros" / "__init__.py").write_text("")
+    (root / "lq_ros" / "core" / "x.py").write_text("X = 1\n")
+    (root / "nodes" / "sim_node.py").write_text("N = 1\n")
+    (root / "docs" / "guide.md").write_text("text\n")
+    monkeypatch.setattr(lq_ros, "__file__", str(root / "lq_ros" / "__init__.py"))
+    before = identity.project_source_hash()
+    (root / "docs" / "guide.md").write_text("other text\n")
+    (root / "lq_ros" / "core" / "notes.txt").write_text("not code\n")
+    assert identity.project_source_hash() == before  # docs and data are not the code
+    (root / "nodes" / "sim_node.py").write_text("N = 2\n")
+    after_node = identity.project_source_hash()
+    assert after_node != before  # a node program is code
+    (root / "lq_ros" / "core" / "x.py").write_text("X = 2\n")
+    assert identity.project_source_hash() not in (before, after_node)
 
 
 @pytest.mark.slow
