@@ -15,6 +15,7 @@ import numpy as np
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import Policy, PolicyError
 from lq_ros.policies.scripted.bowl import BowlExpert, BowlOntoObjectExpert, SpatialBowlExpert
+from lq_ros.policies.scripted.chain import ChainExpert
 from lq_ros.policies.scripted.drawer import DrawerExpert
 from lq_ros.policies.scripted.knob import KnobExpert
 from lq_ros.policies.scripted.machine import Expert, ExpertParams
@@ -39,7 +40,14 @@ GOAL_UNCOVERED: dict[tuple[str, ...], str] = {
 }
 
 
-def expert_for(task: TaskInfo, params: ExpertParams | None = None) -> Expert:
+def _in_basket(g: tuple[str, ...]) -> str:
+    """The basket of an ``(in, object, basket_N_contain_region)`` predicate, else ''."""
+    if len(g) == 3 and g[0] == "in" and g[2].startswith("basket_") and g[2].endswith("_contain_region"):
+        return g[2][: -len("_contain_region")]
+    return ""
+
+
+def expert_for(task: TaskInfo, params: ExpertParams | None = None) -> Expert | ChainExpert:
     """The expert covering ``task``; PolicyError naming the task and the reason otherwise.
 
     The Spatial expert runs with all of ``params``; the others are built for their task with only its
@@ -51,13 +59,16 @@ def expert_for(task: TaskInfo, params: ExpertParams | None = None) -> Expert:
     chunk_size = params.chunk_size
     goal = [tuple(g) for g in task.goal]
     label = f"{task.suite} task {task.task_id} ({task.instruction!r}, goal {task.goal})"
+    if task.suite == "libero_10" and len(goal) > 1 and all(_in_basket(g) for g in goal):
+        # "Put both X and Y in the basket": the LIBERO-Object expert once per object, in the goal's order.
+        return ChainExpert([PickPlaceExpert(g[1], Target(name=_in_basket(g), inside=True), chunk_size=chunk_size)
+                            for g in goal])  # fmt: skip
     if len(goal) != 1:
         raise PolicyError(f"scripted expert: {label} is not covered: only single-predicate goals are scripted")
     g = goal[0]
     if task.suite == "libero_object":
-        if g[0] == "in" and g[2].startswith("basket_") and g[2].endswith("_contain_region"):
-            basket = g[2][: -len("_contain_region")]
-            return PickPlaceExpert(g[1], Target(name=basket, inside=True), chunk_size=chunk_size)
+        if _in_basket(g):
+            return PickPlaceExpert(g[1], Target(name=_in_basket(g), inside=True), chunk_size=chunk_size)
     elif task.suite == "libero_goal":
         if g in GOAL_UNCOVERED:
             raise PolicyError(f"scripted expert: {label} is not covered: {GOAL_UNCOVERED[g]}")
@@ -83,13 +94,13 @@ def expert_for(task: TaskInfo, params: ExpertParams | None = None) -> Expert:
     else:
         raise PolicyError(
             f"scripted expert: {label} is not covered: experts exist for libero_spatial, libero_object "
-            "and libero_goal only"
+            "and libero_goal, and libero_10's two-object basket tasks only"
         )
     raise PolicyError(f"scripted expert: {label} is not covered: no expert for this goal")
 
 
 class ScriptedExpert(Policy):
-    """``--policy scripted``: LIBERO-Spatial, LIBERO-Object and 7 of 10 LIBERO-Goal tasks.
+    """``--policy scripted``: LIBERO-Spatial, LIBERO-Object, 7 of 10 LIBERO-Goal and 3 of 10 LIBERO-10 tasks.
 
     Details: docs/design/scripted_experts.md.
     """
@@ -102,7 +113,7 @@ class ScriptedExpert(Policy):
     def __init__(self, **params) -> None:
         self.cfg = ExpertParams(**params)
         #: The expert running the current episode (chosen at reset).
-        self.expert: Expert | None = None
+        self.expert: Expert | ChainExpert | None = None
 
     def params(self) -> dict:
         return asdict(self.cfg)

@@ -176,6 +176,11 @@ class Expert(Policy):
     def params(self) -> dict:
         return {"expert": type(self).__name__, **asdict(self.cfg)}
 
+    @property
+    def machine(self) -> Machine:
+        """The state machine as of the last real observation (phase, tick it started)."""
+        return self._machine
+
     def reset(self, task: TaskInfo, seed: int) -> None:
         self._rows = {}
         self._plan = {}
