@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import importlib.util
+import json
 import shutil
 import sys
 from pathlib import Path
@@ -39,3 +40,55 @@ def test_passes_reports_the_labellers_kappa_and_the_unvalidated_modes(tmp_path, 
     (tmp_path / "labels_b.csv").unlink()
     with pytest.raises(SystemExit, match="labels_b.csv: missing"):
         fl.passes()
+
+
+def test_the_targets_are_the_frozen_ones():
+    """Frozen before the set of config/sweeps/failure_validation.yaml was labelled: changing one needs a new set."""
+    assert dict(fl.TARGETS) == {"agreement": 0.85, "kappa": 0.75, "libero_goal": 0.80, "precision": 0.70}
+    with pytest.raises(TypeError):
+        fl.TARGETS["agreement"] = 0.5
+
+
+def test_passes_refuses_a_label_that_is_no_mode(tmp_path, monkeypatch):
+    shutil.copy(DATA / "episodes.json", tmp_path)
+    rows = list(csv.DictReader((DATA / "labels.csv").open()))
+    for name in ("labels_a.csv", "labels_b.csv", "adjudicated.csv"):
+        with (tmp_path / name).open("w") as f:
+            writer = csv.DictWriter(f, fieldnames=["episode", "label"], extrasaction="ignore")
+            writer.writeheader()
+            writer.writerows([{**rows[0], "label": "missed grasp"}, *rows[1:]] if name == "labels_b.csv" else rows)
+    monkeypatch.setattr(fl, "DATA", tmp_path)
+    with pytest.raises(SystemExit, match=r"labels_b.csv: .*unknown label 'missed grasp'; valid: no_action_executed"):
+        fl.passes()
+    (tmp_path / "labels_b.csv").write_text("episode,mode\n")
+    with pytest.raises(SystemExit, match="labels_b.csv: needs a header with the columns episode and label"):
+        fl.passes()
+
+
+def _sweep(root: Path, rows: list[dict]) -> Path:
+    (root / "results").mkdir(parents=True)
+    for row in rows:
+        (root / "results" / f"{row['episode']}.json").write_text(json.dumps({"row": row}))
+    return root
+
+
+def test_select_by_suite_gives_each_suite_its_share(tmp_path, monkeypatch):
+    """One policy's suite (2 strata) against three policies' (6 strata): by suite, 8 and 8 of 16; over all strata
+    alike, 4 and 12. Successes and other init states are never picked."""
+    rows = []
+    for suite, policies in (("libero_10", ["scripted"]), ("libero_spatial", ["scripted", "flow", "oft"])):
+        for policy in policies:
+            for mode in ("sync", "async"):
+                for i in range(6):
+                    episode = f"{suite}_{policy}_{mode}_{i}"
+                    status = "success" if i == 5 else "failure"
+                    rows.append({"episode": episode, "suite": suite, "mode": mode, "latency_s": 0.2,
+                                 "policy": policy, "status": status, "init": 45 if i else 3})  # fmt: skip
+    sweep = _sweep(tmp_path / "sweep", rows)
+    monkeypatch.setattr(fl, "DATA", tmp_path / "set")
+    cases = ((True, {"libero_10": 8, "libero_spatial": 8}), (False, {"libero_10": 4, "libero_spatial": 12}))
+    for by_suite, want in cases:
+        fl.select(sweep, 16, 0, {45}, by_suite=by_suite)
+        picked = fl._picked()
+        assert len(picked) == 16 and not any(name.endswith(("_0", "_5")) for name in picked)
+        assert {s: sum(n.startswith(s) for n in picked) for s in want} == want
