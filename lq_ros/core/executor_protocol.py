@@ -30,6 +30,10 @@ in real time).
 What a command means (relative steps or absolute EE poses), its bounds and the hold are the episode's control mode
 (lq_ros/core/control.py), given by the simulator before tick 0 (:meth:`ExecutorCore.start`).
 
+An anchored chunk (lq_ros/core/relative_actions.py: a LeRobot checkpoint's relative actions) holds rows that are made
+absolute with the state of the tick that executes each, as ``lerobot-eval`` does: before such a row's command the
+core answers :class:`StateNeeded`, and the transport hands it that tick's state (:meth:`ExecutorCore.observe_state`).
+
 The async merge strategies are in lq_ros/core/merge.py; ``rtc``/``rtc_hard`` also hand the policy the executing
 prefix with the request (:attr:`Request.prefix`).
 """
@@ -56,6 +60,7 @@ from lq_ros.core.merge import (
     apply_chunk,
     default_threshold,
 )
+from lq_ros.core.relative_actions import ANCHORED_COLUMNS, anchor_problem, is_anchored, resolve, split_chunk
 from lq_ros.core.suite_constants import ACTION_DIM, DUMMY_ACTION
 
 
@@ -201,6 +206,14 @@ class ObservationNeeded:
 
 
 @dataclass(frozen=True)
+class StateNeeded:
+    """This tick executes a row of an anchored chunk: hand the core the tick's anchor state
+    (:meth:`ExecutorCore.observe_state`) before its command."""
+
+    tick: int
+
+
+@dataclass(frozen=True)
 class Failed:
     """The episode ends as an error."""
 
@@ -208,7 +221,7 @@ class Failed:
 
 
 #: What :meth:`ExecutorCore.advance` answers.
-TickStep = ChunkDue | ObservationNeeded | Failed | Command
+TickStep = ChunkDue | ObservationNeeded | StateNeeded | Failed | Command
 
 
 @dataclass
@@ -226,16 +239,20 @@ def validate_chunk(
     chunk: object, action_dim: int = ACTION_DIM, control_mode: ControlMode = ControlMode.RELATIVE
 ) -> str | None:
     """Reason why ``chunk`` must not reach the robot, or None when it is a well-formed (H, D) chunk within the
-    bounds of ``control_mode`` (lq_ros.core.control.action_bounds)."""
+    bounds of ``control_mode`` (lq_ros.core.control.action_bounds), or a well-formed anchored (H, 2 D) chunk
+    (lq_ros.core.relative_actions.anchor_problem)."""
     try:
         arr = np.asarray(chunk, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         return f"not a numeric array: {exc}"
-    if arr.ndim != 2 or arr.shape[0] < 1 or arr.shape[1] != action_dim:
-        return f"shape {arr.shape}, expected (H>=1, {action_dim})"
+    anchored = action_dim == ACTION_DIM and arr.ndim == 2 and arr.shape[1] == ANCHORED_COLUMNS
+    if arr.ndim != 2 or arr.shape[0] < 1 or (arr.shape[1] != action_dim and not anchored):
+        return f"shape {arr.shape}, expected (H>=1, {action_dim}) (anchored relative actions: (H>=1, {2 * action_dim}))"
     if not np.all(np.isfinite(arr)):
         bad = np.argwhere(~np.isfinite(arr))[0]
         return f"non-finite value {arr[tuple(bad)]} at row {bad[0]}, column {bad[1]}"
+    if anchored:
+        return anchor_problem(arr, control_mode)
     low, high = action_bounds(control_mode)
     outside = (arr < low) | (arr > high)
     if outside.any():
@@ -275,6 +292,10 @@ class ExecutorCore:
         self._horizon: int | None = None
         #: Last tick whose inference decision was taken (once per tick).
         self._planned_tick: int | None = None
+        #: Anchor weights of the episode's chunks (None: plain chunks); fixed by the first chunk applied.
+        self._weights: np.ndarray | None = None
+        #: The anchor state handed for a tick (observe_state): (tick, state).
+        self._state: tuple[int, np.ndarray] | None = None
 
     def start(self, control: ControlStart) -> None:
         """The episode's control mode and the command held before its first chunk (the simulator's, from its
@@ -303,7 +324,22 @@ class ExecutorCore:
             new = self._start_inference(tick)
             if new is not None:
                 return ObservationNeeded(new)
+        if self._weights is not None and self._next_is_row() and (self._state is None or self._state[0] != tick):
+            return StateNeeded(tick)
         return self._command(tick)
+
+    def observe_state(self, tick: int, state: object) -> None:
+        """The anchor state (lq_ros.core.relative_actions.anchor_state) of ``tick``, asked for by StateNeeded."""
+        arr = np.asarray(state, dtype=np.float32)
+        if arr.ndim != 1 or arr.shape[0] < ACTION_DIM or not np.all(np.isfinite(arr)):
+            raise ValueError(f"tick {tick}: anchor state of shape {arr.shape} (finite, at least {ACTION_DIM} values)")
+        self._state = (tick, arr)
+
+    def _next_is_row(self) -> bool:
+        """Whether the next command comes from a chunk row (not a hold)."""
+        if self.config.mode is Mode.SYNC:
+            return self._chunk is not None and self._chunk_pos < len(self._chunk)
+        return bool(self._buffer)
 
     def _start_inference(self, tick: int) -> Request | None:
         if self._outstanding is not None:
@@ -339,13 +375,17 @@ class ExecutorCore:
         self._outstanding = None
         reason = validate_chunk(chunk, control_mode=self._control.mode)
         if reason is not None:
-            self.stats.chunks_rejected += 1
-            self._last_rejected = True
-            self._consecutive_rejections += 1
-            if self._consecutive_rejections >= self.config.max_consecutive_rejections:
-                self.error = f"{self._consecutive_rejections} consecutive malformed chunks; last: {reason}"
-            return reason
+            return self._reject(reason)
         arr = np.array(chunk, dtype=np.float64)
+        anchored = is_anchored(arr)
+        if self._received_any and anchored != (self._weights is not None):
+            reason = "a chunk with anchored relative actions after plain ones (or the reverse) in one episode"
+        elif anchored and self._weights is not None and not np.array_equal(split_chunk(arr)[1], self._weights):
+            reason = "anchor weights differ from those of the episode's earlier chunks"
+        if reason is not None:
+            return self._reject(reason)
+        arr, weights = split_chunk(arr)
+        self._weights = weights
         self._last_rejected = False
         self._consecutive_rejections = 0
         self._received_any = True
@@ -355,6 +395,14 @@ class ExecutorCore:
         else:
             self._merge(arr, req)
         return None
+
+    def _reject(self, reason: str) -> str:
+        self.stats.chunks_rejected += 1
+        self._last_rejected = True
+        self._consecutive_rejections += 1
+        if self._consecutive_rejections >= self.config.max_consecutive_rejections:
+            self.error = f"{self._consecutive_rejections} consecutive malformed chunks; last: {reason}"
+        return reason
 
     def observed_at(self, request_id: int, tick: int) -> None:
         """Real time only: the policy was given the observation of ``tick``, later than the one requested (the sim had
@@ -436,17 +484,23 @@ class ExecutorCore:
             if self._chunk is not None and self._chunk_pos < len(self._chunk):
                 i = self._chunk_pos
                 self._chunk_pos += 1
-                return Command(tick, self._chunk[i], Source.CHUNK, self._chunk_id, i)
+                return Command(tick, self._executed(self._chunk[i]), Source.CHUNK, self._chunk_id, i)
             source = Source.HOLD_REJECTED if self._last_rejected else Source.HOLD_INFERENCE
         else:
             if self._buffer:
                 step = self._buffer.popleft()
-                return Command(tick, step.action, Source.CHUNK, step.request_id, step.chunk_index)
+                return Command(tick, self._executed(step.action), Source.CHUNK, step.request_id, step.chunk_index)
             if self._last_rejected:
                 source = Source.HOLD_REJECTED
             else:
                 source = Source.HOLD_UNDERRUN if self._received_any else Source.HOLD_STARTUP
         return Command(tick, self._hold_action(), source)
+
+    def _executed(self, row: np.ndarray) -> np.ndarray:
+        """A plan row as the command of its tick: a relative row anchored with the tick's state (StateNeeded)."""
+        if self._weights is None:
+            return row
+        return resolve(row, self._weights, self._state[1], self._control.mode)
 
     def _hold_action(self) -> np.ndarray:
         if self.config.hold is Hold.REPEAT:
@@ -470,8 +524,19 @@ class TickHandlers(Protocol):
     def failed(self, reason: str) -> None:
         """The episode ends as an error."""
 
+    def state(self, tick: int) -> bool:
+        """Hand the core the anchor state of ``tick`` (:meth:`ExecutorCore.observe_state`; anchored chunks only), or
+        wait for it. A transport without one leaves it out: the episode then ends as an error."""
+
     def command(self, command: Command) -> bool:
         """Send (or apply) the tick's command; after it the driver is at the next tick."""
+
+
+#: Why an anchored chunk ends an episode on a transport that cannot give the core each tick's state.
+NO_STATE = (
+    "this transport cannot give the executor each tick's robot state, which anchored relative actions (a LeRobot "
+    "checkpoint's use_relative_actions) need: run it in process or on the lockstep ROS nodes"
+)
 
 
 class TickDriver:
@@ -496,6 +561,13 @@ class TickDriver:
                 go = handlers.request(step.request)
             elif isinstance(step, ChunkDue):
                 go = handlers.chunk_due(step.request)
+            elif isinstance(step, StateNeeded):
+                state = getattr(handlers, "state", None)
+                if state is None:
+                    self.failed = True
+                    handlers.failed(NO_STATE)
+                    return
+                go = state(step.tick)
             elif isinstance(step, Failed):
                 self.failed = True
                 handlers.failed(step.reason)

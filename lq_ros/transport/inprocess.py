@@ -17,6 +17,7 @@ import numpy as np
 
 from lq_ros.core.executor_protocol import ExecutorCore, Source, TickDriver
 from lq_ros.core.observation_history import ObservationHistory
+from lq_ros.core.relative_actions import anchor_state
 from lq_ros.core.run_config import RunConfig, versions
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.policies import Policy, make_policy
@@ -181,6 +182,13 @@ def _run(cfg: RunConfig, out_dir: Path, env: LiberoEnv | None, policy: Policy) -
 
             def failed(self, reason: str) -> None:
                 self.error = reason
+
+            def state(self, tick: int) -> bool:
+                """An anchored row executes now: its anchor is the state the policy would observe at this tick
+                (robosuite's observation, as lerobot-eval's, not the exact kinematics of the tick state)."""
+                obs = env.observe(with_images=False)
+                core.observe_state(tick, anchor_state(obs.eef_pos, obs.eef_quat_xyzw, obs.gripper_qpos))
+                return True
 
             def command(self, step) -> bool:
                 t_ns = m.to_ns(sim_time_of_tick(step.tick))
