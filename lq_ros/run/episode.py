@@ -10,9 +10,11 @@ an error with its reason, never a task success or failure.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from lq_ros.core.bounded_file import FileRefused, read_results_json
 from lq_ros.core.run_config import TRANSPORTS, RunConfig
 from lq_ros.recording.episode_folder import SCORE_FILE
 from lq_ros.run.episode_notes import crash_log
@@ -56,7 +58,10 @@ def run_episode(
             bag_path, launch_error = stack.run_episode(cfg, out_dir, timeout_s)
         else:
             bag_path, launch_error = launch_nodes(cfg, out_dir, domain_id=domain_id, timeout_s=timeout_s)
-        row = scored_row(bag_path)
+        try:
+            row = scored_row(bag_path)
+        except FileRefused as exc:  # the recorder's score.json cannot be used: the run is broken, not scored
+            row = {"episode": bag_path.name, "status": "error", "success": None, "error_reason": str(exc)}
         if launch_error:
             row["status"], row["success"] = "error", None
             row["error_reason"] = launch_error
@@ -75,11 +80,16 @@ def run_episode(
 def scored_row(bag_path: Path) -> dict:
     """The bag's scored row in JSON types: the metrics node's score.json when it wrote one, else scored now.
 
-    No bag at all (a node died before recording anything) is an error row naming the episode.
+    No bag at all (a node died before recording anything) is an error row naming the episode. A score.json that
+    is no regular file (a FIFO, a link), over lq_ros.core.bounded_file's cap, or no JSON object is FileRefused,
+    one line naming it (it is read bounded, never blocking).
     """
     score_file = bag_path / SCORE_FILE
-    if score_file.exists():  # (through ROS: the launcher, which imports no scorer, reads the recorder's)
-        return json.loads(score_file.read_text())
+    if os.path.lexists(score_file):  # (through ROS: the launcher, which imports no scorer, reads the recorder's)
+        row = read_results_json(score_file, "score file")
+        if not isinstance(row, dict):
+            raise FileRefused(f"score file {score_file}: not a JSON object")
+        return row
     if (bag_path / "metadata.yaml").exists():
         from lq_ros.scoring.bag_scorer import score_bag, to_json
 

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
+from lq_ros.core.bounded_file import RESULTS_FILE_MAX_BYTES, FileRefused
 from lq_ros.core.run_config import RunConfig
+from lq_ros.recording.episode_folder import SCORE_FILE
 from lq_ros.run import episode
 from lq_ros.run.episode import run_episode, scored_row, settle
 from lq_ros.transport.outcome import EpisodeOutcome
@@ -26,6 +29,53 @@ def test_settle_makes_a_run_error_an_error_row_with_its_reason():
 
 def test_no_bag_at_all_scores_as_an_error_naming_the_episode(tmp_path):
     assert scored_row(tmp_path / "ep") == {"episode": "ep", "status": "error", "success": None}
+
+
+def _fifo(path: Path) -> None:
+    os.mkfifo(path)
+
+
+def _link(path: Path) -> None:
+    (path.parent / "elsewhere.json").write_text('{"status": "success", "success": true}')
+    path.symlink_to(path.parent / "elsewhere.json")
+
+
+def _huge(path: Path) -> None:
+    path.write_text('{"status": "success", "pad": "' + "x" * RESULTS_FILE_MAX_BYTES + '"}')
+
+
+def _list(path: Path) -> None:
+    path.write_text("[1, 2]")
+
+
+@pytest.mark.parametrize(
+    "make, problem",
+    [
+        (_fifo, "not a regular file"),
+        (_link, "a link, not a regular file"),
+        (_huge, "bytes; at most"),
+        (_list, "not a JSON object"),
+    ],  # fmt: skip
+)
+def test_a_score_file_that_is_no_small_regular_json_file_is_refused_in_one_line(tmp_path, no_hang, make, problem):
+    bag = tmp_path / "ep"
+    bag.mkdir()
+    make(bag / SCORE_FILE)
+    with pytest.raises(FileRefused) as refused:
+        scored_row(bag)  # a FIFO would block a plain read: this returns at once
+    message = str(refused.value)
+    assert message.startswith(f"score file {bag / SCORE_FILE}: ") and problem in message and "\n" not in message
+
+
+def test_a_refused_score_file_makes_the_ros_episode_an_error_naming_it(monkeypatch, tmp_path, no_hang):
+    cfg = RunConfig(policy="sine")
+    bag = tmp_path / cfg.episode_name()
+    bag.mkdir()
+    os.mkfifo(bag / SCORE_FILE)
+    monkeypatch.setattr(launcher, "launch_nodes", lambda cfg, out, **_: (Path(out) / cfg.episode_name(), ""))
+    outcome, row = run_episode(cfg, tmp_path, "ros")
+    assert outcome.status == row["status"] == "error" and row["success"] is None
+    assert row["error_reason"].startswith(f"score file {bag / SCORE_FILE}: not a regular file")
 
 
 @pytest.mark.parametrize(
