@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import html
 import math
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -45,11 +46,24 @@ def _bag_path(results_dir: Path, bag) -> Path | None:
     return path if (path / "metadata.yaml").exists() or any(path.glob("*.mcap")) else None
 
 
-def media_names(bags: dict, results_dir: Path) -> dict:
-    """A file name stem per episode, unique in the report: the bag folder's name, and where two bags share it
-    (``a/ep`` and ``b/ep``), that name with a hash of the bag's path below ``results_dir`` (stable across runs,
-    so the cache of figures and videos still finds them)."""
-    names = {i: bag.name for i, bag in bags.items() if bag is not None}
+def _file_safe(text: str) -> str:
+    """``text`` as a file name part: anything but letters, digits, '.', '_' and '-' becomes '_'."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", text).strip(".") or "run"
+
+
+def media_names(bags: dict, results_dir: Path, runs: dict | None = None) -> dict:
+    """A file name stem per episode, unique in the report: the bag folder's name, prefixed with its run's name in
+    a report of several runs (``runs``: index -> the ``run`` column; two runs' episodes often share a folder
+    name, and a run's figure must never be another's), and where two bags still share it (``a/ep`` and ``b/ep``),
+    that name with a hash of the bag's path below ``results_dir`` (stable across reports, so the cache of figures
+    and videos still finds them)."""
+    runs = runs or {}
+    names = {}
+    for i, bag in bags.items():
+        if bag is None:
+            continue
+        run = runs.get(i)
+        names[i] = f"{_file_safe(str(run))}__{bag.name}" if isinstance(run, str) and run else bag.name
     counts: dict[str, int] = {}
     for name in names.values():
         counts[name] = counts.get(name, 0) + 1
@@ -100,7 +114,8 @@ def add_episode_media(
     warnings: list[str] = []
     bags = {i: _bag_path(results_dir, b) for i, b in out.get("bag", pd.Series(dtype=object)).items()}
     todo = [i for i, b in bags.items() if b is not None]
-    names = media_names(bags, results_dir)
+    runs = out["run"].to_dict() if "run" in out else None
+    names = media_names(bags, results_dir, runs)
     for n, i in enumerate(todo):
         bag = bags[i]
         png = out_dir / FIGURE_DIR / f"{names[i]}.png"

@@ -7,9 +7,11 @@ import json
 import pandas as pd
 import pytest
 
+from lq_ros.report import episode_media as media
 from lq_ros.report import runs
 from lq_ros.report.sweep_report import build_report
 from lq_ros.run.sweep import ResultStore
+from lq_ros.wire.messages import EventKind
 from tests.report.test_figure_rules import _row
 
 
@@ -45,3 +47,32 @@ def test_run_names_and_refusals(tmp_path):
     with pytest.raises(ValueError, match="--out"):
         build_report([tmp_path / "one", tmp_path / "one"])
     assert json.loads((tmp_path / "one" / "results" / "one000.json").read_text())["row"]["policy"] == "sine"
+
+
+def test_media_names_are_prefixed_by_their_run(tmp_path):
+    bags = {0: tmp_path / "a" / "ep", 1: tmp_path / "b" / "ep", 2: tmp_path / "b" / "other", 3: None}
+    names = media.media_names(bags, tmp_path, {0: "a", 1: "b", 2: "b", 3: "b"})
+    assert names == {0: "a__ep", 1: "b__ep", 2: "b__other"}
+    assert media.media_names(bags, tmp_path) == {0: f"ep-{_hash('a/ep')}", 1: f"ep-{_hash('b/ep')}", 2: "other"}
+    # A run name that is a path below the runs' common parent is a safe file name part.
+    assert media.media_names({0: tmp_path / "x" / "ep"}, tmp_path, {0: "runs/x y"}) == {0: "runs_x_y__ep"}
+
+
+def _hash(text: str) -> str:
+    import hashlib
+
+    return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+def test_two_runs_episodes_of_one_folder_name_get_a_figure_each(tmp_path):
+    """Run folders of bags whose episodes share their folder names: each episode links its own run's figure."""
+    from tests.scoring.test_bag_scorer import write_episode_bag
+
+    write_episode_bag(tmp_path / "before" / "ep", n_ticks=300)
+    write_episode_bag(tmp_path / "after" / "ep", n_ticks=120, end_kind=EventKind.TIMEOUT)
+    report = build_report([tmp_path / "before", tmp_path / "after"], tmp_path / "compare", n_boot=50)
+    plots = dict(zip(report.episodes["run"], report.episodes["plot"], strict=True))
+    assert plots == {"before": "episodes/before__ep.png", "after": "episodes/after__ep.png"}
+    files = [(tmp_path / "compare" / p).read_bytes() for p in plots.values()]
+    assert files[0] != files[1]  # each drawn from its own bag
+    assert all(p in report.files["report.html"].read_text() for p in plots.values())
