@@ -1,6 +1,8 @@
 """Test helper: follow a run's sim time from outside. ``python -m tests.clock_probe OUT`` (ROS_DOMAIN_ID set).
 
-Writes the latest /clock stamp (ns) to OUT whenever one arrives, atomically, until stopped.
+Writes the latest /clock stamp (ns) to OUT whenever one arrives, atomically, until stopped. It keeps only the newest
+/clock sample (depth 1): with every sample queued (the recorder's lossless QoS) a probe on a loaded machine fell
+seconds of sim time behind the run, and its readings bounded nothing.
 """
 
 from __future__ import annotations
@@ -11,8 +13,9 @@ from pathlib import Path
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from lq_ros.transport.ros.rclpy_helpers import LOSSLESS_QOS, msg_class
+from lq_ros.transport.ros.rclpy_helpers import msg_class
 from lq_ros.wire import messages as m
 
 
@@ -30,7 +33,9 @@ def main() -> None:
 
     rclpy.init()
     node = rclpy.create_node("lq_test_clock_probe")
-    node.create_subscription(msg_class(m.CLOCK.msgtype), m.CLOCK.name, on_clock, LOSSLESS_QOS, raw=True)
+    newest_only = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)  # fmt: skip
+    node.create_subscription(msg_class(m.CLOCK.msgtype), m.CLOCK.name, on_clock, newest_only, raw=True)
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -31,9 +31,11 @@ from lq_ros.wire import messages as m
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
 REPO = Path(__file__).resolve().parents[3]
 SHM = Path("/dev/shm")
-#: A real episode long enough to kill at several moments: 220 ticks (11 s of sim time).
-CFG = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=220)
-RUN_ARGS = ["--policy", "sine", "--mode", "async", "--latency", "0.2", "--max-steps", "220"]
+#: A real episode long enough to kill at several moments: 400 ticks (20 s of sim time). The latest kill (7.5 s by
+#: the probe, which lags the sim) must come well before the end: with 11 s, a fast lockstep sim once finished the
+#: episode, and the recorder closed its bag, before the kill arrived.
+CFG = RunConfig(policy="sine", mode="async", latency_s=0.2, max_steps=400)
+RUN_ARGS = ["--policy", "sine", "--mode", "async", "--latency", "0.2", "--max-steps", "400"]
 #: Topics whose recorded bytes are identical in both transports (chunks carry a measured wall time).
 DETERMINISTIC_TOPICS = (m.CLOCK, m.JOINT_STATES, m.EE_POSE, m.ENERGY_INTEGRALS, m.COMMAND, m.OBSERVATION_REQUEST)
 

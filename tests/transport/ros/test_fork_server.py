@@ -100,6 +100,10 @@ def test_a_dead_server_ends_its_children_and_is_reported(toy_env: dict[str, str]
     child = server.spawn("toy_program", [], subprocess.PIPE, subprocess.DEVNULL, subprocess.DEVNULL)
     child.stdin.write(b"sleep\n")
     child.stdin.flush()
+    # Once it names itself it has its parent-death signal (a child whose server dies before that exits with
+    # EXIT_STATUS_LOST, 255).
+    expected = f"{sys.executable} -m toy_program"
+    assert cmdline(child.pid, expected) == expected
     os.kill(server.proc.pid, signal.SIGKILL)
     # Its parent-death signal ended it; the launcher, its subreaper, reaped it and says how.
     assert child.wait(timeout=10) == -signal.SIGTERM
@@ -138,7 +142,7 @@ def test_a_server_stopped_while_it_starts_is_given_up_within_seconds(toy_env, tm
 
 
 LAUNCHER = """
-import os, signal, subprocess, sys
+import os, signal, subprocess, sys, time
 from pathlib import Path
 from lq_ros.transport.ros.fork_server import ForkServer
 with open(sys.argv[1], "wb") as log:
@@ -146,6 +150,9 @@ with open(sys.argv[1], "wb") as log:
 child = server.spawn("toy_program", [], subprocess.PIPE, subprocess.DEVNULL, subprocess.DEVNULL)
 child.stdin.write(b"sleep\\n")
 child.stdin.flush()
+deadline = time.monotonic() + 10  # (until it names itself: it has its parent-death signal then)
+while b"toy_program" not in Path(f"/proc/{child.pid}/cmdline").read_bytes() and time.monotonic() < deadline:
+    time.sleep(0.01)
 os.kill(server.proc.pid, signal.SIGKILL)
 code = child.wait(timeout=10)
 stat = Path(f"/proc/{child.pid}/stat")

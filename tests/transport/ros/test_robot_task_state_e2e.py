@@ -49,8 +49,13 @@ def test_standin_episode_has_a_failure_mode_from_its_own_task_state(tmp_path):
     state_ns = [m.stamp_ns(s) for s in states]
     assert state_ns == sorted(state_ns) and {t % 2_000_000 for t in state_ns} == {state_ns[0] % 2_000_000}
     assert {b - a for a, b in zip(state_ns, state_ns[1:], strict=False)} == {50_000_000}
+    # One per control tick the bridge's timer sees start: a timer that fires late (a loaded machine) publishes the
+    # tick that just started, with the latest pose, and skips the ticks in between (it has no earlier pose to give).
+    # So: most ticks, no long gap, and each stamped with a robot stamp (the stand-in's 2 ms grid).
     in_episode = [m.stamp_ns(p) for p in poses if t0 <= m.stamp_ns(p) <= t1]
-    assert len(in_episode) >= 0.9 * (t1 - t0) / 50e6  # one per control tick
+    assert len(in_episode) >= 0.5 * (t1 - t0) / 50e6, (len(in_episode), t1 - t0)
+    assert max(b - a for a, b in zip(in_episode, in_episode[1:], strict=False)) <= 300_000_000
+    assert {t % 2_000_000 for t in in_episode} == {state_ns[0] % 2_000_000}
     again = score_bag(bag, ee_topic="/robot/ee_pose", joint_topic="/robot/joint_states", rate="native",
                       energy_rate="native")  # fmt: skip
     assert again["failure_mode"] == row["failure_mode"] and again["progress"] == row["progress"]
