@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from lq_ros.report.tables import count_text, outcomes_text
+from lq_ros.report.tables import count_text, counted, outcomes_text
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.budget import budget_note
 from lq_ros.scoring.intervals import CLUSTER_COVERAGE, MIN_N_INTERVAL, T_COVERAGE
@@ -55,7 +55,8 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
         if n_all is not None and not pd.isna(n_all) and int(n_all) and r.get(f"{RMST_METRIC}_diff_n"):
             time = _change(r, RMST_METRIC, "time to success", 2, 1.0, "s")
             verdict = "changed" if _called(r, RMST_METRIC) else "not shown to change"
-            text += f"; over all {int(n_all)} pairs (a failure at the horizon), {verdict}: {time}"
+            every = "the 1 pair" if int(n_all) == 1 else f"all {int(n_all)} pairs"
+            text += f"; over {every} (a failure at the horizon), {verdict}: {time}"
         if not r["n_pairs"]:
             lines.append(text + "; no (task, init, seed) pair succeeds in both, so there is no paired change of the "
                          "quality metrics.")  # fmt: skip
@@ -112,7 +113,8 @@ def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
                   if margin.empty else "only those named above pass the TOST at the spec's margin")  # fmt: skip
     if tested_rest:
         lines.append(
-            f"{tested_rest} of the {len(comparisons)} paired comparisons show{'s' if tested_rest == 1 else ''} no "
+            f"{tested_rest} of the {counted(len(comparisons), 'paired comparison')} "
+            f"show{'s' if tested_rest == 1 else ''} no "
             "difference at a family-wise 5% level (Holm-adjusted McNemar p >= 0.05): no difference detected, which "
             f"is not the same as equal ({equal_text}; paired_policies.csv has each one's interval)."
         )
@@ -147,13 +149,14 @@ def _called_sentence(r) -> str:
                  "tasks of the suite")  # fmt: skip
     else:
         floor = 2.0 / 2.0**n_tasks
-        why = f", and {n_tasks} tasks cannot give less than {floor:.2g}" if floor >= ALPHA else ""
+        why = f", and {counted(n_tasks, 'task')} cannot give less than {floor:.2g}" if floor >= ALPHA else ""
         scope = (f"task-level sign-flip p = {cluster:.2g}{why}: shown on these tasks, not for other tasks of the "
                  "suite")  # fmt: skip
     return (
         f"{label}**{r['arm_a']} · {r['mode_a']}** succeeds {'more' if better else 'less'} often than **{r['arm_b']} "
         f"· {r['mode_b']}** ({_where(r)}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
-        f"{int(r['n_pairs'])} shared episodes of {n_tasks} tasks; {int(r['a_only'])} succeed only with A and "
+        f"{counted(int(r['n_pairs']), 'shared episode')} of {counted(n_tasks, 'task')}; "
+        f"{counted(int(r['a_only']), 'succeeds', 'succeed')} only with A and "
         f"{int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points {interval}; McNemar p = "
         f"{r['mcnemar_p']:.2g}, Holm-adjusted p = {r['p_adjusted']:.2g} (these tasks, other init states); {scope}."
     )

@@ -36,6 +36,7 @@ from lq_ros.report.prose import INTRO, NOTES, comparison_sentences, paired_sente
 from lq_ros.report.runs import load_runs  # noqa: E402
 from lq_ros.report.tables import (  # noqa: E402
     comparison_table,
+    counted,
     episode_table,
     fmt_cell,
     paired_table,
@@ -335,8 +336,8 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     lines += ["## Methods", "", INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
     lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
     lines += media.videos_md(episodes, FIGURE_KEYS)
-    lines += ["## Episodes", "", f"{len(episodes)} episodes: one row each, with links to their bags and figures, in "
-              "report.html and episodes.csv; per task: aggregates.csv.", ""]  # fmt: skip
+    lines += ["## Episodes", "", f"{counted(len(episodes), 'episode')}: one row each, with links to their bags and "
+              "figures, in report.html and episodes.csv; per task: aggregates.csv.", ""]  # fmt: skip
     write_text(path, "\n".join(lines) + "\n")
 
 
@@ -360,7 +361,7 @@ def summary_markdown(summary: pd.DataFrame, paired: pd.DataFrame | None, compari
         said.append(f"Paired comparisons: {int(called.sum())} of {len(comparisons)} called a difference (Holm-adjusted "
                     "p < 0.05; below, Policies and protocols compared).")  # fmt: skip
     if paired is not None and not paired.empty:
-        said.append(f"Latency effects: {len(paired)} cells paired against 0 s (below, Latency effects).")
+        said.append(f"Latency effects: {counted(len(paired), 'cell')} paired against 0 s (below, Latency effects).")
     if failures:
         said.append(f"Failure modes: {failures[0]}")
     room = SUMMARY_LINES - len(lines) - 3

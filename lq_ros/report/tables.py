@@ -27,6 +27,11 @@ SUMMARY_COLUMNS = (
 )
 
 
+def counted(n: int, noun: str, plural: str | None = None) -> str:
+    """``n`` with ``noun`` in the number it takes: '1 pair', '3 pairs' (``plural`` when it is not noun + 's')."""
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
+
+
 def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for _, r in pooled.sort_values(list(FIGURE_KEYS)).iterrows():
@@ -37,7 +42,7 @@ def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:
             if metric == "success":
                 row["success 95% (tasks)"] = cluster_text(r)
         row["budget"] = budget_note(r)
-        row["note"] = f"⚠ degenerate in {int(r['n_degenerate'])} episodes" if r.get("n_degenerate") else ""
+        row["note"] = f"⚠ degenerate in {counted(int(r['n_degenerate']), 'episode')}" if r.get("n_degenerate") else ""
         rows.append(row)
     return pd.DataFrame(rows)
 

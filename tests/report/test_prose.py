@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from lq_ros.report import prose
+from lq_ros.report import prose, tables
 from lq_ros.scoring.paired_tests import paired_policies
 
 
@@ -65,3 +65,14 @@ def test_the_notes_state_the_simulated_coverage_not_a_blanket_95_percent():
     assert "holds its 95% coverage" not in intervals and "resampled" not in intervals
     assert "cover 91.5-99.7% (success), 92.3-100.0% (paired differences)" in intervals
     assert "benchmarks/interval_coverage.py" in intervals and "Tango" in intervals
+
+
+def test_counts_of_one_are_singular():
+    """'over 6 shared episodes of 1 task', never '1 tasks'; one comparison is 'the 1 paired comparison'."""
+    one_task = paired_policies(pd.DataFrame(_cell(0.1, 1, 6, set(), {(0, i) for i in range(6)})), n_boot=200)
+    _, called = prose.comparison_sentences(one_task)
+    assert "over 6 shared episodes of 1 task;" in called and "and 1 task cannot give less than 1" in called
+    alone = paired_policies(pd.DataFrame(_cell(0.4, 6, 10, {(5, 8), (5, 9)}, {(t, 0) for t in range(6)})), n_boot=200)
+    assert prose.comparison_sentences(alone)[1].startswith("1 of the 1 paired comparison shows no difference")
+    assert [tables.counted(n, "pair") for n in (0, 1, 2)] == ["0 pairs", "1 pair", "2 pairs"]
+    assert [tables.counted(n, "succeeds", "succeed") for n in (1, 3)] == ["1 succeeds", "3 succeed"]

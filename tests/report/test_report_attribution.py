@@ -191,7 +191,7 @@ def test_real_bags_attribute_the_sync_timeout_to_the_budget_and_the_async_one_to
     assert slower > 0
     assert (
         "**scripted [max_steps=140, budget_counts=action] · sync, 0.2 s (N=4)** against 0 s: success 1/1 against 1/1; "
-        "over all 1 pairs (a failure at the horizon)"
+        "over the 1 pair (a failure at the horizon)"
     ) in md
     assert (
         "over the 1 pair that succeeds in both, no change shown; not shown to change: completion time (s) "
