@@ -12,9 +12,11 @@ export MUJOCO_GL ?= egl
 LEROBOT_VENV := .venv-lerobot
 # LeRobot 0.6 (SmolVLA, pi0, pi0.5 as published) needs Python >= 3.12 (pyenv's, or PYTHON312=...).
 LEROBOT06_VENV := .venv-lerobot06
+# LeRobot 0.6's simulator (hf-libero 0.1.4, MuJoCo 3.8.1), for benchmarks/physics_gap.py only.
+HFLIBERO_VENV := .venv-hflibero
 PYTHON312 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.12*/bin/python) $(shell command -v python3.12))
 
-.PHONY: setup setup-all setup-lerobot setup-lerobot06 test test-fast demo lint clean bytecode
+.PHONY: setup setup-all setup-lerobot setup-lerobot06 setup-hflibero test test-fast demo lint clean bytecode
 
 setup: $(STAMP)/package
 
@@ -43,6 +45,16 @@ $(LEROBOT06_VENV)/.stamps/wheels: requirements-lerobot06.lock
 	  -r requirements-lerobot06.lock
 	$(LEROBOT06_VENV)/bin/python $(COMPILE_VENV)
 	@mkdir -p $(LEROBOT06_VENV)/.stamps && touch $@
+
+# hf-libero on MuJoCo 3 beside this stack's LIBERO on MuJoCo 2.3.7 (docs/guide/lerobot.md, "Physics"). Not part
+# of setup-all: only benchmarks/physics_gap.py uses it.
+setup-hflibero: $(HFLIBERO_VENV)/.stamps/wheels
+
+$(HFLIBERO_VENV)/.stamps/wheels: requirements-hflibero.lock
+	@test -n "$(PYTHON312)" || { echo "setup-hflibero: no Python 3.12 (pyenv's or python3.12); set PYTHON312=PATH"; false; }
+	@test -x $(HFLIBERO_VENV)/bin/python || $(PYTHON312) -m venv $(HFLIBERO_VENV)
+	$(HFLIBERO_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -r requirements-hflibero.lock
+	@mkdir -p $(HFLIBERO_VENV)/.stamps && touch $@
 
 $(STAMP)/wheels: requirements.lock
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -92,4 +104,4 @@ lint: setup
 	$(VENV)/bin/ruff format --check .
 
 clean:
-	rm -rf build $(VENV) $(LEROBOT_VENV) $(LEROBOT06_VENV) bags/demo
+	rm -rf build $(VENV) $(LEROBOT_VENV) $(LEROBOT06_VENV) $(HFLIBERO_VENV) bags/demo
