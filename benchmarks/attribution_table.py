@@ -21,6 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from lq_ros.report.escape import md_table  # noqa: E402
 from lq_ros.report.sweep_report import budget_decomposition, load_episodes  # noqa: E402
 from lq_ros.scoring.attribution import decomposition_table  # noqa: E402
 
@@ -31,7 +32,7 @@ def table(sweep: Path) -> str:
         raise SystemExit(
             f"{sweep}: no cells to decompose (needs a zero-latency cell and latency > 0 cells under both budgets)"
         )
-    return decomposition_table(rows).to_markdown(index=False)
+    return md_table(decomposition_table(rows))  # as report.md prints it
 
 
 def main() -> None:

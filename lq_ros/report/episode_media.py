@@ -20,6 +20,7 @@ import pandas as pd
 
 from lq_ros.core.bounded_file import FileRefused, read_results_json
 from lq_ros.core.safe_write import output_folder
+from lq_ros.report.escape import md_link_target, md_text
 from lq_ros.report.replay import DEFAULT_CAMERAS, DEFAULT_SIZE_PX, ReplayRefused
 
 #: Columns added to the episode table: figure path, video path, replay verdict.
@@ -220,9 +221,10 @@ def html_cells(row) -> str:
 def md_cells(row) -> list[str]:
     cells = []
     if "plot" in row:
-        cells.append(f"[plot]({row['plot']})" if _present(row["plot"]) else "–")
+        cells.append(f"[plot]({md_link_target(row['plot'])})" if _present(row["plot"]) else "–")
     if "video" in row:
-        cells.append(f"[video]({row['video']}) {row.get('replay') or ''}".strip() if _present(row["video"]) else "–")
+        video = f"[video]({md_link_target(row['video'])}) {md_text(row.get('replay') or '')}"
+        cells.append(video.strip() if _present(row["video"]) else "–")
     return cells
 
 
@@ -272,6 +274,7 @@ def videos_md(episodes: pd.DataFrame, cell_keys: Sequence[str]) -> list[str]:
         return []
     lines = ["## Replay videos", ""]
     for cell, rows in episodes[episodes["video"].map(_present)].groupby(list(cell_keys), sort=True):
-        lines.append("- " + _cell_title(cell_keys, cell) + ": "
-                     + ", ".join(f"[{_caption(r)}]({r['video']})" for _, r in rows.iterrows()))  # fmt: skip
+        lines.append("- " + md_text(_cell_title(cell_keys, cell)) + ": "
+                     + ", ".join(f"[{md_text(_caption(r))}]({md_link_target(r['video'])})"
+                                 for _, r in rows.iterrows()))  # fmt: skip
     return [*lines, ""]

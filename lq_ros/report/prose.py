@@ -1,9 +1,13 @@
-"""The report's sentences: its introduction, reading notes and the per-cell findings against 0 s."""
+"""The report's sentences: its introduction, reading notes and the per-cell findings against 0 s.
+
+The sentences are markdown (``**bold**``); every name read from a bag goes in through escape.md_text, and
+report.html takes them through escape.md_to_html."""
 
 from __future__ import annotations
 
 import pandas as pd
 
+from lq_ros.report.escape import md_text
 from lq_ros.report.tables import count_text, counted, outcomes_text
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.budget import budget_note
@@ -42,7 +46,7 @@ def paired_sentences(paired: pd.DataFrame) -> list[str]:
     lines = []
     for _, r in paired.iterrows():
         latency = r.get("latency_label") or agg.cell_latency_label(r)
-        text = f"**{r['policy']} · {r['mode']}, {latency}** against 0 s: "
+        text = f"**{md_text(r['policy'])} · {md_text(r['mode'])}, {md_text(latency)}** against 0 s: "
         if not r["zero_n"]:
             lines.append(text + "no zero-latency cell of this variant and protocol to compare with.")
             continue
@@ -99,7 +103,7 @@ def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
         lines.append(_called_sentence(r))
     for _, r in comparisons[comparisons.get("equivalent", pd.Series(dtype=object)) == True].iterrows():  # noqa: E712
         lines.append(
-            f"**{r['arm_a']} · {r['mode_a']}** and **{r['arm_b']} · {r['mode_b']}** ({_where(r)}) are equivalent "
+            f"**{_arm(r, 'a')}** and **{_arm(r, 'b')}** ({_where(r)}) are equivalent "
             f"within ±{100 * r['equivalence_margin']:.0f} points (TOST at the spec's margin, each one-sided test at "
             f"2.5%, conservative: the 95% interval {100 * r['diff']:+.0f} [{100 * r['diff_ci_lo']:+.0f}, "
             f"{100 * r['diff_ci_hi']:+.0f}] lies inside it)."
@@ -127,9 +131,15 @@ def comparison_sentences(comparisons: pd.DataFrame) -> list[str]:
 
 
 def _where(r) -> str:
-    return f"{r['suite']}, {agg.cell_latency_label(r)}" + (
-        "" if r["budget_counts"] == "all" else f", {r['budget_counts']} budget"
+    """Where a comparison ran (suite, latency, budget), escaped for markdown."""
+    return md_text(f"{r['suite']}, {agg.cell_latency_label(r)}") + (
+        "" if r["budget_counts"] == "all" else f", {md_text(r['budget_counts'])} budget"
     )
+
+
+def _arm(r, side: str) -> str:
+    """``policy · mode`` of arm ``side`` ("a" or "b") of a comparison, escaped for markdown."""
+    return f"{md_text(r[f'arm_{side}'])} · {md_text(r[f'mode_{side}'])}"
 
 
 def _called_sentence(r) -> str:
@@ -153,8 +163,8 @@ def _called_sentence(r) -> str:
         scope = (f"task-level sign-flip p = {cluster:.2g}{why}: shown on these tasks, not for other tasks of the "
                  "suite")  # fmt: skip
     return (
-        f"{label}**{r['arm_a']} · {r['mode_a']}** succeeds {'more' if better else 'less'} often than **{r['arm_b']} "
-        f"· {r['mode_b']}** ({_where(r)}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
+        f"{label}**{_arm(r, 'a')}** succeeds {'more' if better else 'less'} often than **{_arm(r, 'b')}** "
+        f"({_where(r)}): {100 * r['success_a']:.0f}% against {100 * r['success_b']:.0f}% over "
         f"{counted(int(r['n_pairs']), 'shared episode')} of {counted(n_tasks, 'task')}; "
         f"{counted(int(r['a_only']), 'succeeds', 'succeed')} only with A and "
         f"{int(r['b_only'])} only with B; difference {100 * r['diff']:+.0f} points {interval}; McNemar p = "

@@ -12,7 +12,6 @@ from __future__ import annotations
 import html
 import json
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from lq_ros.core.safe_write import output_folder, save_figure, write_csv, write_
 from lq_ros.core.safe_yaml import YamlRefused, load_yaml, read_text_file  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import episode_media as media  # noqa: E402
+from lq_ros.report.escape import md_table, md_text, md_to_html  # noqa: E402
 from lq_ros.report.failure_figures import fig_failure_modes  # noqa: E402
 from lq_ros.report.figures import ENERGY_PARTS, FIGURE_KEYS, FIGURES, make_figures  # noqa: E402
 from lq_ros.report.plot_rules import never_moved  # noqa: E402
@@ -289,11 +289,6 @@ SKIPPED_NOTE = (
 )
 
 
-def _md_text(text: str) -> str:
-    """``text`` (a file name and reason from a folder anyone may write) as literal markdown on one line."""
-    return re.sub(r"([\\`*_{}\[\]<>()#+!|~])", r"\\\1", " ".join(str(text).split()))
-
-
 FAILURE_FIGURE = "fig10_failure_modes"
 FAILURE_TITLE = "Failure modes by latency"
 FAILURE_NOTE = failure_aggregate.validation_note() + (
@@ -315,7 +310,7 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     and report.html, not here (a sweep's would bury the page)."""
     lines = ["# LIBERO-LQ sweep report", ""] + summary_markdown(summary, paired, comparisons, failures)
     if skipped:
-        lines += [f"## {SKIPPED_TITLE}", "", SKIPPED_NOTE, ""] + [f"- {_md_text(line)}" for line in skipped] + [""]
+        lines += [f"## {SKIPPED_TITLE}", "", SKIPPED_NOTE, ""] + [f"- {md_text(line)}" for line in skipped] + [""]
     if comparisons is not None and not comparisons.empty:
         lines += ["## Policies and protocols compared (paired)", ""]
         lines += [f"- {s}" for s in comparison_sentences(comparisons)] + [""]
@@ -324,17 +319,18 @@ def write_markdown(path: Path, summary: pd.DataFrame, per_task_md: str, prov: di
     for name, title in FIGURES.items():
         lines += [f"## {title}", "", f"![{title}]({name}.png)", ""]
     if failures is not None:
-        lines += [f"## {FAILURE_TITLE}", "", FAILURE_NOTE, ""] + [f"- {sentence}" for sentence in failures]
+        lines += [f"## {FAILURE_TITLE}", "", FAILURE_NOTE, ""] + [f"- {md_text(sentence)}" for sentence in failures]
         lines += ["", f"![{FAILURE_TITLE}]({FAILURE_FIGURE}.png)", ""]
     if paired is not None and not paired.empty:
-        lines += ["## Paired changes against 0 s", "", paired_table(paired).to_markdown(index=False), ""]
+        lines += ["## Paired changes against 0 s", "", md_table(paired_table(paired)), ""]
     if comparisons is not None and not comparisons.empty:
         lines += ["## Paired comparisons of policies and protocols", "",
-                  comparison_table(comparisons).to_markdown(index=False), ""]  # fmt: skip
+                  md_table(comparison_table(comparisons)), ""]  # fmt: skip
     if attribution is not None and not attribution.empty:
-        lines += [f"## {ATTRIBUTION_TITLE}", "", ATTRIBUTION_NOTE, "", attribution.to_markdown(index=False), ""]
+        lines += [f"## {ATTRIBUTION_TITLE}", "", ATTRIBUTION_NOTE, "", md_table(attribution), ""]
     lines += ["## Methods", "", INTRO, ""] + [f"- {note}" for note in NOTES] + [""]
-    lines += ["## Provenance", "", "| | |", "|---|---|"] + [f"| {k} | {v} |" for k, v in prov.items()] + [""]
+    lines += ["## Provenance", "", "| | |", "|---|---|"]
+    lines += [f"| {md_text(k)} | {md_text(v)} |" for k, v in prov.items()] + [""]
     lines += media.videos_md(episodes, FIGURE_KEYS)
     lines += ["## Episodes", "", f"{counted(len(episodes), 'episode')}: one row each, with links to their bags and "
               "figures, in report.html and episodes.csv; per task: aggregates.csv.", ""]  # fmt: skip
@@ -352,7 +348,7 @@ def summary_markdown(summary: pd.DataFrame, paired: pd.DataFrame | None, compari
     """``## Summary``: the success table (n per row), the comparisons called, the latency effects and the failure-mode
     headline, before any method text; at most SUMMARY_LINES lines, the rest pointed to."""
     shown = summary.head(SUMMARY_ROWS)
-    lines = ["## Summary", "", shown.to_markdown(index=False), ""]
+    lines = ["## Summary", "", md_table(shown), ""]
     if len(summary) > len(shown):
         lines += [f"(the first {len(shown)} of {len(summary)} cells; all: aggregates_pooled.csv and report.html)", ""]
     said = []
@@ -363,7 +359,7 @@ def summary_markdown(summary: pd.DataFrame, paired: pd.DataFrame | None, compari
     if paired is not None and not paired.empty:
         said.append(f"Latency effects: {counted(len(paired), 'cell')} paired against 0 s (below, Latency effects).")
     if failures:
-        said.append(f"Failure modes: {failures[0]}")
+        said.append(f"Failure modes: {md_text(failures[0])}")
     room = SUMMARY_LINES - len(lines) - 3
     lines += [f"- {s}" for s in said[: max(0, room)]]
     lines += ["", SUMMARY_NOTE, ""]
@@ -373,11 +369,6 @@ def summary_markdown(summary: pd.DataFrame, paired: pd.DataFrame | None, compari
 _CSS = """body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}
 table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
 img{max-width:100%}.error{color:#b00}"""
-
-
-def _bold_html(markdown: str) -> str:
-    """Escaped HTML of a sentence whose only markup is markdown **bold**."""
-    return re.sub(r"[*][*](.+?)[*][*]", r"<b>\1</b>", html.escape(markdown))
 
 
 def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: dict, episodes: pd.DataFrame,
@@ -398,11 +389,11 @@ def write_html(path: Path, summary: pd.DataFrame, per_task: pd.DataFrame, prov: 
     has_comparisons = comparisons is not None and not comparisons.empty
     if has_comparisons:
         parts.append("<h2>Policies and protocols compared (paired)</h2><ul>")
-        parts += [f"<li>{_bold_html(sentence)}</li>" for sentence in comparison_sentences(comparisons)]
+        parts += [f"<li>{md_to_html(sentence)}</li>" for sentence in comparison_sentences(comparisons)]
         parts.append("</ul>")
     if has_paired:
         parts.append("<h2>Latency effects (paired against 0 s)</h2><ul>")
-        parts += [f"<li>{_bold_html(sentence)}</li>" for sentence in paired_sentences(paired)]
+        parts += [f"<li>{md_to_html(sentence)}</li>" for sentence in paired_sentences(paired)]
         parts.append("</ul>")
     for name, title in FIGURES.items():
         parts.append(f"<h2>{e(title)}</h2><img src='{_embedded_png(path.parent / f'{name}.png')}' alt='{e(title)}'>")

@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import pytest
@@ -210,8 +211,8 @@ def test_report_links_resolve_and_videos_play(bags, tmp_path):
     md = report.files["report.md"].read_text()
     md_links = re.findall(r"\]\(([^)]+)\)", md)
     assert sum(link.endswith(".mp4") for link in md_links) >= 2
-    for link in md_links:
-        assert (report.out_dir / link).exists(), link
+    for link in md_links:  # percent-encoded link targets (lq_ros/report/escape.py)
+        assert (report.out_dir / unquote(link)).exists(), link
     # A second run reuses the figures and videos (newer than their bags) instead of rendering again.
     stamps = {p: p.stat().st_mtime_ns for p in report.out_dir.glob("*/*.*")}
     build_report(folder, n_boot=50, videos=1)

@@ -127,7 +127,8 @@ def test_tables_and_sentences(synthetic):
     failed = [s for s in sentences if s.startswith("**scripted · sync, 0.2 s")][0]
     note = "◇ budget-decided by the action-budget twins: 6/6 timeouts succeed under the action budget (100% [61, 100])"
     assert f"success 0/6 against 3/3 ({note}" in failed and "no (task, init, seed) pair succeeds" in failed
-    slower = [s for s in sentences if s.startswith("**scripted [budget_counts=action] · sync, 0.2 s")][0]
+    # The policy label is escaped for markdown (its brackets are not a link).
+    slower = [s for s in sentences if s.startswith(r"**scripted \[budget_counts=action\] · sync, 0.2 s")][0]
     # Action budget: 180 against 100, 101, 102 ticks per pair = +4.00, +3.95, +3.90 s.
     # Three pairs: no interval, no test, so no change is called (the values are listed).
     assert (
@@ -190,8 +191,8 @@ def test_real_bags_attribute_the_sync_timeout_to_the_budget_and_the_async_one_to
     slower = eps.loc[("sync", 0.2, "action"), "completion_time_s"] - eps.loc[("sync", 0.0, "all"), "completion_time_s"]
     assert slower > 0
     assert (
-        "**scripted [max_steps=140, budget_counts=action] · sync, 0.2 s (N=4)** against 0 s: success 1/1 against 1/1; "
-        "over the 1 pair (a failure at the horizon)"
+        r"**scripted \[max_steps=140, budget_counts=action\] · sync, 0.2 s (N=4)** against 0 s: success 1/1 against "
+        "1/1; over the 1 pair (a failure at the horizon)"
     ) in md
     assert (
         "over the 1 pair that succeeds in both, no change shown; not shown to change: completion time (s) "

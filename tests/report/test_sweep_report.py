@@ -15,6 +15,7 @@ import pytest
 
 from lq_ros.report import figures as fg
 from lq_ros.report import sweep_report as rp
+from lq_ros.report.escape import md_text
 from lq_ros.run import sweep as sw
 
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
@@ -168,7 +169,7 @@ def test_hostile_results_are_skipped_by_name_and_the_rest_reported(sweep_dir, tm
     html = result.files["report.html"].read_text()
     assert "## Skipped files" in md and "<h2>Skipped files</h2>" in html
     for line in expected:
-        assert rp._md_text(line) in md
+        assert md_text(line) in md
     assert "zero.json: a link, not a regular file" in html
 
 
