@@ -23,6 +23,7 @@ from lq_ros.wire import messages as m
 
 if TYPE_CHECKING:  # the scorer imports this module: keep it free of the run configuration's imports
     from lq_ros.core.run_config import RunConfig
+    from lq_ros.recording.mcap_reader import TopicBudget
 
 #: The largest metadata.yaml read, bytes (an episode's is a few kB).
 MAX_METADATA_BYTES = 1 << 20
@@ -382,12 +383,14 @@ class McapScan:
     messages: list[tuple[str, int, bytes]] | None = None
 
 
-def reindex(bag: Path) -> ReindexResult:
+def reindex(bag: Path, budget: TopicBudget | None = None) -> ReindexResult:
     """Rebuild ``bag/metadata.yaml`` from its ``.mcap`` files (like ``ros2 bag reindex``).
 
     Counts every readable message; a truncated file or a corrupt chunk is named in ``damage`` and what
     follows a truncation is not counted. The run metadata of an existing metadata.yaml is kept. The
-    ``.mcap`` is not modified: the scorer still sees (and reports) its damage. Raises FileNotFoundError
+    ``.mcap`` is not modified: the scorer still sees (and reports) its damage. ``budget``: the records the
+    files of the bag may walk in all (``lq reindex`` passes lq_ros.scoring.read_budget.reindex_budget); beyond
+    it the rest is damage, named. Raises FileNotFoundError
     for a folder without a .mcap and BagRefused for one holding something other than regular files
     (a FIFO would block the read forever; a metadata.yaml directory cannot be replaced).
     """
@@ -411,7 +414,7 @@ def reindex(bag: Path) -> ReindexResult:
             custom = _custom_data(bag)
         except (ValueError, OSError):  # an unreadable metadata.yaml is what reindex replaces
             custom = {}
-    scans = [scan_mcap(file) for file in files]
+    scans = [scan_mcap(file, budget=budget) for file in files]
     damage = [f"{file.name}: {d}" for file, scan in zip(files, scans) for d in scan.damage]
     complete = all(scan.complete for scan in scans)
     custom[BAG_STATE_KEY] = "reindexed" + (f" (damaged: {'; '.join(damage)})" if damage else "")
@@ -419,18 +422,18 @@ def reindex(bag: Path) -> ReindexResult:
     return ReindexResult(bag, sum(scan.stats.count for scan in scans), damage, complete)
 
 
-def scan_mcap(path: Path, keep_messages: bool = False) -> McapScan:
+def scan_mcap(path: Path, keep_messages: bool = False, budget: TopicBudget | None = None) -> McapScan:
     """Walk one .mcap to its end or its damage: topics, counts, log-time span (and the messages).
 
     Streams the file with the scorer's reader (one chunk in memory at a time, every record walked);
     topics are listed in the order their channels are defined. A file that cannot be read from the start
-    (not MCAP, not a regular file) is damage too.
+    (not MCAP, not a regular file) is damage too. ``budget``: the records it may walk (shared by a bag's files).
     """
     from lq_ros.recording.mcap_reader import McapDamage, StreamingMcapReader
 
     path = Path(path)
     scan = McapScan(_FileStats(path.name), [], False, [] if keep_messages else None)
-    reader = StreamingMcapReader(path, None)
+    reader = StreamingMcapReader(path, None, budget=budget)
     counts: dict[str, list[int]] = {}  # topic -> [count, first log time, last log time]
     try:
         for channel, log_ns, payload in reader.messages():

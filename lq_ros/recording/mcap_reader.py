@@ -84,6 +84,8 @@ class TopicBudget:
     #: records the readers may still walk one by one (chunks without a usable message index: a Python loop per
     #: record, whatever topic it holds); None: no limit
     records: int | None = None
+    #: which records are walked one by one, for the damage line (``lq reindex`` walks every chunk's)
+    walked_what: str = "chunks without a usable message index"
     #: the limits as given, and the topics that held more
     limits: dict[str, tuple[int, int]] = field(init=False)
     record_limit: int | None = field(init=False)
@@ -122,8 +124,8 @@ class TopicBudget:
 
     def walk_damage(self) -> str:
         return (
-            f"more than the {self.record_limit} records that {self.why} may hold walked one by one (chunks without "
-            "a usable message index); the rest of the file skipped"
+            f"more than the {self.record_limit} records that {self.why} may hold walked one by one "
+            f"({self.walked_what}); the rest of the file skipped"
         )
 
 

@@ -42,6 +42,16 @@ BYTES_PER_TICK = {
 RECORDS_PER_TICK = 256
 
 
+def reindex_budget(metadata: dict) -> TopicBudget:
+    """What ``lq reindex`` may walk in one bag: the scorer's records per tick of the episode (RECORDS_PER_TICK over
+    :func:`episode_ticks` + SLACK_TICKS). It walks every record of every chunk to count them, so the records bound
+    its time; it keeps counts only, so no topic needs a message or byte limit. A legitimate bag walks about 60
+    records a tick; a flood of tiny records (millions in a few KB) is cut there and named as damage."""
+    ticks, why = episode_ticks(metadata)
+    return TopicBudget(messages={}, bytes={}, records=RECORDS_PER_TICK * (ticks + SLACK_TICKS), why=why,
+                       walked_what="every record of every chunk, to count them")  # fmt: skip
+
+
 def run_step_budget(cfg: dict) -> int | None:
     """The run's step budget from its configuration: ``max_steps``, else its preset's budget for its suite (the
     paper's for bags from before presets); None when unknown or not a positive whole number (hostile metadata)."""

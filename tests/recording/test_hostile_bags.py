@@ -214,6 +214,30 @@ def test_reindex_streams_the_file(tmp_path, intact):
     assert result["rss_mb"] < intact["reindex"]["rss_mb"] + 32, (result["rss_mb"], intact["reindex"]["rss_mb"])
 
 
+def test_reindex_of_a_flood_of_tiny_records_stops_at_the_read_budget(tmp_path):
+    """A chunk of 4,000,000 empty messages (a 20 KB chunk) after a LIBERO-Spatial episode: ``lq reindex`` walked
+    every record (about 20 s) and called the bag complete; it walks what the scorer's budget allows for a 220-tick
+    episode, counts the episode's messages, and names the rest as damage (exit 1)."""
+    import zstandard
+
+    from lq_ros.scoring.read_budget import RECORDS_PER_TICK, SLACK_TICKS
+
+    bag = write_episode_bag(tmp_path / "ep", n_ticks=N_TICKS, config={"suite": "libero_spatial"})
+    records = (struct.pack("<BQ", 0x05, 26) + struct.pack("<HIQQ", 999, 0, 0, 0) + bytes(4)) * 4_000_000
+    insert_before_data_end(bag, chunk_record("zstd", zstandard.ZstdCompressor().compress(records), len(records)))
+    assert mcap_of(bag).stat().st_size < 60_000
+    result = lq("reindex", str(bag))
+    walked = (
+        f"more than the {RECORDS_PER_TICK * (220 + SLACK_TICKS)} records that an episode of at most 220 ticks (its "
+        "step budget) may hold walked one by one (every record of every chunk, to count them)"
+    )
+    line = one_line(result, 1, f"{bag}: ", walked)
+    assert int(line.split(": ")[1].split()[0]) >= 3 * N_TICKS + 2  # the episode's messages, counted before the flood
+    assert result["wall_s"] < 15, result["wall_s"]
+    rebuilt = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert walked in rebuilt["custom_data"]["lq_bag"] and rebuilt["custom_data"]["lq_run"]  # run metadata kept
+
+
 # -- 5. FIFOs: only regular files are bags -------------------------------------------------------------------
 
 
