@@ -524,7 +524,7 @@ class TickHandlers(Protocol):
     def failed(self, reason: str) -> None:
         """The episode ends as an error."""
 
-    def state(self, tick: int) -> bool:
+    def state_needed(self, tick: int) -> bool:
         """Hand the core the anchor state of ``tick`` (:meth:`ExecutorCore.observe_state`; anchored chunks only), or
         wait for it. A transport without one leaves it out: the episode then ends as an error."""
 
@@ -562,7 +562,7 @@ class TickDriver:
             elif isinstance(step, ChunkDue):
                 go = handlers.chunk_due(step.request)
             elif isinstance(step, StateNeeded):
-                state = getattr(handlers, "state", None)
+                state = getattr(handlers, "state_needed", None)
                 if state is None:
                     self.failed = True
                     handlers.failed(NO_STATE)

@@ -183,7 +183,7 @@ def _run(cfg: RunConfig, out_dir: Path, env: LiberoEnv | None, policy: Policy) -
             def failed(self, reason: str) -> None:
                 self.error = reason
 
-            def state(self, tick: int) -> bool:
+            def state_needed(self, tick: int) -> bool:
                 """An anchored row executes now: its anchor is the state the policy would observe at this tick
                 (robosuite's observation, as lerobot-eval's, not the exact kinematics of the tick state)."""
                 obs = env.observe(with_images=False)

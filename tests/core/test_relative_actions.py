@@ -54,7 +54,7 @@ def run(core: ExecutorCore, ticks: int, make_chunk=relative_chunk, with_state: b
             return True
 
     class WithState(AtOnce):
-        def state(self, tick: int) -> bool:
+        def state_needed(self, tick: int) -> bool:
             asked.append(tick)
             core.observe_state(tick, state_of(tick))
             return True
