@@ -49,6 +49,7 @@ from lq_ros.core.seeding import LEROBOT_SEED_TAG, episode_seed
 from lq_ros.core.suite_constants import ACTION_DIM
 from lq_ros.core.types import Observation, TaskInfo
 from lq_ros.policies.base import PolicyError, ReferenceProtocol
+from lq_ros.policies.lerobot_relative import anchored_answer, parse_relative_anchor
 from lq_ros.policies.openpi_remote import AGENTVIEW, WRIST, OpenPIPolicy, camera_image, flag, positive_number
 
 #: ``lerobot-eval`` 0.4.4 renders LIBERO at 256 x 256: ``lerobot.envs.libero.LiberoEnv``'s default (its env config
@@ -378,7 +379,8 @@ class LeRobotPolicy(OpenPIPolicy):
     ``--env.control_mode``; default: absolute for X-VLA, relative for every other type), ``clip`` (default true:
     relative actions clipped to [-1, 1] as robosuite's controller clips what ``lerobot-eval`` passes to the env; in
     absolute control only the gripper, since robosuite neither scales nor clips absolute targets and ``lerobot-eval``
-    passes them as they are; false: an action outside the bounds is refused by the executor as out of range).
+    passes them as they are; false: an action outside the bounds is refused by the executor as out of range),
+    ``relative_anchor`` (``tick`` or ``chunk``: lq_ros/policies/lerobot_relative.py).
     """
 
     name = "lerobot"
@@ -408,6 +410,7 @@ class LeRobotPolicy(OpenPIPolicy):
         rtc_max_guidance_weight: float | None = None,
         rtc_prefix: str = "model",
         empty_cameras: int | None = None,
+        relative_anchor: str = "tick",
     ) -> None:
         super().__init__(host="127.0.0.1", port=None, timeout_s=timeout_s, prompt=prompt, clip=clip)
         self.trust_processors = flag("trust_processors", trust_processors)
@@ -421,6 +424,8 @@ class LeRobotPolicy(OpenPIPolicy):
         if rtc_prefix not in RTC_PREFIXES:
             raise ValueError(f"rtc_prefix {rtc_prefix!r}: valid: {', '.join(RTC_PREFIXES)}")
         self.rtc_prefix = rtc_prefix
+        self.relative_anchor = parse_relative_anchor(relative_anchor)
+        self._anchor_weights = None  # the last answer's (relative actions anchored per tick), else None
         #: Camera inputs the policy pads (``--policy.empty_cameras``); None: the checkpoint's config's.
         self.empty_cameras = None if empty_cameras is None else whole_number("empty_cameras", empty_cameras)
         self.python = Path(python) if python else default_python()
@@ -510,7 +515,11 @@ class LeRobotPolicy(OpenPIPolicy):
             self._prefix = None
 
     def clipped(self, chunk: np.ndarray) -> np.ndarray:
-        """Relative: the whole action in [-1, 1]; absolute: only the gripper (targets are metres and radians)."""
+        """Relative: the whole action in [-1, 1]; absolute: only the gripper (targets are metres and radians). Relative
+        rows anchored per tick (the answer had anchor weights) go on as an anchored chunk, clipped once resolved."""
+        weights, self._anchor_weights = self._anchor_weights, None
+        if weights is not None:
+            return anchored_answer(chunk, weights, self.clipped)
         if not self.clip or self.control_mode is ControlMode.RELATIVE:
             return super().clipped(chunk)
         chunk = np.array(chunk, dtype=np.float64)
@@ -594,6 +603,7 @@ class LeRobotPolicy(OpenPIPolicy):
             # The server is seeded per episode (reset): lq_ros.core.seeding.episode_seed with LEROBOT_SEED_TAG.
             "seeding": "episode",
             "rtc": {**self.rtc, "prefix": self.rtc_prefix},
+            "relative_anchor": self.relative_anchor,
         }
 
     def close(self) -> None:
@@ -627,6 +637,7 @@ class LeRobotPolicy(OpenPIPolicy):
         command += ["--full-chunk"] if self.full_chunk else []
         command += [f"--rtc-{key.replace('_', '-')}={value}" for key, value in self.rtc.items()]
         command += ["--rtc-prefix", self.rtc_prefix, "--empty-cameras", str(self.empty_cameras)]
+        command += ["--relative-anchor", self.relative_anchor]
         try:
             self._server = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._server_log,
@@ -651,7 +662,9 @@ class LeRobotPolicy(OpenPIPolicy):
 
     def _round_trip(self, request: dict) -> object:
         """Each request carries the server's token (it refuses any request without it)."""
-        return super()._round_trip({**request, "token": self._token})
+        response = super()._round_trip({**request, "token": self._token})
+        self._anchor_weights = response.get("anchor_weights") if isinstance(response, dict) else None
+        return response
 
     @staticmethod
     def _read_ready_line(stream, ready: list[dict]) -> None:

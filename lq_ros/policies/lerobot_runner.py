@@ -34,6 +34,12 @@ from lerobot_request import (  # noqa: E402
 #: What the RTC prefix is: the model's own leftover actions of its previous chunk (LeRobot's RTC), or the executor's
 #: plan (normalized with the checkpoint's action statistics).
 RTC_PREFIXES = ("model", "executor")
+#: Where a checkpoint's relative actions (``use_relative_actions``) are made absolute: ``tick``, each action with the
+#: state of the tick that executes it (``lerobot-eval``: its post-processor runs every tick; the answer carries the
+#: relative rows and the anchor weights, the executor adds the state), or ``chunk``, the whole chunk with the
+#: request tick's state (LeRobot's RTC rollout engine, ``lerobot-rollout --inference.type=rtc``, post-processes each
+#: chunk at once).
+RELATIVE_ANCHORS = ("tick", "chunk")
 
 
 def reads_eef_mat(step) -> bool:
@@ -63,6 +69,7 @@ class LeRobotServer:
         rtc: dict | None = None,
         rtc_prefix: str = "model",
         empty_cameras: int | None = None,
+        relative_anchor: str = "tick",
     ) -> None:
         import torch
         from lerobot.configs.policies import PreTrainedConfig
@@ -139,6 +146,21 @@ class LeRobotServer:
         self.image_keys = sorted({f"observation.images.{camera}" for camera in self.cameras.values()})
         #: LeRobot's env processor for this policy reads the EE rotation matrix (X-VLA's LIBERO state is built from it).
         self.needs_eef_mat = any(reads_eef_mat(step) for step in self.env_preprocessor.steps)
+        #: The post-processor's enabled AbsoluteActionsProcessorStep (a checkpoint with use_relative_actions), if any.
+        self.absolute_step = next(
+            (s for s in self.postprocessor.steps if type(s).__name__ == "AbsoluteActionsProcessorStep" and s.enabled),
+            None,
+        )
+        if relative_anchor not in RELATIVE_ANCHORS:
+            raise ValueError(f"relative_anchor {relative_anchor!r}: valid: {', '.join(RELATIVE_ANCHORS)}")
+        self.relative_anchor = relative_anchor
+        #: Answers carry relative rows and the anchor weights: the executor adds each tick's state (lerobot-eval's).
+        self.anchor_per_tick = self.absolute_step is not None and relative_anchor == "tick"
+        if self.anchor_per_tick and self.env_postprocessor.steps:
+            raise ValueError(
+                "relative actions: LeRobot's env post-processor acts on the absolute action, after the state is "
+                "added, so the executor cannot add it per tick; use relative_anchor=chunk"
+            )
         if self.supports_rtc():
             self._rtc_schedule = self.rtc_config().prefix_attention_schedule  # checks the user's values early
 
@@ -179,6 +201,8 @@ class LeRobotServer:
             "rtc": self.supports_rtc(),
             "rtc_config": self._rtc_description() if self.supports_rtc() else None,
             "state_from_eef_mat": self.needs_eef_mat,
+            "relative_actions": self.absolute_step is not None,
+            "relative_anchor": self.relative_anchor if self.absolute_step is not None else None,
             # What the hub library itself reads (it takes the switch once, when imported): True for a local checkpoint.
             "hub_offline": bool(huggingface_hub.constants.HF_HUB_OFFLINE),
         }
@@ -222,16 +246,32 @@ class LeRobotServer:
         return self.preprocessor(observation)
 
     def postprocessed(self, actions):
-        """(n, 7) float32: each (1, A) action through the saved post-processor and the env post-processor."""
+        """(n, 7) float32: each (1, A) action through the saved post-processor and the env post-processor. Relative
+        actions anchored per tick: without the post-processor's absolute step (the executor adds each tick's state,
+        with :meth:`anchor_weights`)."""
         import numpy as np
         from lerobot.utils.constants import ACTION
 
         out = []
-        for action in actions:
-            action = self.postprocessor(action)
-            action = self.env_postprocessor({ACTION: action})[ACTION]
-            out.append(action.to("cpu").numpy()[0])
+        skip = self.absolute_step if self.anchor_per_tick else None
+        if skip is not None:
+            skip.enabled = False
+        try:
+            for action in actions:
+                action = self.postprocessor(action)
+                action = self.env_postprocessor({ACTION: action})[ACTION]
+                out.append(action.to("cpu").numpy()[0])
+        finally:
+            if skip is not None:
+                skip.enabled = True
         return np.stack(out).astype(np.float32)
+
+    def anchor_weights(self, action_dim: int):
+        """(A,) float32: 1 where the absolute step adds the state's value of the same index (LeRobot's mask, 0 for a
+        dimension ``relative_exclude_joints`` names), 0 elsewhere."""
+        import numpy as np
+
+        return np.asarray(self.absolute_step.relative_step._build_mask(action_dim), dtype=np.float32)
 
     def chunk(self, batch: dict, prefix: dict | None = None, history: list[dict] = ()):
         """(n, 7) float32 actions from one observation, post-processed as lerobot-eval does each tick.
@@ -374,7 +414,10 @@ class LeRobotServer:
         prompt = request.get("prompt", "")
         history = [self.policy_batch({**past, "prompt": prompt}) for past in request.get("history", [])]
         actions = self.chunk(self.policy_batch(request), request.get("prefix"), history)
-        return {"actions": actions, "policy_timing": {"infer_ms": (time.perf_counter() - started) * 1000.0}}
+        reply = {"actions": actions, "policy_timing": {"infer_ms": (time.perf_counter() - started) * 1000.0}}
+        if self.anchor_per_tick:
+            reply["anchor_weights"] = self.anchor_weights(actions.shape[1])
+        return reply
 
     def _action_queue(self):
         """The deque ``select_action`` pops from, or None for a policy that infers every call."""

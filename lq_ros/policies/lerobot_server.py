@@ -51,8 +51,9 @@ an episode's first request: the policy and processors are reset) and ``seed`` (w
 ``prefix/schedule`` (``exp``, ``linear``, ``hard`` or ``ones``); for a policy with ``n_obs_steps`` n > 1,
 ``history/<field>`` for each observation field above: the n - 1 ticks before the request's, stacked oldest first
 along a leading axis (ticks before the episode's first are copies of it). Reply: ``actions`` (n, 7) float32 and
-``policy_timing.infer_ms``. A failure is sent as one
-text line (the exception's type and message, no traceback), then the socket closes.
+``policy_timing.infer_ms``; for relative actions anchored per tick (``--relative-anchor tick``, the default), the
+relative rows and ``anchor_weights`` (7,): the executor adds each tick's state, as ``lerobot-eval`` does. A failure
+is sent as one text line (the exception's type and message, no traceback), then the socket closes.
 
 Any local process can reach a loopback port, so the server trusts no peer:
 
@@ -257,6 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rtc-max-guidance-weight", type=float, default=None, help="RTCConfig.max_guidance_weight")
     parser.add_argument("--rtc-prefix", default="model", help="model (LeRobot's: the leftover) or executor (the plan)")
     parser.add_argument("--empty-cameras", type=int, default=None, help="camera inputs the policy pads (the config's)")
+    parser.add_argument("--relative-anchor", default="tick", help="tick (lerobot-eval's) or chunk: see lerobot_runner")
     args = parser.parse_args(argv)
     rtc = {
         key: value
@@ -289,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         server = LeRobotServer(
             args.path, device=args.device, suite=args.suite, trust_processors=args.trust_processors, cameras=cameras,
             n_action_steps=args.n_action_steps, full_chunk=args.full_chunk, rtc=rtc, rtc_prefix=args.rtc_prefix,
-            empty_cameras=args.empty_cameras,
+            empty_cameras=args.empty_cameras, relative_anchor=args.relative_anchor,
         )  # fmt: skip
     except Exception as exc:  # noqa: BLE001 - one line for the client to show
         print(f"error: cannot load a LeRobot policy from {args.path}: {type(exc).__name__}: {exc}", file=sys.stderr)

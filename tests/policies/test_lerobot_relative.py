@@ -1,0 +1,137 @@
+"""Relative actions (``use_relative_actions``) run as ``lerobot-eval`` runs them: each action made absolute with the
+state of the tick that executes it (LeRobot 0.6, ``make setup-lerobot06``; skipped without it, failed in CI).
+
+The checkpoint is a tiny ACT whose saved pipelines hold LeRobot's own ``RelativeActionsProcessorStep`` and
+``AbsoluteActionsProcessorStep`` where pi0's and pi0.5's processors put them (``lerobot_relative_script.py``): the
+steps, not the model, decide how a relative action is anchored, and ACT infers in a second on a CPU.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lq_ros.core.relative_actions import anchor_state, split_chunk
+from lq_ros.core.run_config import RunConfig
+from lq_ros.core.types import TaskInfo
+from lq_ros.policies import make_policy
+from lq_ros.recording.bag_compare import bag_messages
+from lq_ros.sim.libero_env import LiberoEnv
+from lq_ros.transport.inprocess import run_inprocess
+from lq_ros.wire import messages as m
+from tests.standin_servers import standin_observation
+
+SCRIPT = Path(__file__).with_name("lerobot_relative_script.py")
+PYTHON06 = Path(__file__).resolve().parents[2] / ".venv-lerobot06" / "bin" / "python"
+STEPS, TICKS = 4, 12  # n_action_steps as the script makes it; three chunks
+WEIGHTS = [1, 1, 1, 1, 1, 1, 0]  # the gripper excluded by name (pi0's relative_exclude_joints default)
+
+pytestmark = [pytest.mark.sim]
+
+
+def in_venv06(*args: object) -> dict:
+    if not PYTHON06.is_file():
+        if os.environ.get("CI"):
+            pytest.fail(f"LeRobot 0.6's venv is missing ({PYTHON06}): `make setup-lerobot06` makes it")
+        pytest.skip("LeRobot 0.6's venv is not installed (make setup-lerobot06)")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
+    done = subprocess.run(
+        [str(PYTHON06), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600, env=env,
+        check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory) -> str:
+    made = in_venv06("make", tmp_path_factory.mktemp("lerobot_relative"))
+    assert made["mask"] == [bool(w) for w in WEIGHTS]
+    return made["act_relative"]
+
+
+def recorded(bag: Path, topic: m.Topic) -> list:
+    return [m.deserialize(raw, topic.msgtype) for _, raw in bag_messages(bag).get(topic.name, [])]
+
+
+@pytest.mark.slow
+def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoint, tmp_path):
+    """A sync episode at 0 s (each chunk's n_action_steps executed, as lerobot-eval) against lerobot-eval's per-tick
+    loop run by LeRobot's code on the same observations (every tick's, captured in the episode): the commands the
+    bag records are the actions lerobot-eval passes to the env (as robosuite clips them), action for action. The
+    EE position and the gripper are equal bit for bit; the orientation to float32 rounding of the state's
+    axis-angle (LeRobot computes it with torch's float32 acos)."""
+    policy = make_policy("lerobot", path=checkpoint, python=str(PYTHON06), threads=1)
+    env = LiberoEnv("libero_spatial", 0, camera_names=policy.camera_names, camera_size=64)
+    observations = []
+    step, reset = env.step, env.reset
+
+    def observed(state):
+        observations.append(env.observe(with_images=True))
+        return state
+
+    env.step = lambda action: observed(step(action))
+    env.reset = lambda *args, **kwargs: observed(reset(*args, **kwargs))
+    cfg = RunConfig(
+        suite="libero_spatial", task=0, init=0, seed=0, mode="sync", latency_s=0.0, replan_steps=STEPS,
+        policy="lerobot", max_steps=TICKS, camera_size=64,
+    )  # fmt: skip
+    try:
+        outcome = run_inprocess(cfg, tmp_path, env=env, policy=policy)
+    finally:
+        policy.close()
+        env.close()
+    assert outcome.status == "failure", outcome
+    commands = recorded(outcome.bag_path, m.COMMAND)
+    assert [c.tick for c in commands] == list(range(TICKS)) and all(c.source == 0 for c in commands)
+    ours = np.array([c.action for c in commands])
+    chunks = recorded(outcome.bag_path, m.ACTION_CHUNK)
+    assert [c.observation_tick for c in chunks] == [0, 4, 8]
+    rows = [split_chunk(m.chunk_actions(c)) for c in chunks]
+    assert all(w is not None and list(w) == WEIGHTS for _, w in rows)  # the bag keeps the relative rows and weights
+
+    payload = [policy.observation_fields(obs) for obs in observations[:TICKS]]
+    np.savez(tmp_path / "ticks.npz", **{key: np.stack([p[key] for p in payload]) for key in payload[0]})
+    theirs = in_venv06("eval-ticks", checkpoint, tmp_path / "ticks.npz")
+    executed = np.clip(np.array(theirs["executed"], dtype=np.float32).astype(np.float64), -1.0, 1.0)
+    states = np.array(theirs["states"], dtype=np.float32)
+    assert np.array_equal(ours[:, [0, 1, 2, 6]], executed[:, [0, 1, 2, 6]])
+    np.testing.assert_allclose(ours[:, 3:6], executed[:, 3:6], rtol=0, atol=1e-6)
+    # Our state of each tick is LeRobot's (the position exactly; the axis-angle to rounding).
+    ticks_state = np.array([anchor_state(o.eef_pos, o.eef_quat_xyzw, o.gripper_qpos) for o in observations[:TICKS]])
+    assert np.array_equal(ticks_state[:, [0, 1, 2, 6, 7]], states[:, [0, 1, 2, 6, 7]])
+    np.testing.assert_allclose(ticks_state[:, 3:6], states[:, 3:6], rtol=0, atol=1e-6)
+    assert np.abs(executed[:, :6]).max() < 1.0  # nothing clipped: the comparison sees every value
+
+    # Anchored once per chunk (the request tick's state), the later rows of a chunk would differ from lerobot-eval's.
+    once = np.array([r[k] + states[4 * i, :7] * WEIGHTS for i, (r, _) in enumerate(rows) for k in range(STEPS)])
+    late = [t for t in range(TICKS) if t % STEPS]
+    assert np.abs(once[late, :6] - executed[late, :6]).max() > 1e-4
+
+
+def test_anchored_once_per_chunk_as_lerobots_rtc_rollout_engine(checkpoint):
+    """``relative_anchor=chunk``: the server makes the chunk absolute with the request's state (LeRobot's RTC rollout
+    engine does so); the answer is a plain chunk. A value that is no anchor is refused in one line."""
+    obs = standin_observation(64, 0)
+    task = TaskInfo("libero_spatial", 0, "t", "pick up the black bowl", [], 220, 50)
+    chunks = {}
+    for anchor in ("tick", "chunk"):
+        policy = make_policy("lerobot", path=checkpoint, python=str(PYTHON06), threads=1, relative_anchor=anchor)
+        try:
+            policy.reset(task, 0)
+            chunks[anchor] = policy.infer(obs)
+            assert policy.server_metadata["relative_actions"] is True
+            assert policy.server_metadata["relative_anchor"] == anchor
+        finally:
+            policy.close()
+    rows, weights = split_chunk(chunks["tick"])
+    assert chunks["chunk"].shape == (STEPS, 7) and list(weights) == WEIGHTS
+    state = anchor_state(obs.eef_pos, obs.eef_quat_xyzw, obs.gripper_qpos)
+    np.testing.assert_allclose(chunks["chunk"], np.clip(rows + state[:7] * weights, -1, 1), rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="relative_anchor 'step': valid: tick, chunk"):
+        make_policy("lerobot", path=checkpoint, python=str(PYTHON06), relative_anchor="step")
