@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from lq_ros.core.safe_write import output_folder
+from lq_ros.training.dataset import NoEpisodes
 from lq_ros.training.recipe import KIND_RECIPE, TrainConfig, parse_ids
 
 #: TrainConfig's defaults (the shipped recipe): `lq train`'s option defaults, so the two cannot drift apart.
@@ -115,7 +116,11 @@ def collect(
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
     output_folder(out)  # not a file, a dangling link or another user's folder (one line)
-    info = run_collect(cfg, out)
+    try:
+        info = run_collect(cfg, out)
+    except NoEpisodes as exc:
+        typer.echo(f"error: {exc}: nothing written to {out}; more --repeats, other --tasks or less --noise", err=True)
+        raise typer.Exit(1) from None
     stats = info["collection"]["per_task"]
     for task, s in stats.items():
         print(

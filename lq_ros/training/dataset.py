@@ -56,13 +56,17 @@ class Episode:
         return len(self.state)
 
 
+class NoEpisodes(ValueError):
+    """Nothing to write: a collection that kept no episode (an outcome of the run, not a bug)."""
+
+
 def write_dataset(root: Path, episodes: list[Episode], info_extra: dict, tasks: dict[int, str]) -> dict:
     """Write ``episodes`` under ``root`` (overwrites the files); returns info.json's content."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     if not episodes:
-        raise ValueError("no episodes to write (no successful demonstration was collected)")
+        raise NoEpisodes("no episodes to write (no successful demonstration was collected)")
     root = Path(root)
     (root / "data").mkdir(parents=True, exist_ok=True)
     (root / "meta").mkdir(parents=True, exist_ok=True)

@@ -37,3 +37,16 @@ def test_a_task_or_init_state_out_of_range_is_one_line(tmp_path):
                    "task 12 is out of range: libero_spatial has tasks 0..9")  # fmt: skip
     assert_refused(lq("collect", "--out", str(tmp_path / "d"), "--inits", "60"),
                    "init state 60 is out of range", "0..49")  # fmt: skip
+
+
+@pytest.mark.slow
+def test_a_collection_that_keeps_no_episode_is_one_line_and_writes_nothing(tmp_path):
+    """Two ticks are no demonstration: nothing succeeds, so nothing is written (an outcome, not a bug line)."""
+    out = tmp_path / "d"
+    result = lq("collect", "--out", str(out), "--tasks", "0", "--inits", "10", "--max-steps", "2", "--workers", "1")
+    assert result.returncode == 1, result.stderr
+    lines = result.stderr.strip().splitlines()  # (each episode's progress line, then the error)
+    assert lines[-1:] == [f"error: no episodes to write (no successful demonstration was collected): nothing written to "
+                     f"{out}; more --repeats, other --tasks or less --noise"], result.stderr  # fmt: skip
+    assert "Traceback" not in result.stderr and "unexpected" not in result.stderr
+    assert not (out / "meta").exists() and not (out / "data").exists()
