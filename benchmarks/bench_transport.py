@@ -333,7 +333,8 @@ def sweep_against_stock(floor: Floor, inits: int = 8) -> None:
 
 
 def replay_through_stock(bags: list[Path]) -> tuple[float, int]:
-    """Each bag's commands through LIBERO's own env (ControlEnv; reset as LIBERO's evaluations reset it, then the
+    """Each bag's commands through LIBERO's own env (ControlEnv without a renderer, plus the one forward pass a
+    renderer adds at each new MjSim: lq_ros.sim.renderer_passes; reset as LIBERO's evaluations reset it, then the
     10 wait steps): the CPU seconds of its env.step calls alone and their count. Every tick's joint positions must
     equal the bag's (else AssertionError)."""
     import numpy as np
@@ -343,6 +344,7 @@ def replay_through_stock(bags: list[Path]) -> tuple[float, int]:
     from lq_ros.recording.bag_compare import bag_messages
     from lq_ros.recording.episode_bag import read_run_metadata
     from lq_ros.sim.libero_env import load_task
+    from lq_ros.sim.renderer_passes import take_renderer_passes
     from lq_ros.wire import messages as m
 
     cpu, ticks = 0.0, 0
@@ -355,6 +357,7 @@ def replay_through_stock(bags: list[Path]) -> tuple[float, int]:
                 if stock is not None:
                     stock.close()
                 stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+                take_renderer_passes(stock.env)
                 scene = (config["suite"], config["task"])
             msgs = bag_messages(bag)
             commands = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in msgs[m.COMMAND.name]]

@@ -29,6 +29,7 @@ from lq_ros.core.suite_constants import (
     step_budget,
 )
 from lq_ros.core.types import EnergyIntegrals, Observation, PhysicsSamples, TaskInfo, TickState
+from lq_ros.sim import renderer_passes
 from lq_ros.sim.libero_import import import_libero
 
 # Headless rendering; a user with a display may override it.
@@ -291,6 +292,8 @@ class LiberoEnv:
                 use_camera_obs=False,
                 ignore_done=True,
             )
+        # Without cameras, the passes of an env with them: the same physics either way (lq_ros.sim.renderer_passes).
+        renderer_passes.take_renderer_passes(self._env.env)
         self._mujoco = mujoco
         from lq_ros.sim import fast_tick
 
@@ -378,16 +381,17 @@ class LiberoEnv:
 
     @contextlib.contextmanager
     def _soft_reset_as_new(self):
-        """robosuite's soft reset (``sim.reset``: mj_resetData) followed by the forward pass robosuite's
-        ``_initialize_sim`` runs on a new MjSim, so the data goes through what a hard reset's does. Without it the
-        constraint solver's warm start (``qacc_warmstart``) differed in its last bits, and so, from the first wait
-        step, did the episode: a sweep worker's second episode of a task was not its first-episode self."""
+        """robosuite's soft reset (``sim.reset``: mj_resetData) followed by the forward passes a new MjSim gets at a
+        hard reset (robosuite's ``_initialize_sim``'s and its render context's: lq_ros.sim.renderer_passes), so the
+        data goes through what a hard reset's does. Without them the constraint solver's warm start
+        (``qacc_warmstart``) differed in its last bits, and so, from the first wait step, did the episode: a sweep
+        worker's second episode of a task was not its first-episode self."""
         sim = self._env.env.sim
         reset = sim.reset
 
         def reset_as_new() -> None:
             reset()
-            sim.forward()
+            renderer_passes.forward_as_new_sim(sim)
 
         sim.reset = reset_as_new
         try:

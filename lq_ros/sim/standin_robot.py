@@ -19,6 +19,7 @@ import numpy as np
 
 from lq_ros.core.suite_constants import DUMMY_ACTION, NUM_WAIT_STEPS, PHYSICS_DT_S
 from lq_ros.core.types import TaskStateSample
+from lq_ros.sim import renderer_passes
 from lq_ros.sim.libero_env import compiled_once, load_task
 from lq_ros.sim.task_state import TaskStateProbe
 
@@ -43,6 +44,7 @@ class StandinRobot:
         self._compiled = functools.partial(compiled_once, textures=bool(cameras))
         with self._compiled():
             self._env = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=bool(cameras), use_camera_obs=False)
+        renderer_passes.take_renderer_passes(self._env.env)  # one physics with or without cameras
         self._mujoco = mujoco
         self._target: tuple[np.ndarray, np.ndarray] | None = None
         self._new_target = False

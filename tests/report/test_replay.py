@@ -145,6 +145,25 @@ def test_video_has_a_frame_per_tick_with_the_overlay(bags, tmp_path):
         assert np.abs(border - colour).max() < 40, (tick, border, colour)
 
 
+def test_a_video_replay_of_a_camera_less_bag_is_exact(tmp_path):
+    """``lq replay --video`` renders cameras the recording had not, and the replay is bit-identical: on LIBERO-Object
+    task 0, while an env without cameras skipped the forward pass a renderer runs, it left this bag at tick 13
+    (lq_ros.sim.renderer_passes)."""
+    from lq_ros.core.run_config import RunConfig
+    from lq_ros.policies import make_policy
+    from lq_ros.transport.inprocess import run_inprocess
+
+    ticks = 40
+    cfg = RunConfig(mode="async", latency_s=0.2, max_steps=ticks, policy="scripted", suite="libero_object", task=0)
+    outcome = run_inprocess(cfg, tmp_path / "bags")
+    assert make_policy("scripted").camera_names == (), "the bag is recorded in an env without cameras"
+    video = tmp_path / "episode.mp4"
+    run = CliRunner().invoke(_app(), ["replay", str(outcome.bag_path), "--video", str(video), "--size", "64"])
+    assert run.exit_code == 0, run.output
+    assert f"replay equals the bag: {ticks} ticks, EE pose bit-identical at every tick" in run.output
+    assert len(read_video(video)[1]) == ticks + 1
+
+
 def _app():
     from lq_ros.cli import app
 

@@ -1,6 +1,10 @@
 """LiberoEnv's ticks (lq_ros.sim.fast_tick: robosuite's substeps without its per-substep Python, MuJoCo's repeated
 stages skipped) equal LIBERO's own env stepped with the same commands, bit for bit: on every suite, a grasp, a drawer,
-a knob, with cameras on, and for the joint positions of a lockstep bag."""
+a knob, with cameras on, and for the joint positions of a lockstep bag.
+
+LIBERO's own env is ``OffScreenRenderEnv`` (the env of openpi's, OpenVLA's and LeRobot's evaluations) or, where no
+frame is compared, LIBERO's env without a renderer plus the one MuJoCo pass a renderer adds
+(tests/sim/libero_reference.py)."""
 
 from __future__ import annotations
 
@@ -16,11 +20,11 @@ from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.sim.libero_env import LiberoEnv, load_task, unread_observable
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.wire import messages as m
+from tests.sim.libero_reference import CAMERAS, camera_less_libero_env, offscreen_render_env
 
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 SEED = 7
-CAMERAS = ("agentview", "robot0_eye_in_hand")
 
 
 def _physics(data) -> np.ndarray:
@@ -72,17 +76,11 @@ def _assert_robosuite_s_specialisations_only():
 
 
 def _assert_libero_s_own_env_agrees(suite, task, actions, physics, observations, frames=(), cameras=()):
-    """LIBERO's own env (ControlEnv; OffScreenRenderEnv with cameras), reset as LIBERO's evaluations reset it and
-    stepped with ``actions``, gives the same MuJoCo state, observations and frames at every tick."""
-    from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
-
+    """LIBERO's own env (its camera-less env with the renderer's pass; OffScreenRenderEnv with cameras), reset as
+    LIBERO's evaluations reset it and stepped with ``actions``, gives the same MuJoCo state, observations and frames
+    at every tick."""
     _, bddl, init_states = load_task(suite, task)
-    if cameras:
-        stock = OffScreenRenderEnv(
-            bddl_file_name=str(bddl), camera_names=list(cameras), camera_heights=128, camera_widths=128
-        )
-    else:
-        stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+    stock = offscreen_render_env(bddl, cameras) if cameras else camera_less_libero_env(bddl)
     try:
         stock.seed(SEED)
         np.random.seed(SEED)
@@ -137,21 +135,29 @@ def test_with_cameras_the_frames_and_the_state_are_libero_s():
     _assert_libero_s_own_env_agrees("libero_spatial", 0, done, physics, observations, frames, cameras=CAMERAS)
 
 
-def test_a_lockstep_bag_s_joint_positions_are_libero_s_for_its_commands(tmp_path):
-    """Async at 0.2 s (commands held while the policy "infers"), scripted: the bag's commands replayed on LIBERO's
-    own env give the bag's joint positions at every tick."""
-    cfg = RunConfig(policy="scripted", mode="async", latency_s=0.2, max_steps=40)
-    outcome = run_inprocess(cfg, tmp_path, env=None)
+@pytest.fixture(scope="module")
+def object_bag(tmp_path_factory) -> Path:
+    """Async at 0.2 s (commands held while the policy "infers"), scripted, camera-less, on LIBERO-Object task 0 (where
+    an env without the renderer's pass left the env with cameras from tick 0)."""
+    cfg = RunConfig(policy="scripted", mode="async", latency_s=0.2, max_steps=40, suite="libero_object", task=0)
+    outcome = run_inprocess(cfg, tmp_path_factory.mktemp("parity"), env=None)
     assert outcome.ticks == 40
-    msgs = bag_messages(Path(outcome.bag_path))
+    return Path(outcome.bag_path)
+
+
+@pytest.mark.parametrize("reference", ["OffScreenRenderEnv", "camera-less"])
+def test_a_lockstep_bag_s_joint_positions_are_libero_s_for_its_commands(object_bag, reference):
+    """The bag's commands replayed on LIBERO's own env, with its cameras rendering (OffScreenRenderEnv) or without a
+    renderer (plus the renderer's pass), give the bag's joint positions at every tick."""
+    cfg = RunConfig(policy="scripted", suite="libero_object", task=0)
+    msgs = bag_messages(object_bag)
     commands = [m.deserialize(raw, m.COMMAND.msgtype) for _, raw in msgs[m.COMMAND.name]]
     joints = [m.deserialize(raw, m.JOINT_STATES.msgtype) for _, raw in msgs[m.JOINT_STATES.name]]
     assert [c.tick for c in commands] == list(range(40)) and len(joints) == 41
     assert {c.source for c in commands} > {0}, "some ticks held a command while the policy inferred"
-    from libero.libero.envs.env_wrapper import ControlEnv
-
-    _, bddl, init_states = load_task("libero_spatial", 0)
-    stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+    _, bddl, init_states = load_task("libero_object", 0)
+    with_cameras = reference == "OffScreenRenderEnv"
+    stock = offscreen_render_env(bddl, size_px=64) if with_cameras else camera_less_libero_env(bddl)
     try:
         stock.seed(cfg.seed)
         np.random.seed(cfg.seed)
@@ -164,8 +170,10 @@ def test_a_lockstep_bag_s_joint_positions_are_libero_s_for_its_commands(tmp_path
         arm = np.asarray(robot._ref_joint_pos_indexes)
         assert np.array_equal(np.asarray(joints[0].position), data.qpos[arm]), "tick 0"
         for command, joint in zip(commands, joints[1:], strict=True):
-            stock.step(np.asarray(command.action, dtype=np.float64))
+            obs, _, _, _ = stock.step(np.asarray(command.action, dtype=np.float64))
             assert np.array_equal(np.asarray(joint.position), data.qpos[arm]), f"tick {command.tick + 1}"
+        if with_cameras:
+            assert obs["agentview_image"].std() > 0, "its cameras rendered"
     finally:
         stock.close()
 

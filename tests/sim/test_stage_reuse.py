@@ -14,6 +14,7 @@ from lq_ros.core.suite_constants import DUMMY_ACTION, NUM_WAIT_STEPS, SUBSTEPS_P
 from lq_ros.policies import make_policy
 from lq_ros.sim.libero_env import LiberoEnv, load_task
 from lq_ros.sim.stage_reuse import StageReuse
+from tests.sim.libero_reference import camera_less_libero_env
 
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
@@ -31,8 +32,6 @@ def _physics(data) -> np.ndarray:
 # renormalization check the first diverges from LIBERO's env at tick 62, the second at tick 1.
 @pytest.mark.parametrize(("suite", "task", "init"), [("libero_spatial", 0, 0), ("libero_object", 1, 0)])
 def test_a_scripted_episode_equals_libero_s_own_env(suite, task, init):
-    from libero.libero.envs.env_wrapper import ControlEnv
-
     env = LiberoEnv(suite, task)
     try:
         state = env.reset(init, SEED)
@@ -56,7 +55,7 @@ def test_a_scripted_episode_equals_libero_s_own_env(suite, task, init):
         env.close()
 
     _, bddl, init_states = load_task(suite, task)
-    stock = ControlEnv(bddl_file_name=str(bddl), has_offscreen_renderer=False, use_camera_obs=False)
+    stock = camera_less_libero_env(bddl)  # LIBERO's, with the renderer's forward pass (tests/sim/libero_reference.py)
     try:
         stock.seed(SEED)
         np.random.seed(SEED)
