@@ -16,6 +16,7 @@ import pandas as pd  # noqa: E402
 from lq_ros.core.suite_constants import CONTROL_DT_S  # noqa: E402
 from lq_ros.report import async_figures as report_async  # noqa: E402
 from lq_ros.report import plot_rules as pr  # noqa: E402
+from lq_ros.report import suite_grid as sg  # noqa: E402
 from lq_ros.scoring import aggregate as agg  # noqa: E402
 from lq_ros.scoring.labels import base_labels  # noqa: E402
 from lq_ros.scoring.survival import kaplan_meier_band as survival_band  # noqa: E402
@@ -83,12 +84,6 @@ def _with_suite(label: str, suite, suites: set[str]) -> str:
 
 def _samplings(pooled: pd.DataFrame) -> list[str]:
     return sorted({agg.sampling_label(r) for _, r in pooled.iterrows()})
-
-
-def _colours(pooled: pd.DataFrame) -> dict[str, str]:
-    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    labels = sorted({label for label, _, _ in _series(pooled)})
-    return {p: cycle[i % len(cycle)] for i, p in enumerate(labels)}
 
 
 def _ci_line(ax, x, mean, lo, hi, *, colour: str, mode: str, label: str, scale: float = 1.0,
@@ -218,7 +213,7 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
     where every cell of the line has one, else Wilson, hatched and footnoted: _success_band); budget marks (hollow:
     decided by the action-budget twin; dotted ring: the proxy alone) and red rings on degenerate cells."""
     modes = [m for m in ("sync", "async") if m in set(pooled["mode"])] + sorted(set(pooled["mode"]) - {"sync", "async"})
-    suites = sorted(_suites(pooled)) or [None]
+    suites = sg.suites_of(pooled)
     several = len(suites) > 1
     budgets = set(pooled.get("budget_counts", pd.Series(dtype=object)).dropna())
     both = {"all", "action"} <= budgets
@@ -227,17 +222,12 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
         suite = rows["suite"].iloc[0] if "suite" in rows else None
         budget = rows["budget_counts"].iloc[0] if "budget_counts" in rows else "all"
         base = str(rows["series_policy"].iloc[0] if "series_policy" in rows else policy)
-        if not several:
-            base = _with_suite(base, suite, set(suites) - {None})
-        else:  # the panel names the suite
-            for name in suites:
-                base = base.replace(f" · {name}", "")
+        # A figure of one suite names it in the label; of several, the panel names it.
+        base = sg.without_suite(base, suites) if several else _with_suite(base, suite, set(suites) - {None})
         label = f"{base} · {BUDGET_LABEL.get(budget, budget)}" if both else base
         lines.append((suite if several else None, mode, base, label, budget, rows))
-    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    colours = {b: cycle[i % len(cycle)] for i, b in enumerate(sorted({line[2] for line in lines}))}
-    fig, axes = plt.subplots(len(suites), len(modes), figsize=(5.5 * len(modes), 4.0 * len(suites)), squeeze=False,
-                             sharey=True)  # fmt: skip
+    colours = sg.colours(line[2] for line in lines)
+    fig, axes = sg.grid(len(suites), len(modes), (5.5, 4.0), sharey=True)
     found: set[str] = set()
     for r, suite in enumerate(suites):
         for c, mode in enumerate(modes):
@@ -260,35 +250,20 @@ def fig_success(pooled: pd.DataFrame) -> plt.Figure:
                     found.add(pr.DEGENERATE_NOTE)
                 found |= _budget_mark_points(ax, rows, colour, mode)
                 _distribution_labels(ax, rows, colour)
-            ax.set_title(f"{suite} · {mode} execution" if several else f"{mode} execution", fontsize=10)
+            ax.set_title(sg.panel_title(suite, f"{mode} execution", several), fontsize=10)
             if not drawn:  # a cell of the grid this run has no episodes for: say so rather than leave it blank
-                ax.text(0.5, 0.5, f"no {mode} episodes\nof this suite in this run", transform=ax.transAxes,
-                        ha="center", va="center", color="#777777", fontsize=9)  # fmt: skip
+                sg.say_empty(ax, f"no {mode} episodes\nof this suite in this run")
             ax.set_ylim(-2, 102)
             ax.margins(x=0.12)
             _latency_axis(ax, pooled)
             if c == 0:
                 ax.set_ylabel("success rate (%) [95% CI]")
-    _one_legend(axes[0][0], [ax for row in axes for ax in row])
+    sg.one_legend(axes[0][0], [ax for row in axes for ax in row])
     notes = [n for n in (CLUSTER_BAND_NOTE, WILSON_BAND_NOTE) if n in found]
     notes += [BUDGET_FOOTNOTE[k] for k in ("decided", "proxy") if BUDGET_FOOTNOTE[k] in found]
     pr.layout(fig, [axes[0][0]], title=FIGURES["fig4_success"], note=pr.footnote(*notes, _notes(found)),
               ncol=min(3, max(1, len(axes[0][0].get_legend_handles_labels()[1]))))  # fmt: skip
     return fig
-
-
-def _one_legend(target, axes) -> None:
-    """Give ``target`` an (invisible) entry for every labelled line of ``axes`` it lacks, so the figure's one legend
-    names every series of every panel."""
-    have = set(target.get_legend_handles_labels()[1])
-    for ax in axes:
-        for line in ax.get_lines():
-            label = line.get_label()
-            if label.startswith("_") or label in have:
-                continue
-            have.add(label)
-            target.plot([], [], color=line.get_color(), linestyle=line.get_linestyle(), marker=line.get_marker(),
-                        label=label)  # fmt: skip
 
 
 def _budget_mark_points(ax, rows: pd.DataFrame, colour: str, mode: str) -> set[str]:
@@ -320,36 +295,70 @@ def _distribution_labels(ax, rows: pd.DataFrame, colour: str) -> None:
                         textcoords="offset points", fontsize=6, color=colour, ha="right")  # fmt: skip
 
 
-def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 5: mean jerk, P90 jerk, the paper's EE-Osc and the detrended EE-Osc vs latency, one line per (policy,
-    protocol, suite), over successful episodes at the sampling named in the title. The two EE-Osc panels share
-    their y axis: the paper's spreads the window's positions about their mean, so travel in the last 0.5 s counts;
-    the detrended one about the window's straight line, so only back-and-forth does."""
-    panels = (
-        ("jerk_mean", "mean jerk (m/s³)", None),
-        ("jerk_p90", "P90 jerk (m/s³)", None),
-        ("ee_osc", "EE-Osc, paper A.3 (mm)", "about the window's mean: travel counts"),
-        ("ee_osc_detrended", "EE-Osc detrended (mm)", "about the window's straight line: back-and-forth only"),
-    )
-    colours = _colours(pooled)
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.0 * len(panels), 4.3), squeeze=False)
+#: Panels of Fig. 5: (metric, y label, the panel's own note or None, scale to the label's unit).
+TRAJECTORY_PANELS = (
+    ("jerk_mean", "mean jerk (m/s³)", None, 1.0),
+    ("jerk_p90", "P90 jerk (m/s³)", None, 1.0),
+    ("ee_osc", "EE-Osc, paper A.3 (mm)", "about the window's mean: travel counts", 1000.0),
+    ("ee_osc_detrended", "EE-Osc detrended (mm)", "about the window's straight line: back-and-forth only", 1000.0),
+)
+#: Panels of Fig. 7, as TRAJECTORY_PANELS.
+ENERGY_PANELS = (
+    ("energy_per_step_j", "(a) energy per control step (J)", None, 1.0),
+    ("energy_total_j", "(b) total energy (J)", None, 1.0),
+)
+#: A panel of Figs. 5 and 7 with no mean to draw (no successful episode of the suite has the metric).
+NO_SUCCESS_TEXT = "no successful episode\nof this suite has a value"
+
+
+def _metric_grid(pooled: pd.DataFrame, panels, *, title: str, panel_in: tuple[float, float],
+                 same_scale: tuple[int, ...] = ()) -> plt.Figure:  # fmt: skip
+    """Small multiples of success-only means vs latency (Figs. 5 and 7): a row per suite (lq_ros/report/suite_grid.py),
+    a panel per metric, one line per (policy variant, protocol, sampling) in the colour of its variant in every
+    row; a metric keeps one y scale down its column, and the ``same_scale`` columns share one scale."""
+    suites = sg.suites_of(pooled)
+    several = len(suites) > 1
+    lines = [(rows["suite"].iloc[0] if several else None, sg.without_suite(label, suites), mode, rows)
+             for label, mode, rows in _series(pooled)]  # fmt: skip
+    colours = sg.colours(base for _, base, _, _ in lines)
+    fig, axes = sg.grid(len(suites), len(panels), panel_in, sharey="col")
     found: set[str] = set()
-    for ax, (metric, label, title) in zip(axes[0], panels, strict=True):
-        scale = 1000.0 if metric.startswith("ee_osc") else 1.0
-        for policy, mode, rows in _series(pooled):
-            found |= _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}",
-                                  scale=scale)  # fmt: skip
-        ax.set_ylabel(f"{label} [95% CI]")
-        if title:
-            ax.set_title(title, fontsize=9)
-        _latency_axis(ax, pooled)
-    low = min(ax.get_ylim()[0] for ax in axes[0][2:])
-    high = max(ax.get_ylim()[1] for ax in axes[0][2:])
-    for ax in axes[0][2:]:
-        ax.set_ylim(low, high)  # the same scale: the detrended value is the part of the paper's that is not travel
-    pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig5_trajectory']} (successful episodes; {_rate_note(pooled)})",
-              legend_title="policy · protocol", ncol=2, note=_notes(found, EPISODE_SET_NOTE))  # fmt: skip
+    for suite, row_axes in zip(suites, axes, strict=True):
+        for ax, (metric, label, note, scale) in zip(row_axes, panels, strict=True):
+            drawn = False
+            for line_suite, base, mode, rows in lines:
+                if several and line_suite != suite:
+                    continue
+                found |= _metric_line(ax, rows, metric, colour=colours[base], mode=mode, label=f"{base} · {mode}",
+                                      scale=scale)  # fmt: skip
+                drawn |= pr.has_data(np.where(pr.idle_cells(rows), np.nan, rows[f"{metric}_mean"]))
+            ax.set_ylabel(f"{label} [95% CI]", fontsize=9)
+            ax.set_title(sg.panel_title(suite, note or "", several, sep="\n"), fontsize=9)
+            _latency_axis(ax, pooled)
+            if not drawn:
+                sg.say_empty(ax, NO_SUCCESS_TEXT)
+    if same_scale:  # (down a column the scale is shared already: one row's panels set it for all)
+        low = min(axes[0][c].get_ylim()[0] for c in same_scale)
+        high = max(axes[0][c].get_ylim()[1] for c in same_scale)
+        for c in same_scale:
+            axes[0][c].set_ylim(low, high)
+    for c in range(len(panels)):
+        pr.no_zoom_into_noise(axes[0][c])
+    sg.one_legend(axes[0][0], [ax for row in axes for ax in row])
+    n_labels = len(axes[0][0].get_legend_handles_labels()[1])
+    pr.layout(fig, [axes[0][0]], title=f"{title} (successful episodes; {_rate_note(pooled)})",
+              legend_title="policy · protocol", ncol=max(1, min(len(panels), n_labels)),
+              note=_notes(found, EPISODE_SET_NOTE))  # fmt: skip
     return fig
+
+
+def fig_trajectory(pooled: pd.DataFrame) -> plt.Figure:
+    """Fig. 5: mean jerk, P90 jerk, the paper's EE-Osc and the detrended EE-Osc vs latency over successful episodes
+    at the sampling named in the title, a row of panels per suite. The two EE-Osc columns share their y axis: the
+    paper's spreads the window's positions about their mean, so travel in the last 0.5 s counts; the detrended one
+    about the window's straight line, so only back-and-forth does."""
+    return _metric_grid(pooled, TRAJECTORY_PANELS, title=FIGURES["fig5_trajectory"], panel_in=(3.6, 3.4),
+                        same_scale=(2, 3))  # fmt: skip
 
 
 def _stacked_bars(ax, rows: pd.DataFrame, latencies: list[float], parts, total_metric: str, mode: str) -> bool:
@@ -406,20 +415,8 @@ def fig_energy_decomposition(pooled: pd.DataFrame) -> plt.Figure:
 
 
 def fig_energy(pooled: pd.DataFrame) -> plt.Figure:
-    """Fig. 7: (a) per-step energy, (b) total episode energy vs latency."""
-    panels = (("energy_per_step_j", "(a) energy per control step (J)"), ("energy_total_j", "(b) total energy (J)"))
-    colours = _colours(pooled)
-    fig, axes = plt.subplots(1, 2, figsize=(11.0, 4.0), squeeze=False)
-    found: set[str] = set()
-    for ax, (metric, label) in zip(axes[0], panels, strict=True):
-        for policy, mode, rows in _series(pooled):
-            found |= _metric_line(ax, rows, metric, colour=colours[policy], mode=mode, label=f"{policy} · {mode}")
-        ax.set_ylabel(f"{label} [95% CI]")
-        _latency_axis(ax, pooled)
-        pr.no_zoom_into_noise(ax)
-    pr.layout(fig, axes[0][:1], title=f"{FIGURES['fig7_energy']} (successful episodes; {_rate_note(pooled)})",
-              legend_title="policy · protocol", ncol=2, note=_notes(found, EPISODE_SET_NOTE))  # fmt: skip
-    return fig
+    """Fig. 7: (a) per-step energy, (b) total episode energy vs latency, a row of panels per suite."""
+    return _metric_grid(pooled, ENERGY_PANELS, title=FIGURES["fig7_energy"], panel_in=(5.5, 3.6))
 
 
 #: Panels of Fig. 9: (agg.TIME_TO_SUCCESS_AXES key, x label).
@@ -450,14 +447,17 @@ def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Fig
     # One sampling per episode: a bag scored at two rates is one episode here (its outcome does not depend on it).
     samplings = [agg.sampling_label(r) for _, r in eps.iterrows()]
     eps = eps[[label == min(samplings) for label in samplings]] if samplings else eps
-    groups = [(p, m) for (p, m), _ in eps.groupby(["series_policy", "mode"], sort=True)]
+    several = len(suites) > 1
+    order = ["suite", "series_policy", "mode"] if "suite" in eps else ["series_policy", "mode"]
+    # A row per series, the rows of one suite together (each row holds one suite: its panel title names it).
+    groups = [(k[-2], k[-1]) for k, _ in eps.groupby(order, sort=True, dropna=False)]
     both = {"all", "action"} <= set(eps["budget_counts"].dropna())
     labels = {  # the cell's own label: a distribution's realised mean differs between cells
         (r["policy"], r["mode"], r["latency_s"], r["latency_dist"]): r.get("latency_label") or agg.cell_latency_label(r)
         for _, r in pooled.iterrows()
     }
     idle = pr.never_moved(eps)
-    fig, axes = plt.subplots(max(1, len(groups)), 2, figsize=(15.0, 3.6 * max(1, len(groups))), squeeze=False)
+    fig, axes = plt.subplots(max(1, len(groups)), 2, figsize=(14.5, 3.6 * max(1, len(groups))), squeeze=False)
     for (policy, mode), row_axes in zip(groups, axes, strict=False):
         rows = eps[(eps["series_policy"] == policy) & (eps["mode"] == mode)]
         cells = sorted({(float(r.latency_s), str(r.latency_dist)) for r in rows.itertuples()})
@@ -490,11 +490,17 @@ def fig_time_to_success(episodes: pd.DataFrame, pooled: pd.DataFrame) -> plt.Fig
             ax.set_xlabel(xlabel)
             ax.set_ylim(-2, 102)
             ax.grid(alpha=0.3)
+            if not ax.get_lines():
+                sg.say_empty(ax, "no episode of this series\nended in success or failure")
         row_axes[0].set_ylabel("succeeded by t (%) [95% band]")
-        row_axes[0].set_title(f"{policy} · {mode}", loc="left", fontsize=9)
+        suite = rows["suite"].iloc[0] if several else None
+        title = sg.panel_title(suite, f"{sg.without_suite(str(policy), sorted(suites))} · {mode}", several)
+        row_axes[0].set_title(title, loc="left", fontsize=9)
         title = "latency" + (" · budget (paper: holds count; dotted: action)" if both else "")
         row_axes[1].legend(fontsize=7, title=f"{title}\nfailures: | at their end", title_fontsize=7, loc="upper left",
                            bbox_to_anchor=(1.02, 1.0))  # fmt: skip
+    if not groups:
+        sg.say_empty(axes[0][0], "no episode in this report")
     pr.layout(fig, title=FIGURES["fig9_time_to_success"], note=KM_NOTE)
     return fig
 

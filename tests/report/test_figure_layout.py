@@ -1,5 +1,6 @@
-"""Figs. 4, 6 and 8 read at a glance: Fig. 4 a panel per (suite, protocol), Fig. 6 legible at 1600 px wide
-whatever the number of series, Fig. 8 a colour per series."""
+"""Figs. 4-9 read at a glance: Fig. 4 a panel per (suite, protocol), Figs. 5 and 7 a row of panels per suite (a
+suite with nothing to draw says why), Fig. 6 legible at 1600 px wide whatever the number of series, Fig. 8 a colour
+per series, Fig. 9 a suite's rows together."""
 
 from __future__ import annotations
 
@@ -73,3 +74,44 @@ def test_fig8_is_a_block_of_panels_per_suite_and_gives_each_series_its_own_colou
         lines = [line for line in ax.get_lines() if len(line.get_xdata())]
         assert len(lines) == 2  # async: the two policies of its suite, both with merge replace
         assert len({to_hex(line.get_color()) for line in lines}) == 2  # (one colour per merge: both the same)
+
+
+@pytest.mark.parametrize("name, metrics", [("fig5_trajectory", fg.TRAJECTORY_PANELS),
+                                           ("fig7_energy", fg.ENERGY_PANELS)])  # fmt: skip
+def test_figs5_and_7_are_a_row_of_panels_per_suite_legible_at_1600_px(episodes, pooled, name, metrics):
+    fig = fg.make_figures(pooled, episodes)[name]
+    assert fig.get_size_inches()[0] * DPI <= 1600
+    axes = np.array(fig.axes).reshape(len(SUITES), len(metrics))
+    for row, suite in zip(axes, sorted(SUITES), strict=True):  # rows in the suites' order, a panel per metric
+        for ax, (_, label, _, _) in zip(row, metrics, strict=True):
+            assert ax.get_title().split("\n")[0] == suite and ax.get_ylabel().startswith(label)
+            drawn = [line for line in ax.get_lines() if len(line.get_xdata())]
+            assert len(drawn) == 4  # its suite's two policies x two protocols, no other suite's
+    colours = {}
+    for ax in fig.axes:  # a policy keeps its colour in every panel; the protocol is the line style
+        for line in ax.get_lines():
+            if len(line.get_xdata()):
+                colours.setdefault(line.get_label(), set()).add(to_hex(line.get_color()))
+    assert set(colours) == {f"{p} · {m}" for p in ("scripted", "sine") for m in ("sync", "async")}
+    assert all(len(c) == 1 for c in colours.values())
+    assert colours["scripted · sync"] == colours["scripted · async"] != colours["sine · sync"]
+    for column in axes.T:  # one scale down a column: the suites compare at a glance
+        assert len({ax.get_ylim() for ax in column}) == 1
+
+
+def test_a_suite_without_successes_says_why_its_panels_are_empty(episodes):
+    failed = episodes.assign(status=np.where(episodes["suite"] == "libero_object", "failure", episodes["status"]))
+    failed["success"] = failed["status"] == "success"
+    pooled = rp.figure_aggregates(failed, n_boot=50)
+    for fig in (fg.fig_trajectory(pooled), fg.fig_energy(pooled)):
+        for ax in fig.axes:
+            says = [t.get_text() for t in ax.texts if t.get_text() == fg.NO_SUCCESS_TEXT]
+            empty = not [line for line in ax.get_lines() if np.isfinite(np.asarray(line.get_ydata(), float)).any()]
+            assert empty == ax.get_title().startswith("libero_object") == bool(says), ax.get_title()
+
+
+def test_fig9_keeps_a_suites_rows_together_each_titled_by_its_suite(episodes, pooled):
+    fig = fg.fig_time_to_success(episodes, pooled)
+    titles = [ax.get_title(loc="left") for ax in fig.axes if ax.get_title(loc="left")]
+    assert [t.split(" · ")[0] for t in titles] == [s for s in sorted(SUITES) for _ in range(4)]  # 2 policies x 2 modes
+    assert fig.get_size_inches()[0] * DPI <= 1600
