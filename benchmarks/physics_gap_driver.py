@@ -8,7 +8,9 @@ LeRobot 0.6's hf-libero has neither ROS nor this package), so the same file driv
 Requests (``op``):
 - ``open``: ``bddl`` (path relative to the package's ``bddl_files``), ``assets`` (a directory of LIBERO's scene
   assets: hf-libero ships none and would download them at its first use). Makes LIBERO's ``ControlEnv`` as the
-  stack's LiberoEnv does (no renderer, no camera observations, robosuite's horizon ignored).
+  stack's LiberoEnv does (no renderer, no camera observations, robosuite's horizon ignored), with the forward pass
+  an offscreen renderer's context runs at each new MjSim (lq_ros.sim.renderer_passes, repeated here: LeRobot's env
+  renders cameras, and the stack's takes that pass, so both physics step as an env with a renderer).
 - ``reset``: ``state`` (a flattened MuJoCo init state), ``seed``, ``wait_action``, ``wait_steps``. A hard reset
   (a new MjSim), the init state, the wait steps; answers the state at tick 0.
 - ``step``: ``action`` (7 numbers, robosuite's relative OSC_POSE command and the gripper); answers the next state.
@@ -66,6 +68,13 @@ class Driver:
         path = os.path.join(get_libero_path("bddl_files"), bddl)
         self.env = ControlEnv(bddl_file_name=path, has_offscreen_renderer=False, use_camera_obs=False, ignore_done=True)
         inner = self.env.env
+        initialize_sim = inner._initialize_sim
+
+        def initialize_sim_as_with_a_renderer(xml_string=None) -> None:
+            initialize_sim(xml_string)
+            inner.sim.forward()  # the pass robosuite's MjRenderContext.__init__ runs on a new MjSim
+
+        inner._initialize_sim = initialize_sim_as_with_a_renderer
         return {
             "mujoco": importlib.metadata.version("mujoco"),
             "robosuite": importlib.metadata.version("robosuite"),
