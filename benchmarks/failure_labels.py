@@ -189,7 +189,10 @@ def render(sweep: Path, sheets: Path, frames: int = 20, columns: int = 4, size_p
                 sheet.paste(Image.fromarray(np.ascontiguousarray(image)), (x, y + 16))
                 draw.text((x + 3, y + 2), f"tick {tick} of {rec.ticks}  (left: front, right: wrist)", fill="black")
             sheet.save(out)
-            with (sheets / "index.csv").open("a") as index:  # what the labeller is told: the task, nothing scored
+            index_csv = sheets / "index.csv"  # what the labeller is told: the task, nothing scored
+            with index_csv.open("a") as index:
+                if index_csv.stat().st_size == 0:
+                    index.write("episode,instruction,goal\n")
                 index.write(f'{name},"{instruction}","{goal}"\n')
             print(f"{name}: {out}")
         painter.close()
