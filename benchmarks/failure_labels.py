@@ -67,6 +67,15 @@ def _rows(sweep: Path) -> list[dict]:
     return [json.loads(p.read_text())["row"] for p in sorted((sweep / "results").glob("*.json"))]
 
 
+def _stratum(row: dict) -> tuple:
+    """The row's STRATA values; a policy run with arguments (``scripted`` with ``chunk_size=10``) is a policy of its
+    own: ``scripted{"chunk_size": 10}``."""
+    policy, args = row.get("policy"), row.get("policy_args")
+    if args:
+        policy = f"{policy}{json.dumps(args, sort_keys=True)}"
+    return tuple(policy if k == "policy" else row.get(k) for k in STRATA)
+
+
 def _round_robin(strata: dict[tuple, list[str]]) -> list[str]:
     """Every episode of ``strata``, one of each stratum (sorted) in turn, each stratum's from its end."""
     queues = {key: list(names) for key, names in strata.items()}
@@ -85,7 +94,7 @@ def select(sweep: Path, n: int, seed: int, inits: set[int] | None = None, by_sui
     failed = [r for r in _rows(sweep) if r.get("status") == "failure" and (inits is None or r.get("init") in inits)]
     strata: dict[tuple, list[str]] = defaultdict(list)
     for row in failed:
-        strata[tuple(row.get(k) for k in STRATA)].append(row["episode"])
+        strata[_stratum(row)].append(row["episode"])
     rng = random.Random(seed)
     for names in strata.values():
         names.sort()

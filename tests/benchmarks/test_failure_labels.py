@@ -92,3 +92,12 @@ def test_select_by_suite_gives_each_suite_its_share(tmp_path, monkeypatch):
         picked = fl._picked()
         assert len(picked) == 16 and not any(name.endswith(("_0", "_5")) for name in picked)
         assert {s: sum(n.startswith(s) for n in picked) for s in want} == want
+
+
+def test_select_counts_a_policy_run_with_arguments_as_a_policy_of_its_own(tmp_path, monkeypatch):
+    rows = [{"episode": f"e{i}_{c}", "suite": "libero_goal", "mode": "async", "latency_s": 0.4, "policy": "scripted",
+             "policy_args": {"chunk_size": c} if c != 8 else {}, "status": "failure", "init": 45}
+            for c in (8, 10) for i in range(4)]  # fmt: skip
+    monkeypatch.setattr(fl, "DATA", tmp_path / "set")
+    fl.select(_sweep(tmp_path / "sweep", rows), 4, 0, None, by_suite=True)
+    assert sorted(name[-2:] for name in fl._picked()) == ["10", "10", "_8", "_8"]
