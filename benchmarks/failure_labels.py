@@ -86,11 +86,16 @@ def _round_robin(strata: dict[tuple, list[str]]) -> list[str]:
     return order
 
 
-def select(sweep: Path, n: int, seed: int, inits: set[int] | None = None, by_suite: bool = False) -> None:
+def select(
+    sweep: Path, n: int, seed: int, inits: set[int] | None = None, by_suite: bool = False, degenerate: int = -1
+) -> None:
     """Round-robin over the strata (sorted), a seeded random failed episode of each in turn, until ``n``; only
     ``inits``' episodes when given (the sweep as it was when a set was picked). ``by_suite``: the suites take turns
     (as many of each as its failures allow), each round-robin over its own strata, so a suite with fewer strata
-    (one policy) gets as many episodes as one with three policies."""
+    (one policy) gets as many episodes as one with three policies. ``degenerate`` >= 0 (with ``by_suite``): at most
+    that many of a suite's episodes from a degenerate protocol (async chunks no longer than the latency: no fresh
+    action can run; the row's ``degenerate_protocol``, from the configuration), the others only once every suite's
+    other failures are taken: a starved arm is the protocol's failure, not one of the policy's modes."""
     failed = [r for r in _rows(sweep) if r.get("status") == "failure" and (inits is None or r.get("init") in inits)]
     strata: dict[tuple, list[str]] = defaultdict(list)
     for row in failed:
@@ -100,9 +105,16 @@ def select(sweep: Path, n: int, seed: int, inits: set[int] | None = None, by_sui
         names.sort()
         rng.shuffle(names)
     if by_suite:  # STRATA[0] is the suite
-        suites = {key[0] for key in strata}
-        queues = {s: _round_robin({k: v for k, v in strata.items() if k[0] == s}) for s in suites}
-        order = _round_robin({(s,): list(reversed(q)) for s, q in queues.items()})
+        starved = {r["episode"] for r in failed if r.get("degenerate_protocol")} if degenerate >= 0 else set()
+        first: dict[tuple, list[str]] = {}
+        later: dict[tuple, list[str]] = {}
+        for suite in {key[0] for key in strata}:
+            queue = _round_robin({k: v for k, v in strata.items() if k[0] == suite})
+            deferred = set([name for name in queue if name in starved][degenerate:]) if degenerate >= 0 else set()
+            # (reversed: _round_robin takes each queue from its end)
+            first[(suite,)] = [name for name in reversed(queue) if name not in deferred]
+            later[(suite,)] = [name for name in reversed(queue) if name in deferred]
+        order = _round_robin(first) + _round_robin(later)
     else:
         order = _round_robin(strata)
     picked = order[:n]
@@ -110,6 +122,8 @@ def select(sweep: Path, n: int, seed: int, inits: set[int] | None = None, by_sui
     out = {"sweep": sweep.name, "seed": seed, "strata": list(STRATA), "episodes": sorted(picked)}
     if by_suite:
         out["balanced_by"] = "suite"
+    if by_suite and degenerate >= 0:
+        out["degenerate_per_suite"] = degenerate
     (DATA / "episodes.json").write_text(json.dumps(out, indent=1) + "\n")
     print(f"{len(picked)} of {len(failed)} failed episodes in {len(strata)} strata -> {DATA / 'episodes.json'}")
 
@@ -355,6 +369,11 @@ def main() -> None:
     p.add_argument("--per-mode", type=int, default=6)
     p.add_argument("--inits", default="", help="comma-separated init states to pick from (default: all)")
     p.add_argument("--by-suite", action="store_true", help="the suites take turns, each over its own strata")
+    p.add_argument(
+        "--degenerate-per-suite", type=int, default=-1,
+        help="with --by-suite: at most K of a suite's picks from a degenerate protocol before all suites' other "
+        "failures are taken (default: no limit)",
+    )  # fmt: skip
     p = sub.add_parser("render")
     p.add_argument("sweep", type=Path)
     p.add_argument("--sheets", type=Path, required=True)
@@ -368,7 +387,7 @@ def main() -> None:
         select_by_mode(args.sweep, args.modes.split(","), args.per_mode, args.seed)
     elif args.step == "select":
         inits = {int(i) for i in args.inits.split(",")} if args.inits else None
-        select(args.sweep, args.n, args.seed, inits, args.by_suite)
+        select(args.sweep, args.n, args.seed, inits, args.by_suite, args.degenerate_per_suite)
     elif args.step == "render":
         render(args.sweep, args.sheets)
     elif args.step == "extract":

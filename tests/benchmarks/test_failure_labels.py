@@ -101,3 +101,25 @@ def test_select_counts_a_policy_run_with_arguments_as_a_policy_of_its_own(tmp_pa
     monkeypatch.setattr(fl, "DATA", tmp_path / "set")
     fl.select(_sweep(tmp_path / "sweep", rows), 4, 0, None, by_suite=True)
     assert sorted(name[-2:] for name in fl._picked()) == ["10", "10", "_8", "_8"]
+
+
+def test_select_defers_a_suites_starved_episodes_past_its_limit(tmp_path, monkeypatch):
+    """Each suite: 3 failures of a degenerate protocol, and 2 others (Goal) or 1 (LIBERO-10). With at most 1
+    degenerate per suite, 5 picks are every other failure and one starved of each suite; a 6th takes a second
+    starved one only because no other failure is left."""
+    rows = []
+    for suite, others in (("libero_goal", 2), ("libero_10", 1)):
+        for i in range(3 + others):
+            starved = i < 3
+            rows.append({"episode": f"{suite}_{'starved' if starved else 'policy'}_{i}", "suite": suite,
+                         "mode": "async", "latency_s": 0.4 if starved else 0.2, "policy": "scripted",
+                         "status": "failure", "init": 45, "degenerate_protocol": starved})  # fmt: skip
+    sweep = _sweep(tmp_path / "sweep", rows)
+    monkeypatch.setattr(fl, "DATA", tmp_path / "set")
+    fl.select(sweep, 5, 0, None, by_suite=True, degenerate=1)
+    picked = fl._picked()
+    assert sum("starved" in n for n in picked) == 2 and sum("policy" in n for n in picked) == 3
+    fl.select(sweep, 6, 0, None, by_suite=True, degenerate=1)
+    assert sum("starved" in n for n in fl._picked()) == 3
+    fl.select(sweep, 5, 0, None, by_suite=True)  # no limit: the suites' strata in turn, starved or not
+    assert sum("starved" in n for n in fl._picked()) == 3
