@@ -29,7 +29,7 @@ without the other or the classifier; adjudicated.csv, made after, may read the b
                0.75, LIBERO-Goal >= 80%; a mode under 70% precision is unvalidated.
 
     .venv/bin/python benchmarks/failure_labels.py --set failure_validation select bags/sweeps/failure_validation \
-        --n 64 --inits 45,46,47,48,49 --by-suite
+        --n 64 --inits 45,46,47,48,49 --by-suite --degenerate-per-suite 1
     .venv/bin/python benchmarks/failure_labels.py --set failure_validation render bags/sweeps/failure_validation \
         --sheets /tmp/sheets
 
