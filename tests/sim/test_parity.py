@@ -1,6 +1,6 @@
 """LiberoEnv's ticks (lq_ros.sim.fast_tick: robosuite's substeps without its per-substep Python, MuJoCo's repeated
 stages skipped) equal LIBERO's own env stepped with the same commands, bit for bit: on every suite, a grasp, a drawer,
-a knob, with cameras on, and for the joint positions of a lockstep bag.
+a knob, with cameras on, without cameras against OffScreenRenderEnv, and for the joint positions of a lockstep bag.
 
 LIBERO's own env is ``OffScreenRenderEnv`` (the env of openpi's, OpenVLA's and LeRobot's evaluations) or, where no
 frame is compared, LIBERO's env without a renderer plus the one MuJoCo pass a renderer adds
@@ -75,12 +75,15 @@ def _assert_robosuite_s_specialisations_only():
         assert len(function.signatures) == 1, (function.__name__, function.signatures)
 
 
-def _assert_libero_s_own_env_agrees(suite, task, actions, physics, observations, frames=(), cameras=()):
-    """LIBERO's own env (its camera-less env with the renderer's pass; OffScreenRenderEnv with cameras), reset as
-    LIBERO's evaluations reset it and stepped with ``actions``, gives the same MuJoCo state, observations and frames
-    at every tick."""
+def _assert_libero_s_own_env_agrees(
+    suite, task, actions, physics, observations, frames=(), cameras=(), *, offscreen=None
+):
+    """LIBERO's own env (its camera-less env with the renderer's pass; OffScreenRenderEnv with cameras, or with
+    ``offscreen`` true), reset as LIBERO's evaluations reset it and stepped with ``actions``, gives the same MuJoCo
+    state, observations and frames of ``cameras`` at every tick."""
     _, bddl, init_states = load_task(suite, task)
-    stock = offscreen_render_env(bddl, cameras) if cameras else camera_less_libero_env(bddl)
+    offscreen = bool(cameras) if offscreen is None else offscreen
+    stock = offscreen_render_env(bddl, cameras or CAMERAS) if offscreen else camera_less_libero_env(bddl)
     try:
         stock.seed(SEED)
         np.random.seed(SEED)
@@ -133,6 +136,14 @@ def test_with_cameras_the_frames_and_the_state_are_libero_s():
     actions = _random_actions(12, seed=5)
     done, physics, observations, frames, _ = _ours("libero_spatial", 0, actions=actions, ticks=12, cameras=CAMERAS)
     _assert_libero_s_own_env_agrees("libero_spatial", 0, done, physics, observations, frames, cameras=CAMERAS)
+
+
+def test_without_cameras_the_state_is_offscreen_render_env_s():
+    """LIBERO-Object task 0, where an env without the renderer's forward pass left OffScreenRenderEnv at tick 0: a
+    camera-less LiberoEnv's MuJoCo state and observations are LIBERO's OffScreenRenderEnv's (cameras rendering)."""
+    actions = _random_actions(30, seed=4)
+    done, physics, observations, _, _ = _ours("libero_object", 0, actions=actions, ticks=30)
+    _assert_libero_s_own_env_agrees("libero_object", 0, done, physics, observations, offscreen=True)
 
 
 @pytest.fixture(scope="module")
