@@ -16,6 +16,10 @@ what waiting means is the run's ``clock`` (read at every activation), one handle
   went out more than one period after the tick's scheduled start are overruns; the counts go out on
   /lq/realtime_stats when the episode ends.
 
+Anchored relative actions (lq_ros/core/relative_actions.py) need the state of the tick each row executes: lockstep asks
+the sim for it (/lq/anchor_state_request, answered on /lq/anchor_state on reaching the tick) and sends the command
+once it has come; the wall clock has no such state, and such an episode ends as an error (the core's NO_STATE).
+
 Malformed chunks are rejected with a CHUNK_REJECTED event and never published as commands
 (lq_ros.transport.ros.endpoints.ExecutorLink). Only the policy node's chunks are heard (lq_ros.transport.ros.senders).
 Lockstep holds only the chunk of the outstanding request (one at most, the first to arrive): a chunk for any
@@ -35,6 +39,7 @@ from std_msgs.msg import String
 
 from lq_ros.core.control import ControlStart
 from lq_ros.core.executor_protocol import ExecutorCore, TickDriver
+from lq_ros.core.relative_actions import anchor_state
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.suite_constants import sim_time_of_tick
 from lq_ros.transport.ros.endpoints import ExecutorLink
@@ -148,12 +153,17 @@ class LockstepTicks(_Ticks):
         self.outstanding: int | None = None  # the request id whose chunk is awaited (one inference in flight)
         self.chunk = None  # its ActionChunk, once arrived: the only chunk ever held
         self.waiting_since: float | None = None
+        self.awaiting_state: int | None = None  # the tick whose anchor state was asked of the sim
+        self.state_asked_at = 0.0  # monotonic time of the last ask (asked again each second until it comes)
+        self.state_since = 0.0  # monotonic time of the first ask for that tick
 
     def subscribe(self) -> None:
         node = self.node
         node.episode_subscription(m.ACTION_CHUNK, self.on_chunk)
         node.episode_subscription(m.OBSERVATION, self.on_observation)
         node.episode_subscription(m.OBSERVATION_REQUEST_QUEUED, self.on_request_queued)
+        node.episode_subscription(m.ANCHOR_STATE, self.on_anchor_state)
+        self.anchor_request_pub = node.episode_publisher(m.ANCHOR_STATE_REQUEST)
         node.episode_subscription(m.EPISODE_EVENTS, node.on_event)
         node.episode_timer(1.0, self.check_chunk_timeout)
 
@@ -198,6 +208,15 @@ class LockstepTicks(_Ticks):
             self.awaiting_observation = None
             self.node.driver.drive()
 
+    def on_anchor_state(self, msg) -> None:
+        """The sim's observation of the tick whose command resolves anchored relative actions."""
+        if msg.tick != self.awaiting_state or self.node.finished:
+            return  # (an answer to a repeated ask)
+        self.awaiting_state = None
+        state = anchor_state(msg.eef_pos, msg.eef_quat, msg.gripper_qpos)
+        self.node.core.observe_state(msg.tick, state)
+        self.node.driver.drive()
+
     def on_event(self, event) -> None:
         if event.kind == m.EventKind.STARTED and not self.node.finished:
             self.started = True
@@ -209,6 +228,7 @@ class LockstepTicks(_Ticks):
             not self.node.finished
             and self.started
             and self.awaiting_observation is None
+            and self.awaiting_state is None
             and self.node.driver.tick < self.tick_limit  # the episode ends there at the latest (the sim's budget rule)
         )
 
@@ -228,6 +248,14 @@ class LockstepTicks(_Ticks):
         self.waiting_since = None
         return self.apply(due.request_id, msg)
 
+    def state_needed(self, tick: int) -> bool:
+        """This tick's command resolves anchored relative actions: ask the sim for the tick's state (it answers on
+        reaching the tick, before stepping it); False until it comes (on_anchor_state drives on)."""
+        self.awaiting_state = tick
+        self.state_since = self.state_asked_at = time.monotonic()
+        self.anchor_request_pub.publish(m.anchor_state_request_msg(self.tick_ns, tick))
+        return False
+
     def command(self, step) -> bool:
         self.node.link.command(self.tick_ns, step)
         return True
@@ -236,6 +264,13 @@ class LockstepTicks(_Ticks):
         timeout_s = self.node.chunk_timeout_s
         if self.waiting_since is not None and time.monotonic() - self.waiting_since > timeout_s:
             self.node.end_with_error(f"no chunk from the policy within {timeout_s} s (wall clock)")
+        tick, now = self.awaiting_state, time.monotonic()
+        if tick is not None and not self.node.finished:
+            if now - self.state_since > timeout_s:
+                self.node.end_with_error(f"no state of tick {tick} from the sim within {timeout_s} s (wall clock)")
+            elif now - self.state_asked_at >= 1.0:  # a request sent before the sim's subscription matched is lost
+                self.state_asked_at = now
+                self.anchor_request_pub.publish(m.anchor_state_request_msg(self.tick_ns, tick))
 
 
 class WallClockTicks(_Ticks):

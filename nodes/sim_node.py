@@ -21,6 +21,9 @@ camera images only when asked (/lq/observation_request), and episode events. The
   observation carries its own tick). A tick whose step started late or ran
   past the period is an overrun; both counts go out on /lq/realtime_stats when the episode ends.
 
+Lockstep, anchored relative actions: a request on /lq/anchor_state_request for a tick is answered on /lq/anchor_state
+with that tick's observation without images (now, or on reaching the tick, before stepping it).
+
 Managed node (lq_ros.transport.ros.rclpy_helpers.EpisodeNode): configure creates the task's env (hard reset);
 activate resets it to the episode's init state and seed (soft: same MjSim, bit-identical to a rebuild) and
 starts the episode once every peer is connected; deactivate stops stepping.
@@ -134,6 +137,10 @@ class SimNode(EpisodeNode):
             for t in state_topics + tuple(m.camera_topic(c) for c in self.env.camera_names)
         }
         self.command_sub = self.episode_subscription(m.COMMAND, self.on_command)
+        self.anchor_ticks: set[int] = set()  # lockstep: ticks whose anchor state was asked for ahead of them
+        if not self.realtime:
+            self.anchor_pub = self.episode_publisher(m.ANCHOR_STATE)
+            self.episode_subscription(m.ANCHOR_STATE_REQUEST, self.on_anchor_request)
         self.request_sub = self.episode_subscription(m.OBSERVATION_REQUEST, self.on_request)
         self.episode_subscription(m.EPISODE_EVENTS, self.on_event)
         if self.realtime:
@@ -195,6 +202,26 @@ class SimNode(EpisodeNode):
         if not (self.realtime and self.started or self._expect_tick(req.tick, "observation request")):
             return
         self.observe(req)
+
+    def on_anchor_request(self, req) -> None:
+        """Lockstep: the executor needs the state of ``req.tick`` to resolve its command (anchored relative
+        actions): answered now if the sim is at that tick, else on reaching it (before stepping it)."""
+        if self.finished or not self.started:
+            return
+        if req.tick == self.state.tick:
+            self.publish_anchor_state()
+        elif self.state.tick < req.tick < self.run_cfg.tick_limit:
+            self.anchor_ticks.add(req.tick)
+        else:
+            self.get_logger().error(f"no anchor state of tick {req.tick}: the sim is at tick {self.state.tick}")
+
+    def publish_anchor_state(self) -> None:
+        """The current tick's observation without images, for the executor to anchor the tick's command with."""
+        try:
+            obs = self.env.observe(with_images=False)
+        except Exception as exc:  # noqa: BLE001 - any env failure ends the episode as an error
+            return self.fail(f"observation failed: {exc}", traceback.format_exc())
+        self.anchor_pub.publish(m.observation_msg(obs, 0))
 
     def observe(self, req) -> None:
         """Publish the observation of the current tick for ``req``."""
@@ -292,6 +319,9 @@ class SimNode(EpisodeNode):
             self.end(m.EventKind.TIMEOUT, spent)
         elif self.state.tick in self.requests:  # asked ahead for this tick's observation (real time: the sim ran late)
             self.observe(self.requests.pop(self.state.tick))
+        if not self.finished and self.state.tick in self.anchor_ticks:  # (lockstep only)
+            self.anchor_ticks.discard(self.state.tick)
+            self.publish_anchor_state()
 
     def on_event(self, event) -> None:
         # Another node (executor, policy) ended the episode: stop stepping.

@@ -535,8 +535,8 @@ class TickHandlers(Protocol):
 #: Why an anchored chunk ends an episode on a transport that cannot give the core each tick's state.
 NO_STATE = (
     "this transport cannot give the executor each tick's robot state, which anchored relative actions (a LeRobot "
-    "checkpoint's use_relative_actions) need: run it in process (--transport inprocess), or pass the policy "
-    "argument relative_anchor=chunk"
+    "checkpoint's use_relative_actions) need: run it in process or on the lockstep clock (a robot and the real-time "
+    "clock give none), or pass the policy argument relative_anchor=chunk"
 )
 
 

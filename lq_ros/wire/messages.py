@@ -47,6 +47,12 @@ OBSERVATION = Topic("/lq/observation", "lq_msgs/msg/Observation")
 #: Sim -> executor, lockstep only: a request for a later tick, echoed once the sim has queued it (it answers it on
 #: reaching that tick, before stepping it), so the executor may send that tick's command (not recorded).
 OBSERVATION_REQUEST_QUEUED = Topic("/lq/observation_request_queued", "lq_msgs/msg/ObservationRequest")
+#: Executor -> sim, lockstep only: the command of ``tick`` executes a row of anchored relative actions
+#: (lq_ros/core/relative_actions.py), which needs that tick's state: the sim answers on ANCHOR_STATE with the tick's
+#: observation without images (request id 0) once it has reached the tick, before stepping it. Neither is recorded
+#: (the commands they resolve are).
+ANCHOR_STATE_REQUEST = Topic("/lq/anchor_state_request", "lq_msgs/msg/ObservationRequest")
+ANCHOR_STATE = Topic("/lq/anchor_state", "lq_msgs/msg/Observation")
 ACTION_CHUNK = Topic("/lq/action_chunk", "lq_msgs/msg/ActionChunk")
 EPISODE_EVENTS = Topic("/lq/episode_events", "lq_msgs/msg/EpisodeEvent")
 ENERGY_INTEGRALS = Topic("/lq/energy_integrals", "lq_msgs/msg/EnergyIntegrals")
@@ -330,6 +336,12 @@ def command_msg(t_ns: int, cmd: Command) -> bytes:
 def request_msg(t_ns: int, req: Request) -> bytes:
     msg = _cls(OBSERVATION_REQUEST.msgtype)(header=_header(t_ns), request_id=req.request_id, tick=req.tick)
     return serialize(msg, OBSERVATION_REQUEST.msgtype)
+
+
+def anchor_state_request_msg(t_ns: int, tick: int) -> bytes:
+    """An ANCHOR_STATE_REQUEST for ``tick`` (request id 0: no inference is asked for)."""
+    msg = _cls(ANCHOR_STATE_REQUEST.msgtype)(header=_header(t_ns), request_id=0, tick=tick)
+    return serialize(msg, ANCHOR_STATE_REQUEST.msgtype)
 
 
 def prefix_msg(t_ns: int, req: Request) -> bytes:
