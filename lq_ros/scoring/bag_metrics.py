@@ -11,6 +11,7 @@ import numpy as np
 
 from lq_ros.core.executor_protocol import Source
 from lq_ros.core.latency import label_of
+from lq_ros.core.relative_actions import is_anchored
 from lq_ros.core.suite_constants import CONTROL_DT_S, PHYSICS_DT_S, latency_ticks
 from lq_ros.scoring import chunk_boundary as boundary
 from lq_ros.scoring import failure_modes, metrics
@@ -24,6 +25,13 @@ UNIFORM_TOL = {"control": 0.01, "physics": 0.01, "substep": 0.01, "native": 0.05
 
 def _is_number(value) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+#: Why an episode of anchored relative actions has no chunk-boundary scores.
+ANCHORED_REASON = (
+    "relative actions anchored per tick: the chunks hold relative rows and the commands the absolute actions they "
+    "became, so the chunks are not replayed against the commands"
+)
 
 
 def null(row: dict, keys: list[str], reason: str) -> None:
@@ -217,6 +225,8 @@ def score_boundaries(row: dict, data: EpisodeData, cfg: dict, t0_ns, t1_ns) -> N
         return null(row, keys, "not a bag of this stack's protocols (no run configuration)")
     if not data.command_groups or not data.chunk_records:
         return null(row, keys, "no commands or action chunks in the bag")
+    if any(c.actions is not None and is_anchored(c.actions) for c in data.chunk_records):
+        return null(row, keys, ANCHORED_REASON)
     try:
         cmds = boundary.Commands(
             **{k: np.concatenate([g[k] for g in data.command_groups]) for k in data.command_groups[0]}

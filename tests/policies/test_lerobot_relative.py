@@ -20,7 +20,8 @@ from lq_ros.core.relative_actions import anchor_state, split_chunk
 from lq_ros.core.run_config import RunConfig
 from lq_ros.core.types import TaskInfo
 from lq_ros.policies import make_policy
-from lq_ros.recording.bag_compare import bag_messages
+from lq_ros.recording.bag_compare import bag_messages, comparable
+from lq_ros.run.episode import run_episode
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.wire import messages as m
@@ -135,3 +136,26 @@ def test_anchored_once_per_chunk_as_lerobots_rtc_rollout_engine(checkpoint):
     np.testing.assert_allclose(chunks["chunk"], np.clip(rows + state[:7] * weights, -1, 1), rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="relative_anchor 'step': valid: tick, chunk"):
         make_policy("lerobot", path=checkpoint, python=str(PYTHON06), relative_anchor="step")
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.parametrize("mode", ["sync", "async"])
+def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, tmp_path, mode):
+    """Through the ROS nodes (lockstep) the executor asks the sim for each anchored tick's state: the bag equals the
+    in-process one (commands, chunks, trajectory), so its commands are lerobot-eval's as the test above shows."""
+    cfg = RunConfig(
+        suite="libero_spatial", task=0, init=0, seed=0, mode=mode, latency_s=0.1, replan_steps=STEPS,
+        policy="lerobot", policy_args={"path": checkpoint, "python": str(PYTHON06), "threads": 1}, max_steps=TICKS,
+        camera_size=64,
+    )  # fmt: skip
+    ros, row = run_episode(cfg, tmp_path / "ros", "ros")
+    local = run_inprocess(cfg, tmp_path / "local")
+    assert ros.status == local.status == "failure", (ros, local)
+    assert comparable(ros.bag_path) == comparable(local.bag_path)
+    # The chunks hold relative rows, the commands absolute ones: the chunk-boundary scores say why they are null.
+    assert row["chunk_switches"] is None and "anchored" in row["null_reasons"]["chunk_switches"]
+    commands = recorded(ros.bag_path, m.COMMAND)
+    chunks = recorded(ros.bag_path, m.ACTION_CHUNK)
+    assert sum(c.source == 0 for c in commands) >= STEPS and all(split_chunk(m.chunk_actions(c))[1] is not None
+                                                                   for c in chunks)  # fmt: skip
