@@ -3,7 +3,9 @@
 Figures (lq_ros/report/episode_plot.py) need only the bag. Videos re-simulate the episode
 (lq_ros/report/replay.py), which costs CPU (~0.1-0.25 s per tick for two 256 px cameras), so they are off
 unless asked for: up to K per (policy, protocol, Δt_sim) cell, alternating successes and failures. Both are
-cached: a file newer than its bag is kept. Paths stored in the episode table are relative to the report
+cached: a file newer than its bag and made from that bag (``episodes/.sources.json``, the replay verdict's
+``bag``) is kept; a report of another folder into the same ``--out`` never reuses a figure of a bag that only
+shares its name. Paths stored in the episode table are relative to the report
 folder, so links survive moving it.
 """
 
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import html
+import json
 import math
 import re
 from collections.abc import Callable, Sequence
@@ -18,14 +21,17 @@ from pathlib import Path
 
 import pandas as pd
 
-from lq_ros.core.bounded_file import FileRefused, read_results_json
-from lq_ros.core.safe_write import output_folder
+from lq_ros.core.bounded_file import MANIFEST_MAX_BYTES, FileRefused, read_results_json
+from lq_ros.core.safe_write import output_folder, write_text
 from lq_ros.report.escape import md_link_target, md_text
 from lq_ros.report.replay import DEFAULT_CAMERAS, DEFAULT_SIZE_PX, ReplayRefused
 
 #: Columns added to the episode table: figure path, video path, replay verdict.
 MEDIA_COLUMNS = ("plot", "video", "replay")
 FIGURE_DIR = "episodes"
+#: In FIGURE_DIR: figure file name -> the bag it was drawn from (resolved path), so the cache never takes a figure
+#: of another bag of the same name (a report of another folder into the same --out).
+FIGURE_SOURCES = ".sources.json"
 VIDEO_DIR = "videos"
 #: progress(stage, done, total): stage is "episode figures" (episodes) or "replay videos" (ticks).
 Progress = Callable[[str, int, int], None]
@@ -117,17 +123,24 @@ def add_episode_media(
     todo = [i for i, b in bags.items() if b is not None]
     runs = out["run"].to_dict() if "run" in out else None
     names = media_names(bags, results_dir, runs)
+    sources = _figure_sources(out_dir / FIGURE_DIR / FIGURE_SOURCES)
+    known = dict(sources)
     for n, i in enumerate(todo):
         bag = bags[i]
         png = out_dir / FIGURE_DIR / f"{names[i]}.png"
+        source = str(bag.resolve())
         try:
-            if not _fresh(png, bag):
+            if not (sources.get(png.name) == source and _fresh(png, bag)):
+                sources.pop(png.name, None)
                 write_episode_figure(bag, png)
+            sources[png.name] = source
             out.at[i, "plot"] = f"{FIGURE_DIR}/{png.name}"
         except Exception as exc:  # noqa: BLE001 - one unreadable bag must not sink the report
             warnings.append(f"episode figure of {bag}: {type(exc).__name__}: {exc}")
         if progress:
             progress("episode figures", n + 1, len(todo))
+    if sources != known and (out_dir / FIGURE_DIR).is_dir():  # (unchanged: left as it is, like the figures)
+        write_text(out_dir / FIGURE_DIR / FIGURE_SOURCES, json.dumps(sources, indent=0, sort_keys=True))
 
     chosen = [i for i in pick_video_episodes(out, videos, cell_keys) if bags.get(i) is not None]
     steps = out.get("completion_steps", pd.Series(dtype=float))
@@ -140,7 +153,7 @@ def add_episode_media(
         mp4 = out_dir / VIDEO_DIR / f"{names[i]}.mp4"
         verdict = mp4.with_suffix(".json")
         try:
-            result = _cached_verdict(verdict) if _fresh(mp4, bag) and _fresh(verdict, bag) else None
+            result = _cached_verdict(verdict, bag) if _fresh(mp4, bag) and _fresh(verdict, bag) else None
             if result is None:
                 base = done
 
@@ -148,7 +161,7 @@ def add_episode_media(
                     if progress:
                         progress("replay videos", base + k, total)
 
-                r = replay(bag, video=mp4, cameras=cameras, size_px=size_px, on_tick=tick)
+                r = replay(bag.resolve(), video=mp4, cameras=cameras, size_px=size_px, on_tick=tick)
                 write_sidecar(r, verdict)
                 result = r.to_dict()
             out.at[i, "video"] = f"{VIDEO_DIR}/{mp4.name}"
@@ -164,13 +177,27 @@ def add_episode_media(
     return out, warnings
 
 
-def _cached_verdict(path: Path) -> dict | None:
-    """A replay's verdict written by an earlier report, or None (replayed again) when it cannot be used."""
+def _figure_sources(path: Path) -> dict[str, str]:
+    """FIGURE_SOURCES of an earlier report ({} when there is none or it cannot be used: every figure is redrawn)."""
+    try:
+        sources = read_results_json(path, "figure index", max_bytes=MANIFEST_MAX_BYTES)
+    except FileRefused:
+        return {}
+    if not isinstance(sources, dict):
+        return {}
+    return {k: v for k, v in sources.items() if isinstance(v, str)}
+
+
+def _cached_verdict(path: Path, bag: Path) -> dict | None:
+    """A replay's verdict written by an earlier report of ``bag``, or None (replayed again) when it cannot be used
+    (another bag's, of the same name, included)."""
     try:
         result = read_results_json(path, "replay verdict")
     except FileRefused:
         return None
     if not isinstance(result, dict) or not isinstance(result.get("equal"), bool):
+        return None
+    if result.get("bag") != str(bag.resolve()):  # (add_episode_media replays the resolved path)
         return None
     d = result.get("divergence")
     numbers = isinstance(d, dict) and all(isinstance(d.get(k), int | float) for k in ("tick", "position_error_m"))

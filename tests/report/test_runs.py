@@ -76,3 +76,25 @@ def test_two_runs_episodes_of_one_folder_name_get_a_figure_each(tmp_path):
     files = [(tmp_path / "compare" / p).read_bytes() for p in plots.values()]
     assert files[0] != files[1]  # each drawn from its own bag
     assert all(p in report.files["report.html"].read_text() for p in plots.values())
+
+
+def test_a_report_into_the_same_out_never_reuses_a_figure_of_another_bag_of_that_name(tmp_path):
+    """The figure cache keeps a figure newer than its bag only if it was drawn from that bag: a report of another
+    folder into the same --out redraws an episode whose bag merely shares the folder name."""
+    import os
+
+    from tests.scoring.test_bag_scorer import write_episode_bag
+
+    other = write_episode_bag(tmp_path / "b" / "ep", n_ticks=120, end_kind=EventKind.TIMEOUT)
+    for f in other.iterdir():  # older than anything the first report draws
+        os.utime(f, (1e9, 1e9))
+    write_episode_bag(tmp_path / "a" / "ep", n_ticks=300)
+    out = tmp_path / "out"
+    build_report(tmp_path / "a", out, n_boot=50)
+    first = (out / "episodes" / "ep.png").read_bytes()
+    build_report(tmp_path / "b", out, n_boot=50)
+    second = (out / "episodes" / "ep.png").read_bytes()
+    assert second != first  # b's own episode, not a's figure kept because it is newer than b's bag
+    drawn = (out / "episodes" / "ep.png").stat().st_mtime_ns
+    build_report(tmp_path / "b", out, n_boot=50)
+    assert (out / "episodes" / "ep.png").stat().st_mtime_ns == drawn  # its own figure is still reused
