@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from lq_ros.cli.common import _refuse, console
+from lq_ros.core.wording import counted
 
 
 def report(
@@ -64,7 +65,7 @@ def report(
     print_skipped(result.skipped)
     for warning in result.media_warnings or []:
         console.print(f"[yellow]warning:[/yellow] {warning}", soft_wrap=True)
-    console.print(f"{len(result.episodes)} episodes -> {result.files['report.html']}", soft_wrap=True)
+    console.print(f"{counted(len(result.episodes), 'episode')} -> {result.files['report.html']}", soft_wrap=True)
     console.print(f"markdown: {result.files['report.md']}", soft_wrap=True)
 
 

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import pandas as pd
 
+from lq_ros.core.wording import counted
 from lq_ros.report.escape import md_text
-from lq_ros.report.tables import count_text, counted, outcomes_text
+from lq_ros.report.tables import count_text, outcomes_text
 from lq_ros.scoring import aggregate as agg
 from lq_ros.scoring.budget import budget_note
 from lq_ros.scoring.intervals import CLUSTER_COVERAGE, MIN_N_INTERVAL, T_COVERAGE

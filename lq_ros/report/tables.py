@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from lq_ros.core.wording import counted
 from lq_ros.report import episode_media as media
 from lq_ros.report.figures import FIGURE_KEYS
 from lq_ros.scoring import aggregate as agg
@@ -25,11 +26,6 @@ SUMMARY_COLUMNS = (
     ("energy J (succ.)", "energy_total_j", 0, 1.0),
     ("actions/chunk", "actions_per_chunk_mean", 1, 1.0),
 )
-
-
-def counted(n: int, noun: str, plural: str | None = None) -> str:
-    """``n`` with ``noun`` in the number it takes: '1 pair', '3 pairs' (``plural`` when it is not noun + 's')."""
-    return f"{n} {noun if n == 1 else plural or noun + 's'}"
 
 
 def summary_table(pooled: pd.DataFrame) -> pd.DataFrame:

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
+from lq_ros.core.wording import counted
 from lq_ros.scoring import failure_modes
 from lq_ros.scoring.intervals import clustered_success_ci, paired_success_ci
 
@@ -155,8 +156,8 @@ def shift_sentences(
                     verdict = "excludes" if change["ci_lo"] > 0 or change["ci_hi"] < 0 else "includes"
                     sentence += (
                         f" Paired change from 0 s: {change['change']:+.0%}, 95% CI {change['ci_lo']:+.0%} to "
-                        f"{change['ci_hi']:+.0%} over {change['n_pairs']} pairs in {change['n_tasks']} tasks "
-                        f"({verdict} no change)."
+                        f"{change['ci_hi']:+.0%} over {counted(change['n_pairs'], 'pair')} in "
+                        f"{counted(change['n_tasks'], 'task')} ({verdict} no change)."
                     )
             out.append(sentence)
     return out

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import pandas as pd
 
-from lq_ros.report import prose, tables
+from lq_ros.core.wording import counted
+from lq_ros.report import prose
 from lq_ros.scoring.paired_tests import paired_policies
 
 
@@ -74,5 +75,5 @@ def test_counts_of_one_are_singular():
     assert "over 6 shared episodes of 1 task;" in called and "and 1 task cannot give less than 1" in called
     alone = paired_policies(pd.DataFrame(_cell(0.4, 6, 10, {(5, 8), (5, 9)}, {(t, 0) for t in range(6)})), n_boot=200)
     assert prose.comparison_sentences(alone)[1].startswith("1 of the 1 paired comparison shows no difference")
-    assert [tables.counted(n, "pair") for n in (0, 1, 2)] == ["0 pairs", "1 pair", "2 pairs"]
-    assert [tables.counted(n, "succeeds", "succeed") for n in (1, 3)] == ["1 succeeds", "3 succeed"]
+    assert [counted(n, "pair") for n in (0, 1, 2)] == ["0 pairs", "1 pair", "2 pairs"]
+    assert [counted(n, "succeeds", "succeed") for n in (1, 3)] == ["1 succeeds", "3 succeed"]
