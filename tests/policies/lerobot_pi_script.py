@@ -7,6 +7,8 @@ Subcommands (each prints one JSON line):
                     own classes and saved with its ``save_pretrained``; no hub
   load-check CKPT   our server (``lerobot_server.LeRobotServer``) loads CKPT: are the policy's tensors the saved ones?
                     (LeRobot's pi ``from_pretrained`` only prints a warning when the weights do not fit)
+  make-and-check OUT
+                    make, then load-check of both checkpoints, in this one process (LeRobot imports once)
 """
 
 from __future__ import annotations
@@ -141,6 +143,9 @@ def main(argv: list[str]) -> None:
         result = make(Path(args[0]))
     elif command == "load-check":
         result = load_check(args[0])
+    elif command == "make-and-check":
+        result = make(Path(args[0]))
+        result["loaded"] = {kind: load_check(result[kind]) for kind in ("pi0", "pi05")}
     else:
         raise SystemExit(f"unknown command {command!r}")
     print(json.dumps(result))

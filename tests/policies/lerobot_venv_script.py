@@ -3,6 +3,7 @@
 Subcommands (each writes an .npz or folders and prints one JSON line):
   make OUT                          tiny ACT and diffusion checkpoints made with LeRobot's own classes (diffusion2:
                                     n_obs_steps 2, diffusion's default)
+  short-copy CKPT OUT               a copy of CKPT whose weights file lacks one tensor (the last by name)
   make-flow OUT                     a tiny random-weight SmolVLA (LeRobot >= 0.5) as lerobot/smolvla_libero is laid
                                     out (cameras camera1/camera2, one empty camera), its backbone config and a toy
                                     tokenizer made here: no hub
@@ -14,6 +15,7 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   eval-loop CKPT SUITE TASK STEPS SEED OUT [POLICY_SEED]
                                     lerobot-eval's rollout() on LeRobot's LiberoEnv: the actions it executed
   defaults                          LeRobot's LIBERO defaults our client copies (render size, camera keys)
+  env-budgets                       (0.6's venv) LeRobot's LIBERO episode lengths and render size, read without LIBERO
   queue-parity CKPT TICKS REQUESTS  a policy with n_obs_steps > 1: per-tick observations fed to select_action every
                                     tick (lerobot-eval) and, at the REQUESTS ticks (JSON list), requests carrying the
                                     ticks before them to our server: the observation queue the policy predicts from
@@ -21,6 +23,8 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
                                     ticks (the default sync protocol at 0 s), on the same observations: equal?
   rtc-parity CKPT CAMERAS           two RTC requests to our server against LeRobot's RTC run by its own code (default
                                     RTCConfig, the model's leftover as the prefix): equal?
+  batch JOBS                        the subcommands of JOBS (JSON list of argument lists) one after another in this one
+                                    process (LeRobot, torch and LIBERO import once): the list of their results
   full-state CKPT [CAMERAS]         the policy's input from a request, and from the same observation with the fields
                                     LeRobot >= 0.6's LiberoEnv adds (EE rotation matrix, finger velocities): equal?
 """
@@ -206,6 +210,20 @@ def make_flow(out: Path) -> dict:
     return {"smolvla": str(folder)}
 
 
+def short_copy(ckpt: str, out: Path) -> dict:
+    """A copy of ``ckpt`` whose model.safetensors lacks one tensor (the last by name): the name dropped."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    shutil.copytree(ckpt, out)
+    tensors = load_file(out / "model.safetensors")
+    name = sorted(tensors)[-1]
+    del tensors[name]
+    save_file(tensors, out / "model.safetensors")
+    return {"folder": str(out), "dropped": name}
+
+
 def pi_configs(out: Path) -> dict:
     from lerobot.policies.pi0.configuration_pi0 import PI0Config
     from lerobot.policies.pi05.configuration_pi05 import PI05Config
@@ -317,6 +335,29 @@ def defaults() -> dict:
         "observation_width": parameters["observation_width"].default,
         "camera_name": parameters["camera_name"].default,
         "gym_kwargs": sorted(LiberoEnvConfig().gym_kwargs),
+    }
+
+
+def env_budgets() -> dict:
+    """LeRobot's LIBERO episode lengths (``TASK_SUITE_MAX_STEPS``, read from its env module's source: in 0.6's venv
+    that module needs the LIBERO simulator, which the venv lacks), its env config's render size and what it passes
+    to the env."""
+    import ast
+
+    import lerobot.envs
+    from lerobot.envs.configs import LiberoEnv as LiberoEnvConfig
+
+    tree = ast.parse((Path(lerobot.envs.__file__).parent / "libero.py").read_text())
+    steps = next(
+        ast.literal_eval(node.value) for node in tree.body
+        if isinstance(node, ast.AnnAssign) and getattr(node.target, "id", "") == "TASK_SUITE_MAX_STEPS"
+    )  # fmt: skip
+    env = LiberoEnvConfig(task="libero_spatial")
+    kwargs = env.gym_kwargs
+    return {
+        "steps": steps,
+        "size": [env.observation_height, env.observation_width],
+        "passed": [kwargs.get("observation_height"), kwargs.get("observation_width")],
     }
 
 
@@ -498,10 +539,24 @@ def rtc_parity(ckpt: str, cameras: dict) -> dict:
     }
 
 
-def main(argv: list[str]) -> None:
+def batch_job(argv: list[str]) -> dict | list:
+    """One job of a batch: its result, or ``{"batch_error": traceback}`` (the test of that job fails, not the batch)."""
+    import traceback
+
+    try:
+        return run(argv)
+    except Exception:  # noqa: BLE001 - reported to the one test that reads this job
+        return {"batch_error": traceback.format_exc()[-3000:]}
+
+
+def run(argv: list[str]) -> dict | list:
     command, args = argv[0], argv[1:]
-    if command == "make":
+    if command == "batch":
+        result = [batch_job(list(map(str, job))) for job in json.loads(args[0])]
+    elif command == "make":
         result = make(Path(args[0]))
+    elif command == "short-copy":
+        result = short_copy(args[0], Path(args[1]))
     elif command == "make-flow":
         result = make_flow(Path(args[0]))
     elif command == "lerobot-obs":
@@ -525,10 +580,12 @@ def main(argv: list[str]) -> None:
         result = rtc_parity(args[0], json.loads(args[1]))
     elif command == "defaults":
         result = defaults()
+    elif command == "env-budgets":
+        result = env_budgets()
     else:
         raise SystemExit(f"unknown command {command!r}")
-    print(json.dumps(result))
+    return result
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    print(json.dumps(run(sys.argv[1:])))

@@ -15,6 +15,7 @@ Subcommands (each prints one JSON line):
                            (LeRobot 0.4.4's venv, which has LIBERO) LeRobot's own ``LiberoEnv``: reset (init state 0,
                            seed 0), then the ACTIONS (JSON list of 7-D relative actions): its raw observation's
                            ``robot_state.eef.mat`` at each tick and the simulator state after the reset (.npz)
+  env-mats SUITE TASK RUNS  env-mat for each of RUNS (JSON list of {actions, out, control_mode}), in this one process
   answer CKPT PAYLOAD      our server answers the request (PAYLOAD, .npz, as the client sends it): the chunk's shape and
                            whether it is finite; with the matrix left out of the request: the refusal
 """
@@ -313,6 +314,9 @@ def main(argv: list[str]) -> None:
         result = parity(args[0], Path(args[1]), Path(args[2]))
     elif command == "env-mat":
         result = env_mat(args[0], int(args[1]), json.loads(args[2]), Path(args[3]), *args[4:5])
+    elif command == "env-mats":
+        result = [env_mat(args[0], int(args[1]), run["actions"], Path(run["out"]), run["control_mode"])
+                  for run in json.loads(args[2])]  # fmt: skip
     elif command == "answer":
         result = answer(args[0], Path(args[1]))
     else:

@@ -37,6 +37,7 @@ from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
 from tests.policies.rtc_check import check_rtc_follows_the_prefix
+from tests.policies.venv_jobs import ModuleServers, batch_argument, job
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
@@ -44,6 +45,8 @@ PYTHON06 = Path(__file__).resolve().parents[2] / ".venv-lerobot06" / "bin" / "py
 TASK_INFO = TaskInfo("libero_spatial", 0, "t", "pick up the black bowl", [], 220, 50)
 SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK
 SMOLVLA_CHUNK, SMOLVLA_STEPS = 10, 5  # as lerobot_venv_script.py make-flow makes it
+SMOLVLA_CAMERAS = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
+QUEUE_REQUESTS = [0, 2, 3, 7]  # the ticks of the requests in the n_obs_steps 2 queue check
 
 pytestmark = [pytest.mark.sim]
 
@@ -68,11 +71,11 @@ def run_in_venv06(script: Path, *args: object, env: dict[str, str]) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def in_venv06(*args: object, python: Path | None = None) -> dict:
+def in_venv06(*args: object, python: Path | None = None, timeout_s: float = 600.0) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["HF_HUB_OFFLINE"] = "1"  # everything is made here: nothing may come from a hub
     done = subprocess.run(
-        [str(python or python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600,
+        [str(python or python06()), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=timeout_s,
         env=env, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
@@ -80,9 +83,32 @@ def in_venv06(*args: object, python: Path | None = None) -> dict:
 
 
 @pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory) -> dict[str, Path]:
+def venv06(tmp_path_factory) -> dict:
+    """In one process of LeRobot 0.6's venv (torch and LeRobot import once): the checkpoints, then what the tests
+    compare with, by job name (each test reads its job's result, or fails with its traceback)."""
     out = tmp_path_factory.mktemp("lerobot06_ckpt")
-    made = {**in_venv06("make", out), **in_venv06("make-flow", out)}
+    cameras = json.dumps(SMOLVLA_CAMERAS)
+    pi = out / "pi_configs"
+    jobs = {
+        "make": ["make", out],
+        "make-flow": ["make-flow", out],
+        "full-state act": ["full-state", out / "act"],
+        "full-state smolvla": ["full-state", out / "smolvla", cameras],
+        "rollout-parity act": ["rollout-parity", out / "act", "null", 16],
+        "rollout-parity smolvla": ["rollout-parity", out / "smolvla", cameras, 16],
+        "rtc-parity": ["rtc-parity", out / "smolvla", cameras],
+        "queue-parity": ["queue-parity", out / "diffusion2", 8, json.dumps(QUEUE_REQUESTS)],
+        "env-budgets": ["env-budgets"],
+        "pi-configs": ["pi-configs", pi],
+        "config-fields": ["config-fields", pi / "pi0" / "config.json", pi / "pi05" / "config.json"],
+    }
+    results = in_venv06("batch", batch_argument(jobs.values()), timeout_s=1800.0)
+    return dict(zip(jobs, results, strict=True))
+
+
+@pytest.fixture(scope="module")
+def checkpoints(venv06) -> dict[str, Path]:
+    made = {**job(venv06["make"]), **job(venv06["make-flow"])}
     return {name: Path(folder) for name, folder in made.items()}
 
 
@@ -111,39 +137,62 @@ def test_config_of_lerobot_06_is_one_line_in_the_044_venv(checkpoints):
 
 
 @pytest.mark.parametrize("kind", ["act", "smolvla"])
-def test_state_fields_the_stack_does_not_send_change_nothing(checkpoints, kind):
+def test_state_fields_the_stack_does_not_send_change_nothing(checkpoints, venv06, kind):
     """LeRobot's LiberoEnv (0.4.4's and 0.6's alike) puts the EE rotation matrix and finger velocities in the raw
     state; with both added, LeRobot 0.6's functions hand ACT and SmolVLA the same tensors, bit for bit."""
-    cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
-    result = in_venv06("full-state", checkpoints[kind], *([json.dumps(cameras)] if kind == "smolvla" else []))
+    result = job(venv06[f"full-state {kind}"])
     assert result["equal"] and "observation.state" in result["keys"], result
 
 
-def test_pi0_and_pi05_configs_of_lerobot_06(tmp_path):
+def test_pi0_and_pi05_configs_of_lerobot_06(venv06):
     """pi0's and pi0.5's configs at their published sizes, as LeRobot 0.6 writes them (no weights: about 4e9
     parameters; test_lerobot06_pi.py builds and runs them at tiny sizes), pass our client and LeRobot 0.6's field
     check; LeRobot 0.4.4's check names the fields it does not know."""
-    configs = in_venv06("pi-configs", tmp_path)
+    configs = job(venv06["pi-configs"])
     for kind, config_file in configs.items():
         config = check_config(Path(config_file), kind)
         assert config["type"] in RTC_TYPES and config["n_action_steps"] == 50
-    assert in_venv06("config-fields", *configs.values()) == dict.fromkeys(configs.values())
+    assert job(venv06["config-fields"]) == dict.fromkeys(configs.values())
     if default_python().is_file():
         for refused in in_venv06("config-fields", *configs.values(), python=default_python()).values():
             assert "LeRobot 0.4.4 does not know" in refused and "use_relative_actions" in refused, refused
 
 
-def test_act_saved_by_06_answers_its_queue_a_full_chunk_or_n_action_steps(checkpoints):
+@pytest.fixture(scope="module")
+def act_three(checkpoints):
+    """The ACT checkpoint served with n_action_steps 3, its server started (a first answer) with the hub libraries'
+    offline switches unset in our environment: the client sets them for a local checkpoint."""
+    policy = policy06(checkpoints["act"], n_action_steps=3)
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            for name in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
+                patch.delenv(name, raising=False)
+            policy.reset(TASK_INFO, 0)
+            policy.infer(standin_observation(64, 0))
+        yield policy
+    finally:
+        policy.close()
+
+
+@pytest.fixture(scope="module")
+def served(checkpoints):
+    """One server per checkpoint as made (policy06's arguments), for this module's checks and episodes."""
+    servers = ModuleServers(lambda kind: policy06(checkpoints[kind]))
+    yield servers
+    servers.close()
+
+
+def test_act_saved_by_06_answers_its_queue_a_full_chunk_or_n_action_steps(checkpoints, act_three, served):
     obs = standin_observation(256, 0)
     answers = {}
-    for name, args in [("queue", {}), ("full", {"full_chunk": 1}), ("three", {"n_action_steps": 3})]:
-        policy = policy06(checkpoints["act"], **args)
-        try:
+    full = policy06(checkpoints["act"], full_chunk=1)
+    try:
+        for name, policy in [("queue", served("act")), ("full", full), ("three", act_three)]:
             policy.reset(TASK_INFO, 0)
             answers[name] = policy.infer(obs)
             assert policy.server_metadata["lerobot_version"].startswith("0.6")
-        finally:
-            policy.close()
+    finally:
+        full.close()
     assert answers["queue"].shape == answers["full"].shape == (8, 7)  # n_action_steps = chunk_size = 8
     assert answers["three"].shape == (3, 7)
     np.testing.assert_allclose(answers["three"], answers["queue"][:3], atol=1e-6)
@@ -159,68 +208,47 @@ def test_another_libero_camera_feeds_the_input_rename_names_it_for(checkpoints):
     obs = standin_observation(64, 0)
     rng = np.random.default_rng(5)
     chunks = []
-    for front in (obs.images["agentview"], rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)):
-        policy = policy06(checkpoints["smolvla"], rename="camera1:frontview,camera2:wrist")
-        try:
-            assert policy.camera_names == ("frontview", "robot0_eye_in_hand")
+    policy = policy06(checkpoints["smolvla"], rename="camera1:frontview,camera2:wrist")
+    try:
+        assert policy.camera_names == ("frontview", "robot0_eye_in_hand")
+        for front in (obs.images["agentview"], rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)):
             policy.reset(TASK_INFO, 0)
             chunks.append(policy.infer(dataclasses.replace(obs, images={**obs.images, "frontview": front})))
             assert policy.server_metadata["image_keys"] == ["observation.images.frontview", "observation.images.image2"]
-        finally:
-            policy.close()
+    finally:
+        policy.close()
     assert chunks[0].shape == (SMOLVLA_STEPS, 7) and not np.allclose(chunks[0], chunks[1])
 
 
-def test_lerobot_06_budgets_and_render_size_are_ours():
+def test_lerobot_06_budgets_and_render_size_are_ours(venv06):
     """LeRobot 0.6's LIBERO episode lengths (TASK_SUITE_MAX_STEPS, read from its source: its env module needs the
     LIBERO simulator, which its venv lacks) and render size (its env config's, which it passes to the env)."""
-    code = (
-        "import ast, json, lerobot.envs, pathlib\n"
-        "from lerobot.envs.configs import LiberoEnv\n"
-        "tree = ast.parse((pathlib.Path(lerobot.envs.__file__).parent / 'libero.py').read_text())\n"
-        "steps = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.AnnAssign)\n"
-        "             and getattr(n.target, 'id', '') == 'TASK_SUITE_MAX_STEPS')\n"
-        "env = LiberoEnv(task='libero_spatial')\n"
-        "kwargs = env.gym_kwargs\n"
-        "print(json.dumps({'steps': steps, 'size': [env.observation_height, env.observation_width],\n"
-        "                  'passed': [kwargs.get('observation_height'), kwargs.get('observation_width')]}))"
-    )
-    environ = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    done = subprocess.run([str(python06()), "-c", code], capture_output=True, text=True, env=environ, check=True)
-    lerobot = json.loads(done.stdout.strip().splitlines()[-1])
+    lerobot = job(venv06["env-budgets"])
     assert lerobot["steps"] == LEROBOT_STEP_BUDGETS
     assert lerobot["size"] == lerobot["passed"] == [LEROBOT06_LIBERO_RENDER_SIZE] * 2
     assert render_size_of(lerobot_version(python06())) == LEROBOT06_LIBERO_RENDER_SIZE
     assert render_size_of("0.4.4") == LEROBOT_LIBERO_RENDER_SIZE
 
 
-def test_a_checkpoint_declares_lerobot_evals_protocol_and_is_served_offline(checkpoints, monkeypatch):
+def test_a_checkpoint_declares_lerobot_evals_protocol_and_is_served_offline(checkpoints, act_three):
     """The reference protocol: n_action_steps per chunk, 0.6's render size, the checkpoint's cameras; a local
-    checkpoint's server has the hub library offline (it reads the switch once, when imported)."""
-    for name in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE", "HF_DATASETS_OFFLINE"):
-        monkeypatch.delenv(name, raising=False)
+    checkpoint's server has the hub library offline (it reads the switch once, when imported; ``act_three``'s
+    server started without the switches in our environment)."""
     assert policy06(checkpoints["smolvla"]).reference().replan_steps == SMOLVLA_STEPS
-    policy = policy06(checkpoints["act"], n_action_steps=3)
-    try:
-        assert policy.reference() == ReferenceProtocol(3, 360, ("agentview", "robot0_eye_in_hand"))
-        policy.reset(TASK_INFO, 0)
-        policy.infer(standin_observation(64, 0))
-        assert policy.server_metadata["hub_offline"] is True
-    finally:
-        policy.close()
+    assert act_three.reference() == ReferenceProtocol(3, 360, ("agentview", "robot0_eye_in_hand"))
+    act_three.reset(TASK_INFO, 0)
+    act_three.infer(standin_observation(64, 0))
+    assert act_three.server_metadata["hub_offline"] is True
 
 
-def test_smolvla_cameras_are_mapped_and_its_empty_camera_is_not_sent(checkpoints):
-    policy = policy06(checkpoints["smolvla"])
-    try:
-        assert policy.cameras == {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
-        policy.reset(TASK_INFO, 0)
-        chunk = policy.infer(standin_observation(64, 0))
-        assert chunk.shape == (SMOLVLA_STEPS, 7)
-        assert policy.server_metadata["image_keys"] == ["observation.images.image", "observation.images.image2"]
-        assert np.all(np.abs(chunk) <= 1.0)  # clip (default): as robosuite clips what lerobot-eval passes it
-    finally:
-        policy.close()
+def test_smolvla_cameras_are_mapped_and_its_empty_camera_is_not_sent(checkpoints, served):
+    policy = served("smolvla")
+    assert policy.cameras == {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
+    policy.reset(TASK_INFO, 0)
+    chunk = policy.infer(standin_observation(64, 0))
+    assert chunk.shape == (SMOLVLA_STEPS, 7)
+    assert policy.server_metadata["image_keys"] == ["observation.images.image", "observation.images.image2"]
+    assert np.all(np.abs(chunk) <= 1.0)  # clip (default): as robosuite clips what lerobot-eval passes it
     # rename swaps them: another chunk from the same observation and seed.
     swapped = policy06(checkpoints["smolvla"], rename="camera1:wrist,camera2:agentview", full_chunk=1)
     try:
@@ -231,29 +259,26 @@ def test_smolvla_cameras_are_mapped_and_its_empty_camera_is_not_sent(checkpoints
         swapped.close()
 
 
-def test_rtc_guided_chunk_follows_the_prefix(checkpoints):
+def test_rtc_guided_chunk_follows_the_prefix(served):
     """The executor's prefix and delay reach LeRobot's RTC processor (tests/policies/rtc_check.py)."""
-    check_rtc_follows_the_prefix(policy06(checkpoints["smolvla"]), TASK_INFO, SMOLVLA_CHUNK, SMOLVLA_STEPS)
+    check_rtc_follows_the_prefix(served("smolvla"), TASK_INFO, SMOLVLA_CHUNK, SMOLVLA_STEPS)
 
 
 @pytest.mark.parametrize("kind", ["act", "smolvla"])
-def test_the_default_protocol_executes_what_lerobot_evals_rollout_loop_executes(checkpoints, kind):
+def test_the_default_protocol_executes_what_lerobot_evals_rollout_loop_executes(checkpoints, venv06, kind):
     """At 0 s, sync, without flags (each chunk executed whole: the checkpoint's n_action_steps), our server's actions
     equal, action for action and bit for bit, those of lerobot-eval's rollout loop on the same observations (0.6's
     venv has no LIBERO simulator, so the observations are seeded random ones, not a closed loop)."""
-    smolvla_cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
-    cameras = smolvla_cameras if kind == "smolvla" else None
-    result = in_venv06("rollout-parity", checkpoints[kind], json.dumps(cameras), 16)
+    result = job(venv06[f"rollout-parity {kind}"])
     assert result["n_action_steps"] == policy06(checkpoints[kind]).reference().replan_steps
     assert result["ticks"] == 16 and result["equal"], result
 
 
-def test_rtc_is_lerobots_rtc_as_its_code_runs_it(checkpoints):
+def test_rtc_is_lerobots_rtc_as_its_code_runs_it(venv06):
     """LeRobot's RTCConfig defaults (LINEAR, execution horizon 10, maximum guidance 10) and the model's own leftover
     actions as the prefix: our server's guided chunk equals LeRobot's, bit for bit; our former EXP schedule's does
     not."""
-    cameras = {"observation.images.camera1": "image", "observation.images.camera2": "image2"}
-    result = in_venv06("rtc-parity", checkpoints["smolvla"], json.dumps(cameras))
+    result = job(venv06["rtc-parity"])
     assert result["config"] == {**result["lerobot_defaults"], "prefix": "model"}
     assert result["lerobot_defaults"] == {
         "execution_horizon": 10, "prefix_attention_schedule": "LINEAR", "max_guidance_weight": 10.0
@@ -272,11 +297,11 @@ def test_rtc_is_refused_for_act(checkpoints):
         policy.close()
 
 
-def test_diffusion_with_two_observations_queues_what_lerobot_eval_queues(checkpoints):
+def test_diffusion_with_two_observations_queues_what_lerobot_eval_queues(venv06):
     """n_obs_steps 2: at each request (ticks 0, 2, 3, 7) the observation queue the policy predicts from equals
     lerobot-eval's after select_action every tick on the same observations, bit for bit (at tick 0: tick 0 twice).
     Without the past tick the queue differs (the check can fail)."""
-    result = in_venv06("queue-parity", checkpoints["diffusion2"], 8, json.dumps([0, 2, 3, 7]))
+    result = dict(job(venv06["queue-parity"]))
     assert result.pop("without_history_equal") is False
     assert sorted(result, key=int) == ["0", "2", "3", "7"]
     for tick, got in result.items():
@@ -303,16 +328,17 @@ def test_a_policy_of_two_observations_needs_the_tick_before(checkpoints):
 @pytest.mark.parametrize(
     ("kind", "merge"), [("act", "replace"), ("diffusion", "replace"), ("diffusion2", "replace"), ("smolvla", "rtc")]
 )
-def test_async_episode(checkpoints, kind, merge, tmp_path):
+def test_async_episode(checkpoints, served, kind, merge, tmp_path):
     # The tiny diffusion policies have no crop: their encoder takes the 256 px they were made for, not LeRobot 0.6's
-    # 360 (as under lerobot-eval 0.6 at its default size); the others run at the reference size.
+    # 360 (as under lerobot-eval 0.6 at its default size); the others run at the reference size. On the module's
+    # server of the checkpoint (policy06's arguments, as policy_args below), as a sweep reuses a policy.
     size = 256 if kind.startswith("diffusion") else 0
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge=merge, policy="lerobot",
         policy_args={"path": str(checkpoints[kind]), "python": str(python06()), "threads": 1}, max_steps=30,
         camera_size=size,
     )  # fmt: skip
-    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess")
+    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess", policy=served(kind))
     assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
     assert chunk_rows(outcome.bag_path) > 0
     assert row["latency_real_mean_s"] > 0

@@ -32,6 +32,7 @@ from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
 from tests.policies.rtc_check import check_rtc_follows_the_prefix
 from tests.policies.test_lerobot06 import python06, run_in_venv06
+from tests.policies.venv_jobs import ModuleServers
 
 HERE = Path(__file__).parent
 SCRIPT = HERE / "lerobot_pi_script.py"
@@ -51,9 +52,10 @@ def in_venv06_with_shim(*args: object) -> dict:
 
 @pytest.fixture(scope="module")
 def made(tmp_path_factory) -> dict:
-    """The checkpoints, and a wrapper Python that starts LeRobot 0.6's venv with the size shim, offline."""
+    """The checkpoints (and what our server loads of each, checked in the same process), and a wrapper Python that
+    starts LeRobot 0.6's venv with the size shim, offline."""
     out = tmp_path_factory.mktemp("lerobot06_pi")
-    result = in_venv06_with_shim("make", out)
+    result = in_venv06_with_shim("make-and-check", out)
     wrapper = out / "python-with-tiny-pi-sizes"
     wrapper.write_text(
         f'#!/bin/sh\nPYTHONPATH={shlex.quote(str(SHIM))} HF_HUB_OFFLINE=1 exec {shlex.quote(str(python06()))} "$@"\n'
@@ -64,6 +66,14 @@ def made(tmp_path_factory) -> dict:
 
 def policy_pi(made: dict, kind: str, **args):
     return make_policy("lerobot", path=made[kind], python=made["python"], threads=1, **args)
+
+
+@pytest.fixture(scope="module")
+def served(made):
+    """One server per checkpoint (as policy_pi makes it) for this module's RTC checks and episodes."""
+    servers = ModuleServers(lambda kind: policy_pi(made, kind))
+    yield servers
+    servers.close()
 
 
 def chunk_rows(bag: Path) -> int:
@@ -90,29 +100,30 @@ def test_tiny_checkpoint_is_laid_out_as_lerobot_writes_it_and_loads_as_saved(mad
     names = [step["config"].get("tokenizer_name") for step in steps if step["registry_name"] == "tokenizer_processor"]
     assert names == [str(folder.parent / "toy_paligemma_tokenizer")]
     assert made["parameters"][kind] < 1_000_000  # tiny: the shim took effect when it was built
-    loaded = in_venv06_with_shim("load-check", folder)
+    loaded = made["loaded"][kind]
     assert loaded["same"] and loaded["type"] == kind, loaded
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_rtc_guided_chunk_follows_the_prefix(made, kind):
+def test_rtc_guided_chunk_follows_the_prefix(served, kind):
     """The executor's prefix and delay reach LeRobot's RTC processor in pi0 and pi0.5 (tests/policies/rtc_check.py),
     and the server is the policy asked for."""
-    policy = policy_pi(made, kind)
+    policy = served(kind)
     check_rtc_follows_the_prefix(policy, TASK_INFO, CHUNK, STEPS)
     assert policy.server_metadata["policy_type"] == kind and policy.server_metadata["lerobot_version"] == "0.6.1"
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", KINDS)
-def test_async_episode_with_rtc(made, kind, tmp_path):
+def test_async_episode_with_rtc(made, served, kind, tmp_path):
     """Every request of the episode went through LeRobot's RTC: each answer is the whole chunk of
-    ``predict_action_chunk`` (10 rows); a request without a prefix gets select_action's 5."""
+    ``predict_action_chunk`` (10 rows); a request without a prefix gets select_action's 5. On the module's server of
+    the checkpoint, as a sweep reuses a policy (the episode resets it)."""
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge="rtc", policy="lerobot",
         policy_args={"path": made[kind], "python": made["python"], "threads": 1}, max_steps=30,
     )  # fmt: skip
-    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess")
+    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess", policy=served(kind))
     assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
     assert chunk_rows(outcome.bag_path) > 0
     horizons = chunk_horizons(outcome.bag_path)

@@ -212,47 +212,17 @@ def test_the_observed_matrix_is_robosuites_controller_matrix():
     assert not np.array_equal(seen[0], seen[-1])  # the arm turned: the test compares moving values
 
 
-@pytest.mark.slow
-def test_the_observed_matrix_is_lerobots_liberoenv_matrix(tmp_path):
-    """Against LeRobot's own ``LiberoEnv`` (LeRobot 0.4.4's venv has LIBERO; its ``_format_raw_obs`` reports
-    ``eef.mat`` from the same ``controller.ee_ori_mat`` as 0.6.1's): from the same reset (the simulator states are
-    equal) and three relative actions, the matrix it reports at each tick equals ``Observation.eef_rot_mat``."""
-    from lq_ros.sim.libero_env import LiberoEnv
-
-    python = lerobot_client.default_python()
-    if not python.is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"LeRobot's venv is missing ({python}): `make test` makes it with `make setup-lerobot`")
-        pytest.skip("LeRobot 0.4.4's venv is not installed (make setup-lerobot)")
-    actions = [[0.3, -0.2, 0.1, 0.2, -0.1, 0.3, -1.0], [0.1, 0.2, -0.2, -0.3, 0.2, 0.1, 1.0], [0, 0, 0.3, 0, 0, 0, -1]]
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # keeps lq_ros's OPENBLAS_CORETYPE: same kernels
-    done = subprocess.run(
-        [str(python), str(SCRIPT), "env-mat", SUITE, str(TASK), json.dumps(actions), str(tmp_path / "lerobot.npz")],
-        capture_output=True, text=True, timeout=600, env=env, check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    lerobot = np.load(tmp_path / "lerobot.npz")
-    ours = LiberoEnv(SUITE, TASK)
-    try:
-        ours.reset(0, seed=0)
-        assert np.array_equal(np.asarray(ours._sim.get_state().flatten()), lerobot["sim_state"]), "resets differ"
-        matrices = [ours.observe(with_images=False).eef_rot_mat]
-        for action in actions:
-            ours.step(np.array(action, dtype=np.float64))
-            matrices.append(ours.observe(with_images=False).eef_rot_mat)
-    finally:
-        ours.close()
-    assert lerobot["mats"].shape == (len(actions) + 1, 3, 3)
-    for tick, (matrix, theirs) in enumerate(zip(matrices, lerobot["mats"], strict=True)):
-        assert np.array_equal(matrix, theirs), tick
+#: The relative actions of the matrix check against LeRobot's LiberoEnv.
+RELATIVE_ACTIONS = [
+    [0.3, -0.2, 0.1, 0.2, -0.1, 0.3, -1.0], [0.1, 0.2, -0.2, -0.3, 0.2, 0.1, 1.0], [0, 0, 0.3, 0, 0, 0, -1]
+]  # fmt: skip
 
 
-@pytest.mark.slow
-def test_absolute_control_is_lerobots_liberoenv_bit_for_bit(tmp_path):
-    """LeRobot's own ``LiberoEnv`` with ``control_mode="absolute"`` (0.4.4's venv, which has LIBERO; 0.6.1's env sets
-    ``use_delta`` the same way, after the wait steps): from the same reset, the same absolute targets leave the
-    simulator in the same state at every tick, bit for bit, and its controller goal after the wait steps is the one
-    our start command holds."""
+@pytest.fixture(scope="module")
+def lerobot_env_runs(tmp_path_factory) -> dict:
+    """LeRobot's own ``LiberoEnv`` (LeRobot 0.4.4's venv, which has LIBERO), in one process: reset, then the relative
+    actions (relative control), and, from another reset, absolute targets near our env's absolute start command
+    (absolute control). Also ours in absolute control: its start command and simulator states."""
     from lq_ros.sim.libero_env import LiberoEnv
 
     python = lerobot_client.default_python()
@@ -272,15 +242,61 @@ def test_absolute_control_is_lerobots_liberoenv_bit_for_bit(tmp_path):
             states.append(np.asarray(ours._sim.get_state().flatten()))
     finally:
         ours.close()
+    out = tmp_path_factory.mktemp("lerobot_env")
+    runs = [
+        {"actions": RELATIVE_ACTIONS, "out": str(out / "relative.npz"), "control_mode": "relative"},
+        {"actions": [a.tolist() for a in actions], "out": str(out / "absolute.npz"), "control_mode": "absolute"},
+    ]
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # keeps lq_ros's OPENBLAS_CORETYPE: same kernels
-    listed = json.dumps([a.tolist() for a in actions])
     done = subprocess.run(
-        [str(python), str(SCRIPT), "env-mat", SUITE, str(TASK), listed, str(tmp_path / "lerobot.npz"), "absolute"],
-        capture_output=True, text=True, timeout=600, env=env, check=False,
+        [str(python), str(SCRIPT), "env-mats", SUITE, str(TASK), json.dumps(runs)],
+        capture_output=True, text=True, timeout=900, env=env, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
-    assert json.loads(done.stdout.strip().splitlines()[-1])["use_delta"] is False
-    lerobot = np.load(tmp_path / "lerobot.npz")
+    relative, absolute = json.loads(done.stdout.strip().splitlines()[-1])
+    return {
+        "relative": np.load(out / "relative.npz"),
+        "absolute": np.load(out / "absolute.npz"),
+        "absolute_result": absolute,
+        "start": start,
+        "actions": actions,
+        "states": states,
+    }
+
+
+@pytest.mark.slow
+def test_the_observed_matrix_is_lerobots_liberoenv_matrix(lerobot_env_runs):
+    """Against LeRobot's own ``LiberoEnv`` (LeRobot 0.4.4's venv has LIBERO; its ``_format_raw_obs`` reports
+    ``eef.mat`` from the same ``controller.ee_ori_mat`` as 0.6.1's): from the same reset (the simulator states are
+    equal) and three relative actions, the matrix it reports at each tick equals ``Observation.eef_rot_mat``."""
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    actions = RELATIVE_ACTIONS
+    lerobot = lerobot_env_runs["relative"]
+    ours = LiberoEnv(SUITE, TASK)
+    try:
+        ours.reset(0, seed=0)
+        assert np.array_equal(np.asarray(ours._sim.get_state().flatten()), lerobot["sim_state"]), "resets differ"
+        matrices = [ours.observe(with_images=False).eef_rot_mat]
+        for action in actions:
+            ours.step(np.array(action, dtype=np.float64))
+            matrices.append(ours.observe(with_images=False).eef_rot_mat)
+    finally:
+        ours.close()
+    assert lerobot["mats"].shape == (len(actions) + 1, 3, 3)
+    for tick, (matrix, theirs) in enumerate(zip(matrices, lerobot["mats"], strict=True)):
+        assert np.array_equal(matrix, theirs), tick
+
+
+@pytest.mark.slow
+def test_absolute_control_is_lerobots_liberoenv_bit_for_bit(lerobot_env_runs):
+    """LeRobot's own ``LiberoEnv`` with ``control_mode="absolute"`` (0.4.4's venv, which has LIBERO; 0.6.1's env sets
+    ``use_delta`` the same way, after the wait steps): from the same reset, the same absolute targets leave the
+    simulator in the same state at every tick, bit for bit, and its controller goal after the wait steps is the one
+    our start command holds."""
+    start, actions, states = lerobot_env_runs["start"], lerobot_env_runs["actions"], lerobot_env_runs["states"]
+    assert lerobot_env_runs["absolute_result"]["use_delta"] is False
+    lerobot = lerobot_env_runs["absolute"]
     assert np.array_equal(lerobot["goal"][:3], start[:3])  # the goal the wait steps left, held by our start command
     assert lerobot["sim_states"].shape == (len(actions) + 1, len(states[0]))
     for tick, (mine, theirs) in enumerate(zip(states, lerobot["sim_states"], strict=True)):
