@@ -1,14 +1,17 @@
 """Test helper run by LeRobot 0.6's venv Python (``.venv-lerobot06``), never imported by pytest.
 
 Subcommands (each prints one JSON line):
-  make OUT              a tiny ACT checkpoint with relative actions: LeRobot's own ``RelativeActionsProcessorStep``
-                        (gripper excluded by name, as pi0's and pi0.5's ``relative_exclude_joints`` default) and
-                        ``AbsoluteActionsProcessorStep`` in its saved pipelines, where pi0's processors put them
-                        (before the normalizer; after the unnormalizer)
-  eval-ticks CKPT NPZ   lerobot-eval's rollout loop (``lerobot_eval.rollout``: every tick the observation through
+  make OUT              a tiny ACT checkpoint (``act``), and the same with relative actions (``act_relative``):
+                        LeRobot's own ``RelativeActionsProcessorStep`` (gripper excluded by name, as pi0's and
+                        pi0.5's ``relative_exclude_joints`` default) and ``AbsoluteActionsProcessorStep`` in its saved
+                        pipelines, where pi0's processors put them (before the normalizer; after the unnormalizer)
+  eval-ticks CKPT NPZ SEED CAMERAS
+                        lerobot-eval's rollout loop (``lerobot_eval.rollout``: every tick the observation through
                         ``preprocess_observation``, the env pre-processor, the pre-processor, ``select_action``, the
                         post-processor and the env post-processor) on the observations of each tick in NPZ (request
-                        fields, stacked along a leading tick axis): the action it passes to ``env.step`` each tick
+                        fields, stacked along a leading tick axis), seeded with SEED (``set_seed``, then the policy's
+                        reset), cameras mapped by CAMERAS (JSON, as the client maps them): the action it passes to
+                        ``env.step`` each tick, and (relative actions) the state the absolute step added
 """
 
 from __future__ import annotations
@@ -65,6 +68,8 @@ def make(out: Path) -> dict:
     torch.manual_seed(0)
     policy = ACTPolicy(config)
     pre, post = make_pre_post_processors(config, dataset_stats=dataset_stats())
+    for part in (policy, pre, post):
+        part.save_pretrained(out / "act")
     relative = RelativeActionsProcessorStep(enabled=True, exclude_joints=["gripper"], action_names=ACTION_NAMES)
     at = next(i for i, step in enumerate(pre.steps) if isinstance(step, NormalizerProcessorStep))
     pre.steps.insert(at, relative)
@@ -73,10 +78,10 @@ def make(out: Path) -> dict:
     folder = out / "act_relative"
     for part in (policy, pre, post):
         part.save_pretrained(folder)
-    return {"act_relative": str(folder), "mask": relative._build_mask(7)}
+    return {"act": str(out / "act"), "act_relative": str(folder), "mask": relative._build_mask(7)}
 
 
-def eval_ticks(ckpt: str, npz: str) -> dict:
+def eval_ticks(ckpt: str, npz: str, seed: int, cameras: dict | None) -> dict:
     """lerobot-eval's per-tick loop, written out as ``rollout`` runs it (our server only builds the env's raw
     observation dict from the request fields and loads the checkpoint as lerobot-eval loads it)."""
     from lerobot.envs.utils import preprocess_observation
@@ -86,18 +91,19 @@ def eval_ticks(ckpt: str, npz: str) -> dict:
     torch.set_num_threads(1)  # as the stack's server runs in the test (threads=1): the same float reductions
     data = np.load(npz)
     ticks = len(data["observation/eef_pos"])
-    loaded = lerobot_server.LeRobotServer(ckpt, relative_anchor="chunk")  # (the pipelines as saved, untouched)
+    prompt = str(data["prompt"]) if "prompt" in data.files else "pick up the black bowl"  # (the task's language)
+    loaded = lerobot_server.LeRobotServer(ckpt, cameras=cameras, relative_anchor="chunk")  # (the saved pipelines)
     policy, env_pre, pre, post, env_post = (loaded.policy, loaded.env_preprocessor, loaded.preprocessor,
                                             loaded.postprocessor, loaded.env_postprocessor)  # fmt: skip
-    set_seed(0)
+    set_seed(seed)
     policy.reset()
     for pipeline in (env_pre, pre, post, env_post):
         pipeline.reset()
     executed, states = [], []
     for tick in range(ticks):
-        fields = {key: data[key][tick] for key in data.files}
+        fields = {key: data[key][tick] for key in data.files if key != "prompt"}
         observation = preprocess_observation(loaded.raw_observation(fields))
-        observation["task"] = ["pick up the black bowl"]
+        observation["task"] = [prompt]
         observation = env_pre(observation)
         observation = pre(observation)
         with torch.inference_mode():
@@ -105,7 +111,8 @@ def eval_ticks(ckpt: str, npz: str) -> dict:
         action = post(action)
         action = env_post({ACTION: action})[ACTION]
         executed.append(action.to("cpu").numpy()[0].tolist())
-        states.append(loaded.absolute_step.relative_step.get_cached_state()[0].tolist())
+        if loaded.absolute_step is not None:
+            states.append(loaded.absolute_step.relative_step.get_cached_state()[0].tolist())
     return {"executed": executed, "states": states}
 
 
@@ -114,7 +121,7 @@ def main(argv: list[str]) -> None:
     if command == "make":
         result = make(Path(args[0]))
     elif command == "eval-ticks":
-        result = eval_ticks(args[0], args[1])
+        result = eval_ticks(args[0], args[1], int(args[2]), json.loads(args[3]))
     else:
         raise SystemExit(f"unknown command {command!r}")
     print(json.dumps(result))

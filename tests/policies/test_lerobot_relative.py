@@ -8,6 +8,7 @@ steps, not the model, decide how a relative action is anchored, and ACT infers i
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -50,8 +51,12 @@ def in_venv06(*args: object) -> dict:
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory) -> str:
-    made = in_venv06("make", tmp_path_factory.mktemp("lerobot_relative"))
+def made(tmp_path_factory) -> dict:
+    return in_venv06("make", tmp_path_factory.mktemp("lerobot_relative"))
+
+
+@pytest.fixture(scope="module")
+def checkpoint(made) -> str:
     assert made["mask"] == [bool(w) for w in WEIGHTS]
     return made["act_relative"]
 
@@ -98,7 +103,7 @@ def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoin
 
     payload = [policy.observation_fields(obs) for obs in observations[:TICKS]]
     np.savez(tmp_path / "ticks.npz", **{key: np.stack([p[key] for p in payload]) for key in payload[0]})
-    theirs = in_venv06("eval-ticks", checkpoint, tmp_path / "ticks.npz")
+    theirs = in_venv06("eval-ticks", checkpoint, tmp_path / "ticks.npz", 0, json.dumps(policy.cameras))
     executed = np.clip(np.array(theirs["executed"], dtype=np.float32).astype(np.float64), -1.0, 1.0)
     states = np.array(theirs["states"], dtype=np.float32)
     assert np.array_equal(ours[:, [0, 1, 2, 6]], executed[:, [0, 1, 2, 6]])
@@ -159,3 +164,70 @@ def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, tmp_path, mode
     chunks = recorded(ros.bag_path, m.ACTION_CHUNK)
     assert sum(c.source == 0 for c in commands) >= STEPS and all(split_chunk(m.chunk_actions(c))[1] is not None
                                                                    for c in chunks)  # fmt: skip
+
+
+def captured_episode(cfg: RunConfig, policy, out: Path):
+    """Run ``cfg`` in process with ``policy``, capturing every tick's observation (images included): (outcome, the
+    observations as request fields, stacked along a tick axis, in an .npz)."""
+    env = LiberoEnv(cfg.suite, cfg.task, camera_names=policy.camera_names,
+                    camera_size=cfg.camera_size_for(policy.render_size))  # fmt: skip
+    observations = []
+    step, reset = env.step, env.reset
+
+    def observed(state):
+        observations.append(env.observe(with_images=True))
+        return state
+
+    env.step = lambda action: observed(step(action))
+    env.reset = lambda *args, **kwargs: observed(reset(*args, **kwargs))
+    try:
+        outcome = run_inprocess(cfg, out, env=env, policy=policy)
+    finally:
+        env.close()
+    payload = [policy.observation_fields(obs) for obs in observations]
+    stacked = {key: np.stack([p[key] for p in payload]) for key in payload[0]}
+    np.savez(out / "ticks.npz", prompt=np.array(env.task.instruction), **stacked)
+    return outcome, out / "ticks.npz"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["act", "smolvla"])
+def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations(made, kind, tmp_path):
+    """The default protocol, no flags (sync, 0 s, each chunk's n_action_steps executed: the policy's declared replan
+    steps; LeRobot 0.6's render size): the commands of an episode in the simulator equal, bit for bit, the actions
+    lerobot-eval's rollout loop passes to the env when LeRobot's code is handed the same observations every tick
+    (every tick's, captured in the episode), seeded as the server seeds the episode."""
+    from lq_ros.core.seeding import LEROBOT_SEED_TAG, episode_seed
+    from lq_ros.policies import declared_replan_steps
+
+    path = made["act"] if kind == "act" else in_venv06_flow(tmp_path)
+    args = {"path": path, "python": str(PYTHON06), "threads": 1}
+    cfg = RunConfig(suite="libero_spatial", task=0, init=1, seed=7, mode="sync", latency_s=0.0, policy="lerobot",
+                    policy_args=args, max_steps=TICKS, replan_steps_source="policy")  # fmt: skip
+    cfg = dataclasses.replace(cfg, replan_steps=declared_replan_steps("lerobot", args))
+    policy = make_policy("lerobot", **args)
+    try:
+        assert cfg.replan_steps == policy.actions_per_chunk and cfg.camera_size_for(policy.render_size) == 360
+        outcome, npz = captured_episode(cfg, policy, tmp_path)
+    finally:
+        policy.close()
+    assert outcome.status == "failure", outcome
+    commands = recorded(outcome.bag_path, m.COMMAND)
+    assert [c.tick for c in commands] == list(range(TICKS)) and all(c.source == 0 for c in commands)
+    seed = episode_seed(cfg.seed, cfg.suite, cfg.task, cfg.init, LEROBOT_SEED_TAG)
+    theirs = in_venv06("eval-ticks", path, npz, seed, json.dumps(policy.cameras))
+    executed = np.clip(np.array(theirs["executed"][:TICKS], dtype=np.float32).astype(np.float64), -1.0, 1.0)
+    assert np.array_equal(np.array([c.action for c in commands]), executed)
+
+
+def in_venv06_flow(tmp_path: Path) -> str:
+    """The tiny SmolVLA of lerobot_venv_script.py (``make-flow``: laid out as lerobot/smolvla_libero)."""
+    if not PYTHON06.is_file():
+        in_venv06()  # skips (or fails in CI), saying why
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
+    done = subprocess.run(
+        [str(PYTHON06), str(SCRIPT.with_name("lerobot_venv_script.py")), "make-flow", str(tmp_path)],
+        capture_output=True, text=True, timeout=600, env=env, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])["smolvla"]
