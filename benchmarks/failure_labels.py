@@ -152,12 +152,18 @@ def _picked() -> list[str]:
     return json.loads((DATA / "episodes.json").read_text())["episodes"]
 
 
+#: How far (m) a replayed EE position may be from the bag's for a contact sheet: far below a pixel of it.
+DRAWING_TOLERANCE_M = 1e-6
+
+
 def render(sweep: Path, sheets: Path, frames: int = 20, columns: int = 4, size_px: int = 224) -> None:
-    """Re-simulate each picked bag's commands (an env without cameras, as the bag was recorded: its EE pose must
-    equal the bag's at every rendered tick) and render ``frames`` ticks (evenly spaced, the last included) from the
-    front and wrist cameras into one contact sheet. The pictures come from a second env of the task with cameras,
-    set to the replay's positions at each picked tick: an env with cameras steps differently in the last bits
-    (robosuite's render context runs a forward pass at reset), so it only draws."""
+    """Re-simulate each picked bag's commands (an env without cameras, as the bag was recorded: its EE position must
+    be the bag's at every rendered tick, to within DRAWING_TOLERANCE_M) and render ``frames`` ticks (evenly spaced,
+    the last included) from the front and wrist cameras into one contact sheet. The pictures come from a second env
+    of the task with cameras, set to the replay's positions at each picked tick. The tolerance admits the bags
+    recorded on LIBERO-Object scenes before every env ran the forward pass of an env with a renderer
+    (lq_ros/sim/renderer_passes.py): they replay apart in the last bits, which no picture shows; a sheet that is
+    not exact says so."""
     import mujoco
     from PIL import Image, ImageDraw
 
@@ -183,8 +189,11 @@ def render(sweep: Path, sheets: Path, frames: int = 20, columns: int = 4, size_p
             for tick in range(rec.ticks + 1):
                 if tick in picks:
                     recorded = rec.poses.get(tick)
-                    if recorded is not None and not np.array_equal(env._tick_state().eef_pos, recorded[0]):
+                    gap = 0.0 if recorded is None else float(np.linalg.norm(env._tick_state().eef_pos - recorded[0]))
+                    if gap > DRAWING_TOLERANCE_M:
                         raise SystemExit(f"{name}: the replay left the recorded trajectory at tick {tick}")
+                    if gap:
+                        print(f"{name}: tick {tick} replayed {gap:.1e} m from the bag (drawn all the same)")
                     states[name].append((tick, env._data.qpos.copy(), env._data.qvel.copy()))
                 if tick < rec.ticks:
                     env.step(rec.commands[tick].action)
