@@ -28,6 +28,7 @@ from lq_ros.policies.lerobot_client import LEROBOT_LIBERO_RENDER_SIZE, SERVER_SC
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
+from tests.policies.venv_jobs import batch_argument, job
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
@@ -36,6 +37,8 @@ PARITY_STEPS = 24  # three ACT chunks of 8, six diffusion chunks of 4
 #: As made by lerobot_venv_script.py (diffusion2: n_obs_steps 2); lerobot-eval executes them all.
 N_ACTION_STEPS = {"act": 8, "diffusion": 4, "diffusion2": 4}
 SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK: the command is a row of a policy chunk
+#: ACT with LeRobot's temporal ensembling: a request every tick, the whole chunk weighed (checkpoint "ensembled").
+ENSEMBLED_CONFIG = {"temporal_ensemble_coeff": 0.01, "n_action_steps": 1}
 TASK_INFO = TaskInfo(SUITE, TASK, "t", "pick up the black bowl", [], 220, 50)
 
 pytestmark = [pytest.mark.sim]
@@ -66,9 +69,73 @@ def in_lerobot_venv(*args: object, timeout_s: float = 600.0) -> dict:
 
 
 @pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory) -> dict[str, Path]:
-    made = in_lerobot_venv("make", tmp_path_factory.mktemp("lerobot_ckpt"))
-    return {name: Path(folder) for name, folder in made.items()}
+def made(tmp_path_factory) -> dict:
+    """In one process of LeRobot's venv: the checkpoints, LeRobot's LIBERO defaults, and a copy of the ACT checkpoint
+    whose weights file lacks one tensor."""
+    out = tmp_path_factory.mktemp("lerobot_ckpt")
+    jobs = [["make", out], ["defaults"], ["short-copy", out / "act", out / "act_short"]]
+    checkpoints, defaults, short = in_lerobot_venv("batch", batch_argument(jobs))
+    return {
+        "checkpoints": {name: Path(folder) for name, folder in job(checkpoints).items()},
+        "defaults": defaults,
+        "short": short,
+    }
+
+
+@pytest.fixture(scope="module")
+def checkpoints(made) -> dict[str, Path]:
+    return made["checkpoints"]
+
+
+@pytest.fixture(scope="module")
+def references(checkpoints, tmp_path_factory) -> dict:
+    """What the parity tests compare with, LeRobot's side in one process of its venv (torch, LeRobot and LIBERO
+    import once): LeRobot's LiberoEnv reset of init state 0 and the tensors it hands the policy; our env's reset of
+    the same state, our client's request and what our server's conversion of it hands the policy; the actions
+    lerobot-eval's rollout executes per checkpoint (and for ACT with temporal ensembling, checkpoint "ensembled")."""
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    out = tmp_path_factory.mktemp("lerobot_reference")
+    policy = make_policy("lerobot", path=str(checkpoints["act"]))
+    env = LiberoEnv(SUITE, TASK, camera_names=policy.camera_names, camera_size=LEROBOT_LIBERO_RENDER_SIZE)
+    try:
+        env.reset(0, seed=0)
+        ours = {"sim_state": np.asarray(env._sim.get_state().flatten()), "instruction": env.task.instruction}
+        policy.reset(env.task, seed=0)
+        payload = policy.observation_payload(env.observe())
+    finally:
+        env.close()
+        policy.close()
+    np.savez(out / "payload.npz", **payload)
+    config = json.loads((checkpoints["act"] / "config.json").read_text())
+    ensembled = copy_checkpoint(checkpoints["act"], out / "ensembled")
+    (ensembled / "config.json").write_text(json.dumps({**config, **ENSEMBLED_CONFIG}))
+    jobs = [
+        ["lerobot-obs", checkpoints["act"], SUITE, TASK, out / "lerobot.npz"],
+        ["server-obs", checkpoints["act"], out / "payload.npz", out / "ours.npz"],
+    ]
+    # The env is reset with the run seed (0) in both; our server seeds the policy with the episode's seed (init 0,
+    # run seed 0), so lerobot-eval's set_seed gets that one.
+    seed = episode_seed(0, SUITE, TASK, 0, LEROBOT_SEED_TAG)
+    kinds = list(N_ACTION_STEPS)
+    jobs += [["eval-loop", checkpoints[k], SUITE, TASK, PARITY_STEPS, 0, out / f"eval_{k}.npz", seed] for k in kinds]
+    jobs.append(["eval-loop", ensembled, SUITE, TASK, PARITY_STEPS, 0, out / "eval_ensembled.npz"])
+    results = in_lerobot_venv("batch", batch_argument(jobs), timeout_s=1800.0)
+    return {
+        "ours": ours,
+        "obs": results[:2],
+        "lerobot_obs": out / "lerobot.npz",
+        "server_obs": out / "ours.npz",
+        "eval": dict(zip([*kinds, "ensembled"], results[2:], strict=True)),
+        "eval_actions": {k: out / f"eval_{k}.npz" for k in [*kinds, "ensembled"]},
+        "ensembled": ensembled,
+    }
+
+
+def executed_actions(references: dict, kind: str) -> np.ndarray:
+    """The actions lerobot-eval's rollout executed with checkpoint ``kind``."""
+    job(references["eval"][kind])
+    return np.load(references["eval_actions"][kind])["actions"].astype(np.float64)
 
 
 def lerobot_servers() -> set[int]:
@@ -89,8 +156,8 @@ def commands(bag: Path) -> list:
 
 
 # -- what our client copies from LeRobot --------------------------------------------------------
-def test_render_size_and_cameras_are_lerobot_evals():
-    defaults = in_lerobot_venv("defaults")
+def test_render_size_and_cameras_are_lerobot_evals(made):
+    defaults = job(made["defaults"])
     assert defaults["observation_height"] == defaults["observation_width"] == LEROBOT_LIBERO_RENDER_SIZE
     assert defaults["camera_name"] == "agentview_image,robot0_eye_in_hand_image"
     assert defaults["gym_kwargs"] == ["obs_type", "render_mode"]  # the config's size never reaches the env
@@ -98,30 +165,15 @@ def test_render_size_and_cameras_are_lerobot_evals():
 
 # -- parity with lerobot-eval -----------------------------------------------------------------
 @pytest.mark.slow
-def test_policy_input_equals_lerobot_libero_env_bit_for_bit(checkpoints, tmp_path):
+def test_policy_input_equals_lerobot_libero_env_bit_for_bit(references):
     """Same simulator state (LeRobot's reset of init state 0 and ours), same tensors to the policy."""
-    from lq_ros.sim.libero_env import LiberoEnv
-
-    reference = tmp_path / "lerobot.npz"
-    in_lerobot_venv("lerobot-obs", checkpoints["act"], SUITE, TASK, reference)
-    want = dict(np.load(reference))
-
-    policy = make_policy("lerobot", path=str(checkpoints["act"]))
-    env = LiberoEnv(SUITE, TASK, camera_names=policy.camera_names, camera_size=LEROBOT_LIBERO_RENDER_SIZE)
-    try:
-        env.reset(0, seed=0)
-        assert np.array_equal(np.asarray(env._sim.get_state().flatten()), want["sim_state"]), "resets differ"
-        policy.reset(env.task, seed=0)
-        assert str(want["task"]) == env.task.instruction
-        payload = policy.observation_payload(env.observe())
-    finally:
-        env.close()
-        policy.close()
-    request = tmp_path / "payload.npz"
-    np.savez(request, **payload)
-    ours = tmp_path / "ours.npz"
-    in_lerobot_venv("server-obs", checkpoints["act"], request, ours)
-    got = dict(np.load(ours))
+    for result in references["obs"]:
+        job(result)
+    want = dict(np.load(references["lerobot_obs"]))
+    ours = references["ours"]
+    assert np.array_equal(ours["sim_state"], want["sim_state"]), "resets differ"
+    assert str(want["task"]) == ours["instruction"]
+    got = dict(np.load(references["server_obs"]))
     assert sorted(got) == sorted(k for k in want if k not in ("sim_state", "task"))
     for key, value in got.items():
         assert value.dtype == want[key].dtype and np.array_equal(value, want[key]), key
@@ -129,15 +181,10 @@ def test_policy_input_equals_lerobot_libero_env_bit_for_bit(checkpoints, tmp_pat
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["act", "diffusion", "diffusion2"])
-def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind, tmp_path):
+def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, references, kind, tmp_path):
     """diffusion2 (n_obs_steps 2): lerobot-eval's policy sees the tick before each replan from its own per-tick
     queue, ours from the request's history (the simulator's capture of that tick)."""
-    reference = tmp_path / "eval.npz"
-    # The env is reset with the run seed (0) in both; our server seeds the policy with the episode's seed (init 0,
-    # run seed 0), so lerobot-eval's set_seed gets that one.
-    seed = episode_seed(0, SUITE, TASK, 0, LEROBOT_SEED_TAG)
-    in_lerobot_venv("eval-loop", checkpoints[kind], SUITE, TASK, PARITY_STEPS, 0, reference, seed)
-    executed = np.load(reference)["actions"].astype(np.float64)
+    executed = executed_actions(references, kind)
     assert executed.shape == (PARITY_STEPS, 7)
 
     cfg = RunConfig(
@@ -164,16 +211,29 @@ def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, kind
 # parity tests above already run both kinds in process.
 @pytest.mark.parametrize(("kind", "transport"), [("diffusion", "inprocess"), ("act", "ros")])
 def test_episode_runs_in_both_protocols(checkpoints, kind, transport, tmp_path):
-    for mode in ("sync", "async"):
-        cfg = RunConfig(
-            suite=SUITE, task=TASK, init=1, seed=3, mode=mode, latency_s=0.1, policy="lerobot",
-            policy_args={"path": str(checkpoints[kind])}, max_steps=30,
-        )  # fmt: skip
-        outcome, row = run_episode(cfg, tmp_path / mode, transport)
-        assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
-        chunks = [c for c in commands(outcome.bag_path) if c.source == SOURCE_CHUNK]
-        assert chunks, "no command came from a chunk"
-        assert row["latency_real_mean_s"] > 0
+    """Both episodes on one policy server, as a sweep runs them: in process one policy instance, through ROS one
+    node stack (its policy node keeps the policy while it and its arguments stay)."""
+    from contextlib import ExitStack
+
+    from lq_ros.transport.ros.stack import RosStack
+
+    policy_args = {"path": str(checkpoints[kind])}
+    with ExitStack() as reused:
+        if transport == "ros":
+            reuse = {"stack": reused.enter_context(RosStack())}
+        else:
+            reuse = {"policy": make_policy("lerobot", **policy_args)}
+            reused.callback(reuse["policy"].close)
+        for mode in ("sync", "async"):
+            cfg = RunConfig(
+                suite=SUITE, task=TASK, init=1, seed=3, mode=mode, latency_s=0.1, policy="lerobot",
+                policy_args=policy_args, max_steps=30,
+            )  # fmt: skip
+            outcome, row = run_episode(cfg, tmp_path / mode, transport, **reuse)
+            assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
+            chunks = [c for c in commands(outcome.bag_path) if c.source == SOURCE_CHUNK]
+            assert chunks, "no command came from a chunk"
+            assert row["latency_real_mean_s"] > 0
 
 
 # -- refusals -------------------------------------------------------------------------------------
@@ -239,19 +299,12 @@ def test_processor_classes_are_lerobots_registered_steps_only(checkpoints, tmp_p
     assert not marker.exists()
 
 
-def test_a_checkpoint_missing_a_tensor_is_refused(checkpoints, tmp_path):
+def test_a_checkpoint_missing_a_tensor_is_refused(made):
     """LeRobot loads weights non-strictly (pi0/pi0.5 print a warning on a failed load): a checkpoint without one of
     its tensors would serve partly random weights. The server compares the file's tensors with the policy's."""
-    folder = copy_checkpoint(checkpoints["act"], tmp_path / "short")
-    drop = (
-        "from safetensors.torch import load_file, save_file; import sys; f = sys.argv[1]; t = load_file(f); "
-        "name = sorted(t)[-1]; del t[name]; save_file(t, f); print(name)"
-    )
+    short = job(made["short"])  # the ACT checkpoint's copy, made with the checkpoints: one tensor dropped
+    folder, dropped = Path(short["folder"]), short["dropped"]
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    dropped = subprocess.run(
-        [str(lerobot_python()), "-c", drop, str(folder / "model.safetensors")], capture_output=True, text=True,
-        timeout=300, env=env, check=True,
-    ).stdout.strip()  # fmt: skip
     server = subprocess.run(
         [str(lerobot_python()), str(SERVER_SCRIPT), "--path", str(folder)], capture_output=True, text=True,
         timeout=300, env=env,
@@ -364,28 +417,33 @@ def test_server_binds_loopback_only_and_dies_with_its_parent(checkpoints, tmp_pa
     pytest.fail("the LeRobot server outlived the process that started it")
 
 
+@pytest.fixture(scope="module")
+def act_policy(checkpoints):
+    """One server of the ACT checkpoint (1 thread) for the tests that ask it; each resets it before asking."""
+    policy = make_policy("lerobot", path=str(checkpoints["act"]), threads=1)
+    yield policy
+    policy.close()
+
+
 @pytest.mark.slow
-def test_the_server_answers_only_its_own_client(checkpoints):
+def test_the_server_answers_only_its_own_client(act_policy):
     """The real server: our client presents the run's token; another local peer, without it, is refused."""
     import msgpack
     from websockets.sync.client import connect
 
-    policy = make_policy("lerobot", path=str(checkpoints["act"]), threads=1)
-    try:
-        policy.reset(TASK_INFO, 0)
-        assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)).shape == (N_ACTION_STEPS["act"], 7)
-        token = policy._token
-        assert len(token) >= 32
-        recorded = json.dumps({"params": policy.params(), "metadata": policy.server_metadata}, default=str)
-        assert token not in recorded
-        with connect(policy.uri, compression=None, open_timeout=10) as peer:
-            peer.recv(timeout=10)  # metadata frame
-            peer.send(msgpack.packb({"reset": True, "seed": 1}))
-            refusal = peer.recv(timeout=10)
-        assert isinstance(refusal, str) and "does not carry this server's token" in refusal
-        assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 1)).shape == (N_ACTION_STEPS["act"], 7)
-    finally:
-        policy.close()
+    policy = act_policy
+    policy.reset(TASK_INFO, 0)
+    assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)).shape == (N_ACTION_STEPS["act"], 7)
+    token = policy._token
+    assert len(token) >= 32
+    recorded = json.dumps({"params": policy.params(), "metadata": policy.server_metadata}, default=str)
+    assert token not in recorded
+    with connect(policy.uri, compression=None, open_timeout=10) as peer:
+        peer.recv(timeout=10)  # metadata frame
+        peer.send(msgpack.packb({"reset": True, "seed": 1}))
+        refusal = peer.recv(timeout=10)
+    assert isinstance(refusal, str) and "does not carry this server's token" in refusal
+    assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 1)).shape == (N_ACTION_STEPS["act"], 7)
 
 
 def test_policy_node_accepts_lerobot_only_as_launched():
@@ -400,34 +458,30 @@ def test_policy_node_accepts_lerobot_only_as_launched():
     assert "lerobot" not in str(refused.value).rsplit("(", 1)[1]  # not offered as a runtime choice
 
 
-def test_n_action_steps_override(checkpoints):
+def test_n_action_steps_override(checkpoints, act_policy):
     """n_action_steps chooses the answer's length (the queue's); full_chunk and ACT's temporal ensembling (a whole
     chunk) are checked in test_lerobot06.py and below."""
     obs = standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)
-    answers = {}
-    for name, args in [("queue", {}), ("three", {"n_action_steps": 3})]:
-        policy = make_policy("lerobot", path=str(checkpoints["act"]), threads=1, **args)
-        try:
-            policy.reset(TASK_INFO, 0)
-            answers[name] = policy.infer(obs)
-        finally:
-            policy.close()
+    act_policy.reset(TASK_INFO, 0)
+    answers = {"queue": act_policy.infer(obs)}
+    three = make_policy("lerobot", path=str(checkpoints["act"]), threads=1, n_action_steps=3)
+    try:
+        three.reset(TASK_INFO, 0)
+        answers["three"] = three.infer(obs)
+    finally:
+        three.close()
     assert answers["queue"].shape == (8, 7) and answers["three"].shape == (3, 7)
     np.testing.assert_allclose(answers["three"], answers["queue"][:3], atol=1e-6)
 
 
 @pytest.mark.slow
-def test_act_temporal_ensembling_in_async_is_lerobot_evals(checkpoints, tmp_path):
+def test_act_temporal_ensembling_in_async_is_lerobot_evals(references, tmp_path):
     """ACT with temporal ensembling answers its whole chunk; async at 0 s with --merge temporal_ensemble (a request
     every tick, chunks weighed exp(-m i)) commands what lerobot-eval's rollout executes with ACT's own ensembler.
     Equal to float rounding (LeRobot averages float32 normalized actions, the executor float64 unnormalized ones),
     which the simulator then carries: the tolerance grows with the tick."""
-    config = json.loads((checkpoints["act"] / "config.json").read_text())
-    ensembled = copy_checkpoint(checkpoints["act"], tmp_path / "ensembled")
-    (ensembled / "config.json").write_text(json.dumps({**config, "temporal_ensemble_coeff": 0.01, "n_action_steps": 1}))
-    reference = tmp_path / "eval.npz"
-    in_lerobot_venv("eval-loop", ensembled, SUITE, TASK, PARITY_STEPS, 0, reference)
-    executed = np.load(reference)["actions"].astype(np.float64)
+    ensembled = references["ensembled"]
+    executed = executed_actions(references, "ensembled")
     cfg = RunConfig(
         suite=SUITE, task=TASK, init=0, seed=0, mode="async", latency_s=0.0, merge="temporal_ensemble",
         policy="lerobot", policy_args={"path": str(ensembled), "threads": 1}, max_steps=PARITY_STEPS,
