@@ -45,8 +45,8 @@ def test_a_collection_that_keeps_no_episode_is_one_line_and_writes_nothing(tmp_p
     out = tmp_path / "d"
     result = lq("collect", "--out", str(out), "--tasks", "0", "--inits", "10", "--max-steps", "2", "--workers", "1")
     assert result.returncode == 1, result.stderr
-    lines = result.stderr.strip().splitlines()  # (each episode's progress line, then the error)
-    assert lines[-1:] == [f"error: no episodes to write (no successful demonstration was collected): nothing written to "
-                     f"{out}; more --repeats, other --tasks or less --noise"], result.stderr  # fmt: skip
+    last = result.stderr.strip().splitlines()[-1]  # (each episode's progress line, then the error)
+    assert last == (f"error: no episodes to write (no successful demonstration was collected): nothing written to "
+                    f"{out}; more --repeats, other --tasks or less --noise"), result.stderr  # fmt: skip
     assert "Traceback" not in result.stderr and "unexpected" not in result.stderr
     assert not (out / "meta").exists() and not (out / "data").exists()
