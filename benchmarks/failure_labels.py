@@ -347,6 +347,14 @@ def passes() -> dict:
         return f"{agreed} of {n} ({agreed / n:.0%}, 95% CI {low:.0%}-{high:.0%})" if n else "none"
 
     print(f"classifier vs adjudicated: {share(out['agreed'], out['n'])}, Cohen's kappa {out['kappa']:.2f}")
+    for name, labels in zip(files[:2], (first, second), strict=True):
+        blind = label_agreement(labels, predicted)
+        print(f"  classifier vs {name} (blind, from sheets): {share(blind['agreed'], blind['n'])}, "
+              f"Cohen's kappa {blind['kappa']:.2f}")  # fmt: skip
+    both = [n for n in truth if first[n] == second[n]]
+    by_classifier, by_adjudication = (sum(given[n] == first[n] for n in both) for given in (predicted, truth))
+    print(f"  where the blind passes agree ({len(both)}): the classifier agrees with them on {by_classifier}, "
+          f"the adjudication on {by_adjudication}")  # fmt: skip
     met = {"agreement": out["agreement"] >= TARGETS["agreement"], "kappa": out["kappa"] >= TARGETS["kappa"]}
     for suite in sorted({str(row.get("suite")) for row in rows.values()}):
         names = [n for n, row in rows.items() if str(row.get("suite")) == suite]

@@ -97,8 +97,7 @@ def fig_failure_modes(fractions: pd.DataFrame) -> plt.Figure | None:
                title_fontsize=8)  # fmt: skip
     note = (
         "Bar height: the cell's failure rate; its parts: the failure modes (docs/guide/failure_modes.md). "
-        "* not validated against an observer: the classifier's reading of the task state (the others are validated "
-        "on LIBERO-Spatial and LIBERO-Object only). Hatched, above a gap: "
+        "* not validated against an observer: the classifier's reading of the task state. Hatched, above a gap: "
         "no fresh action ran (the protocol starved the arm), not a policy failure."
     )
     if small:

@@ -211,6 +211,6 @@ def test_the_failure_section_opens_with_what_the_modes_are_validated_against():
     from lq_ros.scoring.failure_aggregate import validation_note
 
     note = validation_note()
-    assert FAILURE_NOTE.startswith(note) and "one labeller" in note and "kappa 0.45" in note
+    assert FAILURE_NOTE.startswith(note) and "two labellers blind" in note and "kappa 0.89" in note
     named = {mode for mode in failure_modes.MODES if mode.replace("_", " ") in note}
     assert named == set(failure_modes.VALIDATED_MODES)  # no unvalidated mode quoted
