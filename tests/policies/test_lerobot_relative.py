@@ -61,6 +61,20 @@ def checkpoint(made) -> str:
     return made["act_relative"]
 
 
+def observing(env: LiberoEnv) -> list:
+    """The list every observation of ``env`` (images included) goes into, at its reset and after each step."""
+    observations = []
+    step, reset = env.step, env.reset
+
+    def observed(state):
+        observations.append(env.observe(with_images=True))
+        return state
+
+    env.step = lambda action: observed(step(action))
+    env.reset = lambda *args, **kwargs: observed(reset(*args, **kwargs))
+    return observations
+
+
 def recorded(bag: Path, topic: m.Topic) -> list:
     return [m.deserialize(raw, topic.msgtype) for _, raw in bag_messages(bag).get(topic.name, [])]
 
@@ -74,15 +88,7 @@ def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoin
     axis-angle (LeRobot computes it with torch's float32 acos)."""
     policy = make_policy("lerobot", path=checkpoint, python=str(PYTHON06), threads=1)
     env = LiberoEnv("libero_spatial", 0, camera_names=policy.camera_names, camera_size=64)
-    observations = []
-    step, reset = env.step, env.reset
-
-    def observed(state):
-        observations.append(env.observe(with_images=True))
-        return state
-
-    env.step = lambda action: observed(step(action))
-    env.reset = lambda *args, **kwargs: observed(reset(*args, **kwargs))
+    observations = observing(env)
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=0, seed=0, mode="sync", latency_s=0.0, replan_steps=STEPS,
         policy="lerobot", max_steps=TICKS, camera_size=64,
@@ -171,15 +177,7 @@ def captured_episode(cfg: RunConfig, policy, out: Path):
     observations as request fields, stacked along a tick axis, in an .npz)."""
     env = LiberoEnv(cfg.suite, cfg.task, camera_names=policy.camera_names,
                     camera_size=cfg.camera_size_for(policy.render_size))  # fmt: skip
-    observations = []
-    step, reset = env.step, env.reset
-
-    def observed(state):
-        observations.append(env.observe(with_images=True))
-        return state
-
-    env.step = lambda action: observed(step(action))
-    env.reset = lambda *args, **kwargs: observed(reset(*args, **kwargs))
+    observations = observing(env)
     try:
         outcome = run_inprocess(cfg, out, env=env, policy=policy)
     finally:
