@@ -89,9 +89,11 @@ def test_ctrl_c_is_one_line_saying_how_to_resume(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "lq_ros.cli", *args], cwd=tmp_path, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)  # fmt: skip
     deadline = time.monotonic() + 120
-    while not list((tmp_path / "out" / "logs").glob("*.log")) and time.monotonic() < deadline:
-        time.sleep(0.5)  # an episode is running
-    time.sleep(2.0)
+    # Once the first of the 10 episodes has its result, the others are still to run (an episode's log file is no
+    # such sign: seen only as the last episodes ran, the interrupt then came after the evaluation had ended).
+    while not list((tmp_path / "out" / "results").glob("*.json")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert proc.poll() is None, "the evaluation ended before it could be interrupted"
     os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole process group
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130, stderr[-3000:]
