@@ -9,12 +9,11 @@ state cycles over 0..9 so consecutive episodes differ. Then the reset of one env
 the MjSim) against soft (LiberoEnv's default after the first reset), both including LIBERO's 10 wait
 steps, alternated in the same process.
 
-The floor (CPU time per tick, loops interleaved, median of 5 rounds): the same scene's stock robosuite ``env.step``
-(LIBERO's ControlEnv with MjSim's own forward and step: no wrapper, no energy integration, no messages, no bag) and
-the MuJoCo calls it makes (per substep two ``mj_forward`` and an ``mj_step``: the rest of env.step is robosuite's
-Python); the same calls with their repeated position and velocity stages skipped (lq_ros.sim.stage_reuse,
-bit-identical); ``LiberoEnv.step`` (the fast tick of lq_ros.sim.fast_tick over those calls; target <= 2x raw
-``mj_step`` x 25) and the same without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the physics
+The floor (CPU time per tick, loops interleaved, median of 5 rounds; benchmarks/tick_floor.py): the same scene's
+stock robosuite ``env.step`` and its MuJoCo calls; the same calls with repeated stages skipped (StageReuse);
+robosuite's numba controller maths alone; the bit-identical floor (StageReuse's calls and the controller maths in one
+loop replaying a real tick, bit for bit); ``LiberoEnv.step`` as a ratio of that floor (target <= 1.2), with and
+without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the physics
 alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
 one worker; start-up, resets, bags, scoring included), without and with the fast tick, against the same ticks
 through LIBERO's stock ``env.step`` (each bag's commands replayed, its joint positions checked bit for bit; the
@@ -36,17 +35,17 @@ wait for it.
 from __future__ import annotations
 
 import argparse
-import copy
 import os
 import shutil
 import statistics
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+from tick_floor import Floor, floor_lines, floor_per_tick  # noqa: E402
 
 from lq_ros.core.run_config import RunConfig  # noqa: E402
 from lq_ros.run.episode import run_episode  # noqa: E402
@@ -85,16 +84,7 @@ def measure(args: argparse.Namespace, out: Path) -> None:
         # The in-process tick over the episodes after the first (which builds the env): wall per tick.
         floor = floor_per_tick(args.floor_ticks)
         step_s = floor.robosuite_step_s
-        print(f"floor per tick (CPU time, median of 5 interleaved rounds): robosuite's env.step {1000 * step_s:.2f} "
-              f"ms, of which its MuJoCo calls ((2 mj_forward + mj_step) x 25) {1000 * floor.robosuite_mujoco_s:.2f} "
-              f"ms and its Python around them {100 * (1 - floor.robosuite_mujoco_s / step_s):.0f} %")  # fmt: skip
-        print(f"  the same calls with repeated stages skipped (StageReuse) {1000 * floor.reused_mujoco_s:.2f} ms "
-              f"({floor.reused_mujoco_s / floor.robosuite_mujoco_s:.2f}x); raw mj_step x 25 "
-              f"{1000 * floor.mj_step_s:.2f} ms")  # fmt: skip
-        print(f"  LiberoEnv.step {1000 * floor.env_step_s:.2f} ms = {floor.env_step_s / floor.mj_step_s:.2f}x raw "
-              f"mj_step x 25 (target <= 2), {floor.env_step_s / step_s:.2f}x robosuite's env.step; without the fast "
-              f"tick (LQ_FAST_TICK=off) {1000 * floor.env_step_robosuite_s:.2f} ms "
-              f"({floor.env_step_robosuite_s / floor.mj_step_s:.2f}x mj_step x 25)")  # fmt: skip
+        print("\n".join(floor_lines(floor)))
         if len(times["inprocess"]) > 1:
             tick_s = statistics.median(
                 t / n for t, n in zip(times["inprocess"][1:], ticks["inprocess"][1:], strict=True)
@@ -176,107 +166,6 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU seconds a live process has used (/proc/PID/stat, fields 14 and 15)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-@dataclass(frozen=True)
-class Floor:
-    """CPU seconds per tick on one scene (no cameras), all from the same start state with the same action."""
-
-    robosuite_step_s: float  #: robosuite's own env.step (LIBERO's ControlEnv, MjSim's own forward and step)
-    env_step_s: float  #: LiberoEnv.step: the fast tick (lq_ros.sim.fast_tick), StageReuse, energy, tick state
-    env_step_robosuite_s: float  #: LiberoEnv.step with LQ_FAST_TICK=off: robosuite's env.step through StageReuse
-    robosuite_mujoco_s: float  #: the MuJoCo calls of robosuite's step: (mj_forward x 2 + mj_step) x 25
-    reused_mujoco_s: float  #: the same three passes through StageReuse (repeated stages skipped) x 25
-    mj_step_s: float  #: raw mj_step x 25: the physics alone
-
-
-def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, repetitions: int = 5) -> Floor:
-    """The simulation floor of a tick (:class:`Floor`): each loop runs ``n_ticks`` ticks in ``repetitions`` rounds,
-    the loops interleaved within each round (a change of machine load hits them alike), each round from the same
-    start state. Per loop, the median over rounds of the process's CPU seconds per tick: on a machine shared with
-    other work, CPU time varies less than wall time."""
-    import mujoco
-    import numpy as np
-
-    from lq_ros.core.suite_constants import SUBSTEPS_PER_TICK
-    from lq_ros.sim.libero_env import LiberoEnv
-    from lq_ros.sim.stage_reuse import StageReuse
-
-    env = LiberoEnv(suite, task)
-    env.reset(0, 7)
-    control_env = env._env  # LIBERO's ControlEnv: what a plain LIBERO loop calls
-    sim = control_env.env.sim
-    model, start_data = sim.model._model, copy.copy(sim.data._data)
-    action = np.zeros(7)
-    action[-1] = -1.0
-    ticks = max(1, n_ticks // repetitions)
-    env.step(action)
-    ctrl = sim.data._data.ctrl.copy()  # the raw loops below hold these controls
-
-    def cpu_per_tick(step: Callable[[], object]) -> float:
-        start = time.process_time()
-        for _ in range(ticks):
-            step()
-        return (time.process_time() - start) / ticks
-
-    def start() -> mujoco.MjData:
-        """A copy of the start state holding those controls."""
-        data = copy.copy(start_data)
-        data.ctrl[:] = ctrl
-        return data
-
-    def stock() -> float:
-        env.reset(0, 7)  # soft: the same start state again (tests/sim/test_libero_env.py)
-        wrapped = sim.forward, sim.step
-        del sim.forward, sim.step  # robosuite's own MjSim methods for the stock loop
-        try:
-            return cpu_per_tick(lambda: control_env.step(action))
-        finally:
-            sim.forward, sim.step = wrapped
-
-    def libero_env(fast: bool) -> float:
-        env.fast_tick = fast
-        env.reset(0, 7)
-        try:
-            return cpu_per_tick(lambda: env.step(action))
-        finally:
-            env.fast_tick = True
-
-    def raw(calls_per_substep: Callable[[mujoco.MjData], None]) -> float:
-        data = start()
-        return cpu_per_tick(lambda: [calls_per_substep(data) for _ in range(SUBSTEPS_PER_TICK)])
-
-    def robosuite_calls(data: mujoco.MjData) -> None:
-        mujoco.mj_forward(model, data)
-        mujoco.mj_forward(model, data)
-        mujoco.mj_step(model, data)
-
-    def reused() -> float:
-        stages = StageReuse(model, start())
-
-        def tick() -> None:
-            with stages.tick():
-                for _ in range(SUBSTEPS_PER_TICK):
-                    stages.forward()
-                    stages.forward()
-                    stages.step()
-
-        return cpu_per_tick(tick)
-
-    loops: dict[str, Callable[[], float]] = {
-        "robosuite_step_s": stock,
-        "env_step_s": lambda: libero_env(True),
-        "env_step_robosuite_s": lambda: libero_env(False),
-        "robosuite_mujoco_s": lambda: raw(robosuite_calls),
-        "reused_mujoco_s": reused,
-        "mj_step_s": lambda: raw(lambda data: mujoco.mj_step(model, data)),
-    }
-    rounds: dict[str, list[float]] = {name: [] for name in loops}
-    for _ in range(repetitions):
-        for name, loop in loops.items():
-            rounds[name].append(loop())
-    env.close()
-    return Floor(**{name: statistics.median(values) for name, values in rounds.items()})
 
 
 def sweep_against_stock(floor: Floor, inits: int = 8) -> None:
