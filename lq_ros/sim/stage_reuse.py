@@ -36,7 +36,7 @@ import mujoco
 import numpy as np
 
 #: MuJoCo's warnings raised by ``mj_checkPos`` / ``mj_checkVel`` when they reset a diverged state.
-_RESET_WARNINGS = (int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQVEL))
+_RESET_WARNINGS = np.array([mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL], dtype=np.intp)
 
 
 class StageReuse:
@@ -52,6 +52,10 @@ class StageReuse:
         self._stages_current = False
         self._qpos_normalized = np.empty(model.nq)
         self._mocap_quat_normalized = np.empty((model.nmocap, 4))
+        #: The bytes of the last positions (qpos, then the mocap quaternions) found settled: the same bytes are
+        #: settled again (a step's check after its forward pass's), without normalizing them once more.
+        self._settled = b""
+        self._warnings = data.warning.number  # a live view: MuJoCo's count of each warning
         self.full_passes = 0  # forward passes that ran every stage (mj_step's included): for tests
         self.reused_passes = 0
 
@@ -67,17 +71,24 @@ class StageReuse:
     def _positions_settled(self) -> bool:
         """A forward pass would leave positions as they are: normalizing their quaternions changes no bit."""
         data = self._data
+        current = data.qpos.tobytes()  # bits, not values: -0.0 and 0.0 differ, so may a NaN
+        if self._model.nmocap:
+            current += data.mocap_quat.tobytes()
+        if current == self._settled:
+            return True
         qpos = self._qpos_normalized
         qpos[:] = data.qpos
         mujoco.mj_normalizeQuat(self._model, qpos)
-        if qpos.tobytes() != data.qpos.tobytes():  # bits, not values: -0.0 and 0.0 differ, so may a NaN
+        if qpos.tobytes() != current[: qpos.nbytes]:
             return False
         if self._model.nmocap:
             quats = self._mocap_quat_normalized
             quats[:] = data.mocap_quat
             for quat in quats:
                 mujoco.mju_normalize4(quat)
-            return quats.tobytes() == data.mocap_quat.tobytes()
+            if quats.tobytes() != current[qpos.nbytes :]:
+                return False
+        self._settled = current
         return True
 
     def forward(self) -> None:
@@ -94,12 +105,11 @@ class StageReuse:
         current, self._stages_current = self._stages_current, False
         if current and self._positions_settled():
             # mj_step's checks first: if one resets a diverged state, the stages no longer match it.
-            counts = data.warning.number
-            warnings = [int(counts[w]) for w in _RESET_WARNINGS]
+            counts = self._warnings
+            warnings = counts[_RESET_WARNINGS].tolist()
             mujoco.mj_checkPos(model, data)
             mujoco.mj_checkVel(model, data)
-            counts = data.warning.number
-            if [int(counts[w]) for w in _RESET_WARNINGS] == warnings:
+            if counts[_RESET_WARNINGS].tolist() == warnings:
                 mujoco.mj_step2(model, data)
                 self.reused_passes += 1
                 return
