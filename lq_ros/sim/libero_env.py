@@ -301,7 +301,8 @@ class LiberoEnv:
         #: (the same trajectory, bit for bit; for comparisons). Default: ``LQ_FAST_TICK`` (``on`` unless ``off``).
         self.fast_tick = fast_tick.enabled()
         self._substeps: list[tuple[np.ndarray, ...]] = []
-        self._energy = np.zeros(3)  # substeps, positive work (J), torque^2 integral (N^2 m^2 s)
+        # Substeps, positive work (J), torque^2 integral (N^2 m^2 s): Python floats, whose additions are float64's.
+        self._energy = [0.0, 0.0, 0.0]
         #: The simulator's data when robosuite last sampled its observations (cameras render from it).
         self._observed_data = None
         self._reset_before = False
@@ -358,7 +359,7 @@ class LiberoEnv:
         for _ in range(NUM_WAIT_STEPS):
             self._obs, _ = self._robosuite_step(np.asarray(DUMMY_ACTION))
         self._substeps.clear()  # the wait steps are not part of the episode
-        self._energy[:] = 0.0
+        self._energy[:] = (0.0, 0.0, 0.0)
         self.control = self._switch_control(ControlMode(control_mode))
         self._tick = 0
         self._success = False
@@ -418,7 +419,7 @@ class LiberoEnv:
     def step(self, action: np.ndarray) -> TickState:
         """Apply ``action`` for one control tick; returns the state at the next tick."""
         self._substeps.clear()
-        self._energy[:] = 0.0
+        self._energy[:] = (0.0, 0.0, 0.0)
         self._obs, done = self._robosuite_step(np.asarray(action, dtype=np.float64))
         self._tick += 1
         self._success = bool(done)
@@ -590,15 +591,24 @@ class LiberoEnv:
         from lq_ros.sim.stage_reuse import StageReuse  # imports MuJoCo: loaded in the background
 
         stages = StageReuse(self._model, self._data)
-        energy = self._energy
+        step, energy = stages.step, self._energy
+        # This MjSim's data and arm (a hard reset makes a new MjSim, wrapped anew).
+        qvel, actuator_force, qvel_idx, torque_idx = (
+            self._data.qvel,
+            self._data.actuator_force,
+            self._qvel_idx,
+            self._torque_idx,
+        )
 
         def step_and_record() -> None:
-            stages.step()
-            vel = self._data.qvel[self._qvel_idx]
-            tau = self._data.actuator_force[self._torque_idx]
+            step()
+            vel = qvel[qvel_idx]
+            tau = actuator_force[torque_idx]
             energy[0] += 1.0
-            energy[1] += max(0.0, float(tau @ vel))  # eq. 7: clip the instantaneous power
-            energy[2] += float(tau @ tau)
+            # tau.dot(vel): the BLAS dot product tau @ vel computes for two vectors (NumPy's DOUBLE_dot), without the
+            # matmul ufunc's overhead.
+            energy[1] += max(0.0, float(tau.dot(vel)))  # eq. 7: clip the instantaneous power
+            energy[2] += float(tau.dot(tau))
             if self.record_physics:
                 pos, quat = self._eef_pose()
                 self._substeps.append((pos, quat, vel.copy(), tau.copy()))
