@@ -7,18 +7,20 @@ scene, each keeping its own clock). Around MuJoCo's own cost that Python is abou
 
 :class:`FastTick` runs the same tick with the same arithmetic in the same order:
 
-- at the first substep (the policy step) robosuite's own ``set_goal`` gives the controller its new goal; robosuite's
+- at the first substep (the policy step) robosuite's own ``set_goal`` gives the controller its new goal (of the
+  controller update it starts with, only the end effector's pose it reads, copied as the update copies it); robosuite's
   buffers of recent values (``recent_qpos``, ``recent_ee_acc``, ...), which nothing here or in LIBERO reads, are not
   filled (right after a reset, when robosuite's controller works from the state it kept, the substep is robosuite's
   own ``_pre_action``);
 - every substep runs the controller's update and ``run_controller`` for the configuration LIBERO uses
   (OSC_POSE, fixed impedance, no interpolator, position and orientation uncoupled) inline: the same MuJoCo calls
-  (``mj_jacSite``, ``mj_fullM``), the same NumPy operations on arrays of the same shapes and memory layouts, and
-  robosuite's own numba functions (``opspace_matrices``, ``nullspace_torques``, ``orientation_error``), so each
-  float is computed by the same code from the same inputs. Limits, gains and the gripper's control range are read
-  once per tick instead of once per substep;
-- observables are updated by robosuite's own code only at the substeps where one samples or its period wraps
-  (two per tick); between them only the shared clock advances, by the same float additions each observable makes;
+  (``mj_jacSite``, ``mj_fullM``), the same NumPy arithmetic on arrays of the same shapes and memory layouts (reached
+  through cheaper calls where NumPy runs the same kernel: ``a.dot(b)`` for ``np.dot(a, b)``), and robosuite's own
+  numba functions (``opspace_matrices``, ``nullspace_torques``, ``orientation_error``), so each float is computed
+  by the same code from the same inputs. Limits, gains and the gripper's control range are read once per tick
+  instead of once per substep, indexes once per controller;
+- observables are updated by robosuite's own code only at the substep where one samples (once per tick); elsewhere
+  only the shared clock advances, and wraps at the period's end, by the same float operations each observable makes;
 - after the substeps, robosuite's ``_post_action`` without its reward: LIBERO's reward is its success check, which
   LIBERO's ``step`` evaluates again afterwards (the result ``done`` comes from), and nothing here reads the reward.
 
@@ -113,7 +115,7 @@ class FastTick:
         self._jacp = np.zeros((3, model.nv))
         self._jacr = np.zeros((3, model.nv))
         self._mujoco = mujoco
-        self._arm_mass_index = None  # made at the first tick, from the controller's joints
+        self._arm: _Arm | None = None  # made at the first tick, from the robot's controller and gripper
 
     def step(self, action: np.ndarray) -> tuple[dict, bool]:
         """robosuite's ``env.step(action)`` as LIBERO's env runs it; returns the observations and LIBERO's done."""
@@ -135,16 +137,16 @@ class FastTick:
         # robots/single_arm.py control(), grippers/panda_gripper.py format_action()).
         robot = env.robots[0]
         controller, gripper = robot.controller, robot.gripper
-        sid = model.site(controller.eef_name).id
-        # Index arrays, not robosuite's lists: the same elements, without converting a list at every use.
-        qpos_index = np.asarray(controller.qpos_index, dtype=np.intp)
-        qvel_index = np.asarray(controller.qvel_index, dtype=np.intp)
-        mass_index = self._mass_index(qvel_index)
+        arm = self._arm
+        if arm is None or arm.parts != (robot, controller, gripper):
+            arm = self._arm = _Arm(mujoco, model, robot)
+        sid, qpos_index, qvel_index, mass_index = arm.sid, arm.qpos_index, arm.qvel_index, arm.mass_index
+        dof_slice, arm_actuators, gripper_actuators = arm.dof_slice, arm.arm_actuators, arm.gripper_actuators
         kp, kd, initial_joint = controller.kp, controller.kd, controller.initial_joint
-        kp_pos, kp_ori, kd_pos, kd_ori = np.array(kp[0:3]), np.array(kp[3:6]), kd[0:3], kd[3:6]
+        kp_pos, kp_ori = np.array(kp[0:3]), np.array(kp[3:6])
+        # -kd: (-v) * kd and v * (-kd) are the same float (IEEE multiplication is symmetric in sign).
+        minus_kd_pos, minus_kd_ori = np.negative(kd[0:3]), np.negative(kd[3:6])
         torque_low, torque_high = robot.torque_limits
-        arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
-        gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
         ctrl_range = model.actuator_ctrlrange[gripper_actuators]
         grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
@@ -172,34 +174,39 @@ class FastTick:
                 sim_step()
                 clock.advance(dt)
                 continue
-            if substep == 0:
-                # The policy step: robosuite's own set_goal (its update runs the controller's forward pass). Not
-                # filled: the robot's buffers of recent values (recent_qpos, recent_ee_acc, ...), which nothing
-                # here or in LIBERO reads.
-                controller.set_goal(arm_action)
-                goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
-            else:
-                forward()  # the controller update's
+            forward()  # the controller update's
             ee_pos = site_xpos[sid]
             ee_ori_mat = site_xmat[sid].reshape([3, 3])
+            if substep == 0:
+                # The policy step: robosuite's own set_goal, after the update it starts with, inline: the goal reads
+                # the end effector's pose, copied as the update copies it; the rest of the update's state is
+                # written after the substeps. Not filled: the robot's buffers of recent values (recent_qpos,
+                # recent_ee_acc, ...), which nothing here or in LIBERO reads.
+                controller.ee_pos, controller.ee_ori_mat = np.array(ee_pos), np.array(ee_ori_mat)
+                controller.new_update = False
+                controller.set_goal(arm_action)
+                goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
             mujoco.mj_jacSite(model, data, jacp, jacr, sid)
-            ee_pos_vel = np.dot(jacp, qvel)
-            ee_ori_vel = np.dot(jacr, qvel)
+            # ndarray.dot is np.dot's own product (the same BLAS call), without np.dot's dispatch.
+            ee_pos_vel = jacp.dot(qvel)
+            ee_ori_vel = jacr.dot(qvel)
             joint_pos = qpos[qpos_index]
             joint_vel = qvel[qvel_index]
             # robosuite copies these once more (np.array keeps the memory layout: Fortran order, as numba's
             # compiled functions were specialised for).
-            j_pos = jacp[:, qvel_index]
-            j_ori = jacr[:, qvel_index]
-            j_full = np.vstack([j_pos, j_ori])
+            if dof_slice is None:
+                j_pos, j_ori = jacp[:, qvel_index], jacr[:, qvel_index]
+            else:
+                j_pos, j_ori = np.asfortranarray(jacp[:, dof_slice]), np.asfortranarray(jacr[:, dof_slice])
+            j_full = np.concatenate((j_pos, j_ori))  # np.vstack's own call for two 2-D arrays
             mass_matrix = qm[mass_index].T  # mj_fullM's arm block, gathered from qM (same elements, Fortran order)
 
             ori_error = orientation_error(goal_ori, ee_ori_mat)
-            desired_force = np.multiply(goal_pos - ee_pos, kp_pos) + np.multiply(-ee_pos_vel, kd_pos)
-            desired_torque = np.multiply(ori_error, kp_ori) + np.multiply(-ee_ori_vel, kd_ori)
+            desired_force = np.multiply(goal_pos - ee_pos, kp_pos) + np.multiply(ee_pos_vel, minus_kd_pos)
+            desired_torque = np.multiply(ori_error, kp_ori) + np.multiply(ee_ori_vel, minus_kd_ori)
             _, lambda_pos, lambda_ori, nullspace_matrix = opspace_matrices(mass_matrix, j_full, j_pos, j_ori)
-            wrench = np.concatenate([np.dot(lambda_pos, desired_force), np.dot(lambda_ori, desired_torque)])
-            torques = np.dot(j_full.T, wrench) + qfrc_bias[qvel_index]
+            wrench = np.concatenate((lambda_pos.dot(desired_force), lambda_ori.dot(desired_torque)))
+            torques = j_full.T.dot(wrench) + qfrc_bias[qvel_index]
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
             clipped = _clip(torques, torque_low, torque_high)  # np.clip's ufunc, without its Python wrappers
@@ -228,21 +235,40 @@ class FastTick:
         observations = env._get_observations()
         return observations, env._check_success()
 
-    def _mass_index(self, dofs: np.ndarray) -> np.ndarray:
-        """Where each element of the arm's block of the full mass matrix is in MuJoCo's sparse ``qM``, transposed
-        (``qM[index].T`` is robosuite's ``mass_matrix``: mj_fullM copies each element of ``qM`` to its two symmetric
-        places, so the block is symmetric bit for bit and its transpose equals it)."""
-        if self._arm_mass_index is None or not np.array_equal(self._arm_mass_index[0], dofs):
-            mujoco, model = self._mujoco, self._model
-            full = np.zeros((model.nv, model.nv))
-            # qM holding 1..nM: mj_fullM then writes each element's position (+1), 0 where qM has nothing.
-            mujoco.mj_fullM(model, full, np.arange(1.0, model.nM + 1.0))
-            block = full[np.ix_(dofs, dofs)]
-            if not np.all(block > 0):
-                raise RuntimeError("the arm's mass matrix has elements outside qM: not a serial chain")
-            # C order: a fancy index's result takes its index's layout, and its transpose must be Fortran-ordered.
-            self._arm_mass_index = (dofs.copy(), np.ascontiguousarray(block.T - 1, dtype=np.intp))
-        return self._arm_mass_index[1]
+
+class _Arm:
+    """The indexes of a robot's arm and gripper in a MuJoCo model, as the fast tick uses them (made once per robot,
+    controller and gripper: robosuite makes new ones at a reset)."""
+
+    def __init__(self, mujoco, model, robot) -> None:
+        controller, gripper = robot.controller, robot.gripper
+        self.parts = (robot, controller, gripper)
+        self.sid = model.site(controller.eef_name).id
+        # Index arrays, not robosuite's lists: the same elements, without converting a list at every use.
+        self.qpos_index = np.asarray(controller.qpos_index, dtype=np.intp)
+        self.qvel_index = dofs = np.asarray(controller.qvel_index, dtype=np.intp)
+        self.mass_index = _mass_index(mujoco, model, dofs)
+        # The arm's columns of the Jacobians: a slice where its dofs are consecutive (as for LIBERO's Panda), copied
+        # to Fortran order as robosuite's fancy index copies them; the fancy index otherwise.
+        first = int(dofs[0]) if len(dofs) else 0
+        consecutive = len(dofs) > 1 and np.array_equal(dofs, np.arange(first, first + len(dofs)))
+        self.dof_slice = slice(first, first + len(dofs)) if consecutive else None
+        self.arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
+        self.gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
+
+
+def _mass_index(mujoco, model, dofs: np.ndarray) -> np.ndarray:
+    """Where each element of the arm's block of the full mass matrix is in MuJoCo's sparse ``qM``, transposed
+    (``qM[index].T`` is robosuite's ``mass_matrix``: mj_fullM copies each element of ``qM`` to its two symmetric
+    places, so the block is symmetric bit for bit and its transpose equals it)."""
+    full = np.zeros((model.nv, model.nv))
+    # qM holding 1..nM: mj_fullM then writes each element's position (+1), 0 where qM has nothing.
+    mujoco.mj_fullM(model, full, np.arange(1.0, model.nM + 1.0))
+    block = full[np.ix_(dofs, dofs)]
+    if not np.all(block > 0):
+        raise RuntimeError("the arm's mass matrix has elements outside qM: not a serial chain")
+    # C order: a fancy index's result takes its index's layout, and its transpose must be Fortran-ordered.
+    return np.ascontiguousarray(block.T - 1, dtype=np.intp)
 
 
 def _ufunc_clip():
@@ -287,9 +313,9 @@ class _ObservableClock:
             return
         before = self._time
         self._time = now = before + dt
-        if (not self._sampled and self._period - self._delay >= now) or now >= self._period:
-            for observable in self._enabled:
-                observable._time_since_last_sample = before
+        if not self._sampled and self._period - self._delay >= now or now >= self._period and not self._sampled:
+            # One samples (at its time, or late at the period's end): robosuite's own update.
+            self._store(before)
             self._env._update_observables()
             first = self._first
             self._time, self._sampled, self._delay = (
@@ -297,9 +323,18 @@ class _ObservableClock:
                 first._sampled,
                 first._current_delay,
             )
+        elif now >= self._period:
+            # The period ends after every observable sampled: robosuite's update only restarts each clock, with
+            # the same float operations.
+            now %= self._period
+            self._time, self._sampled = now, False
+
+    def _store(self, time: float) -> None:
+        for observable in self._enabled:
+            observable._time_since_last_sample = time
+            observable._sampled = self._sampled
 
     def store(self) -> None:
         """Write the shared clock back into every observable (it ran ahead of them since their last update)."""
         if self._uniform:
-            for observable in self._enabled:
-                observable._time_since_last_sample = self._time
+            self._store(self._time)
