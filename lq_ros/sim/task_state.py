@@ -94,7 +94,10 @@ class TaskStateProbe:
             owners += [i] * len(found)
             geoms += found.tolist()
         self._surface_geoms = np.array(geoms, dtype=np.int64)
-        self._surface_owner = np.array(owners, dtype=np.int64)
+        # The geoms come grouped by object, in order: each object with geoms, and where its group starts.
+        self._surface_objects, self._surface_starts = np.unique(np.array(owners, dtype=np.int64), return_index=True)
+        self._bodies = np.array([i for i, (kind, _) in enumerate(self._kinds) if kind == "body"], dtype=np.intp)
+        self._body_ids = np.array([index for kind, index in self._kinds if kind == "body"], dtype=np.intp)
         self._grip_site = env.robots[0].eef_site_id
         self._bound_to = self._model
 
@@ -136,14 +139,13 @@ class TaskStateProbe:
         pos = np.empty((k, 3))
         quat = np.empty((k, 4))
         wxyz = np.empty(4)
+        pos[self._bodies] = data.xpos[self._body_ids]
+        quat[self._bodies] = data.xquat[self._body_ids][:, _XYZW]
         for i, (kind, index) in enumerate(self._kinds):
-            if kind == "body":
-                pos[i] = data.xpos[index]
-                wxyz[:] = data.xquat[index]
-            else:
+            if kind == "site":
                 pos[i] = data.site_xpos[index]
                 mujoco.mju_mat2Quat(wxyz, data.site_xmat[index])
-            quat[i] = (wxyz[1], wxyz[2], wxyz[3], wxyz[0])
+                quat[i] = (wxyz[1], wxyz[2], wxyz[3], wxyz[0])
         ncon = data.ncon
         geom1 = data.contact.geom1[:ncon]
         geom2 = data.contact.geom2[:ncon]
@@ -180,10 +182,14 @@ class TaskStateProbe:
         local = np.einsum("gji,gj->gi", data.geom_xmat[g].reshape(-1, 3, 3), offset)  # into each geom's frame
         aabb = model.geom_aabb[g]  # (G, 6): centre, half-size, geom frame
         outside = np.maximum(np.abs(local - aabb[:, :3]) - aabb[:, 3:], 0.0)
-        distance = np.linalg.norm(outside, axis=1)
-        np.minimum.at(out, self._surface_owner, distance)
+        distance = np.sqrt(np.add.reduce(outside * outside, axis=1))  # np.linalg.norm's own sum, without its checks
+        out[self._surface_objects] = np.minimum.reduceat(distance, self._surface_starts)  # the nearest per object
         out[np.isinf(out)] = np.nan  # an object without geoms
         return out
+
+
+#: A MuJoCo quaternion (w, x, y, z) read as (x, y, z, w).
+_XYZW = np.array([1, 2, 3, 0], dtype=np.intp)
 
 
 def _touch(objects1: np.ndarray, objects2: np.ndarray, other1: np.ndarray, other2: np.ndarray) -> np.ndarray:
