@@ -31,6 +31,7 @@ from lq_ros.core.suite_constants import (
 from lq_ros.core.types import EnergyIntegrals, Observation, PhysicsSamples, TaskInfo, TickState
 from lq_ros.sim import renderer_passes
 from lq_ros.sim.libero_import import import_libero
+from lq_ros.sim.task_state import XYZW
 
 # Headless rendering; a user with a display may override it.
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -494,7 +495,7 @@ class LiberoEnv:
         pos = self._scratch.site_xpos[self._eef_site].copy()
         wxyz = np.empty(4)
         mj.mju_mat2Quat(wxyz, self._scratch.site_xmat[self._eef_site])
-        return pos, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]])
+        return pos, wxyz[XYZW]
 
     def _tick_state(self) -> TickState:
         pos, quat = self._eef_pose()
@@ -516,9 +517,9 @@ class LiberoEnv:
             sim_time_s=sim_time_of_tick(self._tick),
             eef_pos=pos,
             eef_quat_xyzw=quat,
-            joint_pos=self._data.qpos[self._qpos_idx].copy(),
-            joint_vel=self._data.qvel[self._qvel_idx].copy(),
-            joint_torque=self._data.actuator_force[self._torque_idx].copy(),
+            joint_pos=self._data.qpos[self._qpos_idx],  # (an index array's selection is a copy)
+            joint_vel=self._data.qvel[self._qvel_idx],
+            joint_torque=self._data.actuator_force[self._torque_idx],
             gripper_qpos=np.array(self._obs["robot0_gripper_qpos"], dtype=np.float64),
             success=self._success,
             physics=physics,

@@ -26,6 +26,9 @@ import numpy as np
 
 from lq_ros.core.types import JOINT_HINGE, JOINT_NONE, JOINT_SLIDE, TaskStateSample
 
+#: Indexes reading a MuJoCo quaternion (w, x, y, z) as (x, y, z, w).
+XYZW = np.array([1, 2, 3, 0], dtype=np.intp)
+
 
 def predicate_name(state: list[str]) -> str:
     """A goal predicate as the BDDL writes it: ``["on", "bowl_1", "plate_1"]`` -> ``"(on bowl_1 plate_1)"``."""
@@ -94,6 +97,8 @@ class TaskStateProbe:
             owners += [i] * len(found)
             geoms += found.tolist()
         self._surface_geoms = np.array(geoms, dtype=np.int64)
+        aabb = self._model.geom_aabb[self._surface_geoms]  # (G, 6): centre, half-size, geom frame (fixed)
+        self._surface_centre, self._surface_half = aabb[:, :3], aabb[:, 3:]
         # The geoms come grouped by object, in order: each object with geoms, and where its group starts.
         self._surface_objects, self._surface_starts = np.unique(np.array(owners, dtype=np.int64), return_index=True)
         self._bodies = np.array([i for i, (kind, _) in enumerate(self._kinds) if kind == "body"], dtype=np.intp)
@@ -140,7 +145,7 @@ class TaskStateProbe:
         quat = np.empty((k, 4))
         wxyz = np.empty(4)
         pos[self._bodies] = data.xpos[self._body_ids]
-        quat[self._bodies] = data.xquat[self._body_ids][:, _XYZW]
+        quat[self._bodies] = data.xquat[self._body_ids][:, XYZW]
         for i, (kind, index) in enumerate(self._kinds):
             if kind == "site":
                 pos[i] = data.site_xpos[index]
@@ -152,10 +157,10 @@ class TaskStateProbe:
         contact = np.zeros(k, dtype=bool)
         grasped = np.zeros(k, dtype=bool)
         if ncon:
-            objects1, objects2 = self._object_masks[:, geom1], self._object_masks[:, geom2]  # (K, ncon)
-            contact = _touch(objects1, objects2, self._gripper_mask[geom1], self._gripper_mask[geom2])
-            grasped = _touch(objects1, objects2, self._pad_masks[0][geom1], self._pad_masks[0][geom2])
-            grasped &= _touch(objects1, objects2, self._pad_masks[1][geom1], self._pad_masks[1][geom2])
+            masks = self._object_masks
+            contact = _touch(masks, geom1, geom2, self._gripper_mask[geom1], self._gripper_mask[geom2])
+            grasped = _touch(masks, geom1, geom2, self._pad_masks[0][geom1], self._pad_masks[0][geom2])
+            grasped &= _touch(masks, geom1, geom2, self._pad_masks[1][geom1], self._pad_masks[1][geom2])
         values = np.array([bool(env._eval_predicate(state)) for state in self._goal], dtype=bool)
         joint_pos = np.array([data.qpos[j[0]] if j else np.nan for j in self._joints], dtype=np.float64)
         return TaskStateSample(
@@ -173,27 +178,25 @@ class TaskStateProbe:
 
     def _surface_distance(self) -> np.ndarray:
         """Per object: the grip site's distance to the nearest of its surface geoms' boxes, m (NaN: none)."""
-        data, model = self._data, self._model
+        data = self._data
         out = np.full(len(self.object_names), np.inf)
         if not len(self._surface_geoms):
             return np.full(len(self.object_names), np.nan)
         g = self._surface_geoms
         offset = data.site_xpos[self._grip_site] - data.geom_xpos[g]  # (G, 3) world
         local = np.einsum("gji,gj->gi", data.geom_xmat[g].reshape(-1, 3, 3), offset)  # into each geom's frame
-        aabb = model.geom_aabb[g]  # (G, 6): centre, half-size, geom frame
-        outside = np.maximum(np.abs(local - aabb[:, :3]) - aabb[:, 3:], 0.0)
+        outside = np.maximum(np.abs(local - self._surface_centre) - self._surface_half, 0.0)
         distance = np.sqrt(np.add.reduce(outside * outside, axis=1))  # np.linalg.norm's own sum, without its checks
         out[self._surface_objects] = np.minimum.reduceat(distance, self._surface_starts)  # the nearest per object
         out[np.isinf(out)] = np.nan  # an object without geoms
         return out
 
 
-#: A MuJoCo quaternion (w, x, y, z) read as (x, y, z, w).
-_XYZW = np.array([1, 2, 3, 0], dtype=np.intp)
-
-
-def _touch(objects1: np.ndarray, objects2: np.ndarray, other1: np.ndarray, other2: np.ndarray) -> np.ndarray:
+def _touch(
+    masks: np.ndarray, geom1: np.ndarray, geom2: np.ndarray, other1: np.ndarray, other2: np.ndarray
+) -> np.ndarray:
     """Per object: some active contact pairs one of its geoms with a geom of the other group, in either order (as
-    robosuite's ``check_contact`` decides it). ``objects1``/``objects2``: (K, ncon) membership of each contact's
-    first and second geom; ``other1``/``other2``: (ncon,) the other group's."""
-    return ((objects1 & other2) | (objects2 & other1)).any(axis=1)
+    robosuite's ``check_contact`` decides it). ``masks``: (K, ngeom) each object's geoms; ``geom1``/``geom2``:
+    (ncon,) each contact's geoms; ``other1``/``other2``: (ncon,) whether they are the other group's."""
+    touching = np.concatenate((geom1[other2], geom2[other1]))  # the geoms paired with one of the other group
+    return masks[:, touching].any(axis=1)
