@@ -153,6 +153,13 @@ class FastTick:
         arm_action, gripper_action = action[: controller.control_dim], action[controller.control_dim :]
         grip_increment = np.array([-1.0, 1.0]) * gripper.speed * np.sign(gripper_action)
         grip = gripper.current_action
+        # A gripper held at a limit and driven past it (most ticks: a policy sends +-1) stays there exactly (the clip
+        # returns the limit), so its controls are the same floats at every substep: computed once, written once.
+        grip_held = all(
+            (g == 1.0 and increment > 0.0) or (g == -1.0 and increment < 0.0)
+            for g, increment in zip(grip.tolist(), grip_increment.tolist(), strict=True)
+        )
+        grip_written = False
         jacp, jacr = self._jacp, self._jacr
         site_xpos, site_xmat, qpos, qvel, qfrc_bias, ctrl, qm = (
             data.site_xpos,
@@ -210,8 +217,11 @@ class FastTick:
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
             clipped = _clip(torques, torque_low, torque_high)  # np.clip's ufunc, without its Python wrappers
-            grip = _clip(grip + grip_increment, -1.0, 1.0)
-            ctrl[gripper_actuators] = grip_bias + grip_weight * grip
+            if not grip_written:
+                if not grip_held:
+                    grip = _clip(grip + grip_increment, -1.0, 1.0)
+                ctrl[gripper_actuators] = grip_bias + grip_weight * grip
+                grip_written = grip_held
             ctrl[arm_actuators] = clipped
             sim_step()
             clock.advance(dt)
