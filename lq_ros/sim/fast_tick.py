@@ -18,7 +18,8 @@ scene, each keeping its own clock). Around MuJoCo's own cost that Python is abou
   through cheaper calls where NumPy runs the same kernel: ``a.dot(b)`` for ``np.dot(a, b)``), and robosuite's own
   numba functions (``opspace_matrices``, ``nullspace_torques``, ``orientation_error``), so each float is computed
   by the same code from the same inputs. Limits, gains and the gripper's control range are read once per tick
-  instead of once per substep, indexes once per controller;
+  instead of once per substep, indexes once per controller; a gripper held at a limit (its clip returns the limit)
+  gets its controls computed once per tick;
 - observables are updated by robosuite's own code only at the substep where one samples (once per tick); elsewhere
   only the shared clock advances, and wraps at the period's end, by the same float operations each observable makes;
 - after the substeps, robosuite's ``_post_action`` without its reward: LIBERO's reward is its success check, which
