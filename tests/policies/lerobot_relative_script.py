@@ -12,6 +12,9 @@ Subcommands (each prints one JSON line):
                         fields, stacked along a leading tick axis), seeded with SEED (``set_seed``, then the policy's
                         reset), cameras mapped by CAMERAS (JSON, as the client maps them): the action it passes to
                         ``env.step`` each tick, and (relative actions) the state the absolute step added
+  make-flow OUT         lerobot_venv_script.py's tiny SmolVLA (laid out as lerobot/smolvla_libero)
+  batch JOBS / serve    the subcommands of JOBS (JSON list of argument lists), or of stdin's lines, in this one
+                        process (venv_serve.py)
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+import venv_serve  # noqa: E402 - beside this script
 
 IMAGE_SHAPE = (3, 64, 64)
 CHUNK, STEPS = 8, 4
@@ -116,16 +120,25 @@ def eval_ticks(ckpt: str, npz: str, seed: int, cameras: dict | None) -> dict:
     return {"executed": executed, "states": states}
 
 
-def main(argv: list[str]) -> None:
+def run(argv: list[str]) -> object:
     command, args = argv[0], argv[1:]
     if command == "make":
         result = make(Path(args[0]))
+    elif command == "make-flow":
+        import lerobot_venv_script  # beside this script (its LeRobot >= 0.5 subcommands run in this venv too)
+
+        result = lerobot_venv_script.make_flow(Path(args[0]))
     elif command == "eval-ticks":
         result = eval_ticks(args[0], args[1], int(args[2]), json.loads(args[3]))
+    elif command == "batch":
+        result = venv_serve.batch(run, args[0])
     else:
         raise SystemExit(f"unknown command {command!r}")
-    print(json.dumps(result))
+    return result
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    if sys.argv[1:] == ["serve"]:
+        venv_serve.serve(run)
+    else:
+        print(json.dumps(run(sys.argv[1:])))

@@ -25,6 +25,8 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
                                     RTCConfig, the model's leftover as the prefix): equal?
   batch JOBS                        the subcommands of JOBS (JSON list of argument lists) one after another in this one
                                     process (LeRobot, torch and LIBERO import once): the list of their results
+  serve                             the subcommands of stdin's lines (JSON argument lists), each answered on a line of
+                                    stdout, until stdin closes (venv_serve.py)
   full-state CKPT [CAMERAS]         the policy's input from a request, and from the same observation with the fields
                                     LeRobot >= 0.6's LiberoEnv adds (EE rotation matrix, finger velocities): equal?
 """
@@ -41,6 +43,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+import venv_serve  # noqa: E402 - beside this script
 from toy_tokenizer import TOY_WORDS, word_level_tokenizer  # noqa: E402 - beside this script
 
 IMAGE_SHAPE = (3, 256, 256)
@@ -539,20 +542,10 @@ def rtc_parity(ckpt: str, cameras: dict) -> dict:
     }
 
 
-def batch_job(argv: list[str]) -> dict | list:
-    """One job of a batch: its result, or ``{"batch_error": traceback}`` (the test of that job fails, not the batch)."""
-    import traceback
-
-    try:
-        return run(argv)
-    except Exception:  # noqa: BLE001 - reported to the one test that reads this job
-        return {"batch_error": traceback.format_exc()[-3000:]}
-
-
 def run(argv: list[str]) -> dict | list:
     command, args = argv[0], argv[1:]
     if command == "batch":
-        result = [batch_job(list(map(str, job))) for job in json.loads(args[0])]
+        result = venv_serve.batch(run, args[0])
     elif command == "make":
         result = make(Path(args[0]))
     elif command == "short-copy":
@@ -588,4 +581,7 @@ def run(argv: list[str]) -> dict | list:
 
 
 if __name__ == "__main__":
-    print(json.dumps(run(sys.argv[1:])))
+    if sys.argv[1:] == ["serve"]:
+        venv_serve.serve(run)
+    else:
+        print(json.dumps(run(sys.argv[1:])))

@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from lq_ros.run.episode import run_episode
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.wire import messages as m
+from tests.policies.venv_jobs import ModuleServers, VenvWorker
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_relative_script.py")
@@ -36,29 +36,49 @@ WEIGHTS = [1, 1, 1, 1, 1, 1, 0]  # the gripper excluded by name (pi0's relative_
 pytestmark = [pytest.mark.sim]
 
 
-def in_venv06(*args: object) -> dict:
+def python06() -> Path:
     if not PYTHON06.is_file():
         if os.environ.get("CI"):
             pytest.fail(f"LeRobot 0.6's venv is missing ({PYTHON06}): `make setup-lerobot06` makes it")
         pytest.skip("LeRobot 0.6's venv is not installed (make setup-lerobot06)")
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
-    done = subprocess.run(
-        [str(PYTHON06), str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=600, env=env,
-        check=False,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return PYTHON06
 
 
 @pytest.fixture(scope="module")
-def made(tmp_path_factory) -> dict:
-    return in_venv06("make", tmp_path_factory.mktemp("lerobot_relative"))
+def venv06() -> VenvWorker:
+    """One process of LeRobot 0.6's venv for the module (torch and LeRobot import once): it makes the checkpoints,
+    then runs lerobot-eval's loop on each episode's observations as the tests ask."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
+    worker = VenvWorker(python06(), SCRIPT, env)
+    yield worker
+    worker.close()
+
+
+@pytest.fixture(scope="module")
+def made(venv06, tmp_path_factory) -> dict:
+    """The tiny ACT checkpoints (``act``, ``act_relative``, with its mask) and the tiny SmolVLA of
+    lerobot_venv_script.py (``smolvla``, laid out as lerobot/smolvla_libero)."""
+    out = tmp_path_factory.mktemp("lerobot_relative")
+    return {**venv06("make", out), **venv06("make-flow", out)}
 
 
 @pytest.fixture(scope="module")
 def checkpoint(made) -> str:
     assert made["mask"] == [bool(w) for w in WEIGHTS]
     return made["act_relative"]
+
+
+def policy06(path: str, **args):
+    return make_policy("lerobot", path=path, python=str(PYTHON06), threads=1, **args)
+
+
+@pytest.fixture(scope="module")
+def served(made):
+    """One server per checkpoint (as policy06 makes it, the arguments of the episodes' policy_args) for the module's
+    checks and episodes; each resets it, as a sweep reuses a policy."""
+    servers = ModuleServers(lambda kind: policy06(made[kind]))
+    yield servers
+    servers.close()
 
 
 def observing(env: LiberoEnv) -> list:
@@ -80,13 +100,13 @@ def recorded(bag: Path, topic: m.Topic) -> list:
 
 
 @pytest.mark.slow
-def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoint, tmp_path):
+def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoint, venv06, served, tmp_path):
     """A sync episode at 0 s (each chunk's n_action_steps executed, as lerobot-eval) against lerobot-eval's per-tick
     loop run by LeRobot's code on the same observations (every tick's, captured in the episode): the commands the
     bag records are the actions lerobot-eval passes to the env (as robosuite clips them), action for action. The
     EE position and the gripper are equal bit for bit; the orientation to float32 rounding of the state's
     axis-angle (LeRobot computes it with torch's float32 acos)."""
-    policy = make_policy("lerobot", path=checkpoint, python=str(PYTHON06), threads=1)
+    policy = served("act_relative")
     env = LiberoEnv("libero_spatial", 0, camera_names=policy.camera_names, camera_size=64)
     observations = observing(env)
     cfg = RunConfig(
@@ -96,7 +116,6 @@ def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoin
     try:
         outcome = run_inprocess(cfg, tmp_path, env=env, policy=policy)
     finally:
-        policy.close()
         env.close()
     assert outcome.status == "failure", outcome
     commands = recorded(outcome.bag_path, m.COMMAND)
@@ -109,7 +128,7 @@ def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoin
 
     payload = [policy.observation_fields(obs) for obs in observations[:TICKS]]
     np.savez(tmp_path / "ticks.npz", **{key: np.stack([p[key] for p in payload]) for key in payload[0]})
-    theirs = in_venv06("eval-ticks", checkpoint, tmp_path / "ticks.npz", 0, json.dumps(policy.cameras))
+    theirs = venv06("eval-ticks", checkpoint, tmp_path / "ticks.npz", 0, json.dumps(policy.cameras))
     executed = np.clip(np.array(theirs["executed"], dtype=np.float32).astype(np.float64), -1.0, 1.0)
     states = np.array(theirs["states"], dtype=np.float32)
     assert np.array_equal(ours[:, [0, 1, 2, 6]], executed[:, [0, 1, 2, 6]])
@@ -126,50 +145,28 @@ def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoin
     assert np.abs(once[late, :6] - executed[late, :6]).max() > 1e-4
 
 
-def test_anchored_once_per_chunk_as_lerobots_rtc_rollout_engine(checkpoint):
+def test_anchored_once_per_chunk_as_lerobots_rtc_rollout_engine(checkpoint, served):
     """``relative_anchor=chunk``: the server makes the chunk absolute with the request's state (LeRobot's RTC rollout
-    engine does so); the answer is a plain chunk. A value that is no anchor is refused in one line."""
+    engine does so); the answer is a plain chunk. A value that is no anchor is refused in one line. (``tick``, the
+    default: the module's server.)"""
     obs = standin_observation(64, 0)
     task = TaskInfo("libero_spatial", 0, "t", "pick up the black bowl", [], 220, 50)
     chunks = {}
-    for anchor in ("tick", "chunk"):
-        policy = make_policy("lerobot", path=checkpoint, python=str(PYTHON06), threads=1, relative_anchor=anchor)
-        try:
+    once = policy06(checkpoint, relative_anchor="chunk")
+    try:
+        for anchor, policy in (("tick", served("act_relative")), ("chunk", once)):
             policy.reset(task, 0)
             chunks[anchor] = policy.infer(obs)
             assert policy.server_metadata["relative_actions"] is True
             assert policy.server_metadata["relative_anchor"] == anchor
-        finally:
-            policy.close()
+    finally:
+        once.close()
     rows, weights = split_chunk(chunks["tick"])
     assert chunks["chunk"].shape == (STEPS, 7) and list(weights) == WEIGHTS
     state = anchor_state(obs.eef_pos, obs.eef_quat_xyzw, obs.gripper_qpos)
     np.testing.assert_allclose(chunks["chunk"], np.clip(rows + state[:7] * weights, -1, 1), rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="relative_anchor 'step': valid: tick, chunk"):
         make_policy("lerobot", path=checkpoint, python=str(PYTHON06), relative_anchor="step")
-
-
-@pytest.mark.slow
-@pytest.mark.ros
-@pytest.mark.parametrize("mode", ["sync", "async"])
-def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, tmp_path, mode):
-    """Through the ROS nodes (lockstep) the executor asks the sim for each anchored tick's state: the bag equals the
-    in-process one (commands, chunks, trajectory), so its commands are lerobot-eval's as the test above shows."""
-    cfg = RunConfig(
-        suite="libero_spatial", task=0, init=0, seed=0, mode=mode, latency_s=0.1, replan_steps=STEPS,
-        policy="lerobot", policy_args={"path": checkpoint, "python": str(PYTHON06), "threads": 1}, max_steps=TICKS,
-        camera_size=64,
-    )  # fmt: skip
-    ros, row = run_episode(cfg, tmp_path / "ros", "ros")
-    local = run_inprocess(cfg, tmp_path / "local")
-    assert ros.status == local.status == "failure", (ros, local)
-    assert comparable(ros.bag_path) == comparable(local.bag_path)
-    # The chunks hold relative rows, the commands absolute ones: the chunk-boundary scores say why they are null.
-    assert row["chunk_switches"] is None and "anchored" in row["null_reasons"]["chunk_switches"]
-    commands = recorded(ros.bag_path, m.COMMAND)
-    chunks = recorded(ros.bag_path, m.ACTION_CHUNK)
-    assert sum(c.source == 0 for c in commands) >= STEPS and all(split_chunk(m.chunk_actions(c))[1] is not None
-                                                                   for c in chunks)  # fmt: skip
 
 
 def captured_episode(cfg: RunConfig, policy, out: Path):
@@ -190,7 +187,7 @@ def captured_episode(cfg: RunConfig, policy, out: Path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["act", "smolvla"])
-def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations(made, kind, tmp_path):
+def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations(made, venv06, served, kind, tmp_path):
     """The default protocol, no flags (sync, 0 s, each chunk's n_action_steps executed: the policy's declared replan
     steps; LeRobot 0.6's render size): the commands of an episode in the simulator equal, bit for bit, the actions
     lerobot-eval's rollout loop passes to the env when LeRobot's code is handed the same observations every tick
@@ -198,34 +195,52 @@ def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations
     from lq_ros.core.seeding import LEROBOT_SEED_TAG, episode_seed
     from lq_ros.policies import declared_replan_steps
 
-    path = made["act"] if kind == "act" else in_venv06_flow(tmp_path)
-    args = {"path": path, "python": str(PYTHON06), "threads": 1}
+    path = made[kind]
+    args = {"path": path, "python": str(PYTHON06), "threads": 1}  # as served(kind)
     cfg = RunConfig(suite="libero_spatial", task=0, init=1, seed=7, mode="sync", latency_s=0.0, policy="lerobot",
                     policy_args=args, max_steps=TICKS, replan_steps_source="policy")  # fmt: skip
     cfg = dataclasses.replace(cfg, replan_steps=declared_replan_steps("lerobot", args))
-    policy = make_policy("lerobot", **args)
-    try:
-        assert cfg.replan_steps == policy.actions_per_chunk and cfg.camera_size_for(policy.render_size) == 360
-        outcome, npz = captured_episode(cfg, policy, tmp_path)
-    finally:
-        policy.close()
+    policy = served(kind)
+    assert cfg.replan_steps == policy.actions_per_chunk and cfg.camera_size_for(policy.render_size) == 360
+    outcome, npz = captured_episode(cfg, policy, tmp_path)
     assert outcome.status == "failure", outcome
     commands = recorded(outcome.bag_path, m.COMMAND)
     assert [c.tick for c in commands] == list(range(TICKS)) and all(c.source == 0 for c in commands)
     seed = episode_seed(cfg.seed, cfg.suite, cfg.task, cfg.init, LEROBOT_SEED_TAG)
-    theirs = in_venv06("eval-ticks", path, npz, seed, json.dumps(policy.cameras))
+    theirs = venv06("eval-ticks", path, npz, seed, json.dumps(policy.cameras))
     executed = np.clip(np.array(theirs["executed"][:TICKS], dtype=np.float32).astype(np.float64), -1.0, 1.0)
     assert np.array_equal(np.array([c.action for c in commands]), executed)
 
 
-def in_venv06_flow(tmp_path: Path) -> str:
-    """The tiny SmolVLA of lerobot_venv_script.py (``make-flow``: laid out as lerobot/smolvla_libero)."""
-    if not PYTHON06.is_file():
-        in_venv06()  # skips (or fails in CI), saying why
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
-    done = subprocess.run(
-        [str(PYTHON06), str(SCRIPT.with_name("lerobot_venv_script.py")), "make-flow", str(tmp_path)],
-        capture_output=True, text=True, timeout=600, env=env, check=False,
+# -- through ROS (last in the module: its node stack ends with the module) ------------------------------------------
+@pytest.fixture(scope="module")
+def ros_stack():
+    from lq_ros.transport.ros.stack import RosStack
+
+    with RosStack() as stack:
+        yield stack
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.parametrize("mode", ["sync", "async"])
+def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, served, ros_stack, tmp_path, mode):
+    """Through the ROS nodes (lockstep) the executor asks the sim for each anchored tick's state: the bag equals the
+    in-process one (commands, chunks, trajectory), so its commands are lerobot-eval's as the test above shows. Both
+    modes on one node stack (its policy node keeps the server while the policy's arguments stay) and, in process, on
+    the module's server: as a sweep runs them."""
+    cfg = RunConfig(
+        suite="libero_spatial", task=0, init=0, seed=0, mode=mode, latency_s=0.1, replan_steps=STEPS,
+        policy="lerobot", policy_args={"path": checkpoint, "python": str(PYTHON06), "threads": 1}, max_steps=TICKS,
+        camera_size=64,
     )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])["smolvla"]
+    ros, row = run_episode(cfg, tmp_path / "ros", "ros", stack=ros_stack)
+    local = run_inprocess(cfg, tmp_path / "local", policy=served("act_relative"))
+    assert ros.status == local.status == "failure", (ros, local)
+    assert comparable(ros.bag_path) == comparable(local.bag_path)
+    # The chunks hold relative rows, the commands absolute ones: the chunk-boundary scores say why they are null.
+    assert row["chunk_switches"] is None and "anchored" in row["null_reasons"]["chunk_switches"]
+    commands = recorded(ros.bag_path, m.COMMAND)
+    chunks = recorded(ros.bag_path, m.ACTION_CHUNK)
+    assert sum(c.source == 0 for c in commands) >= STEPS and all(split_chunk(m.chunk_actions(c))[1] is not None
+                                                                   for c in chunks)  # fmt: skip
