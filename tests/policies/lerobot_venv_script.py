@@ -10,7 +10,9 @@ Subcommands (each writes an .npz or folders and prints one JSON line):
   pi-configs OUT                    config.json of pi0 and pi0.5 for LIBERO as this LeRobot writes them (no weights:
                                     about 4e9 parameters; test_lerobot06_pi.py runs them at tiny sizes)
   config-fields CONFIG...           what our server's config check says of each CONFIG here (null: accepted)
-  lerobot-obs CKPT SUITE TASK OUT   LeRobot's LiberoEnv reset (init state 0) -> what the policy is handed
+  lerobot-obs CKPT SUITE TASK OUT [STEPS]
+                                    LeRobot's LiberoEnv reset (init state 0) -> what the policy is handed (STEPS:
+                                    the episode length the env is built with, to share it with eval-loop's)
   server-obs CKPT PAYLOAD OUT       our server's conversion of a request payload -> what the policy is handed
   eval-loop CKPT SUITE TASK STEPS SEED OUT [POLICY_SEED]
                                     lerobot-eval's rollout() on LeRobot's LiberoEnv: the actions it executed
@@ -269,11 +271,29 @@ def libero_vector_env(suite: str, task: int, steps: int | None = None, control_m
     return make_env(config, n_envs=1)[suite][task]
 
 
-def lerobot_obs(ckpt: str, suite: str, task: int, out: Path) -> dict:
+#: LeRobot's LIBERO vector envs built in this process, by (suite, task, steps): the jobs of a batch share one.
+_BUILT_ENVS: dict[tuple[str, int, int | None], object] = {}
+
+
+def built_libero_env(suite: str, task: int, steps: int | None = None):
+    """:func:`libero_vector_env`, built once per process and handed again as a new one would be: LeRobot's env
+    moves to the next init state at each reset (lerobot-eval's episodes), so it is put back to its first. Its reset
+    is robosuite's hard reset (a new simulator from the model), so an episode on it is a new env's (the parity tests
+    compare it with ours bit for bit)."""
+    key = (suite, task, steps)
+    if key not in _BUILT_ENVS:
+        _BUILT_ENVS[key] = libero_vector_env(suite, task, steps)
+    env = _BUILT_ENVS[key]
+    for sub_env in env.envs:
+        sub_env.init_state_id = sub_env.episode_index
+    return env
+
+
+def lerobot_obs(ckpt: str, suite: str, task: int, out: Path, steps: int | None = None) -> dict:
     from lerobot.envs.utils import add_envs_task, preprocess_observation
 
     server = lerobot_server.LeRobotServer(ckpt, suite=suite)
-    env = libero_vector_env(suite, task)
+    env = built_libero_env(suite, task, steps)
     observation, _ = env.reset(seed=[0])
     sim = env.envs[0]._env.sim
     state = np.asarray(sim.get_state().flatten())
@@ -283,7 +303,6 @@ def lerobot_obs(ckpt: str, suite: str, task: int, out: Path) -> dict:
     batch = server.preprocessor(observation)
     arrays = batch_arrays(batch)
     np.savez(out, sim_state=state, task=np.array(env.envs[0].task_description), **arrays)
-    env.close()
     return {"keys": sorted(arrays)}
 
 
@@ -307,7 +326,7 @@ def eval_loop(
 
     torch.set_num_threads(1)
     server = lerobot_server.LeRobotServer(ckpt, suite=suite)
-    env = libero_vector_env(suite, task, steps)
+    env = built_libero_env(suite, task, steps)
     set_seed(seed if policy_seed is None else policy_seed)
     result = rollout(
         env,
@@ -320,7 +339,6 @@ def eval_loop(
     )
     actions = result["action"][0].numpy()
     np.savez(out, actions=actions)
-    env.close()
     return {"steps": int(actions.shape[0])}
 
 
@@ -553,7 +571,7 @@ def run(argv: list[str]) -> dict | list:
     elif command == "make-flow":
         result = make_flow(Path(args[0]))
     elif command == "lerobot-obs":
-        result = lerobot_obs(args[0], args[1], int(args[2]), Path(args[3]))
+        result = lerobot_obs(args[0], args[1], int(args[2]), Path(args[3]), int(args[4]) if len(args) > 4 else None)
     elif command == "server-obs":
         result = server_obs(args[0], Path(args[1]), Path(args[2]))
     elif command == "eval-loop":

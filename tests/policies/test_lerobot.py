@@ -28,12 +28,15 @@ from lq_ros.policies.lerobot_client import LEROBOT_LIBERO_RENDER_SIZE, SERVER_SC
 from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
-from tests.policies.venv_jobs import batch_argument, job
+from tests.policies.venv_jobs import ModuleServers, VenvWorker
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
 SUITE, TASK = "libero_spatial", 0
-PARITY_STEPS = 24  # three ACT chunks of 8, six diffusion chunks of 4
+#: Two ACT chunks of 8, four diffusion chunks of 4: each policy replans at least once on a scene its own actions moved
+#: (the parity a longer episode would check again at each later boundary), diffusion2 from the tick before each
+#: replan, and ACT's temporal ensemble runs on a full window of 8 chunks from tick 7 on.
+PARITY_STEPS = 16
 #: As made by lerobot_venv_script.py (diffusion2: n_obs_steps 2); lerobot-eval executes them all.
 N_ACTION_STEPS = {"act": 8, "diffusion": 4, "diffusion2": 4}
 SOURCE_CHUNK = 0  # ActionCommand.SOURCE_CHUNK: the command is a row of a policy chunk
@@ -53,89 +56,49 @@ def lerobot_python() -> Path:
     return python
 
 
-def in_lerobot_venv(*args: object, timeout_s: float = 600.0) -> dict:
-    """Run the helper script in LeRobot's venv; its one JSON line."""
+@pytest.fixture(scope="module")
+def venv() -> VenvWorker:
+    """One process of LeRobot's venv for the module (torch, LeRobot and LIBERO import once; LeRobot's LIBERO env is
+    built once): it makes the checkpoints, then computes what each test compares with, as the test asks."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    done = subprocess.run(
-        [str(lerobot_python()), str(SCRIPT), *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        env=env,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    worker = VenvWorker(lerobot_python(), SCRIPT, env)
+    yield worker
+    worker.close()
 
 
 @pytest.fixture(scope="module")
-def made(tmp_path_factory) -> dict:
-    """In one process of LeRobot's venv: the checkpoints, LeRobot's LIBERO defaults, and a copy of the ACT checkpoint
-    whose weights file lacks one tensor."""
+def checkpoints(venv, tmp_path_factory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("lerobot_ckpt")
-    jobs = [["make", out], ["defaults"], ["short-copy", out / "act", out / "act_short"]]
-    checkpoints, defaults, short = in_lerobot_venv("batch", batch_argument(jobs))
-    return {
-        "checkpoints": {name: Path(folder) for name, folder in job(checkpoints).items()},
-        "defaults": defaults,
-        "short": short,
-    }
+    return {name: Path(folder) for name, folder in venv("make", out).items()}
 
 
 @pytest.fixture(scope="module")
-def checkpoints(made) -> dict[str, Path]:
-    return made["checkpoints"]
+def served(checkpoints):
+    """One server per checkpoint (1 thread) for the module's checks and episodes; each resets it before asking, as a
+    sweep reuses a policy."""
+    servers = ModuleServers(lambda kind: make_policy("lerobot", path=str(checkpoints[kind]), threads=1))
+    yield servers
+    servers.close()
 
 
 @pytest.fixture(scope="module")
-def references(checkpoints, tmp_path_factory) -> dict:
-    """What the parity tests compare with, LeRobot's side in one process of its venv (torch, LeRobot and LIBERO
-    import once): LeRobot's LiberoEnv reset of init state 0 and the tensors it hands the policy; our env's reset of
-    the same state, our client's request and what our server's conversion of it hands the policy; the actions
-    lerobot-eval's rollout executes per checkpoint (and for ACT with temporal ensembling, checkpoint "ensembled")."""
+def libero_env(served):
+    """Our env of the task with the checkpoints' cameras at LeRobot's render size (all three checkpoints have the
+    same), for the module's in-process episodes: a reused env's episode is a new one's, bit for bit
+    (tests/run/sweep/test_sweep.py), as a sweep reuses it."""
     from lq_ros.sim.libero_env import LiberoEnv
 
-    out = tmp_path_factory.mktemp("lerobot_reference")
-    policy = make_policy("lerobot", path=str(checkpoints["act"]))
-    env = LiberoEnv(SUITE, TASK, camera_names=policy.camera_names, camera_size=LEROBOT_LIBERO_RENDER_SIZE)
-    try:
-        env.reset(0, seed=0)
-        ours = {"sim_state": np.asarray(env._sim.get_state().flatten()), "instruction": env.task.instruction}
-        policy.reset(env.task, seed=0)
-        payload = policy.observation_payload(env.observe())
-    finally:
-        env.close()
-        policy.close()
-    np.savez(out / "payload.npz", **payload)
-    config = json.loads((checkpoints["act"] / "config.json").read_text())
-    ensembled = copy_checkpoint(checkpoints["act"], out / "ensembled")
-    (ensembled / "config.json").write_text(json.dumps({**config, **ENSEMBLED_CONFIG}))
-    jobs = [
-        ["lerobot-obs", checkpoints["act"], SUITE, TASK, out / "lerobot.npz"],
-        ["server-obs", checkpoints["act"], out / "payload.npz", out / "ours.npz"],
-    ]
-    # The env is reset with the run seed (0) in both; our server seeds the policy with the episode's seed (init 0,
-    # run seed 0), so lerobot-eval's set_seed gets that one.
-    seed = episode_seed(0, SUITE, TASK, 0, LEROBOT_SEED_TAG)
-    kinds = list(N_ACTION_STEPS)
-    jobs += [["eval-loop", checkpoints[k], SUITE, TASK, PARITY_STEPS, 0, out / f"eval_{k}.npz", seed] for k in kinds]
-    jobs.append(["eval-loop", ensembled, SUITE, TASK, PARITY_STEPS, 0, out / "eval_ensembled.npz"])
-    results = in_lerobot_venv("batch", batch_argument(jobs), timeout_s=1800.0)
-    return {
-        "ours": ours,
-        "obs": results[:2],
-        "lerobot_obs": out / "lerobot.npz",
-        "server_obs": out / "ours.npz",
-        "eval": dict(zip([*kinds, "ensembled"], results[2:], strict=True)),
-        "eval_actions": {k: out / f"eval_{k}.npz" for k in [*kinds, "ensembled"]},
-        "ensembled": ensembled,
-    }
+    env = LiberoEnv(SUITE, TASK, camera_names=served("act").camera_names, camera_size=LEROBOT_LIBERO_RENDER_SIZE)
+    yield env
+    env.close()
 
 
-def executed_actions(references: dict, kind: str) -> np.ndarray:
-    """The actions lerobot-eval's rollout executed with checkpoint ``kind``."""
-    job(references["eval"][kind])
-    return np.load(references["eval_actions"][kind])["actions"].astype(np.float64)
+def executed_actions(venv: VenvWorker, checkpoint: Path, out: Path, policy_seed: int | None = None) -> np.ndarray:
+    """The actions lerobot-eval's rollout executes with ``checkpoint`` for PARITY_STEPS ticks: the env reset with the
+    run seed (0), as ours; ``set_seed(policy_seed)`` (default: the run seed)."""
+    seed = [] if policy_seed is None else [policy_seed]
+    venv("eval-loop", checkpoint, SUITE, TASK, PARITY_STEPS, 0, out, *seed)
+    return np.load(out)["actions"].astype(np.float64)
 
 
 def lerobot_servers() -> set[int]:
@@ -156,8 +119,8 @@ def commands(bag: Path) -> list:
 
 
 # -- what our client copies from LeRobot --------------------------------------------------------
-def test_render_size_and_cameras_are_lerobot_evals(made):
-    defaults = job(made["defaults"])
+def test_render_size_and_cameras_are_lerobot_evals(venv):
+    defaults = venv("defaults")
     assert defaults["observation_height"] == defaults["observation_width"] == LEROBOT_LIBERO_RENDER_SIZE
     assert defaults["camera_name"] == "agentview_image,robot0_eye_in_hand_image"
     assert defaults["gym_kwargs"] == ["obs_type", "render_mode"]  # the config's size never reaches the env
@@ -165,15 +128,21 @@ def test_render_size_and_cameras_are_lerobot_evals(made):
 
 # -- parity with lerobot-eval -----------------------------------------------------------------
 @pytest.mark.slow
-def test_policy_input_equals_lerobot_libero_env_bit_for_bit(references):
-    """Same simulator state (LeRobot's reset of init state 0 and ours), same tensors to the policy."""
-    for result in references["obs"]:
-        job(result)
-    want = dict(np.load(references["lerobot_obs"]))
-    ours = references["ours"]
+def test_policy_input_equals_lerobot_libero_env_bit_for_bit(venv, checkpoints, served, libero_env, tmp_path):
+    """Same simulator state (LeRobot's reset of init state 0 and ours), same tensors to the policy: LeRobot's
+    LiberoEnv reset and the tensors it hands the policy; our env's reset, our client's request and what our server's
+    conversion of it hands the policy."""
+    policy, env = served("act"), libero_env
+    env.reset(0, seed=0)
+    ours = {"sim_state": np.asarray(env._sim.get_state().flatten()), "instruction": env.task.instruction}
+    policy.reset(env.task, seed=0)
+    np.savez(tmp_path / "payload.npz", **policy.observation_payload(env.observe()))
+    venv("lerobot-obs", checkpoints["act"], SUITE, TASK, tmp_path / "lerobot.npz", PARITY_STEPS)
+    venv("server-obs", checkpoints["act"], tmp_path / "payload.npz", tmp_path / "ours.npz")
+    want = dict(np.load(tmp_path / "lerobot.npz"))
     assert np.array_equal(ours["sim_state"], want["sim_state"]), "resets differ"
     assert str(want["task"]) == ours["instruction"]
-    got = dict(np.load(references["server_obs"]))
+    got = dict(np.load(tmp_path / "ours.npz"))
     assert sorted(got) == sorted(k for k in want if k not in ("sim_state", "task"))
     for key, value in got.items():
         assert value.dtype == want[key].dtype and np.array_equal(value, want[key]), key
@@ -181,10 +150,14 @@ def test_policy_input_equals_lerobot_libero_env_bit_for_bit(references):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["act", "diffusion", "diffusion2"])
-def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, references, kind, tmp_path):
+def test_sync_zero_latency_commands_what_lerobot_eval_executes(venv, checkpoints, served, libero_env, kind, tmp_path):
     """diffusion2 (n_obs_steps 2): lerobot-eval's policy sees the tick before each replan from its own per-tick
-    queue, ours from the request's history (the simulator's capture of that tick)."""
-    executed = executed_actions(references, kind)
+    queue, ours from the request's history (the simulator's capture of that tick). diffusion2's episode starts and
+    ends a server of its own (the others run on the module's): it must not outlive the episode."""
+    # The env is reset with the run seed (0) in both; our server seeds the policy with the episode's seed (init 0,
+    # run seed 0), so lerobot-eval's set_seed gets that one.
+    seed = episode_seed(0, SUITE, TASK, 0, LEROBOT_SEED_TAG)
+    executed = executed_actions(venv, checkpoints[kind], tmp_path / "eval.npz", seed)
     assert executed.shape == (PARITY_STEPS, 7)
 
     cfg = RunConfig(
@@ -192,10 +165,13 @@ def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, refe
         policy="lerobot",
         policy_args={"path": str(checkpoints[kind]), "threads": 1}, max_steps=PARITY_STEPS,
     )  # fmt: skip
+    own = kind == "diffusion2"
     servers_before = lerobot_servers()
-    outcome, row = run_episode(cfg, tmp_path / "ours", "inprocess")
+    policy = None if own else served(kind)
+    outcome, row = run_episode(cfg, tmp_path / "ours", "inprocess", env=libero_env, policy=policy)
     assert outcome.status in ("failure", "success"), outcome.reason
-    assert lerobot_servers() <= servers_before, "the episode's policy server outlived it"
+    if own:
+        assert lerobot_servers() <= servers_before, "the episode's policy server outlived it"
     sent = commands(outcome.bag_path)
     assert all(c.source == SOURCE_CHUNK for c in sent), [c.source for c in sent]
     ours = np.array([c.action for c in sent])
@@ -210,20 +186,19 @@ def test_sync_zero_latency_commands_what_lerobot_eval_executes(checkpoints, refe
 # Each kind and each transport once: the policy node calls the same client in either transport, and the sync
 # parity tests above already run both kinds in process.
 @pytest.mark.parametrize(("kind", "transport"), [("diffusion", "inprocess"), ("act", "ros")])
-def test_episode_runs_in_both_protocols(checkpoints, kind, transport, tmp_path):
-    """Both episodes on one policy server, as a sweep runs them: in process one policy instance, through ROS one
-    node stack (its policy node keeps the policy while it and its arguments stay)."""
+def test_episode_runs_in_both_protocols(checkpoints, served, libero_env, kind, transport, tmp_path):
+    """Both episodes on one policy server, as a sweep runs them: in process one policy instance (the module's) and
+    env, through ROS one node stack (its policy node keeps the policy while it and its arguments stay)."""
     from contextlib import ExitStack
 
     from lq_ros.transport.ros.stack import RosStack
 
-    policy_args = {"path": str(checkpoints[kind])}
+    policy_args = {"path": str(checkpoints[kind]), "threads": 1}
     with ExitStack() as reused:
         if transport == "ros":
             reuse = {"stack": reused.enter_context(RosStack())}
         else:
-            reuse = {"policy": make_policy("lerobot", **policy_args)}
-            reused.callback(reuse["policy"].close)
+            reuse = {"policy": served(kind), "env": libero_env}
         for mode in ("sync", "async"):
             cfg = RunConfig(
                 suite=SUITE, task=TASK, init=1, seed=3, mode=mode, latency_s=0.1, policy="lerobot",
@@ -299,10 +274,10 @@ def test_processor_classes_are_lerobots_registered_steps_only(checkpoints, tmp_p
     assert not marker.exists()
 
 
-def test_a_checkpoint_missing_a_tensor_is_refused(made):
+def test_a_checkpoint_missing_a_tensor_is_refused(venv, checkpoints, tmp_path):
     """LeRobot loads weights non-strictly (pi0/pi0.5 print a warning on a failed load): a checkpoint without one of
     its tensors would serve partly random weights. The server compares the file's tensors with the policy's."""
-    short = job(made["short"])  # the ACT checkpoint's copy, made with the checkpoints: one tensor dropped
+    short = venv("short-copy", checkpoints["act"], tmp_path / "act_short")  # the ACT checkpoint, one tensor dropped
     folder, dropped = Path(short["folder"]), short["dropped"]
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     server = subprocess.run(
@@ -417,21 +392,13 @@ def test_server_binds_loopback_only_and_dies_with_its_parent(checkpoints, tmp_pa
     pytest.fail("the LeRobot server outlived the process that started it")
 
 
-@pytest.fixture(scope="module")
-def act_policy(checkpoints):
-    """One server of the ACT checkpoint (1 thread) for the tests that ask it; each resets it before asking."""
-    policy = make_policy("lerobot", path=str(checkpoints["act"]), threads=1)
-    yield policy
-    policy.close()
-
-
 @pytest.mark.slow
-def test_the_server_answers_only_its_own_client(act_policy):
+def test_the_server_answers_only_its_own_client(served):
     """The real server: our client presents the run's token; another local peer, without it, is refused."""
     import msgpack
     from websockets.sync.client import connect
 
-    policy = act_policy
+    policy = served("act")
     policy.reset(TASK_INFO, 0)
     assert policy.infer(standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)).shape == (N_ACTION_STEPS["act"], 7)
     token = policy._token
@@ -458,12 +425,12 @@ def test_policy_node_accepts_lerobot_only_as_launched():
     assert "lerobot" not in str(refused.value).rsplit("(", 1)[1]  # not offered as a runtime choice
 
 
-def test_n_action_steps_override(checkpoints, act_policy):
+def test_n_action_steps_override(checkpoints, served):
     """n_action_steps chooses the answer's length (the queue's); full_chunk and ACT's temporal ensembling (a whole
     chunk) are checked in test_lerobot06.py and below."""
     obs = standin_observation(LEROBOT_LIBERO_RENDER_SIZE, 0)
-    act_policy.reset(TASK_INFO, 0)
-    answers = {"queue": act_policy.infer(obs)}
+    served("act").reset(TASK_INFO, 0)
+    answers = {"queue": served("act").infer(obs)}
     three = make_policy("lerobot", path=str(checkpoints["act"]), threads=1, n_action_steps=3)
     try:
         three.reset(TASK_INFO, 0)
@@ -475,18 +442,20 @@ def test_n_action_steps_override(checkpoints, act_policy):
 
 
 @pytest.mark.slow
-def test_act_temporal_ensembling_in_async_is_lerobot_evals(references, tmp_path):
+def test_act_temporal_ensembling_in_async_is_lerobot_evals(venv, checkpoints, libero_env, tmp_path):
     """ACT with temporal ensembling answers its whole chunk; async at 0 s with --merge temporal_ensemble (a request
     every tick, chunks weighed exp(-m i)) commands what lerobot-eval's rollout executes with ACT's own ensembler.
     Equal to float rounding (LeRobot averages float32 normalized actions, the executor float64 unnormalized ones),
     which the simulator then carries: the tolerance grows with the tick."""
-    ensembled = references["ensembled"]
-    executed = executed_actions(references, "ensembled")
+    config = json.loads((checkpoints["act"] / "config.json").read_text())
+    ensembled = copy_checkpoint(checkpoints["act"], tmp_path / "ensembled")
+    (ensembled / "config.json").write_text(json.dumps({**config, **ENSEMBLED_CONFIG}))
+    executed = executed_actions(venv, ensembled, tmp_path / "eval.npz")
     cfg = RunConfig(
         suite=SUITE, task=TASK, init=0, seed=0, mode="async", latency_s=0.0, merge="temporal_ensemble",
         policy="lerobot", policy_args={"path": str(ensembled), "threads": 1}, max_steps=PARITY_STEPS,
     )  # fmt: skip
-    outcome, _ = run_episode(cfg, tmp_path / "ours", "inprocess")
+    outcome, _ = run_episode(cfg, tmp_path / "ours", "inprocess", env=libero_env)
     sent = commands(outcome.bag_path)
     assert all(c.source == SOURCE_CHUNK for c in sent)
     ours = np.array([c.action for c in sent])

@@ -65,8 +65,9 @@ class VenvWorker:
             while b"\n" not in self._pending:
                 left = deadline - time.monotonic()
                 if left <= 0:
+                    log = self._stderr()
                     self.close()
-                    pytest.fail(f"the LeRobot venv job {args[0]} took over {timeout_s} s:\n{self._stderr()}")
+                    pytest.fail(f"the LeRobot venv job {args[0]} took over {timeout_s} s:\n{log}")
                 if selector.select(left):
                     chunk = os.read(process.stdout.fileno(), 1 << 16)
                     if not chunk:
