@@ -22,6 +22,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+import venv_serve  # noqa: E402 - beside this script
 from toy_tokenizer import TOY_WORDS, word_level_tokenizer  # noqa: E402 - beside this script
 
 #: The hub tokenizer LeRobot's pi0 and pi0.5 processors name; the test's toy tokenizer stands in for it.
@@ -138,6 +139,7 @@ def load_check(ckpt: str) -> dict:
 
 
 def main(argv: list[str]) -> None:
+    venv_serve.one_process_threads()
     command, args = argv[0], argv[1:]
     if command == "make":
         result = make(Path(args[0]))

@@ -275,17 +275,19 @@ def libero_vector_env(suite: str, task: int, steps: int | None = None, control_m
 _BUILT_ENVS: dict[tuple[str, int, int | None], object] = {}
 
 
-def built_libero_env(suite: str, task: int, steps: int | None = None):
+def built_libero_env(suite: str, task: int, steps: int | None = None, control_mode: str = "relative"):
     """:func:`libero_vector_env`, built once per process and handed again as a new one would be: LeRobot's env
-    moves to the next init state at each reset (lerobot-eval's episodes), so it is put back to its first. Its reset
-    is robosuite's hard reset (a new simulator from the model), so an episode on it is a new env's (the parity tests
-    compare it with ours bit for bit)."""
+    moves to the next init state at each reset (lerobot-eval's episodes), so it is put back to its first, and it
+    gets ``control_mode`` as its constructor stores it (read at reset only). Its reset is robosuite's hard reset (a
+    new simulator and robot from the model), so an episode on it is a new env's (the parity tests compare it with
+    ours bit for bit)."""
     key = (suite, task, steps)
     if key not in _BUILT_ENVS:
         _BUILT_ENVS[key] = libero_vector_env(suite, task, steps)
     env = _BUILT_ENVS[key]
     for sub_env in env.envs:
         sub_env.init_state_id = sub_env.episode_index
+        sub_env.control_mode = control_mode
     return env
 
 

@@ -32,6 +32,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "lq_ros" / "policies"))
 import lerobot_server  # noqa: E402 - the server module, by path (lq_ros is not installed in this venv)
+import venv_serve  # noqa: E402 - beside this script
 from toy_tokenizer import TOY_WORDS, word_level_tokenizer  # noqa: E402 - beside this script
 
 #: The hub tokenizer LeRobot's X-VLA config names; the test's toy tokenizer stands in for it.
@@ -281,28 +282,27 @@ def env_mat(suite: str, task: int, actions: list[list[float]], out: Path, contro
     and the simulator state after its reset and after each action, through its vector env as ``lerobot-eval`` runs
     it with ``--env.control_mode=control_mode``; also the controller's goal after the reset."""
     sys.path.insert(0, str(Path(__file__).parent))
-    from lerobot_venv_script import libero_vector_env  # LeRobot's make_env, with that script's one init-state shim
+    # LeRobot's make_env, with that script's one init-state shim; built once for this process's runs
+    from lerobot_venv_script import built_libero_env
 
-    env = libero_vector_env(suite, task, control_mode=control_mode)
-    try:
-        observation, _ = env.reset(seed=[0])
-        sim = env.envs[0]._env.sim
-        controller = env.envs[0]._env.robots[0].controller
-        goal = np.concatenate([controller.goal_pos, np.asarray(controller.goal_ori).ravel()])
-        states = [np.asarray(sim.get_state().flatten())]
-        mats = [observation["robot_state"]["eef"]["mat"][0]]
-        for action in actions:
-            observation, *_ = env.step(np.asarray([action], dtype=np.float64))
-            mats.append(observation["robot_state"]["eef"]["mat"][0])
-            states.append(np.asarray(sim.get_state().flatten()))
-        use_delta = bool(controller.use_delta)
-    finally:
-        env.close()
+    env = built_libero_env(suite, task, control_mode=control_mode)
+    observation, _ = env.reset(seed=[0])
+    sim = env.envs[0]._env.sim
+    controller = env.envs[0]._env.robots[0].controller
+    goal = np.concatenate([controller.goal_pos, np.asarray(controller.goal_ori).ravel()])
+    states = [np.asarray(sim.get_state().flatten())]
+    mats = [observation["robot_state"]["eef"]["mat"][0]]
+    for action in actions:
+        observation, *_ = env.step(np.asarray([action], dtype=np.float64))
+        mats.append(observation["robot_state"]["eef"]["mat"][0])
+        states.append(np.asarray(sim.get_state().flatten()))
+    use_delta = bool(controller.use_delta)
     np.savez(out, mats=np.stack(mats), sim_state=states[0], sim_states=np.stack(states), goal=goal)
     return {"ticks": len(mats), "dtype": str(mats[0].dtype), "use_delta": use_delta}
 
 
 def main(argv: list[str]) -> None:
+    venv_serve.one_process_threads()
     command, args = argv[0], argv[1:]
     if command == "make":
         result = make(Path(args[0]))

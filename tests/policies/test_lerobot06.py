@@ -37,7 +37,7 @@ from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.run.episode import run_episode
 from lq_ros.wire import messages as m
 from tests.policies.rtc_check import check_rtc_follows_the_prefix
-from tests.policies.venv_jobs import ModuleServers, batch_argument, job
+from tests.policies.venv_jobs import ModuleEnvs, ModuleServers, batch_argument, job
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_venv_script.py")
@@ -309,36 +309,42 @@ def test_diffusion_with_two_observations_queues_what_lerobot_eval_queues(venv06)
         assert [1, 2, 8] in got["shapes"] and got["actions"] == [4, 7]
 
 
-def test_a_policy_of_two_observations_needs_the_tick_before(checkpoints):
+def test_a_policy_of_two_observations_needs_the_tick_before(checkpoints, served):
     """The client declares n_obs_steps as its observation history; an observation without it (a robot interface
     captures none) is one line, never a chunk from a queue of copies."""
-    policy = policy06(checkpoints["diffusion2"])
-    try:
-        assert policy.observation_history_ticks == 2 and policy.params()["n_obs_steps"] == 2
-        policy.reset(TASK_INFO, 0)
-        with pytest.raises(PolicyError, match=r"n_obs_steps 2 needs the observations of the 1 tick\(s\) before") as err:
-            policy.infer(standin_observation(256, 0))
-        assert "\n" not in str(err.value)
-    finally:
-        policy.close()
+    policy = served("diffusion2")
+    assert policy.observation_history_ticks == 2 and policy.params()["n_obs_steps"] == 2
+    policy.reset(TASK_INFO, 0)
+    with pytest.raises(PolicyError, match=r"n_obs_steps 2 needs the observations of the 1 tick\(s\) before") as err:
+        policy.infer(standin_observation(256, 0))
+    assert "\n" not in str(err.value)
     assert policy06(checkpoints["diffusion"]).observation_history_ticks == 1
+
+
+@pytest.fixture(scope="module")
+def envs():
+    """Our env per camera set and size for the module's episodes."""
+    made = ModuleEnvs()
+    yield made
+    made.close()
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("kind", "merge"), [("act", "replace"), ("diffusion", "replace"), ("diffusion2", "replace"), ("smolvla", "rtc")]
 )
-def test_async_episode(checkpoints, served, kind, merge, tmp_path):
+def test_async_episode(checkpoints, served, envs, kind, merge, tmp_path):
     # The tiny diffusion policies have no crop: their encoder takes the 256 px they were made for, not LeRobot 0.6's
     # 360 (as under lerobot-eval 0.6 at its default size); the others run at the reference size. On the module's
-    # server of the checkpoint (policy06's arguments, as policy_args below), as a sweep reuses a policy.
+    # server of the checkpoint (policy06's arguments, as policy_args below) and env, as a sweep reuses them.
     size = 256 if kind.startswith("diffusion") else 0
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=1, seed=3, mode="async", latency_s=0.1, merge=merge, policy="lerobot",
         policy_args={"path": str(checkpoints[kind]), "python": str(python06()), "threads": 1}, max_steps=30,
         camera_size=size,
     )  # fmt: skip
-    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess", policy=served(kind))
+    policy = served(kind)
+    outcome, row = run_episode(cfg, tmp_path / kind, "inprocess", policy=policy, env=envs(cfg, policy))
     assert outcome.status == row["status"] == "failure", (outcome, row.get("error_reason"))
     assert chunk_rows(outcome.bag_path) > 0
     assert row["latency_real_mean_s"] > 0

@@ -182,14 +182,25 @@ def test_the_server_checks_the_matrix_as_every_field():
 
 
 # -- the simulator's matrix ------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ours():
+    """Our camera-less env of the task, shared by the module's checks as a sweep reuses an env (a reused env's
+    episode is a new one's, bit for bit: tests/run/sweep/test_sweep.py)."""
+    from lq_ros.sim.libero_env import LiberoEnv
+
+    env = LiberoEnv(SUITE, TASK)
+    yield env
+    env.close()
+
+
 @pytest.mark.sim
-def test_the_observed_matrix_is_robosuites_controller_matrix():
+def test_the_observed_matrix_is_robosuites_controller_matrix(ours):
     """``Observation.eef_rot_mat`` is what LeRobot's LIBERO env reads (``robots[0].controller.ee_ori_mat``) of
     robosuite's own stepping, bit for bit: after the reset and after each of five ticks (the stack ticks through
     FastTick, which keeps the controller's matrix itself)."""
     from lq_ros.sim.libero_env import LiberoEnv
 
-    ours, robosuites = LiberoEnv(SUITE, TASK), LiberoEnv(SUITE, TASK)
+    robosuites = LiberoEnv(SUITE, TASK)
     robosuites.fast_tick = False  # robosuite's own env.step
     actions = np.random.default_rng(0).uniform(-0.5, 0.5, (5, 7))
     try:
@@ -207,7 +218,6 @@ def test_the_observed_matrix_is_robosuites_controller_matrix():
             assert np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-9)  # a rotation
             seen.append(matrix)
     finally:
-        ours.close()
         robosuites.close()
     assert not np.array_equal(seen[0], seen[-1])  # the arm turned: the test compares moving values
 
@@ -219,29 +229,23 @@ RELATIVE_ACTIONS = [
 
 
 @pytest.fixture(scope="module")
-def lerobot_env_runs(tmp_path_factory) -> dict:
+def lerobot_env_runs(ours, tmp_path_factory) -> dict:
     """LeRobot's own ``LiberoEnv`` (LeRobot 0.4.4's venv, which has LIBERO), in one process: reset, then the relative
     actions (relative control), and, from another reset, absolute targets near our env's absolute start command
     (absolute control). Also ours in absolute control: its start command and simulator states."""
-    from lq_ros.sim.libero_env import LiberoEnv
-
     python = lerobot_client.default_python()
     if not python.is_file():
         if os.environ.get("CI"):
             pytest.fail(f"LeRobot's venv is missing ({python}): `make test` makes it with `make setup-lerobot`")
         pytest.skip("LeRobot 0.4.4's venv is not installed (make setup-lerobot)")
-    ours = LiberoEnv(SUITE, TASK)
-    try:
-        ours.reset(0, seed=0, control_mode=ControlMode.ABSOLUTE)
-        start = np.array(ours.control.start_action)
-        offsets = ([0.0, 0.0, 0.02], [0.03, -0.02, 0.04], [0.05, 0.01, 0.0], [0.05, 0.01, 0.0])
-        actions = [np.r_[start[:3] + d, start[3:6], g] for d, g in zip(offsets, (-1.0, -1.0, 1.0, 1.0), strict=True)]
-        states = [np.asarray(ours._sim.get_state().flatten())]
-        for action in actions:
-            ours.step(action)
-            states.append(np.asarray(ours._sim.get_state().flatten()))
-    finally:
-        ours.close()
+    ours.reset(0, seed=0, control_mode=ControlMode.ABSOLUTE)
+    start = np.array(ours.control.start_action)
+    offsets = ([0.0, 0.0, 0.02], [0.03, -0.02, 0.04], [0.05, 0.01, 0.0], [0.05, 0.01, 0.0])
+    actions = [np.r_[start[:3] + d, start[3:6], g] for d, g in zip(offsets, (-1.0, -1.0, 1.0, 1.0), strict=True)]
+    states = [np.asarray(ours._sim.get_state().flatten())]
+    for action in actions:
+        ours.step(action)
+        states.append(np.asarray(ours._sim.get_state().flatten()))
     out = tmp_path_factory.mktemp("lerobot_env")
     runs = [
         {"actions": RELATIVE_ACTIONS, "out": str(out / "relative.npz"), "control_mode": "relative"},
@@ -265,24 +269,18 @@ def lerobot_env_runs(tmp_path_factory) -> dict:
 
 
 @pytest.mark.slow
-def test_the_observed_matrix_is_lerobots_liberoenv_matrix(lerobot_env_runs):
+def test_the_observed_matrix_is_lerobots_liberoenv_matrix(lerobot_env_runs, ours):
     """Against LeRobot's own ``LiberoEnv`` (LeRobot 0.4.4's venv has LIBERO; its ``_format_raw_obs`` reports
     ``eef.mat`` from the same ``controller.ee_ori_mat`` as 0.6.1's): from the same reset (the simulator states are
     equal) and three relative actions, the matrix it reports at each tick equals ``Observation.eef_rot_mat``."""
-    from lq_ros.sim.libero_env import LiberoEnv
-
     actions = RELATIVE_ACTIONS
     lerobot = lerobot_env_runs["relative"]
-    ours = LiberoEnv(SUITE, TASK)
-    try:
-        ours.reset(0, seed=0)
-        assert np.array_equal(np.asarray(ours._sim.get_state().flatten()), lerobot["sim_state"]), "resets differ"
-        matrices = [ours.observe(with_images=False).eef_rot_mat]
-        for action in actions:
-            ours.step(np.array(action, dtype=np.float64))
-            matrices.append(ours.observe(with_images=False).eef_rot_mat)
-    finally:
-        ours.close()
+    ours.reset(0, seed=0)
+    assert np.array_equal(np.asarray(ours._sim.get_state().flatten()), lerobot["sim_state"]), "resets differ"
+    matrices = [ours.observe(with_images=False).eef_rot_mat]
+    for action in actions:
+        ours.step(np.array(action, dtype=np.float64))
+        matrices.append(ours.observe(with_images=False).eef_rot_mat)
     assert lerobot["mats"].shape == (len(actions) + 1, 3, 3)
     for tick, (matrix, theirs) in enumerate(zip(matrices, lerobot["mats"], strict=True)):
         assert np.array_equal(matrix, theirs), tick

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,7 @@ from lq_ros.run.episode import run_episode
 from lq_ros.sim.libero_env import LiberoEnv
 from lq_ros.transport.inprocess import run_inprocess
 from lq_ros.wire import messages as m
-from tests.policies.venv_jobs import ModuleServers, VenvWorker
+from tests.policies.venv_jobs import ModuleEnvs, ModuleServers, VenvWorker
 from tests.standin_servers import standin_observation
 
 SCRIPT = Path(__file__).with_name("lerobot_relative_script.py")
@@ -81,8 +82,18 @@ def served(made):
     servers.close()
 
 
-def observing(env: LiberoEnv) -> list:
-    """The list every observation of ``env`` (images included) goes into, at its reset and after each step."""
+@pytest.fixture(scope="module")
+def envs():
+    """Our env per camera set and size for the module's in-process episodes."""
+    made = ModuleEnvs()
+    yield made
+    made.close()
+
+
+@contextmanager
+def observing(env: LiberoEnv):
+    """The list every observation of ``env`` (images included) goes into, at its reset and after each step, while
+    in the block."""
     observations = []
     step, reset = env.step, env.reset
 
@@ -92,7 +103,10 @@ def observing(env: LiberoEnv) -> list:
 
     env.step = lambda action: observed(step(action))
     env.reset = lambda *args, **kwargs: observed(reset(*args, **kwargs))
-    return observations
+    try:
+        yield observations
+    finally:
+        del env.step, env.reset  # the class's own again
 
 
 def recorded(bag: Path, topic: m.Topic) -> list:
@@ -100,23 +114,20 @@ def recorded(bag: Path, topic: m.Topic) -> list:
 
 
 @pytest.mark.slow
-def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoint, venv06, served, tmp_path):
+def test_sync_episode_commands_what_lerobot_eval_executes_tick_by_tick(checkpoint, venv06, served, envs, tmp_path):
     """A sync episode at 0 s (each chunk's n_action_steps executed, as lerobot-eval) against lerobot-eval's per-tick
     loop run by LeRobot's code on the same observations (every tick's, captured in the episode): the commands the
     bag records are the actions lerobot-eval passes to the env (as robosuite clips them), action for action. The
     EE position and the gripper are equal bit for bit; the orientation to float32 rounding of the state's
     axis-angle (LeRobot computes it with torch's float32 acos)."""
     policy = served("act_relative")
-    env = LiberoEnv("libero_spatial", 0, camera_names=policy.camera_names, camera_size=64)
-    observations = observing(env)
     cfg = RunConfig(
         suite="libero_spatial", task=0, init=0, seed=0, mode="sync", latency_s=0.0, replan_steps=STEPS,
         policy="lerobot", max_steps=TICKS, camera_size=64,
     )  # fmt: skip
-    try:
+    env = envs(cfg, policy)
+    with observing(env) as observations:
         outcome = run_inprocess(cfg, tmp_path, env=env, policy=policy)
-    finally:
-        env.close()
     assert outcome.status == "failure", outcome
     commands = recorded(outcome.bag_path, m.COMMAND)
     assert [c.tick for c in commands] == list(range(TICKS)) and all(c.source == 0 for c in commands)
@@ -169,16 +180,11 @@ def test_anchored_once_per_chunk_as_lerobots_rtc_rollout_engine(checkpoint, serv
         make_policy("lerobot", path=checkpoint, python=str(PYTHON06), relative_anchor="step")
 
 
-def captured_episode(cfg: RunConfig, policy, out: Path):
-    """Run ``cfg`` in process with ``policy``, capturing every tick's observation (images included): (outcome, the
-    observations as request fields, stacked along a tick axis, in an .npz)."""
-    env = LiberoEnv(cfg.suite, cfg.task, camera_names=policy.camera_names,
-                    camera_size=cfg.camera_size_for(policy.render_size))  # fmt: skip
-    observations = observing(env)
-    try:
+def captured_episode(cfg: RunConfig, policy, env: LiberoEnv, out: Path):
+    """Run ``cfg`` in process with ``policy`` on ``env``, capturing every tick's observation (images included):
+    (outcome, the observations as request fields, stacked along a tick axis, in an .npz)."""
+    with observing(env) as observations:
         outcome = run_inprocess(cfg, out, env=env, policy=policy)
-    finally:
-        env.close()
     payload = [policy.observation_fields(obs) for obs in observations]
     stacked = {key: np.stack([p[key] for p in payload]) for key in payload[0]}
     np.savez(out / "ticks.npz", prompt=np.array(env.task.instruction), **stacked)
@@ -187,7 +193,9 @@ def captured_episode(cfg: RunConfig, policy, out: Path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["act", "smolvla"])
-def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations(made, venv06, served, kind, tmp_path):
+def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations(
+    made, venv06, served, envs, kind, tmp_path
+):
     """The default protocol, no flags (sync, 0 s, each chunk's n_action_steps executed: the policy's declared replan
     steps; LeRobot 0.6's render size): the commands of an episode in the simulator equal, bit for bit, the actions
     lerobot-eval's rollout loop passes to the env when LeRobot's code is handed the same observations every tick
@@ -202,7 +210,7 @@ def test_default_protocol_equals_lerobot_evals_loop_on_the_episodes_observations
     cfg = dataclasses.replace(cfg, replan_steps=declared_replan_steps("lerobot", args))
     policy = served(kind)
     assert cfg.replan_steps == policy.actions_per_chunk and cfg.camera_size_for(policy.render_size) == 360
-    outcome, npz = captured_episode(cfg, policy, tmp_path)
+    outcome, npz = captured_episode(cfg, policy, envs(cfg, policy), tmp_path)
     assert outcome.status == "failure", outcome
     commands = recorded(outcome.bag_path, m.COMMAND)
     assert [c.tick for c in commands] == list(range(TICKS)) and all(c.source == 0 for c in commands)
@@ -224,7 +232,7 @@ def ros_stack():
 @pytest.mark.slow
 @pytest.mark.ros
 @pytest.mark.parametrize("mode", ["sync", "async"])
-def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, served, ros_stack, tmp_path, mode):
+def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, served, envs, ros_stack, tmp_path, mode):
     """Through the ROS nodes (lockstep) the executor asks the sim for each anchored tick's state: the bag equals the
     in-process one (commands, chunks, trajectory), so its commands are lerobot-eval's as the test above shows. Both
     modes on one node stack (its policy node keeps the server while the policy's arguments stay) and, in process, on
@@ -235,7 +243,8 @@ def test_ros_lockstep_anchors_each_tick_as_in_process(checkpoint, served, ros_st
         camera_size=64,
     )  # fmt: skip
     ros, row = run_episode(cfg, tmp_path / "ros", "ros", stack=ros_stack)
-    local = run_inprocess(cfg, tmp_path / "local", policy=served("act_relative"))
+    policy = served("act_relative")
+    local = run_inprocess(cfg, tmp_path / "local", policy=policy, env=envs(cfg, policy))
     assert ros.status == local.status == "failure", (ros, local)
     assert comparable(ros.bag_path) == comparable(local.bag_path)
     # The chunks hold relative rows, the commands absolute ones: the chunk-boundary scores say why they are null.

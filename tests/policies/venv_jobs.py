@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from lq_ros.core.run_config import RunConfig
 from lq_ros.policies import Policy
 
 
@@ -105,3 +106,25 @@ class ModuleServers:
     def close(self) -> None:
         for policy in self._policies.values():
             policy.close()
+
+
+class ModuleEnvs:
+    """Our LIBERO envs of a test module's in-process episodes: ``envs(cfg, policy)`` is the env for ``cfg``'s task
+    with ``policy``'s cameras at the size ``cfg`` renders them, made on first use and reused by the module's
+    episodes as a sweep reuses it (a reused env's episode is a new one's, bit for bit: tests/run/sweep/test_sweep.py);
+    :meth:`close` closes them."""
+
+    def __init__(self) -> None:
+        self._envs: dict[tuple, object] = {}
+
+    def __call__(self, cfg: RunConfig, policy: Policy):
+        from lq_ros.sim.libero_env import LiberoEnv
+
+        key = (cfg.suite, cfg.task, policy.camera_names, cfg.camera_size_for(policy.render_size))
+        if key not in self._envs:
+            self._envs[key] = LiberoEnv(cfg.suite, cfg.task, camera_names=key[2], camera_size=key[3])
+        return self._envs[key]
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
