@@ -37,8 +37,6 @@ def report(
     from rich.markup import escape
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from lq_ros.report.sweep_report import build_report
-
     if videos < 0:
         raise typer.BadParameter(f"--videos must be >= 0, got {videos}")
     if len(results_dir) > 1 and out is None:
@@ -46,6 +44,8 @@ def report(
     for folder in results_dir:
         if not folder.is_dir():
             _refuse(f"{folder}: no such folder (a sweep or bag folder)")
+    from lq_ros.report.sweep_report import build_report  # (pandas, scipy: after the arguments are checked)
+
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                    console=console)  # fmt: skip
     stages: dict[str, int] = {}
