@@ -88,9 +88,16 @@ bytecode: setup
 setup-all:
 	$(MAKE) -j3 setup setup-lerobot setup-lerobot06
 
+# The suite in two parts: most tests on parallel workers (a module's tests stay on one worker, so the fixtures it
+# shares start once), then the tests marked `serial` one at a time (they time real-time runs, hold the CPUs' and
+# domains' reservations, or look at every process and /dev/shm file of the machine). Both parts always run.
+TEST_WORKERS ?= 2
 test: setup-all
 	$(MAKE) bytecode
-	$(PY) -m pytest -q -rfE --durations=25
+	status=0; \
+	$(PY) -m pytest -q -rfE --durations=25 -n $(TEST_WORKERS) --dist loadfile -m "not serial" || status=1; \
+	$(PY) -m pytest -q -rfE --durations=10 -m serial || status=1; \
+	exit $$status
 
 test-fast: setup-all
 	$(MAKE) bytecode

@@ -203,6 +203,7 @@ def _state(pid: int) -> str:
 @pytest.mark.slow
 @pytest.mark.sim
 @pytest.mark.ros
+@pytest.mark.serial  # its /dev/shm check counts every new Fast DDS file of the machine
 def test_ros_transport_sweep_runs_the_four_node_stack(tmp_path):
     """One worker, four episodes (sync and async): one long-lived stack runs them all, nothing is left after."""
     from lq_ros.transport.inprocess import run_inprocess
