@@ -9,6 +9,10 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+# Every run a test starts takes a free ROS domain of its own (lq_ros.transport.ros.reservations): an exported one
+# (.ci/run exports ROS_DOMAIN_ID for its own processes) would be shared by the runs of make test's parallel workers,
+# and a run refuses a domain another run holds. A test that checks an exported domain sets it itself.
+os.environ.pop("ROS_DOMAIN_ID", None)
 # The nodes' ROS logs go to a folder of the session's own, removed at the end (a user's ROS_LOG_DIR is kept).
 _ROS_LOG_DIR = None if "ROS_LOG_DIR" in os.environ else tempfile.mkdtemp(prefix="lq_test_roslog_")
 if _ROS_LOG_DIR:
