@@ -193,12 +193,13 @@ def test_episode_runs_in_both_protocols(checkpoints, served, libero_env, kind, t
 
     from lq_ros.transport.ros.stack import RosStack
 
-    policy_args = {"path": str(checkpoints[kind]), "threads": 1}
+    policy_args = {"path": str(checkpoints[kind])}  # the server's default threads (through ROS)
     with ExitStack() as reused:
         if transport == "ros":
             reuse = {"stack": reused.enter_context(RosStack())}
         else:
             reuse = {"policy": served(kind), "env": libero_env}
+            policy_args["threads"] = 1  # as served(kind)
         for mode in ("sync", "async"):
             cfg = RunConfig(
                 suite=SUITE, task=TASK, init=1, seed=3, mode=mode, latency_s=0.1, policy="lerobot",

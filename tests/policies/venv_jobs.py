@@ -3,7 +3,8 @@
 
 Starting a LeRobot venv's Python imports torch and LeRobot (about 10 s); a test module's reference computations run
 as one batch, or, when some depend on the module's own episodes, in one :class:`VenvWorker` that runs them as the
-tests ask; each job's result, or its traceback, goes to the test that reads it.
+tests ask; each job's result, or its traceback, goes to the test that reads it. A module's policy servers and envs
+are shared by its checks too (:class:`ModuleServers`, :class:`ModuleEnvs`).
 """
 
 from __future__ import annotations
