@@ -25,8 +25,7 @@ from lq_ros.wire import messages as m
 from tests.transport.ros.test_e2e import _alive, node_descendants
 from tests.transport.ros.test_faults import orphaned_shm, shm_files_of
 
-# Serial (after make test's parallel part): wall-clock runs: another worker's load would change what they time.
-pytestmark = [pytest.mark.slow, pytest.mark.sim, pytest.mark.serial]
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 SHM = Path("/dev/shm")
 ROBOTS = Path(__file__).resolve().parents[3] / "config/robots"
 

@@ -32,8 +32,7 @@ from lq_ros.wire import messages as m
 from tests.transport.ros.test_faults import alive, four_nodes, start_lq, wait_for
 from tests.transport.ros.test_realtime_e2e import _lq_run
 
-# Serial (after make test's parallel part): wall-clock runs: another worker's load would change what they time.
-pytestmark = [pytest.mark.slow, pytest.mark.sim, pytest.mark.serial]
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 SLEEPY = ["--policy", "lq_ros.policies.sleepy:SleepyPolicy", "--policy-arg", "sleep_s=0.1"]
 ASYNC = ["--clock", "realtime", "--mode", "async", "--latency", "0.2"]
 ROBOT_TOPICS = {"ee_topic": "/robot/ee_pose", "joint_topic": "/robot/joint_states"}

@@ -15,8 +15,7 @@ from lq_ros.recording.bag_compare import bag_messages
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_recorder_close import recorder_process, warnings
 
-# Serial (after make test's parallel part): the recorder's wall-clock wait for a late /clock.
-pytestmark = [pytest.mark.slow, pytest.mark.ros, pytest.mark.serial]
+pytestmark = [pytest.mark.slow, pytest.mark.ros]
 
 LAST_CLOCK_NS = 2_588_000_000  # the last /clock before the end, robot time
 END_NS = 2_610_000_000  # the end event's stamp

@@ -14,8 +14,7 @@ from lq_ros.scoring.failure_modes import FAILURE_MODES
 from lq_ros.wire import messages as m
 from tests.transport.ros.test_realtime_e2e import SHM, _assert_nothing_left, _lq_run
 
-# Serial (after make test's parallel part): a wall-clock run with the robot stand-in.
-pytestmark = [pytest.mark.slow, pytest.mark.sim, pytest.mark.serial]
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
 def test_standin_episode_has_a_failure_mode_from_its_own_task_state(tmp_path):
