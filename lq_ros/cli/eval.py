@@ -192,8 +192,6 @@ def eval_(
     """
     import yaml
 
-    from lq_ros.report.eval_info import EVAL_INFO_DIR, write_eval_info
-    from lq_ros.report.sweep_report import build_report
     from lq_ros.run import sweep as sw
     from lq_ros.run.validation import did_you_mean
 
@@ -228,6 +226,9 @@ def eval_(
                                                overwrite=overwrite)  # fmt: skip
     except (sw.RayConnectError, sw.StoreError) as exc:
         _refuse(str(exc))
+    from lq_ros.report.eval_info import EVAL_INFO_DIR, write_eval_info  # (matplotlib, pandas, scipy: once needed)
+    from lq_ros.report.sweep_report import build_report
+
     with contextlib.redirect_stdout(sys.stderr):
         result = build_report(out)
     infos = write_eval_info(result.episodes, out)  # lerobot-eval's eval_info.json, one per protocol cell

@@ -58,7 +58,6 @@ def score(
 ) -> None:
     """Score bags. A folder of bags (even of one) also gets per (policy, mode, Δt_sim, suite, task) aggregates with
     95% CIs, written as CSV + Parquet, and a markdown table on stdout. Exits 1 if any bag is damaged."""
-    from lq_ros.scoring.aggregate import aggregate, markdown_table, score_directory, write_tables
     from lq_ros.scoring.bag_scorer import find_bags
 
     # Options are checked before any bag is read: a bad one would otherwise surface per bag, or after scoring.
@@ -88,6 +87,9 @@ def score(
                     refuse_link(tables / f"{name}.{ext}")  # a link there is refused now, not after scoring
         except WriteRefused as exc:
             _refuse(f"{exc}; the tables go there (or give --out)" if out is None else str(exc))
+    # (pandas, scipy: imported once the arguments and the folder are checked)
+    from lq_ros.scoring.aggregate import aggregate, markdown_table, score_directory, write_tables
+
     references = _read_references(efficiency_reference) if efficiency_reference else None
     kwargs = dict(ee_topic=ee_topic, joint_topic=joint_topic, osc_window=osc_window, rate=rate.value,
                   energy_rate=energy_rate.value, elec_coeff=elec_coeff, overhead_w=overhead_w)  # fmt: skip

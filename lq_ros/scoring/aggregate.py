@@ -57,49 +57,9 @@ from lq_ros.scoring.intervals import (
     wilson_interval,
 )
 from lq_ros.scoring.labels import _distinct, label_variants
+from lq_ros.scoring.row_check import BY_OUTCOME, CONTINUOUS_METRICS, SUCCESS_ONLY, WITH_OUTCOME
 from lq_ros.scoring.survival import greenwood, restricted_mean_interval
 
-SUCCESS_ONLY, WITH_OUTCOME, BY_OUTCOME = "success", "outcome", "by_outcome"
-#: metric -> the episodes its ``_mean`` is over (see the module docstring). BY_OUTCOME metrics are
-#: over successes, with ``_failure_`` and ``_all_`` columns beside them.
-CONTINUOUS_METRICS: dict[str, str] = {
-    "completion_time_s": SUCCESS_ONLY,
-    "completion_steps": SUCCESS_ONLY,
-    "traj_length": SUCCESS_ONLY,
-    "traj_efficiency": SUCCESS_ONLY,
-    "jerk_mean": BY_OUTCOME,
-    "jerk_p90": BY_OUTCOME,
-    "ee_osc": BY_OUTCOME,
-    "ee_osc_detrended": BY_OUTCOME,
-    "sparc": BY_OUTCOME,
-    "ldlj": BY_OUTCOME,
-    "energy_mech_j": BY_OUTCOME,
-    "energy_elec_j": BY_OUTCOME,
-    "energy_overhead_j": BY_OUTCOME,
-    "energy_total_j": BY_OUTCOME,
-    "energy_per_step_j": BY_OUTCOME,
-    # Chunk-boundary quality (lq_ros/scoring/chunk_boundary.py): like jerk, over successes with failures and all beside.
-    "chunk_switches": BY_OUTCOME,
-    "switch_executed_step_mean": BY_OUTCOME,
-    "switch_executed_step_max": BY_OUTCOME,
-    "chunk_disagreement_mean": BY_OUTCOME,
-    "chunk_switch_jump_mean": BY_OUTCOME,
-    "chunk_switch_jump_p90": BY_OUTCOME,
-    "chunk_switch_jump_max": BY_OUTCOME,
-    "chunk_switch_jerk_mean": BY_OUTCOME,
-    "chunk_switch_jerk_ratio": BY_OUTCOME,
-    "latency_sim_mean_s": WITH_OUTCOME,
-    "latency_sim_p50_s": WITH_OUTCOME,
-    "latency_sim_p90_s": WITH_OUTCOME,
-    "latency_sim_max_s": WITH_OUTCOME,
-    "action_ticks": WITH_OUTCOME,
-    "latency_real_mean_s": WITH_OUTCOME,
-    "latency_real_p90_s": WITH_OUTCOME,
-    "num_inferences": WITH_OUTCOME,
-    "hold_ticks": WITH_OUTCOME,
-    "underrun_ticks": WITH_OUTCOME,
-    "actions_per_chunk_mean": WITH_OUTCOME,
-}
 #: Per-episode column -> the aggregate column listing its distinct values (what produced the numbers).
 PROVENANCE_COLUMNS = {
     "latency_ticks": "latency_ticks",
@@ -249,7 +209,7 @@ def aggregate(
         masks = {"success": status == "success", "failure": status == "failure", "outcome": outcome_mask}
         for metric, over in CONTINUOUS_METRICS.items():
             populations = (
-                POPULATIONS if over == BY_OUTCOME else {"": SUCCESS_ONLY if over == SUCCESS_ONLY else "outcome"}
+                POPULATIONS if over == BY_OUTCOME else {"": SUCCESS_ONLY if over == SUCCESS_ONLY else WITH_OUTCOME}
             )
             for infix, population in populations.items():
                 _add_mean(row, group, masks[population], metric, f"{metric}{infix}", confidence, n_boot, seed)
