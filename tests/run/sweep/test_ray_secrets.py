@@ -80,7 +80,7 @@ def _environ(pid: int) -> dict[str, str]:
 @pytest.mark.slow
 @pytest.mark.sim
 @pytest.mark.ros
-@pytest.mark.serial  # a private Ray; its checks look at every process of the machine
+@pytest.mark.serial  # one private Ray at a time (Ray's session folders, /tmp/ray, are the machine's)
 def test_a_private_ray_has_a_private_token_its_nodes_never_see(tmp_path, monkeypatch):
     from tests.run.sweep.test_sweep_ray import _descendants
 

@@ -12,7 +12,8 @@ from lq_ros.core.run_config import openblas_core
 from lq_ros.recording.episode_bag import read_run_metadata
 from lq_ros.run import sweep as sw
 
-# Serial (after make test's parallel part): a private Ray; its checks look at every process of the machine.
+# Serial (after make test's parallel part): one private Ray at a time (Ray's session folders, /tmp/ray, are the
+# machine's).
 pytestmark = [pytest.mark.slow, pytest.mark.sim, pytest.mark.serial]
 
 LOOPBACK = {"127.0.0.1", "::1", "::ffff:127.0.0.1"}
