@@ -54,6 +54,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from lq_ros.transport.processes import end_teardown_after
 from lq_ros.wire.node_names import NODE_NAMES, stack_node_names
 
 #: The recorder: the episode is over once it has left the active state (its bag is closed and scored).
@@ -515,6 +516,7 @@ def main() -> None:
         try:
             serve(manager, replies, ops, wake, launcher)
         finally:
+            end_teardown_after()  # a teardown that hangs (an orphan's peers gone) ends, not spins on
             stop_serving(*service)
             manager.destroy_node()
             face.destroy_node()

@@ -93,6 +93,22 @@ def die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+#: Wall seconds a node may take to leave once it stops spinning (closing its episode and bag, destroying its ROS
+#: entities, Fast DDS's teardown) before the kernel ends it. A launcher's own stop escalates to SIGKILL sooner
+#: (:func:`stop_processes`); this bounds an orphan, which nobody stops: an executor node whose sweep worker had
+#: been ended was seen spinning in its teardown at 65 % of a core for an hour.
+TEARDOWN_LIMIT_S = 60
+
+
+def end_teardown_after(seconds: int = TEARDOWN_LIMIT_S) -> None:
+    """Have the kernel end this process with SIGALRM if it is still alive ``seconds`` from now.
+
+    SIGALRM's default action runs no Python, so it ends a process stuck in C code that holds the GIL too.
+    """
+    signal.signal(signal.SIGALRM, signal.SIG_DFL)
+    signal.alarm(seconds)
+
+
 def stop_processes(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
     """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL whatever is left."""
     for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):

@@ -95,3 +95,16 @@ def test_stale_shared_memory_of_other_users_is_not_considered(tmp_path, monkeypa
     tracker = ShmTracker.stale_segments()
     assert "fastrtps_mine" in tracker.names
     assert os.getuid() != 0 or "fastrtps_theirs" not in tracker.names
+
+
+def test_a_teardown_that_hangs_is_ended_by_the_kernel():
+    """end_teardown_after: a process that never leaves (here a busy loop that never releases control to a signal
+    handler's Python: a regular expression's backtracking, in C, holding the GIL) is ended by SIGALRM's default
+    action; one that leaves in time exits with its own code."""
+    hang = ("from lq_ros.transport.processes import end_teardown_after; import re; end_teardown_after(1); "
+            "re.match(r'(a+)+$', 'a' * 64 + 'b')")  # fmt: skip
+    started = time.monotonic()
+    ended = subprocess.run([sys.executable, "-c", hang], timeout=60)
+    assert ended.returncode == -signal.SIGALRM and time.monotonic() - started < 30
+    leaves = "from lq_ros.transport.processes import end_teardown_after; end_teardown_after(30); raise SystemExit(3)"
+    assert subprocess.run([sys.executable, "-c", leaves], timeout=60).returncode == 3

@@ -22,7 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 
 from lq_ros.core.run_config import RunConfig
-from lq_ros.transport.processes import executor_choice, exit_uncollected
+from lq_ros.transport.processes import end_teardown_after, executor_choice, exit_uncollected
 from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
 
@@ -136,6 +136,7 @@ def run(node_factory: Callable[[], Node], stay_alive: bool = False) -> int:
                 rclpy.spin_once(node, timeout_sec=0.1)
             code = getattr(node, "exit_code", 0)
         finally:
+            end_teardown_after()  # a teardown that hangs (an orphan's peers gone) ends, not spins on
             close = getattr(node, "close", None)
             if close is not None:
                 close()
@@ -405,6 +406,7 @@ def _spin_until_finalized(node_factory: Callable[[], EpisodeNode]) -> None:
             while rclpy.ok() and node.lifecycle_state != "finalized":
                 executor.spin_once(timeout_sec=0.1)
         finally:
+            end_teardown_after()  # a teardown that hangs (an orphan's peers gone) ends, not spins on
             node.exiting = True
             node.close()
             node.destroy_node()

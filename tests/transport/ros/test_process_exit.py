@@ -11,6 +11,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 from lq_ros.transport.processes import SHM_DIR
 from lq_ros.transport.ros.stack import child_environment, reserved_domain
 
@@ -37,6 +39,7 @@ NODE_THEN_EXIT = textwrap.dedent(
 )
 
 
+@pytest.mark.serial  # a Fast DDS port file the probe used may be another run's too (the same port number)
 def test_a_node_process_leaves_no_shm_file_and_keeps_its_output_and_exit_code(tmp_path):
     marker, owned_file = tmp_path / "atexit", tmp_path / "owned.json"
     with reserved_domain() as domain:
