@@ -109,6 +109,14 @@ def end_teardown_after(seconds: int = TEARDOWN_LIMIT_S) -> None:
     signal.alarm(seconds)
 
 
+def orphan_check() -> Callable[[], bool]:
+    """A check that turns true once this process has been left to init (PID 1): the program that started it and
+    every subreaper above it are gone, so nobody will stop it any more. Never true for a process started by PID 1
+    itself (a container whose first process is the launcher)."""
+    started_by_init = os.getppid() == 1
+    return lambda: not started_by_init and os.getppid() == 1
+
+
 def stop_processes(procs: dict[str, subprocess.Popen], grace_s: float = 10.0) -> None:
     """SIGINT (clean rclpy shutdown), then SIGTERM, then SIGKILL whatever is left."""
     for sig, wait_s in ((signal.SIGINT, grace_s), (signal.SIGTERM, 5.0), (signal.SIGKILL, 5.0)):

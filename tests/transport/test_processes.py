@@ -108,3 +108,22 @@ def test_a_teardown_that_hangs_is_ended_by_the_kernel():
     assert ended.returncode == -signal.SIGALRM and time.monotonic() - started < 30
     leaves = "from lq_ros.transport.processes import end_teardown_after; end_teardown_after(30); raise SystemExit(3)"
     assert subprocess.run([sys.executable, "-c", leaves], timeout=60).returncode == 3
+
+
+def test_a_process_left_to_init_knows_it(tmp_path):
+    """orphan_check: false while the program that started a process lives, true once it has gone and the process
+    was left to init (no subreaper above this test)."""
+    report = tmp_path / "report"
+    grandchild = ("import os, sys, time; from lq_ros.transport.processes import orphan_check; check = orphan_check(); "
+                  "before = check(); open(sys.argv[1] + '.ready', 'w').close(); deadline = time.monotonic() + 30\n"
+                  "while not check() and time.monotonic() < deadline: time.sleep(0.05)\n"
+                  "open(sys.argv[1], 'w').write(f'{before} {check()}')")  # fmt: skip
+    child = ("import subprocess, sys, time, os; subprocess.Popen([sys.executable, '-c', sys.argv[1], sys.argv[2]]); "
+             "deadline = time.monotonic() + 30\n"
+             "while not os.path.exists(sys.argv[2] + '.ready') and time.monotonic() < deadline:\n"
+             "    time.sleep(0.05)")  # fmt: skip
+    assert subprocess.run([sys.executable, "-c", child, grandchild, str(report)], timeout=60).returncode == 0
+    deadline = time.monotonic() + 40
+    while not report.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert report.read_text() == "False True"

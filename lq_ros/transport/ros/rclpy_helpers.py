@@ -22,7 +22,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from std_msgs.msg import String
 
 from lq_ros.core.run_config import RunConfig
-from lq_ros.transport.processes import end_teardown_after, executor_choice, exit_uncollected
+from lq_ros.transport.processes import end_teardown_after, executor_choice, exit_uncollected, orphan_check
 from lq_ros.transport.ros.senders import EXPECTED_SENDERS, SenderSubscription, expected_sender, sender_text
 from lq_ros.wire import messages as m
 
@@ -131,8 +131,9 @@ def run(node_factory: Callable[[], Node], stay_alive: bool = False) -> int:
     try:
         rclpy.init()
         node = node_factory()
+        left_alone = orphan_check()  # an orphan ends as on SIGTERM: its launcher cannot stop it any more
         try:
-            while rclpy.ok() and (stay_alive or not getattr(node, "finished", False)):
+            while rclpy.ok() and (stay_alive or not getattr(node, "finished", False)) and not left_alone():
                 rclpy.spin_once(node, timeout_sec=0.1)
             code = getattr(node, "exit_code", 0)
         finally:
@@ -403,7 +404,8 @@ def _spin_until_finalized(node_factory: Callable[[], EpisodeNode]) -> None:
             executor = node_executor()
             executor.add_node(node)
             node.get_logger().info(f"executor: {type(executor).__name__}")
-            while rclpy.ok() and node.lifecycle_state != "finalized":
+            left_alone = orphan_check()  # an orphan ends as on SIGTERM: its launcher cannot stop it any more
+            while rclpy.ok() and node.lifecycle_state != "finalized" and not left_alone():
                 executor.spin_once(timeout_sec=0.1)
         finally:
             end_teardown_after()  # a teardown that hangs (an orphan's peers gone) ends, not spins on
