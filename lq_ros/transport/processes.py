@@ -94,10 +94,11 @@ def die_with_parent() -> None:
 
 
 #: Wall seconds a node may take to leave once it stops spinning (closing its episode and bag, destroying its ROS
-#: entities, Fast DDS's teardown) before the kernel ends it. A launcher's own stop escalates to SIGKILL sooner
-#: (:func:`stop_processes`); this bounds an orphan, which nobody stops: an executor node whose sweep worker had
-#: been ended was seen spinning in its teardown at 65 % of a core for an hour.
-TEARDOWN_LIMIT_S = 60
+#: entities, Fast DDS's teardown) before the kernel ends it. No stop a launcher makes waits longer: it gives a node
+#: 10 s after SIGINT and 5 s after SIGTERM, then SIGKILL (:func:`stop_processes`). This bounds the nodes nobody
+#: stops: an executor node whose sweep worker had been ended was seen spinning at 65 % of a core for an hour, and a
+#: node whose fork server was killed still alive 30 s after its parent-death signal.
+TEARDOWN_LIMIT_S = 20
 
 
 def end_teardown_after(seconds: int = TEARDOWN_LIMIT_S) -> None:
