@@ -89,8 +89,8 @@ setup-all:
 	$(MAKE) -j3 setup setup-lerobot setup-lerobot06
 
 # The suite in two parts: most tests on parallel workers (a module's tests stay on one worker, so the fixtures it
-# shares start once), then the tests marked `serial` one at a time (a private Ray, a count of every new /dev/shm file
-# of the machine). Both parts always run.
+# shares start once), then the tests marked `serial` one at a time (a private Ray, a look at the machine's /dev/shm
+# files). Both parts always run.
 TEST_WORKERS ?= 2
 test: setup-all
 	$(MAKE) bytecode
