@@ -122,7 +122,7 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks:
     rates: dict[int, float] = {}
     walls: dict[int, float] = {}
     ticks: dict[int, int] = {}  # per worker count: episodes may end differently from run to run
-    floor_before = floor_per_tick(floor_ticks) if floor_ticks else None
+    floor_before = floor_per_tick(floor_ticks, repetitions=5) if floor_ticks else None
     for n in workers:
         if before:
             wall_off, cpu_off, ran_off, _ = _run(spec, n, transport, "off")
@@ -134,7 +134,7 @@ def measure(spec: sw.SweepSpec, workers: list[int], transport: str, floor_ticks:
                   f"{ran / cpu:.3f} ({cpu_off / ran_off / (cpu / ran):.2f}x); per wall second {ran_off / wall_off:.3f} "
                   f"-> {ran / wall:.3f}")  # fmt: skip
     if floor_before and ticks:
-        floor_after = floor_per_tick(floor_ticks)
+        floor_after = floor_per_tick(floor_ticks, repetitions=5)
         # the mean of before and after: the machine's speed drifts during a long run
         step_s = (floor_before.env_step_s + floor_after.env_step_s) / 2
         stock_s = (floor_before.robosuite_step_s + floor_after.robosuite_step_s) / 2

@@ -9,12 +9,12 @@ state cycles over 0..9 so consecutive episodes differ. Then the reset of one env
 the MjSim) against soft (LiberoEnv's default after the first reset), both including LIBERO's 10 wait
 steps, alternated in the same process.
 
-The floor (CPU time per tick, loops interleaved, median of 5 rounds; benchmarks/tick_floor.py): the same scene's
+The floor (CPU time per tick, loops interleaved, median of 15 rounds; benchmarks/tick_floor.py): the same scene's
 stock robosuite ``env.step`` and its MuJoCo calls; the same calls with repeated stages skipped (StageReuse);
 robosuite's numba controller maths alone; the bit-identical floor (StageReuse's calls and the controller maths in one
-loop replaying a real tick, bit for bit); ``LiberoEnv.step`` as a ratio of that floor (target <= 1.2), with and
-without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the physics
-alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
+loop replaying a real tick, bit for bit); ``LiberoEnv.step`` as a ratio of that floor (the median of the rounds'
+paired ratios; target <= 1.2), with and without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the
+physics alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
 one worker; start-up, resets, bags, scoring included), without and with the fast tick, against the same ticks
 through LIBERO's stock ``env.step`` (each bag's commands replayed, its joint positions checked bit for bit; the
 CPU of the steps alone; target <= 0.55x). Where an in-process episode's time goes (``--where N``): each
@@ -27,7 +27,7 @@ through the long-lived stack, where the policy node's inference overlaps the sim
 wait for it.
 
     .venv/bin/python benchmarks/bench_transport.py [--policy scripted] [--episodes 10] [--resets 5]
-        [--floor-ticks 200] [--sweep-inits 8] [--where 3] [--slow-policy 0.15]
+        [--floor-ticks 600] [--sweep-inits 8] [--where 3] [--slow-policy 0.15]
 
 ``--episodes 0 --resets 0 --slow-policy 0`` prints the floor, the sweep and the time breakdown only.
 """
@@ -61,7 +61,7 @@ def main() -> None:
     parser.add_argument("--latency", type=float, default=0.2)
     parser.add_argument("--max-steps", type=int, default=220)
     parser.add_argument("--resets", type=int, default=5, help="hard and soft resets each (0: skip)")
-    parser.add_argument("--floor-ticks", type=int, default=200, help="ticks of bare env.step and mj_step (0: skip)")
+    parser.add_argument("--floor-ticks", type=int, default=600, help="ticks of each floor loop, 15 rounds (0: skip)")
     parser.add_argument("--slow-policy", type=float, default=0.15, help="sleep per inference, s (0: skip)")
     parser.add_argument("--sweep-inits", type=int, default=8, help="init states of the sweep vs stock (0: skip)")
     parser.add_argument("--where", type=int, default=3, help="episodes of the time breakdown (0: skip)")

@@ -43,11 +43,24 @@ class Floor:
     controller_maths_s: float  #: robosuite's numba controller functions x 25, with a real tick's inputs
     bit_identical_s: float  #: the bit-identical floor: StageReuse's calls and the controller maths, one loop
     mj_step_s: float  #: raw mj_step x 25: the physics alone
+    #: ``LiberoEnv.step`` over the floor in each round (the two loops run back to back): empty for a Floor built
+    #: from medians alone
+    round_ratios: tuple[float, ...] = ()
 
     @property
     def env_step_over_floor(self) -> float:
-        """``LiberoEnv.step`` over the bit-identical floor (target <= :data:`FLOOR_TARGET`)."""
+        """``LiberoEnv.step`` over the bit-identical floor (target <= :data:`FLOOR_TARGET`): the median of the
+        rounds' paired ratios (a drift of the machine's speed between rounds cancels), else the medians' ratio."""
+        if self.round_ratios:
+            return statistics.median(self.round_ratios)
         return self.env_step_s / self.bit_identical_s
+
+    def ratio_quartiles(self) -> tuple[float, float]:
+        """The first and third quartiles of the rounds' ratios (both the ratio when there are no rounds)."""
+        if len(self.round_ratios) < 2:
+            return self.env_step_over_floor, self.env_step_over_floor
+        q1, _, q3 = statistics.quantiles(self.round_ratios, n=4)
+        return q1, q3
 
 
 def floor_lines(floor: Floor) -> list[str]:
@@ -56,6 +69,10 @@ def floor_lines(floor: Floor) -> list[str]:
     step_s, ratio = floor.robosuite_step_s, floor.env_step_over_floor
     verdict = "met" if ratio <= FLOOR_TARGET else "not met"
     above_ms = ms * (floor.env_step_s - floor.bit_identical_s)
+    spread = ""
+    if floor.round_ratios:
+        q1, q3 = floor.ratio_quartiles()
+        spread = f" (median of {len(floor.round_ratios)} rounds' paired ratios, quartiles {q1:.2f}-{q3:.2f})"
     return [
         f"floor per tick (CPU time, median of interleaved rounds): robosuite's env.step {ms * step_s:.2f} ms, of "
         f"which its MuJoCo calls ((2 mj_forward + mj_step) x 25) {ms * floor.robosuite_mujoco_s:.2f} ms and its "
@@ -65,7 +82,7 @@ def floor_lines(floor: Floor) -> list[str]:
         f"{ms * floor.controller_maths_s:.2f} ms; raw mj_step x 25 {ms * floor.mj_step_s:.2f} ms",
         f"  bit-identical floor (StageReuse's calls and the controller maths, one loop replaying a real tick) "
         f"{ms * floor.bit_identical_s:.2f} ms = {floor.bit_identical_s / floor.mj_step_s:.2f}x raw mj_step x 25",
-        f"  LiberoEnv.step {ms * floor.env_step_s:.2f} ms = {ratio:.2f}x the bit-identical floor (target <= "
+        f"  LiberoEnv.step {ms * floor.env_step_s:.2f} ms = {ratio:.2f}x the bit-identical floor{spread} (target <= "
         f"{FLOOR_TARGET}: {verdict}; {above_ms:.2f} ms above it), {floor.env_step_s / floor.mj_step_s:.2f}x raw "
         f"mj_step x 25, {floor.env_step_s / step_s:.2f}x robosuite's env.step; without the fast tick "
         f"(LQ_FAST_TICK=off) {ms * floor.env_step_robosuite_s:.2f} ms",
@@ -163,11 +180,12 @@ def replay(model, data, record: TickRecord, stages_factory: Callable) -> Callabl
     return tick
 
 
-def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, repetitions: int = 5) -> Floor:
+def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, repetitions: int = 15) -> Floor:
     """The simulation floor of a tick (:class:`Floor`): each loop runs ``n_ticks`` ticks in ``repetitions`` rounds,
     the loops interleaved within each round (a change of machine load hits them alike), each round from the same
     start state. Per loop, the median over rounds of the process's CPU seconds per tick: on a machine shared with
-    other work, CPU time varies less than wall time."""
+    other work, CPU time varies less than wall time. ``LiberoEnv.step`` against the floor: the median of the rounds'
+    ratios, its loop and the floor's run back to back in each round."""
     import mujoco
     import numpy as np
 
@@ -259,14 +277,15 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
             raise RuntimeError("the floor's replay did not end in the recorded ticks' state")
         return spent
 
+    # LiberoEnv.step next to the floor's replay, so each round's ratio compares two loops run moments apart.
     loops: dict[str, Callable[[], float]] = {
-        "robosuite_step_s": stock,
+        "bit_identical_s": bit_identical,
         "env_step_s": lambda: libero_env(True),
+        "robosuite_step_s": stock,
         "env_step_robosuite_s": lambda: libero_env(False),
         "robosuite_mujoco_s": lambda: raw(robosuite_calls),
         "reused_mujoco_s": reused,
         "controller_maths_s": maths,
-        "bit_identical_s": bit_identical,
         "mj_step_s": lambda: raw(lambda data: mujoco.mj_step(model, data)),
     }
     rounds: dict[str, list[float]] = {name: [] for name in loops}
@@ -276,4 +295,5 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
     env.close()
     if {f.__name__: len(f.signatures) for f, _ in record.maths[0]} != signatures:
         raise RuntimeError("a replayed call compiled a new numba signature: its inputs' types differ from the tick's")
-    return Floor(**{name: statistics.median(values) for name, values in rounds.items()})
+    ratios = tuple(e / f for e, f in zip(rounds["env_step_s"], rounds["bit_identical_s"], strict=True))
+    return Floor(**{name: statistics.median(values) for name, values in rounds.items()}, round_ratios=ratios)

@@ -23,7 +23,8 @@ scene, each keeping its own clock). Around MuJoCo's own cost that Python is abou
 - observables are updated by robosuite's own code only at the substep where one samples (once per tick); elsewhere
   only the shared clock advances, and wraps at the period's end, by the same float operations each observable makes;
 - after the substeps, robosuite's ``_post_action`` without its reward: LIBERO's reward is its success check, which
-  LIBERO's ``step`` evaluates again afterwards (the result ``done`` comes from), and nothing here reads the reward.
+  LIBERO's ``step`` evaluates again afterwards (the result ``done`` comes from), and nothing here reads the reward;
+  the observations are robosuite's observables' values, without the per-modality concatenations nothing reads.
 
 Anything else (another controller, robot, gripper or observable delay, a subclass overriding one of these methods)
 is refused by :func:`unsupported` and the env steps through robosuite's own ``env.step``, as it does with the
@@ -113,8 +114,10 @@ class FastTick:
         sim = self._env.sim
         self._model = model = sim.model._model
         self._data = sim.data._data
-        self._jacp = np.zeros((3, model.nv))
-        self._jacr = np.zeros((3, model.nv))
+        # One buffer for both Jacobians (mj_jacSite fills its two C-ordered halves): the arm's columns of both are
+        # then one copy, robosuite's J_full.
+        self._jac = np.zeros((6, model.nv))
+        self._jacp, self._jacr = self._jac[:3], self._jac[3:]
         self._mujoco = mujoco
         self._arm: _Arm | None = None  # made at the first tick, from the robot's controller and gripper
 
@@ -161,16 +164,22 @@ class FastTick:
             for g, increment in zip(grip.tolist(), grip_increment.tolist(), strict=True)
         )
         grip_written = False
-        jacp, jacr = self._jacp, self._jacr
-        site_xpos, site_xmat, qpos, qvel, qfrc_bias, ctrl, qm = (
+        jac, jacp, jacr = self._jac, self._jacp, self._jacr
+        # The decoupled wrench, written in place by its two products (robosuite concatenates their results).
+        wrench = np.empty(6)
+        wrench_pos, wrench_ori = wrench[:3], wrench[3:]
+        site_xpos, site_xmats, qpos, qvel, qfrc_bias, ctrl, qm = (
             data.site_xpos,
-            data.site_xmat,
+            data.site_xmat.reshape(-1, 3, 3),  # each site's rotation matrix, a (3, 3) view as robosuite reshapes it
             data.qpos,
             data.qvel,
             data.qfrc_bias,
             data.ctrl,
             data.qM,
         )
+        # Views into MuJoCo's data, made once: each substep reads their current values (robosuite copies them).
+        ee_pos, ee_ori_mat = site_xpos[sid], site_xmats[sid]
+        arm_bias = qfrc_bias[dof_slice] if dof_slice is not None else None
         inline = False  # whether a substep ran inline
         for substep in range(int(env.control_timestep / env.model_timestep)):
             forward()  # the env loop's
@@ -183,8 +192,6 @@ class FastTick:
                 clock.advance(dt)
                 continue
             forward()  # the controller update's
-            ee_pos = site_xpos[sid]
-            ee_ori_mat = site_xmat[sid].reshape([3, 3])
             if substep == 0:
                 # The policy step: robosuite's own set_goal, after the update it starts with, inline: the goal reads
                 # the end effector's pose, copied as the update copies it; the rest of the update's state is
@@ -204,17 +211,19 @@ class FastTick:
             # compiled functions were specialised for).
             if dof_slice is None:
                 j_pos, j_ori = jacp[:, qvel_index], jacr[:, qvel_index]
+                j_full = np.concatenate((j_pos, j_ori))  # np.vstack's own call for two 2-D arrays
             else:
                 j_pos, j_ori = np.asfortranarray(jacp[:, dof_slice]), np.asfortranarray(jacr[:, dof_slice])
-            j_full = np.concatenate((j_pos, j_ori))  # np.vstack's own call for two 2-D arrays
+                j_full = np.asfortranarray(jac[:, dof_slice])  # the same elements and layout as vstack's (Fortran)
             mass_matrix = qm[mass_index].T  # mj_fullM's arm block, gathered from qM (same elements, Fortran order)
 
             ori_error = orientation_error(goal_ori, ee_ori_mat)
-            desired_force = np.multiply(goal_pos - ee_pos, kp_pos) + np.multiply(ee_pos_vel, minus_kd_pos)
-            desired_torque = np.multiply(ori_error, kp_ori) + np.multiply(ee_ori_vel, minus_kd_ori)
+            desired_force = (goal_pos - ee_pos) * kp_pos + ee_pos_vel * minus_kd_pos  # np.multiply, np.add
+            desired_torque = ori_error * kp_ori + ee_ori_vel * minus_kd_ori
             _, lambda_pos, lambda_ori, nullspace_matrix = opspace_matrices(mass_matrix, j_full, j_pos, j_ori)
-            wrench = np.concatenate((lambda_pos.dot(desired_force), lambda_ori.dot(desired_torque)))
-            torques = j_full.T.dot(wrench) + qfrc_bias[qvel_index]
+            lambda_pos.dot(desired_force, out=wrench_pos)  # the same BLAS product, into its half of the wrench
+            lambda_ori.dot(desired_torque, out=wrench_ori)
+            torques = j_full.T.dot(wrench) + (qfrc_bias[qvel_index] if arm_bias is None else arm_bias)
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
             clipped = _clip(torques, torque_low, torque_high)  # np.clip's ufunc, without its Python wrappers
@@ -243,8 +252,13 @@ class FastTick:
         # robosuite's _post_action without self.reward(action): LIBERO's reward is _check_success, evaluated below.
         env.done = (env.timestep >= env.horizon) and not env.ignore_done
         env._post_process()
-        observations = env._get_observations()
-        return observations, env._check_success()
+        return _observations(env), env._check_success()
+
+
+def _observations(env) -> dict:
+    """robosuite's ``_get_observations()`` without its per-modality concatenations (``robot0_proprio-state``,
+    ``object-state``), which nothing here or in LIBERO's env reads: each enabled, active observable's value."""
+    return {name: o._current_observed_value for name, o in env._observables.items() if o._enabled and o._active}
 
 
 class _Arm:

@@ -74,6 +74,7 @@ class TaskStateProbe:
             geom_mask(gripper.important_geoms["left_fingerpad"]),
             geom_mask(gripper.important_geoms["right_fingerpad"]),
         )
+        self._pads_in_gripper = bool(np.all(self._gripper_mask[self._pad_masks[0] | self._pad_masks[1]]))
         self._kinds: list[tuple[str, int]] = []  # ("body" | "site", id) per object
         object_masks = []
         for name in self.object_names:
@@ -156,9 +157,11 @@ class TaskStateProbe:
         geom2 = data.contact.geom2[:ncon]
         contact = np.zeros(k, dtype=bool)
         grasped = np.zeros(k, dtype=bool)
-        if ncon:
+        gripper1, gripper2 = self._gripper_mask[geom1], self._gripper_mask[geom2]
+        # No contact has a gripper geom (most ticks): none touches or grasps anything (the pads are gripper geoms).
+        if gripper1.any() or gripper2.any() or not self._pads_in_gripper:
             masks = self._object_masks
-            contact = _touch(masks, geom1, geom2, self._gripper_mask[geom1], self._gripper_mask[geom2])
+            contact = _touch(masks, geom1, geom2, gripper1, gripper2)
             grasped = _touch(masks, geom1, geom2, self._pad_masks[0][geom1], self._pad_masks[0][geom2])
             grasped &= _touch(masks, geom1, geom2, self._pad_masks[1][geom1], self._pad_masks[1][geom2])
         values = np.array([bool(env._eval_predicate(state)) for state in self._goal], dtype=bool)
