@@ -17,9 +17,9 @@ scene, each keeping its own clock). Around MuJoCo's own cost that Python is abou
   (``mj_jacSite``, ``mj_fullM``), the same NumPy arithmetic on arrays of the same shapes and memory layouts (reached
   through cheaper calls where NumPy runs the same kernel: ``a.dot(b)`` for ``np.dot(a, b)``), and robosuite's own
   numba functions (``opspace_matrices``, ``nullspace_torques``, ``orientation_error``), so each float is computed
-  by the same code from the same inputs. Limits, gains and the gripper's control range are read once per tick
-  instead of once per substep, indexes once per controller; a gripper held at a limit (its clip returns the limit)
-  gets its controls computed once per tick;
+  by the same code from the same inputs. Gains are read once per tick instead of once per substep; indexes, torque
+  limits and the gripper's control range (the MuJoCo model's constants) once per robot; a gripper held at a limit
+  (its clip returns the limit) gets its controls computed once per tick;
 - observables are updated by robosuite's own code only at the substep where one samples (once per tick); elsewhere
   only the shared clock advances, and wraps at the period's end, by the same float operations each observable makes;
 - after the substeps, robosuite's ``_post_action`` without its reward: LIBERO's reward is its success check, which
@@ -150,10 +150,8 @@ class FastTick:
         kp_pos, kp_ori = np.array(kp[0:3]), np.array(kp[3:6])
         # -kd: (-v) * kd and v * (-kd) are the same float (IEEE multiplication is symmetric in sign).
         minus_kd_pos, minus_kd_ori = np.negative(kd[0:3]), np.negative(kd[3:6])
-        torque_low, torque_high = robot.torque_limits
-        ctrl_range = model.actuator_ctrlrange[gripper_actuators]
-        grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
-        grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
+        torque_low, torque_high = arm.torque_low, arm.torque_high
+        grip_bias, grip_weight = arm.grip_bias, arm.grip_weight
         arm_action, gripper_action = action[: controller.control_dim], action[controller.control_dim :]
         grip_increment = np.array([-1.0, 1.0]) * gripper.speed * np.sign(gripper_action)
         grip = gripper.current_action
@@ -280,6 +278,12 @@ class _Arm:
         self.dof_slice = slice(first, first + len(dofs)) if consecutive else None
         self.arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
         self.gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
+        # The model's control ranges: robosuite's torque limits (Robot.torque_limits) and the gripper's format_action
+        # scaling, computed as robosuite computes them at every substep.
+        self.torque_low, self.torque_high = robot.torque_limits
+        ctrl_range = model.actuator_ctrlrange[self.gripper_actuators]
+        self.grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
+        self.grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
 
 
 def _mass_index(mujoco, model, dofs: np.ndarray) -> np.ndarray:
