@@ -14,8 +14,8 @@ stock robosuite ``env.step`` and its MuJoCo calls; the same calls with repeated 
 robosuite's numba controller maths alone; the bit-identical floor (StageReuse's calls and the controller maths in one
 loop replaying a real tick, bit for bit); ``LiberoEnv.step`` as a ratio of that floor (the median of the rounds'
 paired ratios; target <= 1.2), with and without the fast tick (``LQ_FAST_TICK=off``); raw ``mj_step`` x 25 (the
-physics alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init states,
-one worker; start-up, resets, bags, scoring included), without and with the fast tick, against the same ticks
+physics alone). Then a paper cell as a whole in-process sweep (scripted, async 0.2 s, LIBERO-Spatial task 0, 8 init
+states, one worker; start-up, resets, bags, scoring included), without and with the fast tick, against the same ticks
 through LIBERO's stock ``env.step`` (each bag's commands replayed, its joint positions checked bit for bit; the
 CPU of the steps alone; target <= 0.55x). Where an in-process episode's time goes (``--where N``): each
 part's CPU time, exclusive of the parts it calls, from timers around MuJoCo's calls, robosuite's numba maths,

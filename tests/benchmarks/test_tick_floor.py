@@ -43,7 +43,8 @@ def test_libero_env_step_is_printed_as_a_ratio_of_the_bit_identical_floor():
 
 def test_with_rounds_the_ratio_is_the_median_of_the_rounds_paired_ratios():
     # The medians' ratio (9/6 = 1.5) is not what is reported: each round's LiberoEnv.step against its own floor.
-    floor = dataclasses.replace(_floor(env_step_s=0.009, bit_identical_s=0.006), round_ratios=(1.1, 1.3, 1.15, 1.2, 1.12))
+    ratios = (1.1, 1.3, 1.15, 1.2, 1.12)
+    floor = dataclasses.replace(_floor(env_step_s=0.009, bit_identical_s=0.006), round_ratios=ratios)
     assert floor.env_step_over_floor == pytest.approx(1.15)
     line = tick_floor.floor_lines(floor)[-1]
     assert "= 1.15x the bit-identical floor (median of 5 rounds' paired ratios, quartiles 1.11-1.25)" in line
