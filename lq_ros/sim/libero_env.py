@@ -600,15 +600,20 @@ class LiberoEnv:
             self._qvel_idx,
             self._torque_idx,
         )
+        # Views of the arm's velocities and torques where its indexes are consecutive (as for LIBERO's Panda): each
+        # substep reads their current values without indexing.
+        arm_vel, arm_tau = _view(qvel, qvel_idx), _view(actuator_force, torque_idx)
 
         def step_and_record() -> None:
             step()
-            vel = qvel[qvel_idx]
-            tau = actuator_force[torque_idx]
+            vel = qvel[qvel_idx] if arm_vel is None else arm_vel
+            tau = actuator_force[torque_idx] if arm_tau is None else arm_tau
             energy[0] += 1.0
             # tau.dot(vel): the BLAS dot product tau @ vel computes for two vectors (NumPy's DOUBLE_dot), without the
             # matmul ufunc's overhead.
-            energy[1] += max(0.0, float(tau.dot(vel)))  # eq. 7: clip the instantaneous power
+            power = tau.dot(vel)
+            if power > 0.0:  # eq. 7: clip the instantaneous power (adding max(0, power) = 0.0 changes no float)
+                energy[1] += float(power)
             energy[2] += float(tau.dot(tau))
             if self.record_physics:
                 pos, quat = self._eef_pose()
@@ -617,6 +622,13 @@ class LiberoEnv:
         self._sim.forward = stages.forward
         self._sim.step = step_and_record
         self._sim._lq_stages = stages
+
+
+def _view(values: np.ndarray, index: np.ndarray) -> np.ndarray | None:
+    """``values[index]`` as a view into ``values`` if ``index`` is consecutive, else None."""
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return values[int(index[0]) : int(index[0]) + len(index)]
+    return None
 
 
 assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12

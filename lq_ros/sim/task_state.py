@@ -90,6 +90,8 @@ class TaskStateProbe:
         self._object_masks = np.array(object_masks).reshape(len(self.object_names), ngeom)  # (K, ngeom)
         self._joints = [self._joint_of(name) for name in self.object_names]  # (qpos address, kind) or None
         self._joint_type = np.array([j[1] if j else JOINT_NONE for j in self._joints], dtype=np.uint8)
+        self._jointed = np.array([j is not None for j in self._joints], dtype=bool)
+        self._joint_addresses = np.array([j[0] for j in self._joints if j], dtype=np.intp)
         # Surface geoms per object: a jointed object's moving part (the joint body's subtree), else its own geoms.
         owners, geoms = [], []
         for i, joint in enumerate(self._joints):
@@ -104,6 +106,7 @@ class TaskStateProbe:
         self._surface_objects, self._surface_starts = np.unique(np.array(owners, dtype=np.int64), return_index=True)
         self._bodies = np.array([i for i, (kind, _) in enumerate(self._kinds) if kind == "body"], dtype=np.intp)
         self._body_ids = np.array([index for kind, index in self._kinds if kind == "body"], dtype=np.intp)
+        self._sites = [(i, index) for i, (kind, index) in enumerate(self._kinds) if kind == "site"]
         self._grip_site = env.robots[0].eef_site_id
         self._bound_to = self._model
 
@@ -142,19 +145,23 @@ class TaskStateProbe:
             self._bind()
         data = self._data
         k = len(self.object_names)
-        pos = np.empty((k, 3))
-        quat = np.empty((k, 4))
-        wxyz = np.empty(4)
-        pos[self._bodies] = data.xpos[self._body_ids]
-        quat[self._bodies] = data.xquat[self._body_ids][:, XYZW]
-        for i, (kind, index) in enumerate(self._kinds):
-            if kind == "site":
+        if self._sites:
+            pos = np.empty((k, 3))
+            quat = np.empty((k, 4))
+            wxyz = np.empty(4)
+            pos[self._bodies] = data.xpos[self._body_ids]
+            quat[self._bodies] = data.xquat[self._body_ids][:, XYZW]
+            for i, index in self._sites:
                 pos[i] = data.site_xpos[index]
                 mujoco.mju_mat2Quat(wxyz, data.site_xmat[index])
                 quat[i] = (wxyz[1], wxyz[2], wxyz[3], wxyz[0])
+        else:  # bodies only (every object in order): the same values, gathered directly
+            pos = data.xpos[self._body_ids]
+            quat = data.xquat[self._body_ids][:, XYZW]
         ncon = data.ncon
-        geom1 = data.contact.geom1[:ncon]
-        geom2 = data.contact.geom2[:ncon]
+        contacts = data.contact
+        geom1 = contacts.geom1[:ncon]
+        geom2 = contacts.geom2[:ncon]
         contact = np.zeros(k, dtype=bool)
         grasped = np.zeros(k, dtype=bool)
         gripper1, gripper2 = self._gripper_mask[geom1], self._gripper_mask[geom2]
@@ -165,7 +172,8 @@ class TaskStateProbe:
             grasped = _touch(masks, geom1, geom2, self._pad_masks[0][geom1], self._pad_masks[0][geom2])
             grasped &= _touch(masks, geom1, geom2, self._pad_masks[1][geom1], self._pad_masks[1][geom2])
         values = np.array([bool(env._eval_predicate(state)) for state in self._goal], dtype=bool)
-        joint_pos = np.array([data.qpos[j[0]] if j else np.nan for j in self._joints], dtype=np.float64)
+        joint_pos = np.full(k, np.nan)
+        joint_pos[self._jointed] = data.qpos[self._joint_addresses]
         return TaskStateSample(
             object_names=self.object_names,
             object_pos=pos,
