@@ -273,9 +273,7 @@ class _Arm:
         self.mass_index = _mass_index(mujoco, model, dofs)
         # The arm's columns of the Jacobians: a slice where its dofs are consecutive (as for LIBERO's Panda), copied
         # to Fortran order as robosuite's fancy index copies them; the fancy index otherwise.
-        first = int(dofs[0]) if len(dofs) else 0
-        consecutive = len(dofs) > 1 and np.array_equal(dofs, np.arange(first, first + len(dofs)))
-        self.dof_slice = slice(first, first + len(dofs)) if consecutive else None
+        self.dof_slice = consecutive_slice(dofs) if len(dofs) > 1 else None
         self.arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
         self.gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
         # The model's control ranges: robosuite's torque limits (Robot.torque_limits) and the gripper's format_action
@@ -284,6 +282,15 @@ class _Arm:
         ctrl_range = model.actuator_ctrlrange[self.gripper_actuators]
         self.grip_bias = 0.5 * (ctrl_range[:, 1] + ctrl_range[:, 0])
         self.grip_weight = 0.5 * (ctrl_range[:, 1] - ctrl_range[:, 0])
+
+
+def consecutive_slice(index: np.ndarray) -> slice | None:
+    """The slice selecting what index array ``index`` selects, if its entries are consecutive (then ``a[slice]`` is a
+    view with the same elements as the copy ``a[index]``), else None."""
+    if not len(index):
+        return None
+    first = int(index[0])
+    return slice(first, first + len(index)) if np.array_equal(index, np.arange(first, first + len(index))) else None
 
 
 def _mass_index(mujoco, model, dofs: np.ndarray) -> np.ndarray:

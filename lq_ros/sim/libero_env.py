@@ -589,6 +589,7 @@ class LiberoEnv:
         each one changes nothing in the simulation. Its forward passes and steps go through
         :class:`StageReuse` (bit-identical, without MuJoCo's repeated stages inside a tick).
         """
+        from lq_ros.sim.fast_tick import consecutive_slice
         from lq_ros.sim.stage_reuse import StageReuse  # imports MuJoCo: loaded in the background
 
         stages = StageReuse(self._model, self._data)
@@ -602,7 +603,9 @@ class LiberoEnv:
         )
         # Views of the arm's velocities and torques where its indexes are consecutive (as for LIBERO's Panda): each
         # substep reads their current values without indexing.
-        arm_vel, arm_tau = _view(qvel, qvel_idx), _view(actuator_force, torque_idx)
+        vel_slice, tau_slice = consecutive_slice(qvel_idx), consecutive_slice(torque_idx)
+        arm_vel = None if vel_slice is None else qvel[vel_slice]
+        arm_tau = None if tau_slice is None else actuator_force[tau_slice]
 
         def step_and_record() -> None:
             step()
@@ -622,13 +625,6 @@ class LiberoEnv:
         self._sim.forward = stages.forward
         self._sim.step = step_and_record
         self._sim._lq_stages = stages
-
-
-def _view(values: np.ndarray, index: np.ndarray) -> np.ndarray | None:
-    """``values[index]`` as a view into ``values`` if ``index`` is consecutive, else None."""
-    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
-        return values[int(index[0]) : int(index[0]) + len(index)]
-    return None
 
 
 assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12
