@@ -146,6 +146,9 @@ class FastTick:
             arm = self._arm = _Arm(mujoco, model, robot)
         sid, qpos_index, qvel_index, mass_index = arm.sid, arm.qpos_index, arm.qvel_index, arm.mass_index
         dof_slice, arm_actuators, gripper_actuators = arm.dof_slice, arm.arm_actuators, arm.gripper_actuators
+        # The arm's positions and velocities read as views where its indexes are consecutive (the controller's maths
+        # read them before the step); the last substep's are copies, what robosuite keeps after the tick.
+        pos_select, vel_select = arm.qpos_select, arm.qvel_select
         kp, kd, initial_joint = controller.kp, controller.kd, controller.initial_joint
         kp_pos, kp_ori = np.array(kp[0:3]), np.array(kp[3:6])
         # -kd: (-v) * kd and v * (-kd) are the same float (IEEE multiplication is symmetric in sign).
@@ -178,8 +181,12 @@ class FastTick:
         # Views into MuJoCo's data, made once: each substep reads their current values (robosuite copies them).
         ee_pos, ee_ori_mat = site_xpos[sid], site_xmats[sid]
         arm_bias = qfrc_bias[dof_slice] if dof_slice is not None else None
+        # The arm's controls: clipped straight into MuJoCo's controls where its actuators are consecutive.
+        arm_ctrl = ctrl[arm.ctrl_slice] if arm.ctrl_slice is not None else None
         inline = False  # whether a substep ran inline
-        for substep in range(int(env.control_timestep / env.model_timestep)):
+        substeps = int(env.control_timestep / env.model_timestep)
+        quiet = clock.quiet(dt, substeps)  # the coming substeps after which no observable acts
+        for substep in range(substeps):
             forward()  # the env loop's
             if substep == 0 and not controller.new_update:
                 # After a reset robosuite's update does not run at the policy step (the controller works from the
@@ -187,7 +194,7 @@ class FastTick:
                 env._pre_action(action, True)
                 grip, goal_pos, goal_ori = gripper.current_action, controller.goal_pos, controller.goal_ori
                 sim_step()
-                clock.advance(dt)
+                quiet = quiet - 1 if quiet else clock.act(dt, substeps - 1 - substep)
                 continue
             forward()  # the controller update's
             if substep == 0:
@@ -203,8 +210,10 @@ class FastTick:
             # ndarray.dot is np.dot's own product (the same BLAS call), without np.dot's dispatch.
             ee_pos_vel = jacp.dot(qvel)
             ee_ori_vel = jacr.dot(qvel)
-            joint_pos = qpos[qpos_index]
-            joint_vel = qvel[qvel_index]
+            if substep == substeps - 1:
+                pos_select, vel_select = qpos_index, qvel_index
+            joint_pos = qpos[pos_select]
+            joint_vel = qvel[vel_select]
             # robosuite copies these once more (np.array keeps the memory layout: Fortran order, as numba's
             # compiled functions were specialised for).
             if dof_slice is None:
@@ -224,20 +233,24 @@ class FastTick:
             torques = j_full.T.dot(wrench) + (qfrc_bias[qvel_index] if arm_bias is None else arm_bias)
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
-            clipped = _clip(torques, torque_low, torque_high)  # np.clip's ufunc, without its Python wrappers
+            # np.clip's ufunc, without its Python wrappers
+            clipped = _clip(torques, torque_low, torque_high) if arm_ctrl is None else None
             if not grip_written:
                 if not grip_held:
                     grip = _clip(grip + grip_increment, -1.0, 1.0)
                 ctrl[gripper_actuators] = grip_bias + grip_weight * grip
                 grip_written = grip_held
-            ctrl[arm_actuators] = clipped
+            if arm_ctrl is None:
+                ctrl[arm_actuators] = clipped
+            else:
+                _clip(torques, torque_low, torque_high, arm_ctrl)
             sim_step()
-            clock.advance(dt)
+            quiet = quiet - 1 if quiet else clock.act(dt, substeps - 1 - substep)
             inline = True
         if inline:
             # What robosuite leaves behind after a substep (the next policy step's update re-reads the state).
             gripper.current_action = grip
-            controller.torques, robot.torques = torques, clipped
+            controller.torques, robot.torques = torques, clipped if arm_ctrl is None else arm_ctrl.copy()
             controller.ee_pos, controller.ee_ori_mat = np.array(ee_pos), np.array(ee_ori_mat)
             controller.ee_pos_vel, controller.ee_ori_vel = ee_pos_vel, ee_ori_vel
             controller.joint_pos, controller.joint_vel = joint_pos, joint_vel
@@ -270,11 +283,16 @@ class _Arm:
         # Index arrays, not robosuite's lists: the same elements, without converting a list at every use.
         self.qpos_index = np.asarray(controller.qpos_index, dtype=np.intp)
         self.qvel_index = dofs = np.asarray(controller.qvel_index, dtype=np.intp)
+        # What reads the arm's positions and velocities: a slice (a view) where they are consecutive, else the index.
+        pos_slice = consecutive_slice(self.qpos_index)
+        self.qpos_select = self.qpos_index if pos_slice is None else pos_slice
+        self.qvel_select = dofs if consecutive_slice(dofs) is None else consecutive_slice(dofs)
         self.mass_index = _mass_index(mujoco, model, dofs)
         # The arm's columns of the Jacobians: a slice where its dofs are consecutive (as for LIBERO's Panda), copied
         # to Fortran order as robosuite's fancy index copies them; the fancy index otherwise.
         self.dof_slice = consecutive_slice(dofs) if len(dofs) > 1 else None
         self.arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
+        self.ctrl_slice = consecutive_slice(self.arm_actuators)
         self.gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
         # The model's control ranges: robosuite's torque limits (Robot.torque_limits) and the gripper's format_action
         # scaling, computed as robosuite computes them at every substep.
@@ -364,6 +382,28 @@ class _ObservableClock:
             # the same float operations.
             now %= self._period
             self._time, self._sampled = now, False
+
+    def quiet(self, dt: float, limit: int) -> int:
+        """How many of the next ``limit`` substeps of ``dt`` seconds end with no observable sampling or wrapping
+        (robosuite's update would only add ``dt`` to each clock). Their additions are made now, on the shared clock
+        (the same floats in the same order), so those substeps need no update at all."""
+        if not self._uniform:
+            return 0
+        time, sampled, period, delay = self._time, self._sampled, self._period, self._delay
+        count = 0
+        while count < limit:
+            now = time + dt
+            if not sampled and period - delay >= now or now >= period:  # one would act: see advance
+                break
+            time, count = now, count + 1
+        self._time = time
+        return count
+
+    def act(self, dt: float, limit: int) -> int:
+        """The update after a substep in which an observable acts (:meth:`advance`); then :meth:`quiet` for the
+        ``limit`` substeps left."""
+        self.advance(dt)
+        return self.quiet(dt, limit)
 
     def _store(self, time: float) -> None:
         for observable in self._enabled:

@@ -10,6 +10,7 @@ import contextlib
 import copy
 import os
 import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
@@ -544,6 +545,7 @@ class LiberoEnv:
             raise RuntimeError(f"MuJoCo timestep {self._model.opt.timestep} s, expected {PHYSICS_DT_S} s")
         if not hasattr(self._sim, "_lq_stages"):
             self._wrap_sim_step()
+            memoize_joint_addresses(self._sim.model)
         self._stages = self._sim._lq_stages
         from lq_ros.sim.fast_tick import FastTick, unsupported
 
@@ -625,6 +627,24 @@ class LiberoEnv:
         self._sim.forward = stages.forward
         self._sim.step = step_and_record
         self._sim._lq_stages = stages
+
+
+def memoize_joint_addresses(model) -> None:
+    """Answer robosuite MjModel ``model``'s ``get_joint_qpos_addr`` from a memo.
+
+    robosuite looks a joint's id, type and address up anew at every call (its comparisons of NumPy integers with
+    MuJoCo's enum cost about 15 us), and LIBERO calls it every tick: its post-processing for each stove or switch in
+    the scene, its Open, Close and TurnOn predicates for their joints. The answer is made of the model's constants:
+    the memo returns the same values (the same objects) for as long as the model lives. It holds the model weakly:
+    a hard reset's old simulator is still freed without a garbage collection."""
+    lookup, model_ref, memo = type(model).get_joint_qpos_addr, weakref.ref(model), {}
+
+    def get_joint_qpos_addr(name: str):
+        if name not in memo:
+            memo[name] = lookup(model_ref(), name)
+        return memo[name]
+
+    model.get_joint_qpos_addr = get_joint_qpos_addr
 
 
 assert abs(SUBSTEPS_PER_TICK * PHYSICS_DT_S - CONTROL_DT_S) < 1e-12
