@@ -209,6 +209,29 @@ def test_a_hard_reset_frees_the_old_simulator_without_robosuite_s_collection(cam
     assert binding_utils.gc is gc
 
 
+def test_the_joint_address_memo_gives_robosuite_s_answer_for_every_joint():
+    """LIBERO's per-tick joint lookups go through the memo: for every joint of the scene (the stove's hinge, the
+    objects' free joints, the arm's) it returns what robosuite's own lookup computes, the memo only on the second
+    call."""
+    from robosuite.utils.binding_utils import MjModel
+
+    env = LiberoEnv("libero_goal", 0)  # a stove, a cabinet's drawers, objects on free joints
+    try:
+        model = env._env.env.sim.model
+        assert "get_joint_qpos_addr" in vars(model)  # memoized on this model
+        names = [model.joint_id2name(j) for j in range(model._model.njnt)]
+        assert len(names) > 10
+        for name in names:
+            own = MjModel.get_joint_qpos_addr(model, name)
+            for _ in range(2):
+                memoized = model.get_joint_qpos_addr(name)
+                assert type(memoized) is type(own) and np.array_equal(memoized, own)
+        with pytest.raises(ValueError):
+            model.get_joint_qpos_addr("no_such_joint")
+    finally:
+        env.close()
+
+
 def test_an_episode_steps_past_robosuites_horizon():
     """robosuite ends an env after 1000 steps (LIBERO's 10 wait steps included) and then refuses every action. An
     action-budget run (up to ACTION_BUDGET_HARD_STOP x the budget: 1,120 ticks on LIBERO-Object) or a larger
