@@ -150,9 +150,11 @@ class FastTick:
         # read them before the step); the last substep's are copies, what robosuite keeps after the tick.
         pos_select, vel_select = arm.qpos_select, arm.qvel_select
         kp, kd, initial_joint = controller.kp, controller.kd, controller.initial_joint
-        kp_pos, kp_ori = np.array(kp[0:3]), np.array(kp[3:6])
+        # Position and orientation side by side: robosuite's elementwise arithmetic on each half, in one call per
+        # operation (an elementwise product or sum of an element does not depend on its neighbours).
+        kp = np.array(kp)
         # -kd: (-v) * kd and v * (-kd) are the same float (IEEE multiplication is symmetric in sign).
-        minus_kd_pos, minus_kd_ori = np.negative(kd[0:3]), np.negative(kd[3:6])
+        minus_kd = np.negative(kd)
         torque_low, torque_high = arm.torque_low, arm.torque_high
         grip_bias, grip_weight = arm.grip_bias, arm.grip_weight
         arm_action, gripper_action = action[: controller.control_dim], action[controller.control_dim :]
@@ -169,6 +171,9 @@ class FastTick:
         # The decoupled wrench, written in place by its two products (robosuite concatenates their results).
         wrench = np.empty(6)
         wrench_pos, wrench_ori = wrench[:3], wrench[3:]
+        # The end effector's velocity and its pose error, each written in place by robosuite's two operations.
+        ee_vel, error = np.empty(6), np.empty(6)
+        ee_pos_vel, ee_ori_vel, error_pos, error_ori = ee_vel[:3], ee_vel[3:], error[:3], error[3:]
         site_xpos, site_xmats, qpos, qvel, qfrc_bias, ctrl, qm = (
             data.site_xpos,
             data.site_xmat.reshape(-1, 3, 3),  # each site's rotation matrix, a (3, 3) view as robosuite reshapes it
@@ -208,8 +213,8 @@ class FastTick:
                 goal_pos, goal_ori = controller.goal_pos, controller.goal_ori
             mujoco.mj_jacSite(model, data, jacp, jacr, sid)
             # ndarray.dot is np.dot's own product (the same BLAS call), without np.dot's dispatch.
-            ee_pos_vel = jacp.dot(qvel)
-            ee_ori_vel = jacr.dot(qvel)
+            jacp.dot(qvel, out=ee_pos_vel)
+            jacr.dot(qvel, out=ee_ori_vel)
             if substep == substeps - 1:
                 pos_select, vel_select = qpos_index, qvel_index
             joint_pos = qpos[pos_select]
@@ -224,12 +229,13 @@ class FastTick:
                 j_full = np.asfortranarray(jac[:, dof_slice])  # the same elements and layout as vstack's (Fortran)
             mass_matrix = qm[mass_index].T  # mj_fullM's arm block, gathered from qM (same elements, Fortran order)
 
-            ori_error = orientation_error(goal_ori, ee_ori_mat)
-            desired_force = (goal_pos - ee_pos) * kp_pos + ee_pos_vel * minus_kd_pos  # np.multiply, np.add
-            desired_torque = ori_error * kp_ori + ee_ori_vel * minus_kd_ori
+            np.subtract(goal_pos, ee_pos, error_pos)
+            error_ori[:] = orientation_error(goal_ori, ee_ori_mat)
+            # robosuite's desired force (its first three) and torque: error * kp + velocity * -kd, np.multiply, np.add
+            desired = error * kp + ee_vel * minus_kd
             _, lambda_pos, lambda_ori, nullspace_matrix = opspace_matrices(mass_matrix, j_full, j_pos, j_ori)
-            lambda_pos.dot(desired_force, out=wrench_pos)  # the same BLAS product, into its half of the wrench
-            lambda_ori.dot(desired_torque, out=wrench_ori)
+            lambda_pos.dot(desired[:3], out=wrench_pos)  # the same BLAS product, into its half of the wrench
+            lambda_ori.dot(desired[3:], out=wrench_ori)
             torques = j_full.T.dot(wrench) + (qfrc_bias[qvel_index] if arm_bias is None else arm_bias)
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
