@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import os
 import threading
 import weakref
@@ -302,9 +303,11 @@ class LiberoEnv:
         #: Tick through :class:`lq_ros.sim.fast_tick.FastTick` where it applies; False: robosuite's own ``env.step``
         #: (the same trajectory, bit for bit; for comparisons). Default: ``LQ_FAST_TICK`` (``on`` unless ``off``).
         self.fast_tick = fast_tick.enabled()
-        self._substeps: list[tuple[np.ndarray, ...]] = []
-        # Substeps, positive work (J), torque^2 integral (N^2 m^2 s): Python floats, whose additions are float64's.
-        self._energy = [0.0, 0.0, 0.0]
+        #: After each physics substep of the current tick: the arm's joint torques (N m) and velocities (rad/s),
+        #: integrated into the tick's energy once the tick is over.
+        self._arm_samples: list[tuple[np.ndarray, np.ndarray]] = []
+        #: After each substep, when recording physics: the end effector's exact position and xyzw quaternion.
+        self._substep_poses: list[tuple[np.ndarray, np.ndarray]] = []
         #: The simulator's data when robosuite last sampled its observations (cameras render from it).
         self._observed_data = None
         self._reset_before = False
@@ -360,8 +363,8 @@ class LiberoEnv:
         self._env.set_init_state(self._init_states[init_index])
         for _ in range(NUM_WAIT_STEPS):
             self._obs, _ = self._robosuite_step(np.asarray(DUMMY_ACTION))
-        self._substeps.clear()  # the wait steps are not part of the episode
-        self._energy[:] = (0.0, 0.0, 0.0)
+        self._arm_samples.clear()  # the wait steps are not part of the episode
+        self._substep_poses.clear()
         self.control = self._switch_control(ControlMode(control_mode))
         self._tick = 0
         self._success = False
@@ -420,8 +423,8 @@ class LiberoEnv:
 
     def step(self, action: np.ndarray) -> TickState:
         """Apply ``action`` for one control tick; returns the state at the next tick."""
-        self._substeps.clear()
-        self._energy[:] = (0.0, 0.0, 0.0)
+        self._arm_samples.clear()
+        self._substep_poses.clear()
         self._obs, done = self._robosuite_step(np.asarray(action, dtype=np.float64))
         self._tick += 1
         self._success = bool(done)
@@ -500,18 +503,28 @@ class LiberoEnv:
 
     def _tick_state(self) -> TickState:
         pos, quat = self._eef_pose()
+        samples = self._arm_samples
         physics = None
-        if self.record_physics and self._substeps:
-            eef, eef_quat, vel, tau = (np.array(col) for col in zip(*self._substeps))
+        if self.record_physics and self._substep_poses:
+            eef, eef_quat = (np.array(column) for column in zip(*self._substep_poses))
+            tau, vel = (np.array(column) for column in zip(*samples))
             physics = PhysicsSamples(eef_pos=eef, eef_quat_xyzw=eef_quat, joint_vel=vel, joint_torque=tau)
-        substeps, work, torque_sq = self._energy
         energy = None
-        if substeps:
+        if samples:
+            # Positive work (J) and torque^2 integral (N^2 m^2 s) as sums over the substeps in their order, of Python
+            # floats (float64 additions). tau.dot(vel): the BLAS dot product tau @ vel computes for two vectors
+            # (NumPy's DOUBLE_dot), without the matmul ufunc's overhead.
+            work = torque_sq = 0.0
+            for tau, vel in samples:
+                power = tau.dot(vel)
+                if power > 0.0:  # eq. 7: clip the instantaneous power (adding max(0, power) = 0.0 changes no float)
+                    work += float(power)
+                torque_sq += float(tau.dot(tau))
             energy = EnergyIntegrals(
-                duration_s=substeps * PHYSICS_DT_S,
-                substeps=int(substeps),
-                positive_work_j=float(work) * PHYSICS_DT_S,
-                torque_squared_integral=float(torque_sq) * PHYSICS_DT_S,
+                duration_s=len(samples) * PHYSICS_DT_S,
+                substeps=len(samples),
+                positive_work_j=work * PHYSICS_DT_S,
+                torque_squared_integral=torque_sq * PHYSICS_DT_S,
             )
         return TickState(
             tick=self._tick,
@@ -585,7 +598,8 @@ class LiberoEnv:
         inner._update_observables = update_and_keep
 
     def _wrap_sim_step(self) -> None:
-        """Integrate joint power after every physics substep (and record the substep when asked).
+        """Keep the arm's torques and velocities after every physics substep for the tick's energy (and the end
+        effector's pose when recording physics).
 
         robosuite calls ``sim.step`` SUBSTEPS_PER_TICK times per ``env.step``; reading the state after
         each one changes nothing in the simulation. Its forward passes and steps go through
@@ -595,7 +609,7 @@ class LiberoEnv:
         from lq_ros.sim.stage_reuse import StageReuse  # imports MuJoCo: loaded in the background
 
         stages = StageReuse(self._model, self._data)
-        step, energy = stages.step, self._energy
+        step, samples = stages.step, self._arm_samples
         # This MjSim's data and arm (a hard reset makes a new MjSim, wrapped anew).
         qvel, actuator_force, qvel_idx, torque_idx = (
             self._data.qvel,
@@ -603,26 +617,21 @@ class LiberoEnv:
             self._qvel_idx,
             self._torque_idx,
         )
-        # Views of the arm's velocities and torques where its indexes are consecutive (as for LIBERO's Panda): each
-        # substep reads their current values without indexing.
+        # Each reads a copy of the arm's current torques or velocities: a view's copy where its indexes are
+        # consecutive (as for LIBERO's Panda), else the index's own copy.
         vel_slice, tau_slice = consecutive_slice(qvel_idx), consecutive_slice(torque_idx)
-        arm_vel = None if vel_slice is None else qvel[vel_slice]
-        arm_tau = None if tau_slice is None else actuator_force[tau_slice]
+        read_vel = qvel[vel_slice].copy if vel_slice is not None else functools.partial(qvel.__getitem__, qvel_idx)
+        read_tau = (
+            actuator_force[tau_slice].copy
+            if tau_slice is not None
+            else functools.partial(actuator_force.__getitem__, torque_idx)
+        )
 
         def step_and_record() -> None:
             step()
-            vel = qvel[qvel_idx] if arm_vel is None else arm_vel
-            tau = actuator_force[torque_idx] if arm_tau is None else arm_tau
-            energy[0] += 1.0
-            # tau.dot(vel): the BLAS dot product tau @ vel computes for two vectors (NumPy's DOUBLE_dot), without the
-            # matmul ufunc's overhead.
-            power = tau.dot(vel)
-            if power > 0.0:  # eq. 7: clip the instantaneous power (adding max(0, power) = 0.0 changes no float)
-                energy[1] += float(power)
-            energy[2] += float(tau.dot(tau))
+            samples.append((read_tau(), read_vel()))
             if self.record_physics:
-                pos, quat = self._eef_pose()
-                self._substeps.append((pos, quat, vel.copy(), tau.copy()))
+                self._substep_poses.append(self._eef_pose())
 
         self._sim.forward = stages.forward
         self._sim.step = step_and_record
