@@ -190,16 +190,19 @@ class TaskStateProbe:
     def _surface_distance(self) -> np.ndarray:
         """Per object: the grip site's distance to the nearest of its surface geoms' boxes, m (NaN: none)."""
         data = self._data
-        out = np.full(len(self.object_names), np.inf)
         if not len(self._surface_geoms):
             return np.full(len(self.object_names), np.nan)
         g = self._surface_geoms
         offset = data.site_xpos[self._grip_site] - data.geom_xpos[g]  # (G, 3) world
         local = np.einsum("gji,gj->gi", data.geom_xmat[g].reshape(-1, 3, 3), offset)  # into each geom's frame
         outside = np.maximum(np.abs(local - self._surface_centre) - self._surface_half, 0.0)
-        distance = np.sqrt(np.add.reduce(outside * outside, axis=1))  # np.linalg.norm's own sum, without its checks
-        out[self._surface_objects] = np.minimum.reduceat(distance, self._surface_starts)  # the nearest per object
-        out[np.isinf(out)] = np.nan  # an object without geoms
+        squared = np.add.reduce(outside * outside, axis=1)  # np.linalg.norm's own sum, without its checks
+        # The nearest per object; its root is the nearest root (a correctly rounded root is monotonic).
+        nearest = np.sqrt(np.minimum.reduceat(squared, self._surface_starts))
+        if len(self._surface_objects) == len(self.object_names):  # every object has geoms
+            return nearest
+        out = np.full(len(self.object_names), np.nan)  # an object without geoms
+        out[self._surface_objects] = nearest
         return out
 
 

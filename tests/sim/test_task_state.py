@@ -208,3 +208,24 @@ def test_a_bowl_pushed_along_the_table_is_pushed_not_dropped():
     assert (series.object_pos[:, 0, 2] - bowl[2]).max() < fm.LIFTED_M  # never lifted
     out = fm.classify(series, "failure")
     assert (out.failure_mode, out.unmet_predicate) == ("pushed_or_toppled", "(on akita_black_bowl_1 plate_1)")
+
+
+def test_an_object_without_surface_geoms_has_no_distance_and_the_others_keep_theirs():
+    env = LiberoEnv("libero_goal", 0)
+    try:
+        env.reset(0, 7)
+        probe = env._task_probe
+        full = probe.sample().ee_distance
+        assert np.all(np.isfinite(full)) and len(probe._surface_objects) == len(probe.object_names)
+        # The first object's geoms dropped, as for a region whose parent has none.
+        first_end = probe._surface_starts[1]
+        keep = np.arange(len(probe._surface_geoms)) >= first_end
+        probe._surface_geoms = probe._surface_geoms[keep]
+        probe._surface_centre, probe._surface_half = probe._surface_centre[keep], probe._surface_half[keep]
+        probe._surface_objects = probe._surface_objects[1:]
+        probe._surface_starts = probe._surface_starts[1:] - first_end
+        without = probe.sample().ee_distance
+        assert np.isnan(without[0])
+        np.testing.assert_array_equal(without[1:], full[1:])
+    finally:
+        env.close()
