@@ -1,7 +1,9 @@
 """The simulation floor of a LIBERO tick, and ``LiberoEnv.step`` against it (CPU time per tick, no cameras).
 
 Loops, interleaved within each round (a change of machine load hits them alike), each round from the same start
-state, each loop's figure the median over rounds of the process's CPU seconds per tick:
+state, each loop's figure the median over rounds of the process's CPU seconds per tick. The floor and
+``LiberoEnv.step``, whose ratio is the target, alternate in blocks of a few ticks within a round: this machine's
+speed can change within a second, and both see the same changes.
 
 - robosuite's stock ``env.step`` (LIBERO's ControlEnv, MjSim's own forward and step) and its MuJoCo calls alone
   (per substep two ``mj_forward`` and an ``mj_step``);
@@ -27,6 +29,8 @@ import lq_ros  # noqa: F401 - first: it pins OpenBLAS's kernels before numpy loa
 
 #: ``LiberoEnv.step`` against the bit-identical floor: the target.
 FLOOR_TARGET = 1.2
+#: Ticks the floor and ``LiberoEnv.step`` run in turn, alternating within a round (each block about 40 ms).
+PAIRED_BLOCK_TICKS = 5
 #: robosuite's numba functions the operational-space controller calls once per substep, in its order.
 CONTROLLER_MATHS = ("orientation_error", "opspace_matrices", "nullspace_torques")
 
@@ -43,8 +47,8 @@ class Floor:
     controller_maths_s: float  #: robosuite's numba controller functions x 25, with a real tick's inputs
     bit_identical_s: float  #: the bit-identical floor: StageReuse's calls and the controller maths, one loop
     mj_step_s: float  #: raw mj_step x 25: the physics alone
-    #: ``LiberoEnv.step`` over the floor in each round (the two loops run back to back): empty for a Floor built
-    #: from medians alone
+    #: ``LiberoEnv.step`` over the floor in each round (the two loops alternating in blocks of
+    #: :data:`PAIRED_BLOCK_TICKS` ticks): empty for a Floor built from medians alone
     round_ratios: tuple[float, ...] = ()
 
     @property
@@ -185,7 +189,7 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
     the loops interleaved within each round (a change of machine load hits them alike), each round from the same
     start state. Per loop, the median over rounds of the process's CPU seconds per tick: on a machine shared with
     other work, CPU time varies less than wall time. ``LiberoEnv.step`` against the floor: the median of the rounds'
-    ratios, its loop and the floor's run back to back in each round."""
+    ratios, its ticks and the floor's alternating in blocks of :data:`PAIRED_BLOCK_TICKS` in each round."""
     import mujoco
     import numpy as np
 
@@ -268,19 +272,29 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
 
         return cpu_per_tick(tick)
 
-    def bit_identical() -> float:
+    def floor_and_env_step() -> tuple[float, float]:
+        """The floor's replay and ``LiberoEnv.step``, alternating in blocks: CPU seconds per tick of each."""
         data = copy.copy(start_data)
-        ticks_done = iter(range(ticks))
         run = replay(model, data, record, StageReuse)
-        spent = cpu_per_tick(lambda: run(next(ticks_done)))
+        env.reset(0, 7)
+        spent = [0.0, 0.0]
+        for first in range(0, ticks, PAIRED_BLOCK_TICKS):
+            block = range(first, min(ticks, first + PAIRED_BLOCK_TICKS))
+            begin = time.process_time()
+            for i in block:
+                run(i)
+            middle = time.process_time()
+            for _ in block:
+                env.step(action)
+            spent[0] += middle - begin
+            spent[1] += time.process_time() - middle
         if not np.array_equal(physics_state(data), record.end_state):
             raise RuntimeError("the floor's replay did not end in the recorded ticks' state")
-        return spent
+        if not np.array_equal(physics_state(env._data), record.end_state):
+            raise RuntimeError("LiberoEnv's ticks differ from the recorded ones")
+        return spent[0] / ticks, spent[1] / ticks
 
-    # LiberoEnv.step next to the floor's replay, so each round's ratio compares two loops run moments apart.
     loops: dict[str, Callable[[], float]] = {
-        "bit_identical_s": bit_identical,
-        "env_step_s": lambda: libero_env(True),
         "robosuite_step_s": stock,
         "env_step_robosuite_s": lambda: libero_env(False),
         "robosuite_mujoco_s": lambda: raw(robosuite_calls),
@@ -288,8 +302,11 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
         "controller_maths_s": maths,
         "mj_step_s": lambda: raw(lambda data: mujoco.mj_step(model, data)),
     }
-    rounds: dict[str, list[float]] = {name: [] for name in loops}
+    rounds: dict[str, list[float]] = {name: [] for name in ("bit_identical_s", "env_step_s", *loops)}
     for _ in range(repetitions):
+        floor_s, env_step_s = floor_and_env_step()
+        rounds["bit_identical_s"].append(floor_s)
+        rounds["env_step_s"].append(env_step_s)
         for name, loop in loops.items():
             rounds[name].append(loop())
     env.close()
