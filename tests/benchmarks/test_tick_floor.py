@@ -79,3 +79,14 @@ def test_the_floor_replays_a_real_tick_bit_for_bit():
         assert not np.array_equal(tick_floor.physics_state(data), record.end_state)
     finally:
         env.close()
+
+
+@pytest.mark.slow
+@pytest.mark.sim
+def test_a_short_floor_run_pairs_every_round_and_checks_both_loops_end_in_the_recorded_state():
+    """Two rounds of 7 ticks: blocks of PAIRED_BLOCK_TICKS and a shorter last one; each round's ratio is its own
+    LiberoEnv.step over its own floor (a loop ending elsewhere than the recorded ticks raises)."""
+    floor = tick_floor.floor_per_tick(14, repetitions=2)
+    assert len(floor.round_ratios) == 2 and all(r > 0 for r in floor.round_ratios)
+    assert 0 < floor.mj_step_s < floor.bit_identical_s < floor.robosuite_step_s
+    assert floor.env_step_over_floor == pytest.approx(sum(floor.round_ratios) / 2)
