@@ -186,7 +186,7 @@ class FastTick:
         # Views into MuJoCo's data, made once: each substep reads their current values (robosuite copies them).
         ee_pos, ee_ori_mat = site_xpos[sid], site_xmats[sid]
         arm_bias = qfrc_bias[dof_slice] if dof_slice is not None else None
-        # The arm's controls: clipped straight into MuJoCo's controls where its actuators are consecutive.
+        # The arm's controls, a view where its actuators are consecutive (the clip writes into it), else None.
         arm_ctrl = ctrl[arm.ctrl_slice] if arm.ctrl_slice is not None else None
         inline = False  # whether a substep ran inline
         substeps = int(env.control_timestep / env.model_timestep)
@@ -239,8 +239,8 @@ class FastTick:
             torques = j_full.T.dot(wrench) + (qfrc_bias[qvel_index] if arm_bias is None else arm_bias)
             torques += nullspace_torques(mass_matrix, nullspace_matrix, initial_joint, joint_pos, joint_vel)
 
-            # np.clip's ufunc, without its Python wrappers
-            clipped = _clip(torques, torque_low, torque_high) if arm_ctrl is None else None
+            # np.clip's ufunc without its Python wrappers, straight into MuJoCo's controls where the arm's are a slice
+            clipped = _clip(torques, torque_low, torque_high, arm_ctrl)
             if not grip_written:
                 if not grip_held:
                     grip = _clip(grip + grip_increment, -1.0, 1.0)
@@ -248,15 +248,13 @@ class FastTick:
                 grip_written = grip_held
             if arm_ctrl is None:
                 ctrl[arm_actuators] = clipped
-            else:
-                _clip(torques, torque_low, torque_high, arm_ctrl)
             sim_step()
             quiet = quiet - 1 if quiet else clock.act(dt, substeps - 1 - substep)
             inline = True
         if inline:
             # What robosuite leaves behind after a substep (the next policy step's update re-reads the state).
             gripper.current_action = grip
-            controller.torques, robot.torques = torques, clipped if arm_ctrl is None else arm_ctrl.copy()
+            controller.torques, robot.torques = torques, np.array(clipped)  # (not a view of MuJoCo's controls)
             controller.ee_pos, controller.ee_ori_mat = np.array(ee_pos), np.array(ee_ori_mat)
             controller.ee_pos_vel, controller.ee_ori_vel = ee_pos_vel, ee_ori_vel
             controller.joint_pos, controller.joint_vel = joint_pos, joint_vel
@@ -290,9 +288,9 @@ class _Arm:
         self.qpos_index = np.asarray(controller.qpos_index, dtype=np.intp)
         self.qvel_index = dofs = np.asarray(controller.qvel_index, dtype=np.intp)
         # What reads the arm's positions and velocities: a slice (a view) where they are consecutive, else the index.
-        pos_slice = consecutive_slice(self.qpos_index)
+        pos_slice, vel_slice = consecutive_slice(self.qpos_index), consecutive_slice(dofs)
         self.qpos_select = self.qpos_index if pos_slice is None else pos_slice
-        self.qvel_select = dofs if consecutive_slice(dofs) is None else consecutive_slice(dofs)
+        self.qvel_select = dofs if vel_slice is None else vel_slice
         self.mass_index = _mass_index(mujoco, model, dofs)
         # The arm's columns of the Jacobians: a slice where its dofs are consecutive (as for LIBERO's Panda), copied
         # to Fortran order as robosuite's fancy index copies them; the fancy index otherwise.

@@ -122,6 +122,17 @@ def test_every_suite_ticks_as_libero_s_own_env(suite, task):
     _assert_libero_s_own_env_agrees(suite, task, done, physics, observations)
 
 
+def test_an_arm_whose_indexes_are_not_consecutive_ticks_as_libero_s_own_env(monkeypatch):
+    """The fast tick's and the energy integration's general path: every arm index read through its index array
+    (as for a robot whose joints or actuators are not consecutive in MuJoCo's arrays), never a slice."""
+    from lq_ros.sim import fast_tick
+
+    monkeypatch.setattr(fast_tick, "consecutive_slice", lambda index: None)
+    actions = _random_actions(18)
+    done, physics, observations, _, _ = _ours("libero_goal", 1, actions=actions, ticks=len(actions))
+    _assert_libero_s_own_env_agrees("libero_goal", 1, done, physics, observations)
+
+
 # Spatial 0: a bowl grasped, carried and placed (the gripper closing, holding and opening); Goal 0: the middle drawer
 # pulled open by its handle; Goal 7: the stove's knob turned. The scripted expert solves each.
 @pytest.mark.parametrize(("suite", "task"), [("libero_spatial", 0), ("libero_goal", 0), ("libero_goal", 7)])
