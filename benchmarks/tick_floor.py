@@ -230,8 +230,9 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
         finally:
             sim.forward, sim.step = wrapped
 
-    def libero_env(fast: bool) -> float:
-        env.fast_tick = fast
+    def without_fast_tick() -> float:
+        """LiberoEnv.step through robosuite's own env.step (LQ_FAST_TICK=off)."""
+        env.fast_tick = False
         env.reset(0, 7)
         try:
             spent = cpu_per_tick(lambda: env.step(action))
@@ -296,7 +297,7 @@ def floor_per_tick(n_ticks: int, suite: str = "libero_spatial", task: int = 0, r
 
     loops: dict[str, Callable[[], float]] = {
         "robosuite_step_s": stock,
-        "env_step_robosuite_s": lambda: libero_env(False),
+        "env_step_robosuite_s": without_fast_tick,
         "robosuite_mujoco_s": lambda: raw(robosuite_calls),
         "reused_mujoco_s": reused,
         "controller_maths_s": maths,

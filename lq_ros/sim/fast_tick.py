@@ -294,7 +294,7 @@ class _Arm:
         self.mass_index = _mass_index(mujoco, model, dofs)
         # The arm's columns of the Jacobians: a slice where its dofs are consecutive (as for LIBERO's Panda), copied
         # to Fortran order as robosuite's fancy index copies them; the fancy index otherwise.
-        self.dof_slice = consecutive_slice(dofs) if len(dofs) > 1 else None
+        self.dof_slice = vel_slice if len(dofs) > 1 else None
         self.arm_actuators = np.asarray(robot._ref_joint_actuator_indexes, dtype=np.intp)
         self.ctrl_slice = consecutive_slice(self.arm_actuators)
         self.gripper_actuators = np.array([model.actuator(name).id for name in gripper.actuators], dtype=np.intp)
